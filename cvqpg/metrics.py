@@ -1,0 +1,127 @@
+"""The paper's image metrics (SPEC §7): PSNR, SSIM, FLIP always; LPIPS and ColorVideoVDP when present.
+
+Nothing is downloaded: LPIPS needs `lpips` (and torchvision) plus the VGG16 weights already in the
+torch hub cache; ColorVideoVDP needs `cvvdp`. When either is missing its value is None and
+`unavailable` says why.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+from torch import Tensor
+
+METRIC_NAMES = ("psnr", "ssim", "flip", "lpips", "cvvdp")
+VGG16_WEIGHTS = "vgg16-397923af.pth"
+CVVDP_DISPLAY = "standard_4k"
+
+
+class MetricUnavailable(RuntimeError):
+    """A metric cannot run on this machine; the message says what is missing."""
+
+
+@dataclass
+class MetricReport:
+    """Per-plane values, their means, and why any metric is missing."""
+
+    per_plane: dict[str, list[float | None]]
+    unavailable: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def mean(self) -> dict[str, float | None]:
+        return {name: (None if any(v is None for v in values) else float(np.mean(values)))
+                for name, values in self.per_plane.items()}
+
+    def to_dict(self) -> dict:
+        return {"mean": self.mean, "per_plane": self.per_plane, "unavailable": self.unavailable}
+
+
+def _hwc(image: Tensor) -> np.ndarray:
+    return image.detach().to("cpu", torch.float32).clamp(0, 1).permute(1, 2, 0).numpy()
+
+
+def _rgb(image: np.ndarray) -> np.ndarray:
+    return np.repeat(image, 3, axis=2) if image.shape[2] == 1 else image
+
+
+def psnr(recon: np.ndarray, target: np.ndarray) -> float:
+    """PSNR (dB), data range 1, over all channels."""
+    return float(peak_signal_noise_ratio(target, recon, data_range=1.0))
+
+
+def ssim(recon: np.ndarray, target: np.ndarray) -> float:
+    """scikit-image SSIM with its defaults (7×7 uniform window), data range 1."""
+    if recon.shape[2] == 1:
+        return float(structural_similarity(target[..., 0], recon[..., 0], data_range=1.0))
+    return float(structural_similarity(target, recon, data_range=1.0, channel_axis=-1))
+
+
+def flip(recon: np.ndarray, target: np.ndarray) -> float:
+    """Mean LDR-FLIP error, reference = target."""
+    import flip_evaluator
+
+    return float(flip_evaluator.evaluate(np.ascontiguousarray(_rgb(target)),
+                                         np.ascontiguousarray(_rgb(recon)), "LDR")[1])
+
+
+@functools.lru_cache(maxsize=1)
+def _lpips_model():
+    try:
+        import lpips
+    except Exception as error:  # lpips imports torchvision, which may be absent or broken
+        raise MetricUnavailable(f"package 'lpips' does not import ({type(error).__name__}: {error})")
+    weights = Path(torch.hub.get_dir()) / "checkpoints" / VGG16_WEIGHTS
+    if not weights.is_file():
+        raise MetricUnavailable(f"VGG16 weights not found at {weights}; copy {VGG16_WEIGHTS} there "
+                                "(nothing is downloaded at run time)")
+    return lpips.LPIPS(net="vgg", verbose=False).eval()
+
+
+def lpips_vgg(recon: np.ndarray, target: np.ndarray) -> float:
+    """LPIPS (VGG), inputs mapped to [−1, 1]."""
+    model = _lpips_model()
+    to_input = lambda a: torch.from_numpy(_rgb(a)).permute(2, 0, 1)[None] * 2 - 1  # noqa: E731
+    with torch.no_grad():
+        return float(model(to_input(recon), to_input(target)).item())
+
+
+@functools.lru_cache(maxsize=1)
+def _cvvdp_model():
+    try:
+        import pycvvdp
+    except Exception as error:
+        raise MetricUnavailable(f"package 'cvvdp' does not import ({type(error).__name__}: {error})")
+    return pycvvdp.cvvdp(display_name=CVVDP_DISPLAY)
+
+
+def cvvdp(recon: np.ndarray, target: np.ndarray) -> float:
+    """ColorVideoVDP JOD on display model `standard_4k`, single image."""
+    model = _cvvdp_model()
+    jod, _ = model.predict(torch.from_numpy(_rgb(recon)), torch.from_numpy(_rgb(target)), dim_order="HWC")
+    return float(jod)
+
+
+METRICS: dict[str, Callable[[np.ndarray, np.ndarray], float]] = {
+    "psnr": psnr, "ssim": ssim, "flip": flip, "lpips": lpips_vgg, "cvvdp": cvvdp}
+
+
+def evaluate(recon: Tensor, targets: Tensor) -> MetricReport:
+    """Metrics of reconstructions [M, C, H, W] against noise-free targets [M, C, H, W], per plane."""
+    report = MetricReport(per_plane={name: [] for name in METRIC_NAMES})
+    for plane_recon, plane_target in zip(recon, targets):
+        r, t = _hwc(plane_recon), _hwc(plane_target)
+        for name, metric in METRICS.items():
+            value = None
+            if name not in report.unavailable:
+                try:
+                    value = metric(r, t)
+                except MetricUnavailable as reason:
+                    report.unavailable[name] = str(reason)
+            report.per_plane[name].append(value)
+    return report

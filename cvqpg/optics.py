@@ -1,0 +1,141 @@
+"""Hologram field and band-limited angular spectrum propagation (SPEC §3, odak 0.2.7's convention)."""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+from .config import FitConfig, padded_size
+
+
+@dataclass(frozen=True)
+class Grid:
+    """Geometry of the SLM content (H×W px) inside its guard-banded array (P_H×P_W px)."""
+
+    height: int
+    width: int
+    padded_height: int
+    padded_width: int
+
+    @classmethod
+    def for_config(cls, config: FitConfig) -> "Grid":
+        return cls(config.height, config.width,
+                   padded_size(config.height, config.guard_band_px, config.pad_multiple_px),
+                   padded_size(config.width, config.guard_band_px, config.pad_multiple_px))
+
+    @property
+    def top(self) -> int:
+        return (self.padded_height - self.height) // 2
+
+    @property
+    def left(self) -> int:
+        return (self.padded_width - self.width) // 2
+
+    def crop(self, padded: Tensor) -> Tensor:
+        """Centre H×W content of a [..., P_H, P_W] array."""
+        return padded[..., self.top:self.top + self.height, self.left:self.left + self.width]
+
+
+def _taper(length: int, start: int, stop: int, device: torch.device) -> Tensor:
+    """1 on [start, stop), raised cosine falling to 0 at both array ends across the guard band."""
+    index = torch.arange(length, device=device, dtype=torch.float32)
+    left_guard, right_guard = max(start, 1), max(length - stop, 1)
+    into_left = (start - index) / left_guard
+    into_right = (index - stop + 1) / right_guard
+    into_guard = torch.clamp(torch.maximum(into_left, into_right), min=0.0)
+    return 0.5 * (1 + torch.cos(math.pi * into_guard))
+
+
+@functools.lru_cache(maxsize=16)
+def guard_window(grid: Grid, device: torch.device) -> Tensor:
+    """Separable raised-cosine window [P_H, P_W]: 1 on the content, 0 at the array edge."""
+    rows = _taper(grid.padded_height, grid.top, grid.top + grid.height, device)
+    cols = _taper(grid.padded_width, grid.left, grid.left + grid.width, device)
+    return rows[:, None] * cols[None, :]
+
+
+def pad_with_guard_band(hologram: Tensor, grid: Grid) -> Tensor:
+    """[C, H, W] → [C, P_H, P_W]: edge-replicated guard band (no gradient through it), windowed."""
+    device = hologram.device
+    rows = torch.clamp(torch.arange(grid.padded_height, device=device) - grid.top, 0, grid.height - 1)
+    cols = torch.clamp(torch.arange(grid.padded_width, device=device) - grid.left, 0, grid.width - 1)
+    padded = hologram.detach()[:, rows[:, None], cols[None, :]]
+    padded[:, grid.top:grid.top + grid.height, grid.left:grid.left + grid.width] = hologram
+    return padded * guard_window(grid, device)
+
+
+def slm_field(padded: Tensor) -> Tensor:
+    """`A·e^{iφ}` with `A = clamp(|H|, 0, 1)`, `φ = angle(H)`: written as `H / max(|H|, 1)`.
+
+    The quotient is the same number without atan2/exp and keeps a finite gradient where H = 0.
+    """
+    return padded / torch.clamp(padded.abs(), min=1.0)
+
+
+@functools.lru_cache(maxsize=64)
+def transfer_function(rows: int, cols: int, pixel_pitch: float, wavelength: float, distance: float,
+                      device: torch.device) -> Tensor:
+    """BLASM transfer function [rows, cols] (complex64), centred, exactly as odak 0.2.7 builds it.
+
+    Computed in float32 like odak, whose numbers the paper reports. As in odak, the band limit of
+    each axis' frequency is taken with the other axis' length (identical on square grids).
+    """
+    length_rows, length_cols = pixel_pitch * rows, pixel_pitch * cols
+    f_rows = torch.linspace(-1 / (2 * pixel_pitch) + 0.5 / (2 * length_rows),
+                            1 / (2 * pixel_pitch) - 0.5 / (2 * length_rows), rows,
+                            dtype=torch.float32, device=device)
+    f_cols = torch.linspace(-1 / (2 * pixel_pitch) + 0.5 / (2 * length_cols),
+                            1 / (2 * pixel_pitch) - 0.5 / (2 * length_cols), cols,
+                            dtype=torch.float32, device=device)
+    fr, fc = torch.meshgrid(f_rows, f_cols, indexing="ij")
+    z = torch.tensor([distance], dtype=torch.float32, device=device)
+    phase = 2 * math.pi * torch.sqrt(1 / wavelength**2 - (fc**2 + fr**2)) * z
+    limit_cols = 1 / torch.sqrt((2 * z * (1 / length_rows)) ** 2 + 1) / wavelength
+    limit_rows = 1 / torch.sqrt((2 * z * (1 / length_cols)) ** 2 + 1) / wavelength
+    passband = (fc.abs() < limit_cols) & (fr.abs() < limit_rows)
+    return torch.polar(passband.float(), phase)
+
+
+@functools.lru_cache(maxsize=64)
+def _unshifted_transfer_functions(rows: int, cols: int, pixel_pitch: float,
+                                  wavelengths: tuple[float, ...], distances: tuple[float, ...],
+                                  device: torch.device) -> Tensor:
+    """[M, C, rows, cols] transfer functions, ifftshift-ed once so propagation needs no shifts."""
+    stack = torch.stack([torch.stack([transfer_function(rows, cols, pixel_pitch, w, z, device)
+                                      for w in wavelengths]) for z in distances])
+    return torch.fft.ifftshift(stack, dim=(-2, -1))
+
+
+def propagate(field: Tensor, distances_m: Sequence[float], wavelengths_m: Sequence[float],
+              pixel_pitch: float) -> Tensor:
+    """Propagate a [C, P_H, P_W] field to every distance: complex [M, C, P_H, P_W].
+
+    odak's recipe: zero-pad to 2P_H×2P_W, centred FFT, BLASM transfer function, inverse, centre
+    crop. Because fftshift/ifftshift cancel around a pointwise product on even grids, the shifts are
+    folded into the cached transfer function; one forward FFT per channel serves every plane.
+    """
+    channels, rows, cols = field.shape
+    if len(wavelengths_m) != channels:
+        raise ValueError(f"{len(wavelengths_m)} wavelengths for a field of {channels} channels")
+    top, left = rows // 2, cols // 2
+    padded = field.new_zeros(channels, 2 * rows, 2 * cols)
+    padded[:, top:top + rows, left:left + cols] = field
+    spectrum = torch.fft.fft2(padded)
+    transfer = _unshifted_transfer_functions(2 * rows, 2 * cols, float(pixel_pitch),
+                                             tuple(map(float, wavelengths_m)),
+                                             tuple(map(float, distances_m)), field.device)
+    output = torch.fft.ifft2(spectrum[None] * transfer)
+    return output[..., top:top + rows, left:left + cols]
+
+
+def reconstruct(hologram: Tensor, config: FitConfig) -> Tensor:
+    """Hologram [C, H, W] → reconstructed intensity [M, C, H, W] clamped to [0, 1] (SPEC §3)."""
+    grid = Grid.for_config(config)
+    field = slm_field(pad_with_guard_band(hologram, grid))
+    planes = propagate(field, config.plane_distances, config.wavelengths, config.pixel_pitch)
+    return torch.clamp(grid.crop(planes).abs() ** 2, 0.0, 1.0)

@@ -1,0 +1,86 @@
+"""Built-in scenes generated in code, deterministic at any size: `demo` and `star`."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from PIL import Image
+
+SUPERSAMPLING = 4
+
+
+@dataclass(frozen=True)
+class BuiltinScene:
+    """An 8-bit image and an optional 8-bit depth map (0 = near), as files would give them."""
+
+    image: Image.Image
+    depth: Image.Image | None
+    default_planes: int
+    default_color: str
+
+
+def _coordinates(width: int, height: int, supersampling: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel-centre coordinates normalised by the height, origin at the image centre."""
+    step = 1.0 / supersampling
+    offsets = (np.arange(supersampling) + 0.5) * step - 0.5
+    xs = (np.arange(width)[:, None] + offsets[None, :]).reshape(-1)
+    ys = (np.arange(height)[:, None] + offsets[None, :]).reshape(-1)
+    x, y = np.meshgrid((xs - (width - 1) / 2) / height, (ys - (height - 1) / 2) / height)
+    return x, y
+
+
+def _downsample(values: np.ndarray, supersampling: int) -> np.ndarray:
+    h, w = values.shape[0] // supersampling, values.shape[1] // supersampling
+    return values.reshape(h, supersampling, w, supersampling, *values.shape[2:]).mean(axis=(1, 3))
+
+
+def _to_8bit(values: np.ndarray) -> np.ndarray:
+    return np.clip(np.round(values * 255), 0, 255).astype(np.uint8)
+
+
+def demo_scene(width: int, height: int) -> BuiltinScene:
+    """A far tiled wall, a mid-depth striped card and a near ringed disc, with their exact depth."""
+    x, y = _coordinates(width, height, SUPERSAMPLING)
+    tiles = (np.floor(x * 8) + np.floor(y * 8)) % 2
+    hue = 0.5 + 0.5 * np.stack([np.cos(2 * math.pi * (x + 0.00)), np.cos(2 * math.pi * (y + 0.33)),
+                                np.cos(2 * math.pi * (x + y + 0.66))], axis=-1)
+    image = (0.25 + 0.5 * tiles)[..., None] * hue
+    depth = np.ones_like(x)
+
+    card = (np.abs(x - 0.35) < 0.22) & (np.abs(y - 0.12) < 0.3)
+    stripes = 0.5 + 0.5 * np.sign(np.sin(2 * math.pi * 12 * x))
+    image[card] = (np.array([0.95, 0.85, 0.2]) * (0.3 + 0.7 * stripes[card, None]))
+    depth[card] = 0.5
+
+    radius = np.hypot(x + 0.3, y + 0.02)
+    disc = radius < 0.3
+    rings = 0.5 + 0.5 * np.cos(2 * math.pi * 10 * radius)
+    image[disc] = np.stack([0.9 * rings, 0.2 + 0.3 * (1 - rings), 0.9 * (1 - rings)], axis=-1)[disc]
+    depth[disc] = 0.0
+
+    rgb = _to_8bit(_downsample(image, SUPERSAMPLING))
+    depth_map = _to_8bit(np.round(_downsample(depth, SUPERSAMPLING) * 2) / 2)
+    return BuiltinScene(Image.fromarray(rgb, "RGB"), Image.fromarray(depth_map, "L"), 2, "rgb")
+
+
+def siemens_star(width: int, height: int, spokes: int = 36) -> BuiltinScene:
+    """A grayscale Siemens star: `spokes` black/white sectors whose frequency rises to the centre."""
+    x, y = _coordinates(width, height, SUPERSAMPLING)
+    angle = np.arctan2(y, x)
+    sectors = 0.5 + 0.5 * np.sign(np.sin(spokes / 2 * angle))
+    inside = np.hypot(x, y) < 0.45
+    values = np.where(inside, sectors, 0.5)
+    gray = _to_8bit(_downsample(values, SUPERSAMPLING))
+    return BuiltinScene(Image.fromarray(gray, "L"), None, 1, "gray")
+
+
+SCENES = {"demo": demo_scene, "star": siemens_star}
+
+
+def builtin_scene(name: str, width: int, height: int) -> BuiltinScene:
+    """Generate the named built-in scene at W×H px."""
+    if name not in SCENES:
+        raise ValueError(f"unknown scene {name!r}; built-in scenes are {', '.join(sorted(SCENES))}")
+    return SCENES[name](width, height)
