@@ -19,7 +19,7 @@ from .losses import multiplane_loss, noisy_targets
 from .metrics import MetricReport, evaluate
 from .optics import reconstruct
 from .primitives import Gaussians, activate, init_gaussians
-from .rasterize import rasterize
+from .rasterization import rasterize
 from .targets import Scene, load_scene
 
 LEARNING_RATE_GROUPS = ("position", "scale", "rotation", "color", "phase", "opacity", "curvature")

@@ -1,0 +1,99 @@
+"""The command line as a user drives it: outputs of `fit`, `eval`, and clear errors for bad input."""
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from cvqpg.cli import main
+
+SMALL = ["--size", "48", "36", "--steps", "3", "--warmup", "1", "--quiet"]
+RUN_FILES = {"config.json", "metrics.json", "model.safetensors", "target_plane0.png", "target_plane1.png",
+             "recon_plane0.png", "recon_plane1.png", "amplitude.png", "phase.png", "curve.png"}
+
+
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("runs") / "demo"
+    assert main(["fit", *SMALL, "--out", str(out)]) == 0
+    return out
+
+
+def test_fit_writes_the_whole_run_folder(demo_run):
+    assert RUN_FILES <= {p.name for p in demo_run.iterdir()}
+    config = json.loads((demo_run / "config.json").read_text())
+    assert config["seed"] == 100 and config["cvqpg_version"] and config["source"] == {"scene": "demo"}
+    assert config["pixel_pitch"] == 3.74e-6 and config["width"] == 48
+    metrics = json.loads((demo_run / "metrics.json").read_text())
+    assert set(metrics["mean"]) == {"psnr", "ssim", "flip", "lpips", "cvvdp"}
+    assert len(metrics["per_plane"]["psnr"]) == 2
+    assert metrics["steps"] == 3 and metrics["num_gaussians"] == round(0.2 * 48 * 36 / 2)
+    assert metrics["num_params"] == metrics["num_gaussians"] * 13
+    for name in ("lpips", "cvvdp"):
+        assert (metrics["mean"][name] is None) == (name in metrics["unavailable"])
+    assert Image.open(demo_run / "recon_plane1.png").size == (48, 36)
+
+
+def test_eval_recomputes_the_saved_metrics(demo_run, capsys):
+    before = json.loads((demo_run / "metrics.json").read_text())
+    assert main(["eval", str(demo_run)]) == 0
+    after = json.loads((demo_run / "metrics.json").read_text())
+    assert after["mean"]["psnr"] == pytest.approx(before["mean"]["psnr"], abs=1e-9)
+    assert after["seconds"] == before["seconds"]
+    assert "PSNR" in capsys.readouterr().out
+
+
+def test_fit_on_image_and_depth_files(tmp_path):
+    rng = np.random.default_rng(0)
+    Image.fromarray(rng.integers(0, 256, (30, 40, 3), dtype=np.uint8)).save(tmp_path / "photo.jpg")
+    Image.fromarray(np.tile(np.linspace(0, 255, 40, dtype=np.uint8), (30, 1))).save(tmp_path / "d.png")
+    out = tmp_path / "run"
+    code = main(["fit", str(tmp_path / "photo.jpg"), "--depth", str(tmp_path / "d.png"), "--color", "gray",
+                 "--primitive", "flat", *SMALL, "--out", str(out)])
+    assert code == 0
+    config = json.loads((out / "config.json").read_text())
+    assert config["color"] == "gray" and config["primitive"] == "flat"
+    assert config["source"]["depth"].endswith("d.png")
+
+
+def test_star_scene_runs_single_plane_grayscale(tmp_path):
+    out = tmp_path / "star"
+    assert main(["fit", "--scene", "star", *SMALL, "--out", str(out)]) == 0
+    config = json.loads((out / "config.json").read_text())
+    assert config["num_planes"] == 1 and config["color"] == "gray"
+    assert (out / "recon_plane0.png").exists() and not (out / "recon_plane1.png").exists()
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["missing.png"], "does not exist"),
+    (["--scene", "demo", "--depth", "x.png"], "--depth applies to an IMAGE"),
+    (["--device", "cuda"], "no CUDA GPU"),
+])
+def test_bad_input_is_one_line_and_exit_code_2(arguments, message, capsys, tmp_path, monkeypatch):
+    monkeypatch.setattr("torch.cuda.is_available", lambda: False)
+    assert main(["fit", *arguments, *SMALL, "--out", str(tmp_path / "r")]) == 2
+    error = capsys.readouterr().err
+    assert message in error and "Traceback" not in error and error.count("\n") == 1
+    assert not (tmp_path / "r").exists()
+
+
+def test_image_without_depth_needs_a_single_plane(tmp_path, capsys):
+    Image.new("RGB", (40, 30)).save(tmp_path / "a.png")
+    assert main(["fit", str(tmp_path / "a.png"), *SMALL, "--out", str(tmp_path / "r")]) == 2
+    assert "needs a depth map" in capsys.readouterr().err
+
+
+def test_existing_run_is_not_overwritten_without_flag(demo_run, capsys):
+    before = (demo_run / "model.safetensors").read_bytes()
+    assert main(["fit", *SMALL, "--out", str(demo_run)]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert (demo_run / "model.safetensors").read_bytes() == before
+
+
+def test_help_explains_options_with_units_and_defaults(capsys):
+    with pytest.raises(SystemExit):
+        main(["fit", "--help"])
+    text = capsys.readouterr().out
+    for expected in ("--primitive", "--bound", "--qpf", "px", "default: 2000", "1 mm", "--warmup"):
+        assert expected in text, expected

@@ -1,0 +1,386 @@
+"""Rasterizer against an independent per-pixel evaluation of SPEC §2, gradients, Nyquist bound (SPEC §4)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from cvqpg.config import FitConfig
+from cvqpg.primitives import Gaussians, Primitives, activate, curvature_bound, init_gaussians
+from cvqpg.rasterization import rasterize
+from cvqpg.fitting import render_hologram
+
+PITCH = 3.74e-6
+WAVELENGTHS = (639e-9, 473e-9)
+F64 = torch.float64
+FIELDS = ("position_px", "scale_px", "rotation_rad", "color", "phase_rad", "opacity", "curvature_per_m")
+
+
+# --------------------------------------------------------------------------- independent reference
+
+
+def sigma_major_reference(scale: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
+    """σ_major from the eigenvalues of the explicitly built 2×2 Σ (no gradient needed: the cutoff is a step)."""
+    with torch.no_grad():
+        cov = covariance_matrices(scale, rotation)
+        return torch.linalg.eigvalsh(cov)[:, -1].sqrt()
+
+
+def covariance_matrices(scale: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
+    """Σ = R S Sᵀ Rᵀ + 0.1 I as [N, 2, 2] matrices, R = [[cos, −sin], [sin, cos]]."""
+    cos, sin = torch.cos(rotation), torch.sin(rotation)
+    rot = torch.stack([torch.stack([cos, -sin], -1), torch.stack([sin, cos], -1)], -2)
+    s = torch.diag_embed(scale)
+    return rot @ s @ s.transpose(-1, -2) @ rot.transpose(-1, -2) + 0.1 * torch.eye(2, dtype=scale.dtype)
+
+
+def direct_hologram(prims: Primitives, width: int, height: int, wavelengths, pitch: float, qpf: str) -> torch.Tensor:
+    """Every primitive at every pixel centre (integer coordinates), complex [C, H, W]; SPEC §2 verbatim."""
+    cov = covariance_matrices(prims.scale_px, prims.rotation_rad)
+    det = torch.clamp(cov[:, 0, 0] * cov[:, 1, 1] - cov[:, 0, 1] * cov[:, 1, 0], min=1e-10)
+    adj = torch.stack([torch.stack([cov[:, 1, 1], -cov[:, 0, 1]], -1),
+                       torch.stack([-cov[:, 1, 0], cov[:, 0, 0]], -1)], -2)
+    inverse = adj / det[:, None, None]  # [N, 2, 2]
+    ys, xs = torch.meshgrid(torch.arange(height, dtype=F64), torch.arange(width, dtype=F64), indexing="ij")
+    pixels = torch.stack([xs, ys], -1).reshape(-1, 2)  # [P, 2] (x, y)
+    delta = pixels[None] - prims.position_px[:, None]  # [N, P, 2]
+    d2 = torch.einsum("npi,nij,npj->np", delta, inverse, delta)
+    r2 = (delta**2).sum(-1)
+    reach = 3 * sigma_major_reference(prims.scale_px, prims.rotation_rad)
+    inside = torch.sqrt(r2) <= reach[:, None]
+    envelope = torch.exp(torch.clamp(-d2 / 2, min=-50.0)) * inside
+    if qpf == "mahalanobis":
+        psi = 0.5 * prims.curvature_per_m[:, None] * prims.scale_px.prod(-1)[:, None] * pitch**2 * d2
+    elif qpf == "standard":
+        psi = 0.5 * prims.curvature_per_m[:, None] * pitch**2 * r2
+    else:
+        raise ValueError(qpf)
+    k = torch.tensor([2 * math.pi / w for w in wavelengths], dtype=F64)
+    channels = []
+    for c in range(len(wavelengths)):
+        amplitude = prims.opacity[:, None] * prims.color[:, c:c + 1] * envelope
+        phase = prims.phase_rad[:, c:c + 1] + k[c] * psi
+        channels.append((amplitude * torch.exp(1j * phase)).sum(0))
+    return torch.stack(channels).reshape(len(wavelengths), height, width)
+
+
+def footprint_margin(prims: Primitives, width: int, height: int) -> float:
+    """Smallest | |p − x| − 3σ_major | over all pixels and primitives (px)."""
+    ys, xs = torch.meshgrid(torch.arange(height, dtype=F64), torch.arange(width, dtype=F64), indexing="ij")
+    pixels = torch.stack([xs, ys], -1).reshape(-1, 2)
+    with torch.no_grad():
+        dist = (pixels[None] - prims.position_px[:, None]).norm(dim=-1)
+        reach = 3 * sigma_major_reference(prims.scale_px, prims.rotation_rad)
+        return float((dist - reach[:, None]).abs().min())
+
+
+def make_prims(position, scale, rotation, color, phase, opacity, curvature) -> Primitives:
+    t = lambda v: torch.as_tensor(v, dtype=F64).clone()  # noqa: E731
+    return Primitives(position_px=t(position), scale_px=t(scale), rotation_rad=t(rotation), color=t(color),
+                      phase_rad=t(phase), opacity=t(opacity), curvature_per_m=t(curvature))
+
+
+def random_prims(count: int, width: int, height: int, seed: int, scale_range=(0.3, 4.0),
+                 position_margin: float = 4.0, curvature: float = 3000.0) -> Primitives:
+    g = torch.Generator().manual_seed(seed)
+    u = lambda *shape: torch.rand(*shape, generator=g, dtype=F64)  # noqa: E731
+    low, high = scale_range
+    position = torch.stack([u(count) * (width + 2 * position_margin) - position_margin,
+                            u(count) * (height + 2 * position_margin) - position_margin], -1)
+    return Primitives(
+        position_px=position,
+        scale_px=low + (high - low) * u(count, 2),
+        rotation_rad=(2 * u(count) - 1) * math.pi,
+        color=u(count, len(WAVELENGTHS)),
+        phase_rad=2 * math.pi * u(count, len(WAVELENGTHS)),
+        opacity=0.2 + 0.8 * u(count),
+        curvature_per_m=(2 * u(count) - 1) * curvature,
+    )
+
+
+def concat(*groups: Primitives) -> Primitives:
+    return Primitives(**{name: torch.cat([getattr(g, name) for g in groups]) for name in FIELDS})
+
+
+def assorted_prims(width: int, height: int) -> Primitives:
+    """Rotated anisotropic, tiny, huge (bigger than the image), partly and fully off-image primitives."""
+    mixed = random_prims(25, width, height, seed=11)
+    tiny = random_prims(6, width, height, seed=12, scale_range=(0.05, 0.3), position_margin=0.0)
+    huge = make_prims(
+        position=[[width * 0.4, height * 0.6], [-3.0, height + 2.0], [width + 30.0, -20.0]],
+        scale=[[14.0, 6.0], [30.0, 25.0], [12.0, 10.0]],
+        rotation=[0.7, -2.1, 1.3],
+        color=[[0.9, 0.3], [0.5, 0.8], [0.6, 0.4]],
+        phase=[[0.3, 5.0], [2.0, 1.0], [4.0, 0.1]],
+        opacity=[0.7, 0.4, 0.9],
+        curvature=[150.0, -90.0, 60.0],
+    )
+    off_image = make_prims(
+        position=[[-2.5, 5.2], [width + 1.7, 3.3], [6.4, -3.1], [-40.0, -40.0], [width + 25.0, height / 2]],
+        scale=[[2.0, 1.2], [1.5, 2.5], [3.0, 0.8], [2.0, 2.0], [1.0, 1.0]],
+        rotation=[0.4, 1.1, -0.6, 0.0, 0.2],
+        color=[[0.8, 0.2], [0.3, 0.9], [0.5, 0.5], [1.0, 1.0], [1.0, 1.0]],
+        phase=[[1.0, 2.0], [3.0, 4.0], [5.0, 6.0], [0.0, 0.0], [0.0, 0.0]],
+        opacity=[0.6, 0.5, 0.4, 0.9, 0.9],
+        curvature=[2000.0, -1500.0, 800.0, 0.0, 0.0],
+    )
+    return concat(mixed, tiny, huge, off_image)
+
+
+def with_curvature(prims: Primitives, curvature: torch.Tensor) -> Primitives:
+    values = {name: getattr(prims, name) for name in FIELDS}
+    values["curvature_per_m"] = curvature
+    return Primitives(**values)
+
+
+def max_abs(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a - b).abs().max())
+
+
+# --------------------------------------------------------------------------- values
+
+
+@pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
+@pytest.mark.parametrize("flat", [True, False])
+def test_rasterizer_matches_direct_evaluation(qpf, flat):
+    width, height = 24, 18
+    prims = assorted_prims(width, height)
+    if flat:
+        prims = with_curvature(prims, torch.zeros_like(prims.curvature_per_m))
+    assert footprint_margin(prims, width, height) > 1e-6
+    ours = rasterize(prims, width, height, WAVELENGTHS, PITCH, qpf, backend="torch")
+    reference = direct_hologram(prims, width, height, WAVELENGTHS, PITCH, qpf)
+    assert ours.shape == (2, height, width) and ours.dtype == torch.complex128
+    assert reference.abs().max() > 0.5
+    assert max_abs(ours, reference) < 1e-10
+
+
+@pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
+def test_single_primitives_each_match(qpf):
+    """Each primitive alone (so an error cannot hide in a sum), including the full-image path."""
+    width, height = 24, 18
+    prims = assorted_prims(width, height)
+    for index in range(prims.position_px.shape[0]):
+        one = Primitives(**{name: getattr(prims, name)[index:index + 1] for name in FIELDS})
+        ours = rasterize(one, width, height, WAVELENGTHS, PITCH, qpf)
+        reference = direct_hologram(one, width, height, WAVELENGTHS, PITCH, qpf)
+        assert max_abs(ours, reference) < 1e-10, index
+
+
+def test_fully_off_image_primitive_renders_zero():
+    width, height = 16, 12
+    prims = make_prims([[-30.0, -30.0], [width + 20.0, 5.0]], [[2.0, 2.0], [1.5, 3.0]], [0.3, 0.0],
+                       [[1.0, 1.0], [1.0, 1.0]], [[0.0, 0.0], [0.0, 0.0]], [0.9, 0.9], [100.0, 100.0])
+    ours = rasterize(prims, width, height, WAVELENGTHS, PITCH)
+    assert torch.all(ours == 0)
+
+
+def test_exponent_clamp_and_footprint_cutoff():
+    """A needle primitive: inside its 3σ_major circle but many σ_minor away the exponent is clamped at −50;
+    outside the circle the contribution is exactly zero."""
+    width, height = 56, 52
+    # major axis along x: σ_major² = 100.1, σ_minor² = 0.01 + 0.1
+    prims = make_prims([[20.0, 20.0]], [[10.0, 0.1]], [0.0], [[1e20, 1.0]], [[0.0, 0.0]], [1.0], [0.0])
+    ours = rasterize(prims, width, height, WAVELENGTHS, PITCH)
+    reference = direct_hologram(prims, width, height, WAVELENGTHS, PITCH, "mahalanobis")
+    # (x=20, y=30): D²/2 = 100/(2·0.11) ≫ 50 → clamped: 1e20·e^−50
+    clamped = 1e20 * math.exp(-50.0)
+    assert ours[0, 30, 20].real.item() == pytest.approx(clamped, rel=1e-12)
+    reach = 3 * math.sqrt(100.1)
+    ys, xs = np.mgrid[0:height, 0:width]
+    outside = np.hypot(xs - 20, ys - 20) > reach
+    assert outside.any()
+    assert torch.all(ours[:, torch.from_numpy(outside)] == 0)
+    assert torch.all(ours[0, torch.from_numpy(~outside)].abs() >= clamped * (1 - 1e-12))
+    scale = reference.abs().max().item()
+    assert max_abs(ours, reference) <= 1e-12 * scale
+
+
+def test_degenerate_covariance_uses_clamped_determinant():
+    """Zero scales: Σ = 0.1·I (the +0.1 regulariser keeps det = 0.01 above the 1e-10 floor); the
+    rasterizer still matches the direct evaluation."""
+    width, height = 9, 7
+    prims = make_prims([[4.2, 3.1]], [[0.0, 0.0]], [0.5], [[1.0, 0.5]], [[0.0, 1.0]], [1.0], [500.0])
+    ours = rasterize(prims, width, height, WAVELENGTHS, PITCH)
+    reference = direct_hologram(prims, width, height, WAVELENGTHS, PITCH, "mahalanobis")
+    assert max_abs(ours, reference) < 1e-12
+
+
+# --------------------------------------------------------------------------- gradients
+
+
+def gradcheck_prims(qpf: str) -> tuple[Primitives, int, int]:
+    width, height = 12, 10
+    prims = make_prims(
+        position=[[4.3, 3.6], [8.15, 6.4], [2.7, 7.8]],
+        scale=[[1.7, 1.1], [1.3, 2.2], [1.05, 0.9]],
+        rotation=[0.35, -1.2, 2.4],
+        color=[[0.8, 0.4], [0.5, 0.9], [0.7, 0.6]],
+        phase=[[0.4, 1.9], [2.6, 5.1], [3.3, 0.7]],
+        opacity=[0.7, 0.55, 0.8],
+        curvature=[2500.0, -1800.0, 3200.0],
+    )
+    return prims, width, height
+
+
+@pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
+def test_gradcheck_all_activated_parameters(qpf):
+    prims, width, height = gradcheck_prims(qpf)
+    margin = footprint_margin(prims, width, height)
+    assert margin > 1e-3, f"a pixel lies {margin} px from a footprint boundary"
+    # exponent clamp is inactive within the footprint for these primitives
+    d = direct_hologram(prims, width, height, WAVELENGTHS, PITCH, qpf)
+    assert d.abs().max() > 0.1
+    leaves = [getattr(prims, name).detach().clone().requires_grad_(True) for name in FIELDS]
+
+    def render(*params):
+        return torch.view_as_real(rasterize(Primitives(*params), width, height, WAVELENGTHS, PITCH, qpf))
+
+    assert torch.autograd.gradcheck(render, leaves, eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=True)
+
+
+@pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
+def test_gradcheck_full_jacobian_small(qpf):
+    """Slow-mode gradcheck on a 1-primitive, 1-channel problem (every Jacobian entry)."""
+    width, height = 8, 7
+    prims = make_prims([[3.4, 3.2]], [[1.6, 1.0]], [0.6], [[0.9]], [[1.2]], [0.75], [2800.0])
+    assert footprint_margin(prims, width, height) > 1e-3
+    leaves = [getattr(prims, name).detach().clone().requires_grad_(True) for name in FIELDS]
+
+    def render(*params):
+        return torch.view_as_real(rasterize(Primitives(*params), width, height, WAVELENGTHS[:1], PITCH, qpf))
+
+    assert torch.autograd.gradcheck(render, leaves, eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+@pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
+def test_gradients_match_direct_evaluation(qpf):
+    width, height = 20, 16
+    prims = concat(random_prims(30, width, height, seed=21),
+                   random_prims(3, width, height, seed=22, scale_range=(7.0, 12.0)))
+    assert footprint_margin(prims, width, height) > 1e-6
+    g = torch.Generator().manual_seed(23)
+    weights = torch.complex(torch.randn(2, height, width, generator=g, dtype=F64),
+                            torch.randn(2, height, width, generator=g, dtype=F64))
+
+    def grads(render):
+        leaves = [getattr(prims, name).detach().clone().requires_grad_(True) for name in FIELDS]
+        hologram = render(Primitives(*leaves))
+        loss = (hologram * weights.conj()).real.sum() + (hologram.abs() ** 2).sum()
+        return torch.autograd.grad(loss, leaves)
+
+    ours = grads(lambda p: rasterize(p, width, height, WAVELENGTHS, PITCH, qpf))
+    reference = grads(lambda p: direct_hologram(p, width, height, WAVELENGTHS, PITCH, qpf))
+    for name, a, b in zip(FIELDS, ours, reference):
+        scale = max(1.0, float(b.abs().max()))
+        assert max_abs(a, b) <= 1e-10 * scale, name
+        assert torch.isfinite(a).all()
+
+
+# --------------------------------------------------------------------------- flat ≡ CVQPG at γ = 0
+
+
+@pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
+def test_cvqpg_with_zero_curvature_renders_exactly_as_flat(qpf):
+    base = FitConfig(width=20, height=14, num_gaussians=40, qpf=qpf)
+    raw = init_gaussians(40, 3, 20, 14, seed=7)
+    assert torch.all(raw.curvature == 0)
+    cvqpg = render_hologram(raw, base.replace(primitive="cvqpg"))
+    flat = render_hologram(raw, base.replace(primitive="flat"))
+    assert torch.equal(cvqpg, flat)
+    assert cvqpg.abs().max() > 0
+    activated = activate(raw, base.replace(primitive="cvqpg"))
+    assert torch.all(activated.curvature_per_m == 0)
+    # and curvature does change the hologram once it is non-zero
+    bent = Gaussians.from_tensors({**raw.tensors(), "curvature": torch.full((40,), 0.5)})
+    assert not torch.allclose(render_hologram(bent, base.replace(primitive="cvqpg")), flat)
+
+
+# --------------------------------------------------------------------------- Nyquist bound
+
+
+def measured_frequency(scale_px: float, curvature: float, qpf: str, radius_px: float,
+                       wavelengths=WAVELENGTHS, step_px: float = 0.004) -> np.ndarray:
+    """Local fringe frequency (cycles/px) along +x at distance `radius_px` from an isotropic primitive's
+    centre, read off the rendered phase: the primitive is moved by ±step/2 px so that one pixel samples the
+    phase at r ± step/2 (sub-pixel sampling, so frequencies above 0.5 do not alias)."""
+    pixel = int(math.ceil(radius_px)) + 2
+    width, height = pixel + 1, 1
+    phases = []
+    for r in (radius_px - step_px / 2, radius_px + step_px / 2):
+        prims = make_prims([[pixel - r, 0.0]], [[scale_px, scale_px]], [0.0],
+                           [[1.0] * len(wavelengths)], [[0.0] * len(wavelengths)], [1.0], [curvature])
+        field = rasterize(prims, width, height, wavelengths, PITCH, qpf)[:, 0, pixel]
+        assert torch.all(field.abs() > 0), "the sample must lie inside the footprint"
+        phases.append(torch.angle(field).numpy())
+    difference = np.angle(np.exp(1j * (phases[1] - phases[0])))  # step small: no wrapping ambiguity
+    return np.abs(difference) / (2 * math.pi * step_px)
+
+
+def isotropic_bound(scale_px: float, bound: str) -> float:
+    config = FitConfig(color="rgb", bound=bound)  # λ_min = 473 nm
+    return float(curvature_bound(torch.tensor([[scale_px, scale_px]], dtype=F64), config)[0])
+
+
+@pytest.mark.parametrize("scale_px", [0.8, 2.0, 5.0, 12.0])
+def test_adaptive_bound_keeps_edge_frequency_below_nyquist(scale_px):
+    gamma_max = isotropic_bound(scale_px, "adaptive")
+    expected_gamma = 0.9 * 473e-9 / (6 * scale_px * PITCH**2)
+    assert gamma_max == pytest.approx(expected_gamma, rel=1e-12)
+    radius = 3 * scale_px  # the paper's 3σ edge, σ = max scale
+    wavelengths = (639e-9, 532e-9, 473e-9)
+    # standard QPF: frequency γ·r·Δx²/λ, = η/2 · λ_min/λ at the bound
+    standard = measured_frequency(scale_px, gamma_max, "standard", radius, wavelengths)
+    np.testing.assert_allclose(standard, [0.45 * 473e-9 / w for w in wavelengths], rtol=1e-6)
+    assert np.all(standard <= 0.5)
+    # Mahalanobis QPF (isotropic): γ s² Δx² r / ((s² + 0.1) λ) ≤ the same bound
+    mahalanobis = measured_frequency(scale_px, gamma_max, "mahalanobis", radius, wavelengths)
+    factor = scale_px**2 / (scale_px**2 + 0.1)
+    np.testing.assert_allclose(mahalanobis, [0.45 * factor * 473e-9 / w for w in wavelengths], rtol=1e-6)
+    assert np.all(mahalanobis <= 0.5)
+    # a primitive whose raw curvature saturates tanh reaches the bound
+    config = FitConfig(color="rgb")
+    raw = Gaussians(position=torch.zeros(1, 2, dtype=F64), scale=torch.tensor([[math.log(scale_px - 0.1)] * 2], dtype=F64),
+                    rotation=torch.zeros(1, dtype=F64), color=torch.ones(1, 3, dtype=F64),
+                    phase=torch.zeros(1, 3, dtype=F64), opacity=torch.zeros(1, dtype=F64),
+                    curvature=torch.tensor([40.0], dtype=F64))
+    assert float(activate(raw, config).curvature_per_m[0]) == pytest.approx(gamma_max, rel=1e-12)
+
+
+def test_neighbour_pixel_phase_difference_at_edge_below_half_cycle():
+    """The brief's measurement: unwrapped phase difference of neighbouring pixels near 3σ, at γ_max."""
+    scale = 4.0
+    gamma_max = isotropic_bound(scale, "adaptive")
+    width, height = 32, 5
+    prims = make_prims([[8.0, 2.0]], [[scale, scale]], [0.0], [[1.0]], [[0.0]], [1.0], [gamma_max])
+    for qpf in ("standard", "mahalanobis"):
+        field = rasterize(prims, width, height, (473e-9,), PITCH, qpf)[0, 2]
+        phase = np.unwrap(torch.angle(field[8:8 + 13]).numpy())  # centre → r = 12 = 3σ
+        cycles_per_px = np.diff(phase) / (2 * math.pi)
+        assert np.all(np.abs(cycles_per_px) <= 0.5)
+        # the last difference straddles r ∈ [11, 12]: ≈ 0.45 · 11.5/12 (standard)
+        if qpf == "standard":
+            assert abs(cycles_per_px[-1]) == pytest.approx(0.45 * 11.5 / 12, rel=1e-6)
+
+
+def test_global_bound_exceeds_nyquist_only_for_large_primitives():
+    """γ = 200 1/m: edge frequency 200·3σ·Δx²/λ crosses 0.5 at σ ≈ 28 px (473 nm). It is *large*
+    primitives, not small ones, whose 3σ edge the global bound lets exceed Nyquist; for small ones the
+    global bound is far stricter than the adaptive one."""
+    crossing = 0.5 * 473e-9 / (3 * 200.0 * PITCH**2)
+    assert 27 < crossing < 29
+    small, large = 1.0, 40.0
+    assert isotropic_bound(small, "global") == 200.0
+    assert isotropic_bound(small, "adaptive") > 20 * 200.0  # ≈ 5073 1/m
+    assert isotropic_bound(large, "adaptive") < 200.0
+    for qpf in ("standard", "mahalanobis"):
+        f_small = measured_frequency(small, 200.0, qpf, 3 * small, (473e-9,))[0]
+        f_large = measured_frequency(large, 200.0, qpf, 3 * large, (473e-9,))[0]
+        assert f_small < 0.05
+        assert f_large > 0.5
+        assert f_large == pytest.approx(200.0 * 3 * large * PITCH**2 / 473e-9 * (1 if qpf == "standard" else large**2 / (large**2 + 0.1)), rel=1e-5)
+        # the adaptive bound keeps the large primitive under Nyquist
+        assert measured_frequency(large, isotropic_bound(large, "adaptive"), qpf, 3 * large, (473e-9,))[0] < 0.5

@@ -1,0 +1,248 @@
+"""Defocus-aware multi-plane targets (SPEC §5) and the training loss (SPEC §6), against hand computation."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from pytorch_msssim import ssim as msssim_ssim
+
+from cvqpg.config import FitConfig
+from cvqpg.losses import multiplane_loss, noisy_targets, ssim_per_plane
+from cvqpg.targets import build_scene, defocus_targets, gaussian_kernel, plane_masks
+
+
+# --------------------------------------------------------------------------- hand references
+
+
+def hand_kernel(sigma: float) -> np.ndarray:
+    sigma = sigma if sigma > 0 else 1e-5
+    samples = np.linspace(-10.5, 10.5, 21)
+    kernel = np.empty((21, 21))
+    for i, y in enumerate(samples):
+        for j, x in enumerate(samples):
+            kernel[i, j] = math.exp(-(x * x + y * y) / (2 * sigma * sigma))
+    return kernel / kernel.sum()
+
+
+def hand_blur(image: np.ndarray, sigma: float) -> np.ndarray:
+    """Same-size zero-padded convolution of [C, H, W] with the 21×21 kernel, explicit loops."""
+    kernel = hand_kernel(sigma)
+    channels, height, width = image.shape
+    out = np.zeros_like(image, dtype=np.float64)
+    for c in range(channels):
+        for y in range(height):
+            for x in range(width):
+                total = 0.0
+                for i in range(21):
+                    yy = y + i - 10
+                    if not 0 <= yy < height:
+                        continue
+                    for j in range(21):
+                        xx = x + j - 10
+                        if 0 <= xx < width:
+                            total += kernel[i, j] * image[c, yy, xx]
+                out[c, y, x] = total
+    return out
+
+
+def hand_masks(depth: np.ndarray, planes: int, exponent: float = 1.0) -> np.ndarray:
+    masks = np.zeros((planes,) + depth.shape)
+    for y in range(depth.shape[0]):
+        for x in range(depth.shape[1]):
+            index = int(np.round(depth[y, x] ** exponent * (planes - 1)))  # numpy rounds half to even too
+            masks[index, y, x] = 1
+    return masks
+
+
+def hand_targets(image: np.ndarray, masks: np.ndarray, sigma: float = 8.0) -> np.ndarray:
+    planes = masks.shape[0]
+    blurred = {gap: hand_blur(image, sigma * gap) for gap in range(planes)}
+    return np.stack([sum(blurred[abs(m - j)] * masks[j][None] for j in range(planes)) for m in range(planes)])
+
+
+def small_image(channels: int, height: int, width: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.random((channels, height, width)).astype(np.float32)
+
+
+# --------------------------------------------------------------------------- targets
+
+
+def test_kernel_samples_linspace_and_normalises():
+    for sigma in (8.0, 16.0, 0.0):
+        np.testing.assert_allclose(gaussian_kernel(sigma).numpy(), hand_kernel(sigma), rtol=0, atol=1e-7)
+    identity = gaussian_kernel(0.0).numpy()
+    assert identity[10, 10] == pytest.approx(1.0) and identity.sum() == pytest.approx(1.0)
+
+
+def test_plane_masks_round_half_to_even():
+    depth = torch.tensor([[0.0, 0.25, 0.5, 0.5000001], [0.75, 1.0, 0.49, 0.51]], dtype=torch.float32)
+    masks = plane_masks(depth, 2)
+    assert masks.shape == (2, 2, 4)
+    expected_index = torch.tensor([[0, 0, 0, 1], [1, 1, 0, 1]])  # round(0.5) = 0 (half to even)
+    assert torch.equal(masks[1].long(), expected_index)
+    assert torch.equal(masks.sum(0), torch.ones(2, 4))
+    # three planes: depth·2 → 0.25·2 = 0.5 → 0; 0.75·2 = 1.5 → 2 (half to even)
+    masks3 = plane_masks(torch.tensor([[0.25, 0.75, 0.5, 1.0, 0.2]]), 3)
+    assert torch.equal(masks3.argmax(0), torch.tensor([[0, 2, 1, 2, 0]]))
+    # exponent ρ: 0.5^2 · 1 = 0.25 → 0 ; 0.8^2 = 0.64 → 1
+    masks_rho = plane_masks(torch.tensor([[0.5, 0.8]]), 2, exponent=2.0)
+    assert torch.equal(masks_rho.argmax(0), torch.tensor([[0, 1]]))
+
+
+def test_single_plane_without_depth_all_plane_zero():
+    masks = plane_masks(None, 1, shape=(3, 5))
+    assert masks.shape == (1, 3, 5) and torch.all(masks == 1)
+
+
+def test_two_plane_targets_match_hand_computation():
+    image = small_image(2, 9, 13, seed=0)
+    rng = np.random.default_rng(1)
+    depth = rng.random((9, 13)).astype(np.float32)
+    depth[0, :3] = 0.5  # exactly half: plane 0
+    depth[4, 4] = 1.0
+    masks = hand_masks(depth, 2)
+    assert masks[0, 0, :3].tolist() == [1, 1, 1]
+    expected = hand_targets(image.astype(np.float64), masks)
+    ours = defocus_targets(torch.from_numpy(image), torch.from_numpy(masks).float())
+    assert ours.shape == (2, 2, 9, 13)
+    np.testing.assert_allclose(ours.numpy(), expected, rtol=0, atol=1e-6)
+    # plane m is sharp where Mask_m is set
+    sharp = masks[0].astype(bool)
+    np.testing.assert_allclose(ours[0].numpy()[:, sharp], image[:, sharp], atol=1e-6)
+
+    config = FitConfig(width=13, height=9, color="gray", num_planes=2)
+    scene = build_scene(torch.from_numpy(image), torch.from_numpy(depth), config)
+    np.testing.assert_array_equal(scene.masks.numpy(), masks)
+    np.testing.assert_allclose(scene.targets.numpy(), expected, rtol=0, atol=1e-6)
+    assert torch.equal(scene.image, torch.from_numpy(image))
+
+
+def test_three_plane_targets_match_hand_computation():
+    image = small_image(1, 8, 11, seed=2)
+    depth = np.random.default_rng(3).random((8, 11)).astype(np.float32)
+    depth[2, 2] = 0.25  # 0.5 → plane 0
+    depth[3, 3] = 0.75  # 1.5 → plane 2
+    masks = hand_masks(depth, 3)
+    assert masks[0, 2, 2] == 1 and masks[2, 3, 3] == 1
+    expected = hand_targets(image.astype(np.float64), masks)  # σ = 0, 8, 16
+    config = FitConfig(width=11, height=8, color="gray", num_planes=3)
+    scene = build_scene(torch.from_numpy(image), torch.from_numpy(depth), config)
+    np.testing.assert_array_equal(scene.masks.numpy(), masks)
+    np.testing.assert_allclose(scene.targets.numpy(), expected, rtol=0, atol=1e-6)
+
+
+def test_build_scene_needs_depth_for_several_planes():
+    image = torch.rand(1, 4, 5)
+    with pytest.raises(ValueError):
+        build_scene(image, None, FitConfig(width=5, height=4, color="gray", num_planes=2))
+    scene = build_scene(image, None, FitConfig(width=5, height=4, color="gray", num_planes=1))
+    assert torch.allclose(scene.targets[0], image, atol=1e-7)
+
+
+# --------------------------------------------------------------------------- loss
+
+
+def independent_ssim(x: np.ndarray, y: np.ndarray) -> float:
+    """SSIM of [C, H, W] images: 11-tap Gaussian (σ 1.5) separable window, valid region, data range 1,
+    C1 = 0.01², C2 = 0.03², mean over the map and then over channels (as pytorch-msssim)."""
+    taps = np.arange(11) - 5
+    g = np.exp(-(taps**2) / (2 * 1.5**2))
+    g /= g.sum()
+    window = np.outer(g, g)
+
+    def filt(a: np.ndarray) -> np.ndarray:
+        h, w = a.shape
+        out = np.empty((h - 10, w - 10))
+        for i in range(h - 10):
+            for j in range(w - 10):
+                out[i, j] = (window * a[i:i + 11, j:j + 11]).sum()
+        return out
+
+    c1, c2 = 0.01**2, 0.03**2
+    per_channel = []
+    for a, b in zip(x.astype(np.float64), y.astype(np.float64)):
+        mu_a, mu_b = filt(a), filt(b)
+        var_a = filt(a * a) - mu_a**2
+        var_b = filt(b * b) - mu_b**2
+        cov = filt(a * b) - mu_a * mu_b
+        ssim_map = ((2 * mu_a * mu_b + c1) / (mu_a**2 + mu_b**2 + c1)) * ((2 * cov + c2) / (var_a + var_b + c2))
+        per_channel.append(ssim_map.mean())
+    return float(np.mean(per_channel))
+
+
+def loss_inputs(seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    planes, channels, height, width = 2, 3, 16, 19
+    targets = torch.rand(planes, channels, height, width, generator=g)
+    recon = torch.clamp(targets + 0.2 * torch.randn(planes, channels, height, width, generator=g), 0, 1)
+    depth = torch.rand(height, width, generator=g)
+    masks = plane_masks(depth, planes)
+    normal = torch.randn(planes, channels, height, width, generator=g)
+    return recon, targets, masks, normal
+
+
+def test_noisy_targets_by_hand():
+    _, targets, _, normal = loss_inputs()
+    targets = targets.clone()
+    targets[1] *= 0.5  # different per-plane ranges
+    noisy = noisy_targets(targets, normal, 1e-3)
+    for m in range(targets.shape[0]):
+        spread = float(targets[m].max() - targets[m].min())
+        expected = targets[m].double() + 1e-3 * spread * normal[m].double()
+        np.testing.assert_allclose(noisy[m].numpy(), expected.numpy(), rtol=0, atol=1e-7)
+    assert float(targets[0].max() - targets[0].min()) != pytest.approx(float(targets[1].max() - targets[1].min()))
+
+
+def test_ssim_term_matches_independent_ssim():
+    recon, targets, _, _ = loss_inputs(1)
+    ours = ssim_per_plane(recon, targets)
+    for m in range(recon.shape[0]):
+        reference = independent_ssim(recon[m].numpy(), targets[m].numpy())
+        assert float(ours[m]) == pytest.approx(reference, abs=2e-5)
+        library = msssim_ssim(recon[m:m + 1], targets[m:m + 1], data_range=1.0, win_size=11, win_sigma=1.5)
+        assert float(ours[m]) == pytest.approx(float(library), abs=1e-6)
+    assert float(ssim_per_plane(targets, targets).min()) == pytest.approx(1.0, abs=1e-5)
+
+
+def test_multiplane_loss_matches_spec_term_by_term():
+    recon, targets, masks, normal = loss_inputs(2)
+    noisy = noisy_targets(targets, normal, 1e-3)
+    weight = 0.005
+    loss, mse = multiplane_loss(recon, targets, masks, noisy, weight)
+    r, t, n, k = (a.double().numpy() for a in (recon, targets, noisy, masks))
+    total = 0.0
+    expected_mse = []
+    for m in range(r.shape[0]):
+        mask = k[m][None]
+        term_mse = np.mean((r[m] - t[m]) ** 2)
+        term_masked = np.mean((r[m] * mask - n[m] * mask) ** 2)
+        term_correlation = np.mean((r[m] * n[m] - n[m] * n[m]) ** 2)
+        term_ssim = weight * (1 - independent_ssim(r[m], t[m]))
+        expected_mse.append(term_mse)
+        assert term_masked != pytest.approx(term_mse, rel=1e-3)  # the mask matters
+        total += term_mse + term_masked + term_correlation + term_ssim
+    assert loss.ndim == 0
+    assert float(loss) == pytest.approx(total, rel=1e-5, abs=1e-7)
+    np.testing.assert_allclose(mse.numpy(), expected_mse, rtol=1e-5)
+    assert not mse.requires_grad
+
+
+def test_multiplane_loss_ssim_weight_enters_linearly():
+    recon, targets, masks, normal = loss_inputs(3)
+    noisy = noisy_targets(targets, normal, 1e-3)
+    base, _ = multiplane_loss(recon, targets, masks, noisy, 0.0)
+    weighted, _ = multiplane_loss(recon, targets, masks, noisy, 0.5)
+    dissimilarity = sum(1 - independent_ssim(recon[m].numpy(), targets[m].numpy()) for m in range(2))
+    assert float(weighted - base) == pytest.approx(0.5 * dissimilarity, rel=1e-4)
+
+
+def test_multiplane_loss_gradient_flows_to_reconstruction():
+    recon, targets, masks, normal = loss_inputs(4)
+    recon = recon.clone().requires_grad_(True)
+    loss, _ = multiplane_loss(recon, targets, masks, noisy_targets(targets, normal, 1e-3))
+    loss.backward()
+    assert torch.isfinite(recon.grad).all() and recon.grad.abs().sum() > 0
