@@ -55,7 +55,9 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
                    "[default: 2; 1 for --scene star]")
     p.add_argument("--seed", type=int, default=DEFAULTS.seed, help="random seed")
     p.add_argument("--device", default=DEFAULTS.device, choices=["cpu", "cuda"], help="torch device")
-    p.add_argument("--backend", default=DEFAULTS.backend, help="rasterizer backend")
+    p.add_argument("--backend", default=DEFAULTS.backend, choices=["auto", "numba", "torch"],
+                   help="rasterizer: fused Numba kernels (CPU), the PyTorch reference, or auto "
+                   "(Numba on CPU, PyTorch on GPU)")
     p.add_argument("--bound", choices=["adaptive", "global"], default=DEFAULTS.bound,
                    help="curvature bound: per-primitive Nyquist (γ_max = ηλ/(6σΔx²)) or global "
                    f"{DEFAULTS.global_bound:g} 1/m (ablation)")

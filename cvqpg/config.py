@@ -62,7 +62,7 @@ class FitConfig:
     defocus_sigma_px: float = 8.0
     depth_exponent: float = 1.0
     device: str = "cpu"
-    backend: str = "torch"
+    backend: str = "auto"
 
     @property
     def channels(self) -> int:

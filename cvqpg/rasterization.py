@@ -14,6 +14,7 @@ import math
 from dataclasses import dataclass
 from typing import Callable, Literal, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
@@ -126,8 +127,57 @@ def splat_reference(s: Splats, width: int, height: int, wavenumbers: Tensor) -> 
     return torch.complex(accumulated[0], accumulated[1]).reshape(channels, height, width)
 
 
+class _FusedSplat(torch.autograd.Function):
+    """The Numba kernels behind one autograd boundary: real/imag planes [2, C, H, W]."""
+
+    @staticmethod
+    def forward(ctx, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
+                width, height):
+        from . import kernels
+
+        arrays = tuple(t.detach().to("cpu", torch.float32).contiguous().numpy()
+                       for t in (position, conic, reach, chirp, color, phase, opacity))
+        k = wavenumbers.detach().to("cpu", torch.float64).numpy()
+        starts, items = kernels.bin_rows(arrays[0], arrays[2], width, height, kernels.BAND_ROWS)
+        out = np.zeros((2, color.shape[1], height, width), np.float32)
+        kernels.splat_forward(*arrays, k, mahalanobis, starts, items, kernels.BAND_ROWS, out)
+        ctx.arrays, ctx.wavenumbers, ctx.mahalanobis = arrays, k, mahalanobis
+        ctx.dtype, ctx.device = position.dtype, position.device
+        return torch.from_numpy(out).to(device=position.device, dtype=position.dtype)
+
+    @staticmethod
+    def backward(ctx, grad):
+        from . import kernels
+
+        position, conic, reach, chirp, color, phase, opacity = ctx.arrays
+        grads = tuple(np.zeros(a.shape, np.float64) for a in (position, conic, chirp, color, phase, opacity))
+        kernels.splat_backward(*ctx.arrays, ctx.wavenumbers, ctx.mahalanobis,
+                               grad.detach().to("cpu", torch.float32).contiguous().numpy(), *grads)
+        g_position, g_conic, g_chirp, g_color, g_phase, g_opacity = (
+            torch.from_numpy(g).to(device=ctx.device, dtype=ctx.dtype) for g in grads)
+        return (g_position, g_conic, None, g_chirp, g_color, g_phase, g_opacity, None, None, None, None)
+
+
+def splat_fused(s: Splats, width: int, height: int, wavenumbers: Tensor) -> Tensor:
+    """Fused CPU backend (Numba): complex hologram [C, H, W], float32 inside."""
+    planes = _FusedSplat.apply(*s.tensors(), wavenumbers, s.mahalanobis, width, height)
+    return torch.complex(planes[0], planes[1])
+
+
 Backend = Callable[[Splats, int, int, Tensor], Tensor]
-BACKENDS: dict[str, Backend] = {"torch": splat_reference}
+BACKENDS: dict[str, Backend] = {"torch": splat_reference, "numba": splat_fused}
+
+
+def resolve_backend(backend: str, device: torch.device | str) -> str:
+    """`auto` → the fused kernels on CPU, the PyTorch reference elsewhere."""
+    if backend == "auto":
+        return "numba" if torch.device(device).type == "cpu" else "torch"
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown rasterizer backend {backend!r}; choose auto or one of "
+                         f"{', '.join(sorted(BACKENDS))}")
+    if backend == "numba" and torch.device(device).type != "cpu":
+        raise ValueError("the numba backend runs on the CPU; use --backend torch with --device cuda")
+    return backend
 
 
 def wavenumbers_for(wavelengths_m: Sequence[float]) -> Tensor:
@@ -136,9 +186,8 @@ def wavenumbers_for(wavelengths_m: Sequence[float]) -> Tensor:
 
 
 def rasterize(prims: Primitives, width: int, height: int, wavelengths_m: Sequence[float],
-              pixel_pitch: float, qpf: Qpf = "mahalanobis", backend: str = "torch") -> Tensor:
+              pixel_pitch: float, qpf: Qpf = "mahalanobis", backend: str = "auto") -> Tensor:
     """Complex hologram [C, H, W] of the activated primitives on the W×H grid (px), pitch in m."""
-    if backend not in BACKENDS:
-        raise ValueError(f"unknown rasterizer backend {backend!r}; choose one of {sorted(BACKENDS)}")
+    backend = resolve_backend(backend, prims.position_px.device)
     return BACKENDS[backend](splats(prims, pixel_pitch, qpf), width, height,
                              wavenumbers_for(wavelengths_m))
