@@ -87,6 +87,12 @@ def optimisation_step(gaussians: Gaussians, optimizer: Adan, scene: Scene, confi
                                 config.ssim_weight)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
+    apply_gradients(optimizer, config, step)
+    return float(loss.detach()), psnr_from_mse(mse)
+
+
+def apply_gradients(optimizer: Adan, config: FitConfig, step: int) -> None:
+    """Non-finite gradient entries → 0, clip to the global norm, anneal position, Adan step."""
     params = [p for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
     for p in params:
         torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
@@ -95,7 +101,6 @@ def optimisation_step(gaussians: Gaussians, optimizer: Adan, scene: Scene, confi
         if group["name"] == "position":
             group["lr"] = position_learning_rate(step, config)
     optimizer.step()
-    return float(loss.detach()), psnr_from_mse(mse)
 
 
 def fit(image: str | Path | Image.Image | Tensor, depth: str | Path | Image.Image | Tensor | None = None,

@@ -1,0 +1,156 @@
+"""Cost of one fitting step at 640×480, by stage, against the FFT floor, measured side by side.
+
+    python benchmarks/step.py            # RGB 20% and grayscale 10%, ~5 minutes on 2 cores
+    python benchmarks/step.py --quick    # smaller, for a smoke test
+
+The floor is the Fourier transforms that BLASM propagation cannot avoid, timed alone in the same
+process on the same grid: per step one forward FFT per channel and one inverse per channel and
+plane, and as many again in the backward pass. Medians over repeated steps; the machine is shared,
+so only ratios measured in one run are meaningful.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from typing import Callable
+
+import torch
+
+from cvqpg import FitConfig
+from cvqpg.fitting import apply_gradients, make_optimizer, optimisation_step, render_hologram, trainable_groups
+from cvqpg.losses import multiplane_loss, noisy_targets
+from cvqpg.optics import Grid, reconstruct
+from cvqpg.primitives import init_gaussians
+from cvqpg.scenes import builtin_scene
+from cvqpg.targets import load_scene
+
+
+def median_seconds(action: Callable[[], object], repeats: int) -> float:
+    action()
+    times = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        action()
+        times.append(time.perf_counter() - started)
+    return statistics.median(times)
+
+
+def fft_floor(config: FitConfig, repeats: int) -> float:
+    grid = Grid.for_config(config)
+    shape = (config.channels, 2 * grid.padded_height, 2 * grid.padded_width)
+    field = torch.randn(shape, dtype=torch.complex64)
+    spectra = torch.randn((config.num_planes, *shape), dtype=torch.complex64)
+
+    def transforms():
+        torch.fft.fft2(field)
+        torch.fft.ifft2(spectra)
+
+    return 2 * median_seconds(transforms, repeats)
+
+
+def stage_times(config: FitConfig, repeats: int) -> dict[str, float]:
+    builtin = builtin_scene("demo", config.width, config.height)
+    scene = load_scene(builtin.image, builtin.depth, config)
+    gaussians = init_gaussians(config.primitive_count, config.channels, config.width, config.height, config.seed)
+    for name in trainable_groups(config):
+        getattr(gaussians, name).requires_grad_(True)
+    optimizer = make_optimizer(gaussians, config)
+    generator = torch.Generator().manual_seed(0)
+    hologram_grad = torch.randn(config.channels, config.height, config.width, dtype=torch.complex64)
+
+    def raster_forward():
+        with torch.no_grad():
+            return render_hologram(gaussians, config)
+
+    def raster_forward_backward():
+        render_hologram(gaussians, config).backward(hologram_grad)
+
+    leaf = raster_forward().requires_grad_(True)
+    recon_grad = torch.rand(config.num_planes, config.channels, config.height, config.width)
+
+    def propagation():
+        reconstruct(leaf, config).backward(recon_grad)
+
+    recon = reconstruct(leaf, config).detach().requires_grad_(True)
+
+    def loss():
+        noise = torch.randn(scene.targets.shape, generator=generator)
+        value, _ = multiplane_loss(recon, scene.targets, scene.masks,
+                                   noisy_targets(scene.targets, noise, config.target_noise), config.ssim_weight)
+        value.backward()
+
+    render_hologram(gaussians, config).backward(hologram_grad)
+    step_counter = iter(range(10**9))
+    times = {
+        "raster forward": median_seconds(raster_forward, repeats),
+        "raster forward+backward": median_seconds(raster_forward_backward, repeats),
+        "propagation forward+backward": median_seconds(propagation, repeats),
+        "loss forward+backward": median_seconds(loss, repeats),
+        "optimizer": median_seconds(lambda: apply_gradients(optimizer, config, config.warmup + 1), repeats),
+        "whole step": median_seconds(lambda: optimisation_step(
+            gaussians, optimizer, scene, config, config.warmup + 1 + next(step_counter), generator), repeats),
+    }
+    times["raster backward"] = times["raster forward+backward"] - times["raster forward"]
+    return times
+
+
+def peak_rss_gib(config: FitConfig, steps: int) -> float:
+    """Peak resident memory of a separate `cvqpg fit` process (GiB)."""
+    command = [sys.executable, "-m", "cvqpg.cli", "fit", "--size", str(config.width), str(config.height),
+               "--color", config.color, "--ratio", str(config.ratio), "--steps", str(steps), "--warmup", "1",
+               "--out", f"/tmp/cvqpg-bench-rss-{config.color}", "--overwrite", "--quiet"]
+    subprocess.run(command, check=True)
+    return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20
+
+
+def report(label: str, config: FitConfig, repeats: int, reference_repeats: int) -> dict[str, float]:
+    fast = config.replace(backend="numba", warmup=0)
+    times = stage_times(fast, repeats)
+    floor = fft_floor(fast, repeats)
+    reference = stage_times(fast.replace(backend="torch"), reference_repeats)["whole step"] \
+        if reference_repeats else None
+    raster = times["raster forward+backward"]
+    print(f"\n## {label}: {config.width}×{config.height}, N = {config.primitive_count}, "
+          f"{config.num_planes} planes, {torch.get_num_threads()} threads")
+    for name in ("raster forward", "raster backward", "propagation forward+backward", "loss forward+backward",
+                 "optimizer", "whole step"):
+        print(f"{name:>30}: {1000 * times[name]:9.1f} ms")
+    print(f"{'FFT floor':>30}: {1000 * floor:9.1f} ms")
+    print(f"{'step / floor':>30}: {times['whole step'] / floor:9.2f}")
+    print(f"{'raster / step':>30}: {raster / times['whole step']:9.1%}")
+    if reference_repeats:
+        print(f"{'torch-backend step':>30}: {1000 * reference:9.1f} ms")
+        print(f"{'speed-up over torch backend':>30}: {reference / times['whole step']:9.1f}×")
+    return {**times, "fft floor": floor, "torch step": reference}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="320×240, few repeats")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--reference-repeats", type=int, default=1, help="steps of the torch backend (slow)")
+    parser.add_argument("--rss-steps", type=int, default=5, help="steps of the fit whose peak RSS is measured")
+    parser.add_argument("--json", help="also write the numbers here")
+    args = parser.parse_args()
+    width, height = (320, 240) if args.quick else (640, 480)
+    settings = {"RGB 20%": FitConfig(width=width, height=height, color="rgb", ratio=0.2),
+                "grayscale 10%": FitConfig(width=width, height=height, color="gray", ratio=0.1)}
+    results = {}
+    for label, config in settings.items():
+        results[label] = report(label, config, args.repeats, args.reference_repeats)
+    rss = peak_rss_gib(settings["RGB 20%"], args.rss_steps)
+    print(f"\npeak RSS of an RGB 20% fit ({args.rss_steps} steps, separate process): {rss:.2f} GiB")
+    results["peak rss gib"] = rss
+    if args.json:
+        with open(args.json, "w") as handle:
+            json.dump(results, handle, indent=2)
+
+
+if __name__ == "__main__":
+    main()
