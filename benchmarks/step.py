@@ -23,10 +23,9 @@ from typing import Callable
 import torch
 
 from cvqpg import FitConfig
-from cvqpg.fitting import apply_gradients, make_optimizer, optimisation_step, render_hologram, trainable_groups
+from cvqpg.fitting import apply_gradients, initial_state, optimisation_step, render_hologram
 from cvqpg.losses import multiplane_loss, noisy_targets
 from cvqpg.optics import Grid, reconstruct
-from cvqpg.primitives import init_gaussians
 from cvqpg.scenes import builtin_scene
 from cvqpg.targets import load_scene
 
@@ -57,11 +56,9 @@ def fft_floor(config: FitConfig, repeats: int) -> float:
 def stage_times(config: FitConfig, repeats: int) -> dict[str, float]:
     builtin = builtin_scene("demo", config.width, config.height)
     scene = load_scene(builtin.image, builtin.depth, config)
-    gaussians = init_gaussians(config.primitive_count, config.channels, config.width, config.height, config.seed)
-    for name in trainable_groups(config):
-        getattr(gaussians, name).requires_grad_(True)
-    optimizer = make_optimizer(gaussians, config)
-    generator = torch.Generator().manual_seed(0)
+    state = initial_state(config)
+    state.step = config.warmup + 1
+    gaussians, optimizer, generator = state.gaussians, state.optimizer, state.generator
     hologram_grad = torch.randn(config.channels, config.height, config.width, dtype=torch.complex64)
 
     def raster_forward():
@@ -86,15 +83,13 @@ def stage_times(config: FitConfig, repeats: int) -> dict[str, float]:
         value.backward()
 
     render_hologram(gaussians, config).backward(hologram_grad)
-    step_counter = iter(range(10**9))
     times = {
         "raster forward": median_seconds(raster_forward, repeats),
         "raster forward+backward": median_seconds(raster_forward_backward, repeats),
         "propagation forward+backward": median_seconds(propagation, repeats),
         "loss forward+backward": median_seconds(loss, repeats),
         "optimizer": median_seconds(lambda: apply_gradients(optimizer, config, config.warmup + 1), repeats),
-        "whole step": median_seconds(lambda: optimisation_step(
-            gaussians, optimizer, scene, config, config.warmup + 1 + next(step_counter), generator), repeats),
+        "whole step": median_seconds(lambda: optimisation_step(state, scene, config), repeats),
     }
     times["raster backward"] = times["raster forward+backward"] - times["raster forward"]
     return times

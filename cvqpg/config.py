@@ -63,6 +63,7 @@ class FitConfig:
     depth_exponent: float = 1.0
     device: str = "cpu"
     backend: str = "auto"
+    wavelengths_m: tuple[float, ...] | None = None
 
     @property
     def channels(self) -> int:
@@ -70,7 +71,9 @@ class FitConfig:
 
     @property
     def wavelengths(self) -> tuple[float, ...]:
-        """One wavelength (m) per colour channel."""
+        """One wavelength (m) per colour channel: `wavelengths_m`, or the paper's."""
+        if self.wavelengths_m is not None:
+            return tuple(self.wavelengths_m)
         return RGB_WAVELENGTHS_M if self.color == "rgb" else (GRAY_WAVELENGTH_M,)
 
     @property
@@ -106,9 +109,42 @@ class FitConfig:
         values = {k: v for k, v in data.items() if k in known}
         if isinstance(values.get("lr"), dict):
             values["lr"] = LearningRates(**values["lr"])
-        if isinstance(values.get("betas"), list):
-            values["betas"] = tuple(values["betas"])
+        for name in ("betas", "wavelengths_m"):
+            if isinstance(values.get(name), list):
+                values[name] = tuple(values[name])
         return cls(**values)
+
+    def validate(self) -> "FitConfig":
+        """Raise `ConfigError` naming the first setting that cannot work, and what to do."""
+        positive = {"steps": self.steps, "ratio": self.ratio, "pixel_pitch": self.pixel_pitch,
+                    "plane_span": self.plane_span if self.num_planes > 1 else 1.0,
+                    "num_planes": self.num_planes, "eta": self.eta}
+        for name, value in positive.items():
+            if not value > 0:
+                raise ConfigError(f"{name} must be positive, got {value}")
+        if self.width < MIN_SIZE_PX or self.height < MIN_SIZE_PX:
+            raise ConfigError(f"size {self.width}×{self.height} px is too small: both sides need at least "
+                              f"{MIN_SIZE_PX} px (the SSIM window)")
+        if any(not d > 0 for d in self.plane_distances):
+            raise ConfigError(f"plane distances {', '.join(f'{d:g}' for d in self.plane_distances)} m must all "
+                              "be positive: raise plane_center or shrink plane_span")
+        if len(self.wavelengths) != self.channels or any(not w > 0 for w in self.wavelengths):
+            raise ConfigError(f"wavelengths {self.wavelengths} m: need {self.channels} positive value(s) "
+                              f"for colour mode {self.color!r}")
+        if self.warmup < 0 or self.warmup > self.steps:
+            raise ConfigError(f"warmup {self.warmup} must lie in 0..steps ({self.steps})")
+        count, pixels = self.primitive_count, self.width * self.height
+        if not 0 < count <= pixels:
+            raise ConfigError(f"{count} Gaussians for {pixels} pixels: need between 1 and the pixel count; "
+                              "change --ratio or --num-gaussians")
+        return self
+
+
+class ConfigError(ValueError):
+    """A setting that cannot work; the message names it."""
+
+
+MIN_SIZE_PX = 16
 
 
 def padded_size(n: int, guard_px: int, multiple_px: int) -> int:

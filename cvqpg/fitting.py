@@ -34,6 +34,8 @@ class FitResult:
     metrics: MetricReport
     history: dict[str, list[float]] = field(default_factory=dict)
     seconds: float = 0.0
+    skipped_steps: int = 0
+    sanitised_steps: int = 0
 
 
 def render_hologram(gaussians: Gaussians, config: FitConfig) -> Tensor:
@@ -75,32 +77,119 @@ def psnr_from_mse(mse: Tensor) -> float:
     return float((-10 * torch.log10(mse.clamp(min=1e-12))).mean())
 
 
-def optimisation_step(gaussians: Gaussians, optimizer: Adan, scene: Scene, config: FitConfig,
-                      step: int, generator: torch.Generator) -> tuple[float, float]:
-    """One update: render, propagate, loss, sanitise and clip gradients, Adan. Returns loss, PSNR."""
-    if config.primitive == "cvqpg" and step == config.warmup:
-        gaussians.curvature.requires_grad_(True)
+@dataclass
+class FitState:
+    """Everything the loop carries between steps; a checkpoint stores exactly this."""
+
+    gaussians: Gaussians
+    optimizer: Adan
+    generator: torch.Generator
+    step: int = 0  # the next step index to run
+    history: dict[str, list[float]] = field(default_factory=lambda: {"loss": [], "psnr": []})
+    seconds: float = 0.0
+    skipped_steps: int = 0
+    sanitised_steps: int = 0
+
+    def to_payload(self) -> dict:
+        """Plain tensors and numbers, for `torch.save`."""
+        return {"gaussians": {k: v.detach().cpu() for k, v in self.gaussians.tensors().items()},
+                "optimizer": self.optimizer.state_dict(), "generator": self.generator.get_state(),
+                "step": self.step, "history": self.history, "seconds": self.seconds,
+                "skipped_steps": self.skipped_steps, "sanitised_steps": self.sanitised_steps}
+
+
+def initial_state(config: FitConfig) -> FitState:
+    """The reference initialisation, optimiser and noise generator before step 0."""
+    device = torch.device(config.device)
+    gaussians = init_gaussians(config.primitive_count, config.channels, config.width, config.height,
+                               config.seed, device)
+    for name in trainable_groups(config):
+        getattr(gaussians, name).requires_grad_(True)
+    optimizer = make_optimizer(gaussians, config)
+    generator = torch.Generator(device=device).manual_seed(config.seed)
+    return FitState(gaussians, optimizer, generator)
+
+
+def state_from_payload(payload: dict, config: FitConfig) -> FitState:
+    """Inverse of `FitState.to_payload` on `config.device`."""
+    state = initial_state(config)
+    with torch.no_grad():
+        for name, tensor in state.gaussians.tensors().items():
+            tensor.copy_(payload["gaussians"][name])
+    state.optimizer.load_state_dict(payload["optimizer"])
+    state.generator.set_state(payload["generator"])
+    state.step, state.history, state.seconds = payload["step"], payload["history"], payload["seconds"]
+    state.skipped_steps, state.sanitised_steps = payload["skipped_steps"], payload["sanitised_steps"]
+    return state
+
+
+def optimisation_step(state: FitState, scene: Scene, config: FitConfig) -> tuple[float, float]:
+    """One update of SPEC §6: render, propagate, loss, sanitise and clip gradients, Adan.
+
+    A step whose loss is not finite, or whose update would leave a parameter non-finite, changes
+    nothing and is counted in `state.skipped_steps`. Returns the loss and the progress PSNR (dB).
+    """
+    gaussians, step = state.gaussians, state.step
+    gaussians.curvature.requires_grad_(config.primitive == "cvqpg" and step >= config.warmup)
     recon = reconstruct(render_hologram(gaussians, config), config)
-    noise = torch.randn(scene.targets.shape, generator=generator, device=scene.targets.device)
+    noise = torch.randn(scene.targets.shape, generator=state.generator, device=scene.targets.device)
     loss, mse = multiplane_loss(recon, scene.targets, scene.masks,
                                 noisy_targets(scene.targets, noise, config.target_noise),
                                 config.ssim_weight)
-    optimizer.zero_grad(set_to_none=True)
+    state.optimizer.zero_grad(set_to_none=True)
+    if not torch.isfinite(loss):
+        state.skipped_steps += 1
+        return float(loss.detach()), psnr_from_mse(mse)
     loss.backward()
-    apply_gradients(optimizer, config, step)
+    before = {name: t.detach().clone() for name, t in gaussians.tensors().items()}
+    state.sanitised_steps += apply_gradients(state.optimizer, config, step)
+    if not all(torch.isfinite(t).all() for t in gaussians.tensors().values()):
+        with torch.no_grad():
+            for name, tensor in gaussians.tensors().items():
+                tensor.copy_(before[name])
+        state.skipped_steps += 1
     return float(loss.detach()), psnr_from_mse(mse)
 
 
-def apply_gradients(optimizer: Adan, config: FitConfig, step: int) -> None:
-    """Non-finite gradient entries → 0, clip to the global norm, anneal position, Adan step."""
+def apply_gradients(optimizer: Adan, config: FitConfig, step: int) -> bool:
+    """Non-finite gradient entries → 0 (SPEC §6), clip to the global norm, anneal position, Adan.
+
+    Returns whether any gradient entry had to be replaced.
+    """
     params = [p for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
-    for p in params:
-        torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+    sanitised = not all(torch.isfinite(p.grad).all() for p in params)
+    if sanitised:
+        for p in params:
+            torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
     torch.nn.utils.clip_grad_norm_(params, config.grad_clip_norm)
     for group in optimizer.param_groups:
         if group["name"] == "position":
             group["lr"] = position_learning_rate(step, config)
     optimizer.step()
+    return sanitised
+
+
+@dataclass(frozen=True)
+class CheckpointPolicy:
+    """When to hand the loop state to `save`: every `every_steps` steps (if set), else every
+    `every_seconds` of work (if set); always when the loop is asked to stop."""
+
+    save: Callable[[FitState], None]
+    every_steps: int | None = None
+    every_seconds: float | None = 180.0
+
+    def due(self, steps_done: int, seconds_since_save: float) -> bool:
+        if self.every_steps is not None:
+            return steps_done % self.every_steps == 0
+        return self.every_seconds is not None and seconds_since_save >= self.every_seconds
+
+
+class FitInterrupted(Exception):
+    """The loop stopped on request after saving a checkpoint at `step`."""
+
+    def __init__(self, step: int):
+        super().__init__(f"stopped before step {step}")
+        self.step = step
 
 
 def fit(image: str | Path | Image.Image | Tensor, depth: str | Path | Image.Image | Tensor | None = None,
@@ -111,32 +200,42 @@ def fit(image: str | Path | Image.Image | Tensor, depth: str | Path | Image.Imag
 
 
 def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = True,
-              on_step: Callable[[int, float, float], None] | None = None) -> FitResult:
+              on_step: Callable[[int, float, float], None] | None = None,
+              state: FitState | None = None, checkpoint: CheckpointPolicy | None = None,
+              stop_requested: Callable[[], bool] | None = None) -> FitResult:
     """Fit N primitives to a scene's targets; returns the fitted model and its final metrics.
 
     Runs the reference loop's `config.steps + 1` updates (indices 0..steps); curvature is frozen at
-    γ = 0 for the first `config.warmup` of them.
+    γ = 0 for the first `config.warmup` of them. Pass a `state` (from a checkpoint) to continue a
+    run: the result is bit-identical to an uninterrupted one on CPU. When `stop_requested()` turns
+    true the loop saves a checkpoint between two steps and raises `FitInterrupted`.
     """
+    config.validate()
     device = torch.device(config.device)
     scene = Scene(*(t.to(device) for t in (scene.image, scene.masks, scene.targets)))
-    gaussians = init_gaussians(config.primitive_count, config.channels, config.width, config.height,
-                               config.seed, device)
-    for name in trainable_groups(config):
-        getattr(gaussians, name).requires_grad_(name != "curvature" or config.warmup <= 0)
-    optimizer = make_optimizer(gaussians, config)
-    generator = torch.Generator(device=device).manual_seed(config.seed)
-    history: dict[str, list[float]] = {"loss": [], "psnr": []}
-    started = time.perf_counter()
-    bar = tqdm(range(config.steps + 1), disable=not progress, desc=f"fit {config.primitive}",
-               unit="step", dynamic_ncols=True)
+    state = state or initial_state(config)
+    last_save, clock = time.perf_counter(), time.perf_counter()
+    bar = tqdm(range(state.step, config.steps + 1), initial=state.step, total=config.steps + 1,
+               disable=not progress, desc=f"fit {config.primitive}", unit="step", dynamic_ncols=True)
     for step in bar:
-        loss, psnr = optimisation_step(gaussians, optimizer, scene, config, step, generator)
-        history["loss"].append(loss)
-        history["psnr"].append(psnr)
+        if stop_requested is not None and stop_requested():
+            if checkpoint is not None:
+                checkpoint.save(state)
+            raise FitInterrupted(step)
+        loss, psnr = optimisation_step(state, scene, config)
+        state.step = step + 1
+        now = time.perf_counter()
+        state.seconds += now - clock
+        clock = now
+        state.history["loss"].append(loss)
+        state.history["psnr"].append(psnr)
         bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{psnr:.2f}dB", refresh=False)
         if on_step is not None:
             on_step(step, loss, psnr)
-    seconds = time.perf_counter() - started
-    fitted = gaussians.detached()
+        if checkpoint is not None and state.step <= config.steps and checkpoint.due(state.step, now - last_save):
+            checkpoint.save(state)
+            last_save = time.perf_counter()
+    fitted = state.gaussians.detached()
     _, recon = render(fitted, config)
-    return FitResult(fitted, config, evaluate(recon, scene.targets), history, seconds)
+    return FitResult(fitted, config, evaluate(recon, scene.targets), state.history, state.seconds,
+                     state.skipped_steps, state.sanitised_steps)

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from cvqpg.config import FitConfig
-from cvqpg.fitting import make_optimizer, optimisation_step, position_learning_rate, trainable_groups
+from cvqpg.fitting import initial_state, make_optimizer, optimisation_step, position_learning_rate, trainable_groups
 from cvqpg.primitives import Gaussians, init_gaussians
 from cvqpg.targets import build_scene
 
@@ -157,36 +157,40 @@ def tiny_setup(warmup: int = 3):
     image = torch.rand(3, 24, 32, generator=g) * 0.8
     depth = torch.rand(24, 32, generator=g)
     scene = build_scene(image, depth, config)
-    gaussians = init_gaussians(config.primitive_count, config.channels, config.width, config.height, config.seed)
-    for name in trainable_groups(config):  # as fit_scene sets them up
-        getattr(gaussians, name).requires_grad_(name != "curvature" or config.warmup <= 0)
-    optimizer = make_optimizer(gaussians, config)
-    generator = torch.Generator().manual_seed(config.seed)
-    return config, scene, gaussians, optimizer, generator
+    return config, scene, initial_state(config)
+
+
+def run_step(state, scene, config):
+    result = optimisation_step(state, scene, config)
+    state.step += 1
+    return result
 
 
 def test_curvature_frozen_during_warmup_then_trained():
-    config, scene, gaussians, optimizer, generator = tiny_setup(warmup=3)
+    config, scene, state = tiny_setup(warmup=3)
+    gaussians = state.gaussians
     initial = {name: t.detach().clone() for name, t in gaussians.tensors().items()}
     for step in range(config.warmup):
-        loss, psnr = optimisation_step(gaussians, optimizer, scene, config, step, generator)
+        loss, psnr = run_step(state, scene, config)
         assert math.isfinite(loss) and math.isfinite(psnr)
+        assert not gaussians.curvature.requires_grad
         assert torch.equal(gaussians.curvature.detach(), torch.zeros_like(gaussians.curvature)), step
     # everything else did train during the warm-up
     for name in ("position", "scale", "color", "opacity"):
         assert not torch.equal(getattr(gaussians, name).detach(), initial[name]), name
-    optimisation_step(gaussians, optimizer, scene, config, config.warmup, generator)
+    run_step(state, scene, config)
     assert gaussians.curvature.requires_grad
     assert (gaussians.curvature.detach() != 0).any(), "curvature must start training at step `warmup`"
     after_first = gaussians.curvature.detach().clone()
-    optimisation_step(gaussians, optimizer, scene, config, config.warmup + 1, generator)
+    run_step(state, scene, config)
     assert not torch.equal(gaussians.curvature.detach(), after_first)
 
 
 def test_optimisation_step_sets_position_learning_rate():
-    config, scene, gaussians, optimizer, generator = tiny_setup(warmup=1)
+    config, scene, state = tiny_setup(warmup=1)
+    optimizer = state.optimizer
     for step in range(3):
-        optimisation_step(gaussians, optimizer, scene, config, step, generator)
+        run_step(state, scene, config)
         rates = {group["name"]: group["lr"] for group in optimizer.param_groups}
         assert rates["position"] == pytest.approx(position_learning_rate(step, config), rel=1e-15)
         assert rates["scale"] == config.lr.scale and rates["curvature"] == config.lr.curvature
