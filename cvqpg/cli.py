@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
+import signal
 import sys
 import time
 from pathlib import Path
@@ -12,18 +14,23 @@ from typing import Sequence
 import torch
 
 from . import __version__
-from .config import FitConfig
-from .fitting import fit_scene
-from .runs import CONFIG_FILE, evaluate_run, write_run
-from .scenes import SCENES, builtin_scene
-from .storage import ModelFileError
-from .targets import load_scene
+from .config import ConfigError, FitConfig
+from .fitting import CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes, fit_scene, state_from_payload
+from .runs import (CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, MODEL_FILE, evaluate_run, read_run, scene_from_source,
+                   start_run, write_run)
+from .scenes import SCENES
+from .storage import ModelFileError, load_checkpoint, save_checkpoint
+from .targets import InputError, Scene, check_file
 
 DEFAULTS = FitConfig()
+CHECKPOINT_SECONDS = 180.0
 
 
 class UsageError(Exception):
     """Bad input: printed as one line, exit code 2."""
+
+
+USER_ERRORS = (UsageError, ConfigError, InputError, ModelFileError)
 
 
 def _fit_parser(sub: argparse._SubParsersAction) -> None:
@@ -63,9 +70,23 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
                    f"{DEFAULTS.global_bound:g} 1/m (ablation)")
     p.add_argument("--qpf", choices=["mahalanobis", "standard"], default=DEFAULTS.qpf,
                    help="quadratic phase: follows the Gaussian's ellipse, or circular (ablation)")
+    p.add_argument("--pitch", type=float, default=DEFAULTS.pixel_pitch, metavar="M",
+                   help="SLM pixel pitch in m")
+    p.add_argument("--wavelengths", type=float, nargs="+", metavar="M",
+                   help="wavelength per channel in m [default: 639e-9 532e-9 473e-9 (rgb), 639e-9 (gray)]")
+    p.add_argument("--plane-center", type=float, default=DEFAULTS.plane_center, metavar="M",
+                   help="middle of the plane range d in m (planes span d ± V/2)")
+    p.add_argument("--plane-span", type=float, default=DEFAULTS.plane_span, metavar="M",
+                   help="plane range V in m")
+    p.add_argument("--resize-depth", action="store_true",
+                   help="accept a depth map whose aspect ratio differs from the image's (it is stretched)")
     p.add_argument("--out", metavar="DIR", help="run folder [default: runs/<time>-<input>-<color>-"
                    "<primitive>]")
     p.add_argument("--overwrite", action="store_true", help="replace a run already in --out")
+    p.add_argument("--resume", metavar="RUN_DIR", help="continue an interrupted run from its last "
+                   "checkpoint with its own settings (other options are ignored)")
+    p.add_argument("--checkpoint-every", type=int, metavar="K", help="save a checkpoint every K steps "
+                   "(0: only when interrupted) [default: every 3 minutes of work]")
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
 
@@ -82,7 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _config_and_source(args: argparse.Namespace) -> tuple[FitConfig, dict, object, object]:
+def _config_and_source(args: argparse.Namespace) -> tuple[FitConfig, dict]:
     width, height = args.size
     if args.image is not None and args.scene is not None:
         raise UsageError("give either an IMAGE or --scene, not both")
@@ -90,28 +111,28 @@ def _config_and_source(args: argparse.Namespace) -> tuple[FitConfig, dict, objec
         name = args.scene or "demo"
         if args.depth is not None:
             raise UsageError(f"--depth applies to an IMAGE; the built-in scene {name!r} has its own")
-        builtin = builtin_scene(name, width, height)
-        color = args.color or builtin.default_color
-        planes = args.planes or builtin.default_planes
-        source, image, depth = {"scene": name}, builtin.image, builtin.depth
+        recipe = SCENES[name]
+        color, planes = args.color or recipe.color, args.planes or recipe.planes
+        source, has_depth = {"scene": name}, recipe.planes > 1
     else:
-        for label, path in (("image", args.image), ("depth map", args.depth)):
-            if path is not None and not Path(path).is_file():
-                raise UsageError(f"{label} {path!r} does not exist; check the path")
         color, planes = args.color or "rgb", args.planes or 2
-        image, depth = args.image, args.depth
-        source = {"image": str(Path(args.image).resolve())}
+        source = {"image": str(check_file(args.image, "image").resolve())}
         if args.depth is not None:
-            source["depth"] = str(Path(args.depth).resolve())
-    if planes > 1 and depth is None:
+            source["depth"] = str(check_file(args.depth, "depth map").resolve())
+        has_depth = args.depth is not None
+    if planes > 1 and not has_depth:
         raise UsageError(f"--planes {planes} needs a depth map (--depth PATH), or use --planes 1")
     if args.device == "cuda" and not torch.cuda.is_available():
         raise UsageError("--device cuda: no CUDA GPU is visible to PyTorch; use --device cpu")
+    if args.resize_depth:
+        source["resize_depth"] = True
     config = FitConfig(width=width, height=height, color=color, primitive=args.primitive,
                        ratio=args.ratio, num_gaussians=args.num_gaussians, steps=args.steps,
                        warmup=args.warmup, seed=args.seed, num_planes=planes, bound=args.bound,
-                       qpf=args.qpf, device=args.device, backend=args.backend)
-    return config, source, image, depth
+                       qpf=args.qpf, device=args.device, backend=args.backend, pixel_pitch=args.pitch,
+                       plane_center=args.plane_center, plane_span=args.plane_span,
+                       wavelengths_m=tuple(args.wavelengths) if args.wavelengths else None)
+    return config.validate(), source
 
 
 def _default_out(source: dict, config: FitConfig) -> Path:
@@ -125,22 +146,102 @@ def _summary(record: dict) -> str:
     return f"{shown}  (N = {record['num_gaussians']}, {record['seconds']:.0f} s)"
 
 
+def available_memory_bytes() -> int | None:
+    """MemAvailable from /proc/meminfo, or None where there is no such file."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        return None
+    return None
+
+
+def check_memory(config: FitConfig) -> None:
+    if config.device != "cpu":
+        return
+    needed, available = estimated_peak_bytes(config), available_memory_bytes()
+    if available is not None and needed > available:
+        raise UsageError(f"a {config.width}×{config.height} fit with {config.num_planes} plane(s) needs about "
+                         f"{needed / 2**30:.1f} GiB but {available / 2**30:.1f} GiB are available; "
+                         "reduce --size or --planes")
+
+
+class StopRequest:
+    """Ctrl-C or SIGTERM asks the fit to stop after its current step; a second Ctrl-C aborts."""
+
+    def __init__(self) -> None:
+        self.signals: list[int] = []
+        self._previous: dict[int, object] = {}
+
+    def __call__(self) -> bool:
+        return bool(self.signals)
+
+    def _receive(self, signum: int, _frame: object) -> None:
+        self.signals.append(signum)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    def __enter__(self) -> "StopRequest":
+        self._previous = {s: signal.signal(s, self._receive) for s in (signal.SIGINT, signal.SIGTERM)}
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+
+
+def _prepare(args: argparse.Namespace) -> tuple[Path, FitConfig, dict, Scene, FitState | None]:
+    if args.resume:
+        folder = Path(args.resume)
+        if not (folder / CONFIG_FILE).is_file():
+            raise UsageError(f"--resume {folder}: not a run folder (no {CONFIG_FILE})")
+        config, source = read_run(folder)
+        scene = scene_from_source(source, config)
+        checkpoint = folder / CHECKPOINT_FILE
+        state = state_from_payload(load_checkpoint(checkpoint), config) if checkpoint.is_file() else None
+        return folder, config, source, scene, state
+    config, source = _config_and_source(args)
+    folder = Path(args.out) if args.out else _default_out(source, config)
+    if (folder / CONFIG_FILE).exists() and not args.overwrite:
+        raise UsageError(f"{folder} already holds a run; choose another --out, pass --overwrite, or "
+                         f"--resume {folder}")
+    check_memory(config)
+    scene = scene_from_source(source, config)
+    start_run(folder, config, source)
+    return folder, config, source, scene, None
+
+
 def run_fit(args: argparse.Namespace) -> int:
-    config, source, image, depth = _config_and_source(args)
-    out = Path(args.out) if args.out else _default_out(source, config)
-    if (out / CONFIG_FILE).exists() and not args.overwrite:
-        raise UsageError(f"{out} already holds a run; choose another --out or pass --overwrite")
-    scene = load_scene(image, depth, config)
-    result = fit_scene(scene, config, progress=not args.quiet)
-    write_run(out, result, scene, source)
+    folder, config, source, scene, state = _prepare(args)
+    if args.resume and (folder / METRICS_FILE).is_file():
+        print(f"{folder}: this run is finished; nothing to resume")
+        return 0
+    checkpoint_file = folder / CHECKPOINT_FILE
+    every = args.checkpoint_every
+    policy = CheckpointPolicy(save=lambda s: save_checkpoint(checkpoint_file, s.to_payload()),
+                              every_steps=every if every else None,
+                              every_seconds=None if every == 0 else CHECKPOINT_SECONDS)
+    with StopRequest() as stop_requested:
+        try:
+            result = fit_scene(scene, config, progress=not args.quiet, state=state, checkpoint=policy,
+                               stop_requested=stop_requested)
+        except FitInterrupted as stop:
+            print(f"cvqpg fit: stopped before step {stop.step}; checkpoint saved. Continue with: "
+                  f"cvqpg fit --resume {folder}", file=sys.stderr)
+            return 128 + stop_requested.signals[0]
+    write_run(folder, result, scene, source)
+    checkpoint_file.unlink(missing_ok=True)
     if not args.quiet:
-        record = json.loads((out / "metrics.json").read_text())
-        print(f"{out}: {_summary(record)}")
+        record = json.loads((folder / METRICS_FILE).read_text())
+        print(f"{folder}: {_summary(record)}")
     return 0
 
 
 def run_eval(args: argparse.Namespace) -> int:
     folder = Path(args.run_dir)
+    if not (folder / MODEL_FILE).is_file() and (folder / CONFIG_FILE).is_file():
+        raise UsageError(f"{folder} holds no {MODEL_FILE}: the run has not finished (cvqpg fit --resume "
+                         f"{folder})")
     if not (folder / CONFIG_FILE).is_file():
         raise UsageError(f"{folder} is not a run folder (no {CONFIG_FILE}); give a folder written by "
                          "`cvqpg fit`")
@@ -151,11 +252,21 @@ def run_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _show_notes() -> None:
+    logger = logging.getLogger("cvqpg")
+    if not logger.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("cvqpg: note: %(message)s"))
+        logger.addHandler(handler)
+        logger.propagate = False
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    _show_notes()
     try:
         return {"fit": run_fit, "eval": run_eval}[args.command](args)
-    except (UsageError, ModelFileError) as error:
+    except USER_ERRORS as error:
         print(f"cvqpg {args.command}: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -17,7 +17,7 @@ from tqdm.auto import tqdm
 from .config import FitConfig
 from .losses import multiplane_loss, noisy_targets
 from .metrics import MetricReport, evaluate
-from .optics import reconstruct
+from .optics import Grid, reconstruct
 from .primitives import Gaussians, activate, init_gaussians
 from .rasterization import rasterize
 from .targets import Scene, load_scene
@@ -167,6 +167,18 @@ def apply_gradients(optimizer: Adan, config: FitConfig, step: int) -> bool:
             group["lr"] = position_learning_rate(step, config)
     optimizer.step()
     return sanitised
+
+
+FULL_GRID_BUFFERS = 24
+BASE_BYTES = 600 * 2**20
+
+
+def estimated_peak_bytes(config: FitConfig) -> int:
+    """Rough peak memory (bytes) of a fit on the CPU: a fixed base plus the complex M×C buffers of
+    the doubled propagation grid that one step keeps alive (calibrated on 640×480 RGB, 2 planes)."""
+    grid = Grid.for_config(config)
+    full_grid = config.num_planes * config.channels * 4 * grid.padded_height * grid.padded_width * 8
+    return BASE_BYTES + FULL_GRID_BUFFERS * full_grid
 
 
 @dataclass(frozen=True)

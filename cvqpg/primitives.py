@@ -12,6 +12,7 @@ from .config import FitConfig
 
 COVARIANCE_REGULARISER_PX2 = 0.1
 MIN_SCALE_PX = 0.1
+MAX_LOG_SCALE = math.log(1e4)
 DET_FLOOR = 1e-10
 POSITION_CLAMP = 0.999
 INIT_SCALE_RANGE_PX = (1.5, 5.0)
@@ -93,8 +94,8 @@ def positions_px(raw_position: Tensor, width: int, height: int) -> Tensor:
 
 
 def scales_px(raw_scale: Tensor) -> Tensor:
-    """Raw scale → px: `exp(raw) + 0.1`."""
-    return torch.exp(raw_scale) + MIN_SCALE_PX
+    """Raw scale → px: `exp(raw) + 0.1`, capped at 1e4 px so Σ stays finite in float32."""
+    return torch.exp(torch.clamp(raw_scale, max=MAX_LOG_SCALE)) + MIN_SCALE_PX
 
 
 def curvature_bound(scale_px: Tensor, config: FitConfig) -> Tensor:

@@ -23,6 +23,8 @@ from .targets import Scene, load_scene
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.json"
 MODEL_FILE = "model.safetensors"
+CHECKPOINT_FILE = "checkpoint.pt"
+PLANE_IMAGES = ("target_plane*.png", "recon_plane*.png")
 
 
 def write_json(path: Path, data: Any) -> None:
@@ -83,12 +85,27 @@ def metrics_record(report: MetricReport, config: FitConfig, seconds: float,
             "seconds": seconds, **(extra or {})}
 
 
-def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[str, Any]) -> Path:
-    """Save config, metrics, model, per-plane targets and reconstructions, hologram and curve."""
+def start_run(folder: str | Path, config: FitConfig, source: dict[str, Any]) -> Path:
+    """Create the run folder with its `config.json` (enough to resume); clear a previous run's outputs."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    config = result.config
+    for pattern in (METRICS_FILE, CHECKPOINT_FILE, MODEL_FILE, *PLANE_IMAGES):
+        for stale in folder.glob(pattern):
+            stale.unlink()
     write_json(folder / CONFIG_FILE, {"cvqpg_version": __version__, "source": source, **config.to_dict()})
+    return folder
+
+
+def read_run(folder: str | Path) -> tuple[FitConfig, dict[str, Any]]:
+    """The configuration and input description of a run folder."""
+    recorded = json.loads((Path(folder) / CONFIG_FILE).read_text())
+    return FitConfig.from_dict(recorded), recorded["source"]
+
+
+def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[str, Any]) -> Path:
+    """Save config, metrics, model, per-plane targets and reconstructions, hologram and curve."""
+    folder = start_run(folder, result.config, source)
+    config = result.config
     save_model(folder / MODEL_FILE, result.gaussians, config)
     hologram, recon = render(result.gaussians, config)
     for plane, (target, image) in enumerate(zip(scene.targets, recon)):
@@ -99,7 +116,8 @@ def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[
     history = result.history["psnr"]
     write_json(folder / METRICS_FILE, metrics_record(
         result.metrics, config, result.seconds,
-        {"updates": len(history), "initial_psnr": history[0] if history else None}))
+        {"updates": len(history), "initial_psnr": history[0] if history else None,
+         "skipped_steps": result.skipped_steps, "sanitised_steps": result.sanitised_steps}))
     return folder
 
 
@@ -108,15 +126,15 @@ def scene_from_source(source: dict[str, Any], config: FitConfig) -> Scene:
     if "scene" in source:
         builtin = builtin_scene(source["scene"], config.width, config.height)
         return load_scene(builtin.image, builtin.depth, config)
-    return load_scene(source["image"], source.get("depth"), config)
+    return load_scene(source["image"], source.get("depth"), config, source.get("resize_depth", False))
 
 
 def evaluate_run(folder: str | Path) -> dict[str, Any]:
     """Recompute a saved run's metrics from its model and inputs; rewrites `metrics.json`."""
     folder = Path(folder)
-    recorded = json.loads((folder / CONFIG_FILE).read_text())
+    _, source = read_run(folder)
     gaussians, config = load_model(folder / MODEL_FILE)
-    scene = scene_from_source(recorded["source"], config)
+    scene = scene_from_source(source, config)
     _, recon = render(gaussians, config)
     previous = {}
     if (folder / METRICS_FILE).is_file():

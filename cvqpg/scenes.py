@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 from PIL import Image
@@ -17,8 +18,15 @@ class BuiltinScene:
 
     image: Image.Image
     depth: Image.Image | None
-    default_planes: int
-    default_color: str
+
+
+@dataclass(frozen=True)
+class SceneRecipe:
+    """How to generate a built-in scene, and the colour mode and plane count it is meant for."""
+
+    generate: Callable[[int, int], BuiltinScene]
+    color: str
+    planes: int
 
 
 def _coordinates(width: int, height: int, supersampling: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -62,7 +70,7 @@ def demo_scene(width: int, height: int) -> BuiltinScene:
 
     rgb = _to_8bit(_downsample(image, SUPERSAMPLING))
     depth_map = _to_8bit(np.round(_downsample(depth, SUPERSAMPLING) * 2) / 2)
-    return BuiltinScene(Image.fromarray(rgb, "RGB"), Image.fromarray(depth_map, "L"), 2, "rgb")
+    return BuiltinScene(Image.fromarray(rgb, "RGB"), Image.fromarray(depth_map, "L"))
 
 
 def siemens_star(width: int, height: int, spokes: int = 36) -> BuiltinScene:
@@ -73,14 +81,14 @@ def siemens_star(width: int, height: int, spokes: int = 36) -> BuiltinScene:
     inside = np.hypot(x, y) < 0.45
     values = np.where(inside, sectors, 0.5)
     gray = _to_8bit(_downsample(values, SUPERSAMPLING))
-    return BuiltinScene(Image.fromarray(gray, "L"), None, 1, "gray")
+    return BuiltinScene(Image.fromarray(gray, "L"), None)
 
 
-SCENES = {"demo": demo_scene, "star": siemens_star}
+SCENES = {"demo": SceneRecipe(demo_scene, "rgb", 2), "star": SceneRecipe(siemens_star, "gray", 1)}
 
 
 def builtin_scene(name: str, width: int, height: int) -> BuiltinScene:
     """Generate the named built-in scene at W×H px."""
     if name not in SCENES:
         raise ValueError(f"unknown scene {name!r}; built-in scenes are {', '.join(sorted(SCENES))}")
-    return SCENES[name](width, height)
+    return SCENES[name].generate(width, height)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import torch
@@ -60,3 +61,23 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Ga
             raise ModelFileError(f"{path}: tensor {name!r} has shape {tuple(tensors[name].shape)}, "
                                  f"expected {shape}")
     return gaussians, config
+
+
+def save_checkpoint(path: str | Path, payload: dict) -> None:
+    """Write a loop state atomically: the previous checkpoint stays intact until the new one is whole."""
+    path = Path(path)
+    partial = path.with_name(path.name + ".partial")
+    with open(partial, "wb") as handle:
+        torch.save(payload, handle)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(partial, path)
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """Read a checkpoint written by `save_checkpoint`."""
+    try:
+        return torch.load(Path(path), map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises several unrelated types for damaged files
+        raise ModelFileError(f"{path}: unreadable checkpoint ({type(error).__name__}); delete it to restart "
+                             "the run from step 0") from None

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from PIL import Image
+from PIL import Image, UnidentifiedImageError
 from torch import Tensor
 
 from .config import FitConfig
@@ -27,6 +28,17 @@ class Scene:
     targets: Tensor  # [M, C, H, W]
 
 
+log = logging.getLogger("cvqpg")
+
+ALPHA_MODES = ("RGBA", "LA", "PA", "RGBa", "La")
+HIGH_DEPTH_MODES = ("I;16", "I;16B", "I;16L", "I;16N", "I", "F")
+ASPECT_TOLERANCE = 0.01
+
+
+class InputError(ValueError):
+    """An input file or image that cannot be used; the message names it and the fix."""
+
+
 def to_tensor(picture: Image.Image) -> Tensor:
     """8-bit PIL image → float32 [C, H, W] in [0, 1]."""
     array = np.asarray(picture, dtype=np.float32) / 255.0
@@ -36,20 +48,69 @@ def to_tensor(picture: Image.Image) -> Tensor:
 
 
 def prepare_image(picture: Image.Image, width: int, height: int, color: str) -> Tensor:
-    """RGB (or L for grayscale), Lanczos-resized to W×H px, /255 → [C, H, W]."""
+    """RGB (or L for grayscale), Lanczos-resized to W×H px, /255 → [C, H, W]. Alpha is dropped."""
+    if picture.mode in ALPHA_MODES or "transparency" in picture.info:
+        log.warning("the image has an alpha channel; it is ignored (only colour is fitted)")
     mode = "RGB" if color == "rgb" else "L"
     return to_tensor(picture.convert(mode).resize((width, height), Image.LANCZOS))
 
 
 def prepare_depth(picture: Image.Image, width: int, height: int) -> Tensor:
-    """Depth map in L, Lanczos-resized to W×H px, /255 → [H, W]; 0 is near."""
-    return to_tensor(picture.convert("L").resize((width, height), Image.LANCZOS))[0]
+    """Depth map → [H, W] in [0, 1], 0 near, Lanczos-resized to W×H px.
+
+    8-bit maps follow SPEC §5 (L, /255). 16-bit maps are divided by 65535 and float maps
+    normalised to [0, 1] from their own range, both resized in float so no precision is lost.
+    """
+    if picture.mode not in HIGH_DEPTH_MODES:
+        return to_tensor(picture.convert("L").resize((width, height), Image.LANCZOS))[0]
+    values = np.asarray(picture, dtype=np.float64)
+    if picture.mode.startswith("I;16") or (picture.mode == "I" and 0 <= values.min() and values.max() <= 65535):
+        values = values / 65535.0
+    elif values.min() < 0 or values.max() > 1:
+        low, high = float(values.min()), float(values.max())
+        log.warning(f"depth values span {low:g}..{high:g}; normalised to 0..1 (0 = near)")
+        values = (values - low) / max(high - low, 1e-12)
+    resized = Image.fromarray(values.astype(np.float32), "F").resize((width, height), Image.LANCZOS)
+    return torch.from_numpy(np.clip(np.asarray(resized, dtype=np.float32), 0.0, 1.0).copy())
 
 
-def load_picture(path: str | Path) -> Image.Image:
-    with Image.open(path) as picture:
-        picture.load()
-        return picture
+def check_file(path: str | Path, role: str = "image") -> Path:
+    """The path of an existing file, or an `InputError` naming it."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{role} {path}: no such file; check the path")
+    if path.is_dir():
+        raise InputError(f"{role} {path} is a folder; give an image file")
+    return path
+
+
+def load_picture(path: str | Path, role: str = "image") -> Image.Image:
+    """Open and decode an image file fully; any problem becomes an `InputError` naming the file."""
+    path = check_file(path, role)
+    try:
+        with Image.open(path) as picture:
+            picture.load()
+            return picture
+    except PermissionError:
+        raise InputError(f"{role} {path} cannot be read (permission denied)") from None
+    except UnidentifiedImageError:
+        raise InputError(f"{role} {path} is not an image file Pillow can read; give a PNG, JPEG, TIFF, ...") \
+            from None
+    except (OSError, SyntaxError, ValueError) as error:
+        raise InputError(f"{role} {path} is corrupt or truncated ({error}); re-export the file") from None
+
+
+def check_depth_geometry(image: Image.Image, depth: Image.Image, resize_depth: bool) -> None:
+    """A depth map of another size is resized (with a note); of another aspect ratio, refused."""
+    if depth.size == image.size:
+        return
+    image_aspect, depth_aspect = image.size[0] / image.size[1], depth.size[0] / depth.size[1]
+    if abs(image_aspect - depth_aspect) > ASPECT_TOLERANCE * image_aspect and not resize_depth:
+        raise InputError(f"depth map is {depth.size[0]}×{depth.size[1]} but the image is "
+                         f"{image.size[0]}×{image.size[1]}: another aspect ratio, so the depth would be "
+                         "distorted; pass --resize-depth to stretch it anyway")
+    log.warning(f"depth map is {depth.size[0]}×{depth.size[1]}, the image {image.size[0]}×{image.size[1]}; "
+                "the depth map is resized to match")
 
 
 def plane_masks(depth: Tensor | None, num_planes: int, exponent: float = 1.0,
@@ -92,22 +153,37 @@ def defocus_targets(image: Tensor, masks: Tensor, sigma_per_plane_px: float = 8.
 
 def build_scene(image: Tensor, depth: Tensor | None, config: FitConfig) -> Scene:
     """Scene from a prepared image [C, H, W] and optional depth [H, W] (needed for M > 1)."""
-    if depth is None and config.num_planes > 1:
-        raise ValueError(f"{config.num_planes} planes need a depth map; give one, or use a single plane")
-    masks = plane_masks(depth, config.num_planes, config.depth_exponent, tuple(image.shape[1:]))
+    planes = config.num_planes
+    if depth is None and planes > 1:
+        raise InputError(f"{planes} planes need a depth map (--depth PATH), or use --planes 1")
+    if depth is not None and planes > 1 and float(depth.max() - depth.min()) < 1e-6:
+        raise InputError(f"the depth map is constant ({float(depth.min()):.3g}), so it cannot separate "
+                         f"{planes} planes; use --planes 1")
+    masks = plane_masks(depth, planes, config.depth_exponent, tuple(image.shape[1:]))
+    empty = [m for m in range(planes) if not masks[m].any()]
+    if empty:
+        raise InputError(f"the depth map puts no pixel on plane(s) {', '.join(map(str, empty))} of {planes}: "
+                         f"it separates only {planes - len(empty)}; use fewer --planes")
     targets = defocus_targets(image, masks, config.defocus_sigma_px)
     return Scene(image=image, masks=masks, targets=targets)
 
 
-def _as_picture(source: str | Path | Image.Image) -> Image.Image:
-    return source if isinstance(source, Image.Image) else load_picture(source)
+def _as_picture(source: str | Path | Image.Image, role: str) -> Image.Image:
+    return source if isinstance(source, Image.Image) else load_picture(source, role)
 
 
 def load_scene(image: str | Path | Image.Image | Tensor, depth: str | Path | Image.Image | Tensor | None,
-               config: FitConfig) -> Scene:
-    """Scene from files, PIL images or tensors ([C, H, W] / [H, W] in [0, 1], already W×H px)."""
-    if not isinstance(image, Tensor):
-        image = prepare_image(_as_picture(image), config.width, config.height, config.color)
-    if depth is not None and not isinstance(depth, Tensor):
-        depth = prepare_depth(_as_picture(depth), config.width, config.height)
+               config: FitConfig, resize_depth: bool = False) -> Scene:
+    """Scene from files, PIL images or tensors ([C, H, W] / [H, W] in [0, 1], already W×H px).
+
+    A depth map of another aspect ratio than the image is refused unless `resize_depth`.
+    """
+    picture = None if isinstance(image, Tensor) else _as_picture(image, "image")
+    depth_picture = None if depth is None or isinstance(depth, Tensor) else _as_picture(depth, "depth map")
+    if picture is not None and depth_picture is not None:
+        check_depth_geometry(picture, depth_picture, resize_depth)
+    if picture is not None:
+        image = prepare_image(picture, config.width, config.height, config.color)
+    if depth_picture is not None:
+        depth = prepare_depth(depth_picture, config.width, config.height)
     return build_scene(image.float(), None if depth is None else depth.float(), config)

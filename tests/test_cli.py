@@ -66,7 +66,7 @@ def test_star_scene_runs_single_plane_grayscale(tmp_path):
 
 
 @pytest.mark.parametrize("arguments, message", [
-    (["missing.png"], "does not exist"),
+    (["missing.png"], "no such file"),
     (["--scene", "demo", "--depth", "x.png"], "--depth applies to an IMAGE"),
     (["--device", "cuda"], "no CUDA GPU"),
 ])

@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from cvqpg import FitConfig, builtin_scene, fit, load_model, render, save_model
+from cvqpg.scenes import SCENES
 from cvqpg.targets import load_scene
 
 
@@ -59,6 +60,6 @@ def test_demo_scene_puts_different_content_on_each_plane():
 
 def test_star_scene_is_a_single_plane_grayscale_star():
     star = builtin_scene("star", 80, 60)
-    assert star.image.mode == "L" and star.depth is None and star.default_planes == 1
+    assert star.image.mode == "L" and star.depth is None and SCENES["star"].planes == 1
     values = np.asarray(star.image)
     assert values.min() < 10 and values.max() > 245

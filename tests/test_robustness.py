@@ -1,0 +1,298 @@
+"""Bad input, interruptions and numerical safety, driven as a user would drive them."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from PIL import Image
+from safetensors.torch import load_file, save_file
+
+from cvqpg import FitConfig
+from cvqpg.cli import main
+from cvqpg.fitting import initial_state, optimisation_step
+from cvqpg.optics import reconstruct
+from cvqpg.primitives import Gaussians, activate
+from cvqpg.rasterization import rasterize
+from cvqpg.targets import build_scene, load_scene, prepare_depth
+
+SMALL = ["--size", "48", "36", "--steps", "4", "--warmup", "1", "--quiet"]
+
+
+@pytest.fixture
+def photo(tmp_path) -> Path:
+    rng = np.random.default_rng(1)
+    path = tmp_path / "photo.png"
+    Image.fromarray(rng.integers(0, 256, (36, 48, 3), dtype=np.uint8)).save(path)
+    return path
+
+
+def gradient_depth(path: Path, size=(48, 36), levels=255) -> Path:
+    ramp = np.round(np.linspace(0, 1, size[0]) * levels) / levels * 255
+    Image.fromarray(np.tile(ramp.astype(np.uint8), (size[1], 1))).save(path)
+    return path
+
+
+def fails_cleanly(arguments, message, capsys, out: Path) -> None:
+    code = main(arguments + ["--out", str(out)] if arguments[0] == "fit" else arguments)
+    error = capsys.readouterr().err
+    assert code == 2, error
+    assert message in error, error
+    assert "Traceback" not in error and error.strip().count("\n") == 0, error
+    assert not out.exists()
+
+
+def test_not_an_image_is_refused(tmp_path, capsys):
+    (tmp_path / "notes.png").write_text("this is text")
+    fails_cleanly(["fit", str(tmp_path / "notes.png"), "--planes", "1", *SMALL], "not an image file", capsys,
+                  tmp_path / "r")
+
+
+def test_truncated_image_is_refused(tmp_path, photo, capsys):
+    data = photo.read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[: len(data) // 2])
+    fails_cleanly(["fit", str(tmp_path / "cut.png"), "--planes", "1", *SMALL], "corrupt or truncated", capsys,
+                  tmp_path / "r")
+
+
+def test_folder_instead_of_depth_file(tmp_path, photo, capsys):
+    fails_cleanly(["fit", str(photo), "--depth", str(tmp_path), *SMALL], "is a folder", capsys, tmp_path / "r")
+
+
+def test_depth_of_other_size_is_resized_with_a_note(tmp_path, photo, capsys):
+    depth = gradient_depth(tmp_path / "d.png", size=(96, 72))
+    assert main(["fit", str(photo), "--depth", str(depth), *SMALL, "--out", str(tmp_path / "r")]) == 0
+    assert "resized to match" in capsys.readouterr().err
+
+
+def test_depth_of_other_aspect_ratio_needs_resize_depth(tmp_path, photo, capsys):
+    depth = gradient_depth(tmp_path / "d.png", size=(40, 40))
+    fails_cleanly(["fit", str(photo), "--depth", str(depth), *SMALL], "--resize-depth", capsys, tmp_path / "r")
+    assert main(["fit", str(photo), "--depth", str(depth), "--resize-depth", *SMALL,
+                 "--out", str(tmp_path / "r")]) == 0
+    assert json.loads((tmp_path / "r" / "config.json").read_text())["source"]["resize_depth"] is True
+
+
+def test_sixteen_bit_depth_keeps_its_precision(tmp_path):
+    ramp = np.tile(np.linspace(0, 65535, 400).astype(np.uint16), (30, 1))
+    Image.fromarray(ramp).save(tmp_path / "d16.png")
+    picture = Image.open(tmp_path / "d16.png")
+    assert picture.mode.startswith("I")
+    depth = prepare_depth(picture, 400, 30)
+    assert torch.unique(depth[15]).numel() > 300  # 8 bits would leave at most 256 levels
+    assert depth.min() >= 0 and depth.max() == pytest.approx(1.0, abs=1e-3)
+    assert depth[15, 200] == pytest.approx(200 / 399, abs=2e-3)
+
+
+def test_float_depth_is_normalised(tmp_path):
+    values = np.tile(np.linspace(2.0, 7.0, 64, dtype=np.float32), (16, 1))
+    Image.fromarray(values, "F").save(tmp_path / "d.tiff")
+    depth = prepare_depth(Image.open(tmp_path / "d.tiff"), 64, 16)
+    assert depth.min() == pytest.approx(0.0, abs=1e-3) and depth.max() == pytest.approx(1.0, abs=1e-3)
+
+
+def test_alpha_is_dropped_with_a_note(tmp_path, capsys):
+    rgba = np.random.default_rng(0).integers(0, 256, (36, 48, 4), dtype=np.uint8)
+    Image.fromarray(rgba, "RGBA").save(tmp_path / "a.png")
+    assert main(["fit", str(tmp_path / "a.png"), "--planes", "1", *SMALL, "--out", str(tmp_path / "r")]) == 0
+    assert "alpha channel" in capsys.readouterr().err
+
+
+def test_constant_depth_cannot_separate_planes(tmp_path, photo, capsys):
+    Image.new("L", (48, 36), 90).save(tmp_path / "flat.png")
+    fails_cleanly(["fit", str(photo), "--depth", str(tmp_path / "flat.png"), *SMALL], "constant", capsys,
+                  tmp_path / "r")
+
+
+def test_more_planes_than_the_depth_separates(tmp_path, photo, capsys):
+    binary = np.zeros((36, 48), np.uint8)
+    binary[:, 24:] = 255
+    Image.fromarray(binary).save(tmp_path / "binary.png")
+    fails_cleanly(["fit", str(photo), "--depth", str(tmp_path / "binary.png"), "--planes", "5", *SMALL],
+                  "separates only", capsys, tmp_path / "r")
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["--size", "8", "8"], "too small"),
+    (["--size", "30000", "30000"], "GiB are available"),
+    (["--num-gaussians", "0"], "need between 1 and the pixel count"),
+    (["--num-gaussians", "100000"], "need between 1 and the pixel count"),
+    (["--steps", "0"], "steps must be positive"),
+    (["--steps", "-3"], "steps must be positive"),
+    (["--ratio", "0"], "ratio must be positive"),
+    (["--pitch", "0"], "pixel_pitch must be positive"),
+    (["--pitch=-3.74e-6"], "pixel_pitch must be positive"),
+    (["--plane-center", "-0.001"], "plane distances"),
+    (["--plane-span", "-0.004"], "plane_span must be positive"),
+    (["--wavelengths", "639e-9", "0", "473e-9"], "positive value"),
+    (["--wavelengths", "639e-9"], "need 3 positive value(s)"),
+    (["--warmup", "50", "--steps", "10"], "warmup 50 must lie in 0..steps"),
+])
+def test_bad_options_fail_cleanly(arguments, message, capsys, tmp_path):
+    base = ["fit", "--size", "48", "36", "--steps", "4", "--warmup", "1", "--quiet"]
+    fails_cleanly(base + arguments, message, capsys, tmp_path / "r")
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("model") / "run"
+    assert main(["fit", *SMALL, "--out", str(out)]) == 0
+    return out
+
+
+@pytest.mark.parametrize("damage, message", [
+    ("version", "format version 1"),
+    ("missing", "missing tensors curvature"),
+    ("shape", "has shape"),
+    ("garbage", "not a readable safetensors file"),
+])
+def test_eval_refuses_damaged_models(finished_run, tmp_path, damage, message, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_bytes((finished_run / "config.json").read_bytes())
+    tensors = load_file(finished_run / "model.safetensors")
+    metadata = {"format": "cvqpg-model", "format_version": "1",
+                "config": json.dumps(json.loads((finished_run / "config.json").read_text()))}
+    if damage == "version":
+        metadata["format_version"] = "0"
+    elif damage == "missing":
+        del tensors["curvature"]
+    elif damage == "shape":
+        tensors["color"] = tensors["color"][:, :1].contiguous()
+    if damage == "garbage":
+        (run / "model.safetensors").write_bytes(b"\x00" * 64)
+    else:
+        save_file(tensors, str(run / "model.safetensors"), metadata=metadata)
+    before = sorted(p.name for p in run.iterdir())
+    assert main(["eval", str(run)]) == 2
+    error = capsys.readouterr().err
+    assert message in error and "Traceback" not in error
+    assert sorted(p.name for p in run.iterdir()) == before
+
+
+def cli_command(out: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "cvqpg.cli", "fit", "--size", "48", "36", "--steps", "40", "--warmup", "10",
+            "--quiet", "--out", str(out), *extra]
+
+
+def wait_for(path: Path, process: subprocess.Popen, timeout: float = 120.0) -> None:
+    deadline = time.time() + timeout
+    while not path.exists():
+        assert process.poll() is None, process.stderr.read()
+        assert time.time() < deadline, "no checkpoint appeared"
+        time.sleep(0.05)
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory) -> dict:
+    out = tmp_path_factory.mktemp("whole") / "run"
+    subprocess.run(cli_command(out), check=True)
+    return load_file(out / "model.safetensors")
+
+
+def assert_same_model(run: Path, expected: dict) -> None:
+    got = load_file(run / "model.safetensors")
+    assert got.keys() == expected.keys()
+    for name in expected:
+        assert torch.equal(got[name], expected[name]), name
+    assert not (run / "checkpoint.pt").exists()
+
+
+@pytest.mark.parametrize("signum, code", [(signal.SIGTERM, 128 + signal.SIGTERM),
+                                          (signal.SIGINT, 128 + signal.SIGINT)])
+def test_signal_saves_a_checkpoint_and_resume_ends_bit_identical(tmp_path, uninterrupted, signum, code):
+    out = tmp_path / "run"
+    process = subprocess.Popen(cli_command(out, "--checkpoint-every", "5"), stderr=subprocess.PIPE, text=True)
+    wait_for(out / "checkpoint.pt", process)
+    process.send_signal(signum)
+    _, error = process.communicate(timeout=120)
+    assert process.returncode == code, error
+    assert "--resume" in error and "Traceback" not in error
+    assert not (out / "model.safetensors").exists()
+    step = torch.load(out / "checkpoint.pt", weights_only=True)["step"]
+    assert 0 < step < 41
+    subprocess.run([sys.executable, "-m", "cvqpg.cli", "fit", "--resume", str(out), "--quiet"], check=True)
+    assert_same_model(out, uninterrupted)
+
+
+def test_sigkill_leaves_the_previous_checkpoint_and_resume_ends_bit_identical(tmp_path, uninterrupted):
+    out = tmp_path / "run"
+    process = subprocess.Popen(cli_command(out, "--checkpoint-every", "1"), stderr=subprocess.PIPE, text=True)
+    wait_for(out / "checkpoint.pt", process)
+    time.sleep(0.5)
+    os.kill(process.pid, signal.SIGKILL)
+    process.wait(timeout=60)
+    payload = torch.load(out / "checkpoint.pt", weights_only=True)
+    assert payload["step"] >= 1
+    subprocess.run([sys.executable, "-m", "cvqpg.cli", "fit", "--resume", str(out), "--quiet"], check=True)
+    assert_same_model(out, uninterrupted)
+
+
+def test_resume_of_a_finished_run_changes_nothing(finished_run, capsys):
+    before = (finished_run / "model.safetensors").read_bytes()
+    assert main(["fit", "--resume", str(finished_run)]) == 0
+    assert "finished" in capsys.readouterr().out
+    assert (finished_run / "model.safetensors").read_bytes() == before
+
+
+def tiny_scene(config):
+    g = torch.Generator().manual_seed(3)
+    return build_scene(torch.rand(3, config.height, config.width, generator=g),
+                       torch.rand(config.height, config.width, generator=g), config)
+
+
+def test_non_finite_loss_skips_the_step():
+    config = FitConfig(width=24, height=20, steps=5, warmup=1, num_gaussians=30, guard_band_px=8)
+    scene = tiny_scene(config)
+    scene.targets[0, 0, 0, 0] = float("nan")
+    state = initial_state(config)
+    before = {k: v.detach().clone() for k, v in state.gaussians.tensors().items()}
+    optimisation_step(state, scene, config)
+    assert state.skipped_steps == 1
+    for name, tensor in state.gaussians.tensors().items():
+        assert torch.equal(tensor.detach(), before[name]), name
+
+
+def test_non_finite_gradient_entries_are_zeroed_and_counted():
+    config = FitConfig(width=24, height=20, steps=5, warmup=1, num_gaussians=30, guard_band_px=8)
+    scene = tiny_scene(config)
+    state = initial_state(config)
+    poison = torch.zeros(30, 3)
+    poison[4, 1] = float("inf")
+    state.gaussians.color.register_hook(lambda grad: grad + poison)
+    optimisation_step(state, scene, config)
+    assert state.sanitised_steps == 1 and state.skipped_steps == 0
+    assert all(torch.isfinite(t).all() for t in state.gaussians.tensors().values())
+
+
+extreme = st.floats(min_value=-1e4, max_value=1e4, allow_nan=False) | st.sampled_from([-80.0, 0.0, 80.0])
+
+
+@settings(max_examples=40, deadline=None)
+@given(data=st.data(), backend=st.sampled_from(["numba", "torch"]), qpf=st.sampled_from(["mahalanobis", "standard"]))
+def test_extreme_primitives_render_finite_fields_and_gradients(data, backend, qpf):
+    count, width, height = 5, 20, 16
+    config = FitConfig(width=width, height=height, num_gaussians=count, qpf=qpf, backend=backend, guard_band_px=8)
+
+    def tensor(*shape, bound=1e4):
+        size = int(np.prod(shape))
+        values = data.draw(st.lists(extreme, min_size=size, max_size=size))
+        return torch.tensor(values, dtype=torch.float32).clamp(-bound, bound).reshape(shape).requires_grad_(True)
+
+    raw = Gaussians(position=tensor(count, 2), scale=tensor(count, 2), rotation=tensor(count),
+                    color=tensor(count, 3, bound=100), phase=tensor(count, 3), opacity=tensor(count),
+                    curvature=tensor(count))
+    hologram = rasterize(activate(raw, config), width, height, config.wavelengths, config.pixel_pitch, qpf, backend)
+    recon = reconstruct(hologram, config)
+    assert torch.isfinite(torch.view_as_real(hologram)).all() and torch.isfinite(recon).all()
+    recon.sum().backward()
+    for name, leaf in raw.tensors().items():
+        assert leaf.grad is not None and torch.isfinite(leaf.grad).all(), name
