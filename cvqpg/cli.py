@@ -252,12 +252,17 @@ def run_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+class _NoteHandler(logging.Handler):
+    """Prints the library's notes (resized depth, dropped alpha, ...) to the current stderr."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        print(f"cvqpg: note: {record.getMessage()}", file=sys.stderr)
+
+
 def _show_notes() -> None:
     logger = logging.getLogger("cvqpg")
-    if not logger.handlers:
-        handler = logging.StreamHandler(sys.stderr)
-        handler.setFormatter(logging.Formatter("cvqpg: note: %(message)s"))
-        logger.addHandler(handler)
+    if not any(isinstance(h, _NoteHandler) for h in logger.handlers):
+        logger.addHandler(_NoteHandler())
         logger.propagate = False
 
 
