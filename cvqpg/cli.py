@@ -14,6 +14,7 @@ from typing import Sequence
 import torch
 
 from . import __version__
+from .allocator import keep_freed_memory
 from .config import ConfigError, FitConfig
 from .fitting import CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes, fit_scene, state_from_payload
 from .runs import (CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, MODEL_FILE, evaluate_run, read_run, scene_from_source,
@@ -269,6 +270,7 @@ def _show_notes() -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     _show_notes()
+    keep_freed_memory()
     try:
         return {"fit": run_fit, "eval": run_eval}[args.command](args)
     except USER_ERRORS as error:

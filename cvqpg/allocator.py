@@ -1,0 +1,35 @@
+"""Process-wide memory allocator setting for long fits on Linux (glibc).
+
+A fitting step creates and frees tensors of tens of MB. glibc serves blocks that large with fresh
+`mmap` calls and returns them to the system when freed, so every step pays the kernel to zero and
+map the same memory again: about 20 ms per 70 MB tensor here, 20% of a 640×480 RGB step.
+Keeping freed memory in the process removes that cost without raising the peak.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+
+M_TRIM_THRESHOLD = -1
+M_MMAP_MAX = -4
+LARGEST_INT = 2**31 - 1
+
+
+def keep_freed_memory() -> bool:
+    """Ask glibc to serve large blocks from its heap and keep them when freed.
+
+    Returns whether the setting took effect (False on other C libraries, where it does nothing).
+    The command line calls it; library users may call it once at start-up.
+    """
+    name = ctypes.util.find_library("c")
+    if name is None:
+        return False
+    try:
+        libc = ctypes.CDLL(name)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+    trimmed_never = mallopt(M_TRIM_THRESHOLD, LARGEST_INT)
+    return bool(mallopt(M_MMAP_MAX, 0)) and bool(trimmed_never)
