@@ -1,21 +1,30 @@
 """Fused CPU kernels (Numba) for the splatting sum and its gradient.
 
-Both passes visit only the pixels inside each primitive's 3σ_major circle and never store anything
-of size N × pixels. The forward pass splits the image into bands of rows, one thread per band, each
-summing the primitives that reach its rows, so no two threads write the same pixel. The backward
-pass gives each thread whole primitives: a primitive's gradient is a sum over its own footprint,
-read from the shared output gradient. Arithmetic is float64 inside, float32 in the arrays.
+Both passes visit only the pixels inside each primitive's 3σ_major circle and store nothing of size
+N × pixels. Per channel a primitive is `G = α c exp(E)` with a complex exponent E that is quadratic
+in the pixel offset (the envelope −½D² and the quadratic phase), so along a row each pixel's value
+is its neighbour's times a ratio that itself changes by a constant factor, and the same holds from
+row to row along the primitive's centre column. The kernels walk the footprint outwards from that
+column with complex multiplications only, a few exact exponentials per primitive and channel.
+
+The walk leaves out SPEC's floor of −50 on the exponent (values below e⁻⁵⁰ ≈ 2e-22 of the
+amplitude, invisible in float32). Primitives so elongated that the exponent inside the footprint
+could leave float64's range for such products (D² > 600) are evaluated pixel by pixel instead,
+with the floor. The forward pass gives each thread its own slice of primitives and its own output
+buffer, summed in a fixed order, so results do not depend on scheduling. The backward pass gives
+each thread whole primitives. Arithmetic is float64 inside, float32 in the arrays.
 """
 
 from __future__ import annotations
 
+import cmath
 import math
 
 import numba as nb
 import numpy as np
 
 EXPONENT_FLOOR = -50.0
-BAND_ROWS = 8
+MAX_WALKED_MAHALANOBIS2 = 600.0
 
 
 @nb.njit(cache=True, nogil=True)
@@ -29,96 +38,129 @@ def _column_span(center_x: float, reach: float, dy: float, width: int) -> tuple[
     return max(0, math.ceil(center_x - half)), min(width - 1, math.floor(center_x + half))
 
 
-@nb.njit(cache=True)
-def bin_rows(position: np.ndarray, reach: np.ndarray, width: int, height: int,
-             band_rows: int) -> tuple[np.ndarray, np.ndarray]:
-    """CSR lists of the primitives whose footprint meets each band of `band_rows` rows."""
-    bands = (height + band_rows - 1) // band_rows
-    starts = np.zeros(bands + 1, np.int64)
-    count = position.shape[0]
-    for n in range(count):
-        x, y, r = position[n, 0], position[n, 1], reach[n]
-        low, high = _row_span(y, r, height)
-        if low > high or x + r < 0 or x - r > width - 1:
-            continue
-        for band in range(low // band_rows, high // band_rows + 1):
-            starts[band + 1] += 1
-    for band in range(bands):
-        starts[band + 1] += starts[band]
-    items = np.empty(starts[bands], np.int64)
-    fill = starts[:-1].copy()
-    for n in range(count):
-        x, y, r = position[n, 0], position[n, 1], reach[n]
-        low, high = _row_span(y, r, height)
-        if low > high or x + r < 0 or x - r > width - 1:
-            continue
-        for band in range(low // band_rows, high // band_rows + 1):
-            items[fill[band]] = n
-            fill[band] += 1
-    return starts, items
-
-
 @nb.njit(cache=True, nogil=True)
-def _chirp_steps(a, b, dx, dy, mahalanobis):
-    """(B, ΔB, ΔΔB) of the QPF's squared distance B (D² or |p − x|²) stepping dx → dx + 1."""
+def _exponent_coefficients(a, b, c, k_chirp, mahalanobis):
+    """(A, B, C) of the complex exponent E = A dx² + 2B dx dy + C dy² (without the constant iφ)."""
     if mahalanobis:
-        return a * dx * dx + 2.0 * b * dx * dy, a * (2.0 * dx + 1.0) + 2.0 * b * dy, 2.0 * a
-    return dx * dx, 2.0 * dx + 1.0, 2.0
+        factor = complex(-0.5, k_chirp)
+        return factor * a, factor * b, factor * c
+    return complex(-0.5 * a, k_chirp), complex(-0.5 * b, 0.0), complex(-0.5 * c, k_chirp)
 
 
 @nb.njit(cache=True, nogil=True)
-def _start_row(rotors, steps, curls, phase_n, wavenumbers, k_chirp, base_y, base, step, step2):
-    """Unit phasors along a row: rotor_c = e^{i(φ_c + k_c χ B)} at its first pixel, step_c its
-    ratio to the next pixel, curl_c the constant ratio of successive steps (B is quadratic in x)."""
-    for ch in range(rotors.shape[0]):
-        scale = wavenumbers[ch] * k_chirp
-        angle = phase_n[ch] + scale * (base + base_y)
-        rotors[ch] = complex(math.cos(angle), math.sin(angle))
-        steps[ch] = complex(math.cos(scale * step), math.sin(scale * step))
-        curls[ch] = complex(math.cos(scale * step2), math.sin(scale * step2))
+def _walkable(a, b, c, reach):
+    """Whether every exponent in the footprint stays in the range the multiplicative walk needs."""
+    largest_inverse_eigenvalue = 0.5 * (a + c) + math.sqrt(0.25 * (a - c) ** 2 + b * b)
+    return reach * reach * largest_inverse_eigenvalue <= MAX_WALKED_MAHALANOBIS2
 
 
-@nb.njit(parallel=True, cache=True)
-def splat_forward(position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                  band_starts, band_items, band_rows, out):
-    """out[0|1, c, y, x] += Re|Im G_{n,c}(x, y) for every primitive n; `out` starts at zero.
+@nb.njit(cache=True, nogil=True)
+def _walk_start(A, B, C, dx0, dy0):
+    """Exact values at the walk's start (column dx0, first row dy0): exp(E), the vertical ratio and
+    its change, the rightward and leftward ratios and their changes per row and per step."""
+    e0 = A * dx0 * dx0 + 2.0 * B * dx0 * dy0 + C * dy0 * dy0
+    return (cmath.exp(e0),
+            cmath.exp(2.0 * B * dx0 + C * (2.0 * dy0 + 1.0)), cmath.exp(2.0 * C),
+            cmath.exp(A * (2.0 * dx0 + 1.0) + 2.0 * B * dy0), cmath.exp(A * (1.0 - 2.0 * dx0) - 2.0 * B * dy0),
+            cmath.exp(2.0 * B), cmath.exp(2.0 * A))
 
-    The quadratic phase is stepped along each row by complex multiplication (exact in exact
-    arithmetic; float64 keeps the drift near 1e-15 over a row); the envelope is evaluated directly
-    so the −50 exponent floor holds exactly.
-    """
+
+@nb.njit(cache=True, nogil=True)
+def _direct_value(A, B, C, dx, dy, a, b, c, mahalanobis, k_chirp):
+    """exp(E) at one pixel with the −50 floor on the envelope's exponent (the slow, exact path)."""
+    mahalanobis2 = a * dx * dx + 2.0 * b * dx * dy + c * dy * dy
+    path = k_chirp * (mahalanobis2 if mahalanobis else dx * dx + dy * dy)
+    return math.exp(max(-0.5 * mahalanobis2, EXPONENT_FLOOR)) * cmath.exp(complex(0.0, path))
+
+
+@nb.njit(cache=True, nogil=True)
+def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, out):
     channels, height, width = out.shape[1], out.shape[2], out.shape[3]
-    for band in nb.prange(band_starts.shape[0] - 1):
-        rotors = np.empty(channels, np.complex128)
-        steps = np.empty(channels, np.complex128)
-        curls = np.empty(channels, np.complex128)
-        band_low = band * band_rows
-        band_high = min(band_low + band_rows, height) - 1
-        for item in range(band_starts[band], band_starts[band + 1]):
-            n = band_items[item]
-            x0, y0, r = np.float64(position[n, 0]), np.float64(position[n, 1]), np.float64(reach[n])
-            a, b, c = np.float64(conic[n, 0]), np.float64(conic[n, 1]), np.float64(conic[n, 2])
-            alpha, k_chirp = np.float64(opacity[n]), np.float64(chirp[n])
-            low, high = _row_span(y0, r, height)
-            for py in range(max(low, band_low), min(high, band_high) + 1):
-                dy = py - y0
-                left, right = _column_span(x0, r, dy, width)
-                dx = left - x0
-                base, step, step2 = _chirp_steps(a, b, dx, dy, mahalanobis)
-                base_y = c * dy * dy if mahalanobis else dy * dy
-                _start_row(rotors, steps, curls, phase[n], wavenumbers, k_chirp, base_y, base, step, step2)
+    x0, y0, r = np.float64(position[n, 0]), np.float64(position[n, 1]), np.float64(reach[n])
+    if x0 + r < 0 or x0 - r > width - 1:
+        return
+    a, b, c = np.float64(conic[n, 0]), np.float64(conic[n, 1]), np.float64(conic[n, 2])
+    low, high = _row_span(y0, r, height)
+    walk = _walkable(a, b, c, r)
+    cx = round(x0)
+    dx0, dy0 = cx - x0, low - y0
+    for ch in range(channels):
+        k_chirp = wavenumbers[ch] * chirp[n]
+        A, B, C = _exponent_coefficients(a, b, c, k_chirp, mahalanobis)
+        amplitude = opacity[n] * color[n, ch] * cmath.exp(complex(0.0, phase[n, ch]))
+        z_row, v, v_step, s_right, s_left, s_row, s_step = _walk_start(A, B, C, dx0, dy0)
+        for py in range(low, high + 1):
+            dy = py - y0
+            left, right = _column_span(x0, r, dy, width)
+            row_re, row_im = out[0, ch, py], out[1, ch, py]
+            if walk:
+                z, s = z_row, s_right
+                for px in range(cx, right + 1):
+                    if px >= left:
+                        value = amplitude * z
+                        row_re[px] += value.real
+                        row_im[px] += value.imag
+                    z *= s
+                    s *= s_step
+                z, s = z_row * s_left, s_left * s_step
+                for px in range(cx - 1, left - 1, -1):
+                    if px <= right:
+                        value = amplitude * z
+                        row_re[px] += value.real
+                        row_im[px] += value.imag
+                    z *= s
+                    s *= s_step
+                z_row *= v
+                v *= v_step
+                s_right *= s_row
+                s_left /= s_row
+            else:
                 for px in range(left, right + 1):
-                    if dx * dx + dy * dy <= r * r:
-                        mahalanobis2 = a * dx * dx + 2.0 * b * dx * dy + c * dy * dy
-                        weight = alpha * math.exp(max(-0.5 * mahalanobis2, EXPONENT_FLOOR))
-                        for ch in range(channels):
-                            value = weight * color[n, ch] * rotors[ch]
-                            out[0, ch, py, px] += value.real
-                            out[1, ch, py, px] += value.imag
-                    for ch in range(channels):
-                        rotors[ch] *= steps[ch]
-                        steps[ch] *= curls[ch]
-                    dx += 1.0
+                    value = amplitude * _direct_value(A, B, C, px - x0, dy, a, b, c, mahalanobis, k_chirp)
+                    row_re[px] += value.real
+                    row_im[px] += value.imag
+
+
+@nb.njit(parallel=True, cache=True, fastmath=True)
+def splat_forward(position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, partial):
+    """partial[t] = Re|Im of the sum over primitives t, t+T, t+2T, ... (T = partial.shape[0]).
+
+    `partial` [T, 2, C, H, W] starts at zero; the caller sums it over t in order.
+    """
+    threads = partial.shape[0]
+    for t in nb.prange(threads):
+        for n in range(t, position.shape[0], threads):
+            _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
+                       partial[t])
+
+
+@nb.njit(cache=True, nogil=True)
+def _accumulate_pixel(g_re, g_im, z, alpha, color_c, k, chirp_n, dx, dy, a, b, c, mahalanobis, clamped, sums):
+    """Add one pixel's share to the gradient sums of one primitive and channel.
+
+    sums: [color, phase, opacity, chirp, a, b, c, x, y]; z = exp(E) including the phase φ.
+    """
+    t = g_re * z.real + g_im * z.imag
+    u = g_im * z.real - g_re * z.imag
+    d_real = alpha * color_c * t  # dL/dRe(E)
+    d_imag = alpha * color_c * u  # dL/dIm(E)
+    sums[0] += alpha * t
+    sums[1] += d_imag
+    sums[2] += color_c * t
+    mahalanobis2 = a * dx * dx + 2.0 * b * dx * dy + c * dy * dy
+    d_mahalanobis2 = 0.0 if clamped else -0.5 * d_real
+    if mahalanobis:
+        sums[3] += k * d_imag * mahalanobis2
+        d_mahalanobis2 += k * chirp_n * d_imag
+        d_radius2 = 0.0
+    else:
+        sums[3] += k * d_imag * (dx * dx + dy * dy)
+        d_radius2 = k * chirp_n * d_imag
+    sums[4] += d_mahalanobis2 * dx * dx
+    sums[5] += d_mahalanobis2 * 2.0 * dx * dy
+    sums[6] += d_mahalanobis2 * dy * dy
+    sums[7] -= 2.0 * (d_mahalanobis2 * (a * dx + b * dy) + d_radius2 * dx)
+    sums[8] -= 2.0 * (d_mahalanobis2 * (b * dx + c * dy) + d_radius2 * dy)
 
 
 @nb.njit(parallel=True, cache=True)
@@ -127,57 +169,57 @@ def splat_backward(position, conic, reach, chirp, color, phase, opacity, wavenum
     """Gradients (float64, each row written by its own primitive only) from grad[0|1, c, y, x]."""
     channels, height, width = grad.shape[1], grad.shape[2], grad.shape[3]
     for n in nb.prange(position.shape[0]):
-        rotors = np.empty(channels, np.complex128)
-        steps = np.empty(channels, np.complex128)
-        curls = np.empty(channels, np.complex128)
         x0, y0, r = np.float64(position[n, 0]), np.float64(position[n, 1]), np.float64(reach[n])
-        a, b, c = np.float64(conic[n, 0]), np.float64(conic[n, 1]), np.float64(conic[n, 2])
-        alpha, k_chirp = np.float64(opacity[n]), np.float64(chirp[n])
-        gx = gy = ga = gb = gc = gchirp = galpha = 0.0
-        low, high = _row_span(y0, r, height)
         if x0 + r < 0 or x0 - r > width - 1:
-            high = low - 1
-        for py in range(low, high + 1):
-            dy = py - y0
-            left, right = _column_span(x0, r, dy, width)
-            dx = left - x0
-            base, step, step2 = _chirp_steps(a, b, dx, dy, mahalanobis)
-            base_y = c * dy * dy if mahalanobis else dy * dy
-            _start_row(rotors, steps, curls, phase[n], wavenumbers, k_chirp, base_y, base, step, step2)
-            for px in range(left, right + 1):
-                radius2 = dx * dx + dy * dy
-                if radius2 <= r * r:
-                    mahalanobis2 = a * dx * dx + 2.0 * b * dx * dy + c * dy * dy
-                    exponent = -0.5 * mahalanobis2
-                    envelope = math.exp(max(exponent, EXPONENT_FLOOR))
-                    d_envelope = 0.0
-                    d_path = 0.0
-                    for ch in range(channels):
-                        cos_a, sin_a = rotors[ch].real, rotors[ch].imag
-                        g_re, g_im = grad[0, ch, py, px], grad[1, ch, py, px]
-                        d_amplitude = g_re * cos_a + g_im * sin_a
-                        d_angle = alpha * envelope * color[n, ch] * (g_im * cos_a - g_re * sin_a)
-                        g_color[n, ch] += alpha * envelope * d_amplitude
-                        g_phase[n, ch] += d_angle
-                        d_envelope += color[n, ch] * d_amplitude
-                        d_path += wavenumbers[ch] * d_angle
-                    base = mahalanobis2 if mahalanobis else radius2
-                    galpha += envelope * d_envelope
-                    gchirp += d_path * base
-                    d_base = d_path * k_chirp
-                    d_mahalanobis2 = d_base if mahalanobis else 0.0
-                    if exponent > EXPONENT_FLOOR:
-                        d_mahalanobis2 -= 0.5 * envelope * alpha * d_envelope
-                    d_radius2 = 0.0 if mahalanobis else d_base
-                    ga += d_mahalanobis2 * dx * dx
-                    gb += d_mahalanobis2 * 2.0 * dx * dy
-                    gc += d_mahalanobis2 * dy * dy
-                    gx -= 2.0 * (d_mahalanobis2 * (a * dx + b * dy) + d_radius2 * dx)
-                    gy -= 2.0 * (d_mahalanobis2 * (b * dx + c * dy) + d_radius2 * dy)
-                for ch in range(channels):
-                    rotors[ch] *= steps[ch]
-                    steps[ch] *= curls[ch]
-                dx += 1.0
-        g_position[n, 0], g_position[n, 1] = gx, gy
-        g_conic[n, 0], g_conic[n, 1], g_conic[n, 2] = ga, gb, gc
-        g_chirp[n], g_opacity[n] = gchirp, galpha
+            continue
+        a, b, c = np.float64(conic[n, 0]), np.float64(conic[n, 1]), np.float64(conic[n, 2])
+        alpha = np.float64(opacity[n])
+        low, high = _row_span(y0, r, height)
+        walk = _walkable(a, b, c, r)
+        cx = round(x0)
+        dx0, dy0 = cx - x0, low - y0
+        sums = np.zeros(9)
+        chirp_n = np.float64(chirp[n])
+        for ch in range(channels):
+            k, color_c = wavenumbers[ch], np.float64(color[n, ch])
+            k_chirp = k * chirp_n
+            A, B, C = _exponent_coefficients(a, b, c, k_chirp, mahalanobis)
+            rotation = cmath.exp(complex(0.0, phase[n, ch]))
+            z_row, v, v_step, s_right, s_left, s_row, s_step = _walk_start(A, B, C, dx0, dy0)
+            z_row *= rotation
+            sums[0] = sums[1] = 0.0
+            for py in range(low, high + 1):
+                dy = py - y0
+                left, right = _column_span(x0, r, dy, width)
+                if walk:
+                    z, s = z_row, s_right
+                    for px in range(cx, right + 1):
+                        if px >= left:
+                            _accumulate_pixel(grad[0, ch, py, px], grad[1, ch, py, px], z, alpha, color_c, k, chirp_n,
+                                              px - x0, dy, a, b, c, mahalanobis, False, sums)
+                        z *= s
+                        s *= s_step
+                    z, s = z_row * s_left, s_left * s_step
+                    for px in range(cx - 1, left - 1, -1):
+                        if px <= right:
+                            _accumulate_pixel(grad[0, ch, py, px], grad[1, ch, py, px], z, alpha, color_c, k, chirp_n,
+                                              px - x0, dy, a, b, c, mahalanobis, False, sums)
+                        z *= s
+                        s *= s_step
+                    z_row *= v
+                    v *= v_step
+                    s_right *= s_row
+                    s_left /= s_row
+                else:
+                    for px in range(left, right + 1):
+                        dx = px - x0
+                        z = rotation * _direct_value(A, B, C, dx, dy, a, b, c, mahalanobis, k_chirp)
+                        clamped = -0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy) <= EXPONENT_FLOOR
+                        _accumulate_pixel(grad[0, ch, py, px], grad[1, ch, py, px], z, alpha, color_c, k, chirp_n,
+                                          dx, dy, a, b, c, mahalanobis, clamped, sums)
+            g_color[n, ch] = sums[0]
+            g_phase[n, ch] = sums[1]
+        g_opacity[n] = sums[2]
+        g_chirp[n] = sums[3]
+        g_conic[n, 0], g_conic[n, 1], g_conic[n, 2] = sums[4], sums[5], sums[6]
+        g_position[n, 0], g_position[n, 1] = sums[7], sums[8]

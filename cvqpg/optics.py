@@ -133,9 +133,63 @@ def propagate(field: Tensor, distances_m: Sequence[float], wavelengths_m: Sequen
     return output[..., top:top + rows, left:left + cols]
 
 
+class _ContentPropagation(torch.autograd.Function):
+    """`grid.crop(propagate(field, ...))` with a hand-written adjoint.
+
+    Autograd through `propagate` keeps several M×C arrays of the doubled grid alive and allocates
+    as many again in the backward pass. Here the forward keeps only the H×W content of each plane,
+    and the backward is the same propagation with the conjugate transfer function (the adjoint of
+    a unitary-per-frequency filter), summed over planes in the spectrum so it needs one inverse
+    FFT per channel: the transform count of SPEC §3, nothing stored between the passes.
+    """
+
+    @staticmethod
+    def forward(ctx, field: Tensor, grid: Grid, transfer: Tensor) -> Tensor:
+        channels, rows, cols = field.shape
+        padded = field.new_zeros(channels, 2 * rows, 2 * cols)
+        padded[:, rows // 2:rows // 2 + rows, cols // 2:cols // 2 + cols] = field
+        spectrum = torch.fft.fft2(padded, out=padded)
+        top, left = rows // 2 + grid.top, cols // 2 + grid.left
+        content = field.new_empty(transfer.shape[0], channels, grid.height, grid.width)
+        product = torch.empty_like(spectrum)
+        for plane, plane_transfer in enumerate(transfer):
+            torch.mul(spectrum, plane_transfer, out=product)
+            torch.fft.ifft2(product, out=product)
+            content[plane] = product[:, top:top + grid.height, left:left + grid.width]
+        ctx.grid, ctx.transfer, ctx.field_shape = grid, transfer, field.shape
+        return content
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None]:
+        grid, transfer = ctx.grid, ctx.transfer
+        channels, rows, cols = ctx.field_shape
+        top, left = rows // 2 + grid.top, cols // 2 + grid.left
+        accumulated = grad.new_zeros(channels, 2 * rows, 2 * cols)
+        scattered = torch.empty_like(accumulated)
+        for plane, plane_transfer in enumerate(transfer):
+            scattered.zero_()
+            scattered[:, top:top + grid.height, left:left + grid.width] = grad[plane]
+            torch.fft.fft2(scattered, out=scattered)
+            accumulated.addcmul_(scattered, plane_transfer.conj())
+        torch.fft.ifft2(accumulated, out=accumulated)
+        return accumulated[:, rows // 2:rows // 2 + rows, cols // 2:cols // 2 + cols], None, None
+
+
+def propagate_content(field: Tensor, grid: Grid, distances_m: Sequence[float], wavelengths_m: Sequence[float],
+                      pixel_pitch: float) -> Tensor:
+    """The H×W content [M, C, H, W] of `propagate(field, ...)` for a [C, P_H, P_W] field, lean in memory."""
+    channels, rows, cols = field.shape
+    if len(wavelengths_m) != channels:
+        raise ValueError(f"{len(wavelengths_m)} wavelengths for a field of {channels} channels")
+    transfer = _unshifted_transfer_functions(2 * rows, 2 * cols, float(pixel_pitch),
+                                             tuple(map(float, wavelengths_m)),
+                                             tuple(map(float, distances_m)), field.device)
+    return _ContentPropagation.apply(field, grid, transfer)
+
+
 def reconstruct(hologram: Tensor, config: FitConfig) -> Tensor:
     """Hologram [C, H, W] → reconstructed intensity [M, C, H, W] clamped to [0, 1] (SPEC §3)."""
     grid = Grid.for_config(config)
     field = slm_field(pad_with_guard_band(hologram, grid))
-    planes = propagate(field, config.plane_distances, config.wavelengths, config.pixel_pitch)
-    return torch.clamp(grid.crop(planes).abs() ** 2, 0.0, 1.0)
+    planes = propagate_content(field, grid, config.plane_distances, config.wavelengths, config.pixel_pitch)
+    return torch.clamp(planes.abs() ** 2, 0.0, 1.0)

@@ -26,6 +26,7 @@ Qpf = Literal["mahalanobis", "standard"]
 FOOTPRINT_SIGMAS = 3.0
 EXPONENT_FLOOR = -50.0
 CHUNK_ELEMENTS = 1 << 20
+PARTIAL_BUFFER_BYTES = 1 << 30
 MIN_PATCH_RADIUS_PX = 2
 
 
@@ -133,17 +134,21 @@ class _FusedSplat(torch.autograd.Function):
     @staticmethod
     def forward(ctx, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                 width, height):
+        import numba
+
         from . import kernels
 
         arrays = tuple(t.detach().to("cpu", torch.float32).contiguous().numpy()
                        for t in (position, conic, reach, chirp, color, phase, opacity))
         k = wavenumbers.detach().to("cpu", torch.float64).numpy()
-        starts, items = kernels.bin_rows(arrays[0], arrays[2], width, height, kernels.BAND_ROWS)
-        out = np.zeros((2, color.shape[1], height, width), np.float32)
-        kernels.splat_forward(*arrays, k, mahalanobis, starts, items, kernels.BAND_ROWS, out)
+        plane_bytes = 2 * color.shape[1] * height * width * 4
+        threads = max(1, min(numba.get_num_threads(), PARTIAL_BUFFER_BYTES // plane_bytes))
+        partial = np.zeros((threads, 2, color.shape[1], height, width), np.float32)
+        kernels.splat_forward(*arrays, k, mahalanobis, partial)
         ctx.arrays, ctx.wavenumbers, ctx.mahalanobis = arrays, k, mahalanobis
         ctx.dtype, ctx.device = position.dtype, position.device
-        return torch.from_numpy(out).to(device=position.device, dtype=position.dtype)
+        out = torch.from_numpy(partial).sum(dim=0) if threads > 1 else torch.from_numpy(partial[0])
+        return out.to(device=position.device, dtype=position.dtype)
 
     @staticmethod
     def backward(ctx, grad):

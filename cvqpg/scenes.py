@@ -9,7 +9,7 @@ from typing import Callable
 import numpy as np
 from PIL import Image
 
-SUPERSAMPLING = 4
+SUPERSAMPLING = 2
 
 
 @dataclass(frozen=True)
@@ -36,7 +36,7 @@ def _coordinates(width: int, height: int, supersampling: int = 1) -> tuple[np.nd
     xs = (np.arange(width)[:, None] + offsets[None, :]).reshape(-1)
     ys = (np.arange(height)[:, None] + offsets[None, :]).reshape(-1)
     x, y = np.meshgrid((xs - (width - 1) / 2) / height, (ys - (height - 1) / 2) / height)
-    return x, y
+    return x.astype(np.float32), y.astype(np.float32)
 
 
 def _downsample(values: np.ndarray, supersampling: int) -> np.ndarray:
