@@ -66,6 +66,20 @@ def _walk_start(A, B, C, dx0, dy0):
 
 
 @nb.njit(cache=True, nogil=True)
+def _half_row(leftward, z_row, s_right, s_left, s_step, cx, left, right):
+    """Start value, ratio and pixel range of the walk from column cx to the right or to the left."""
+    if leftward:
+        return z_row * s_left, s_left * s_step, cx - 1, left - 1, -1
+    return z_row, s_right, cx, right + 1, 1
+
+
+@nb.njit(cache=True, nogil=True)
+def _next_row(z_row, v, v_step, s_right, s_left, s_row):
+    """The walk's state one row down."""
+    return z_row * v, v * v_step, s_right * s_row, s_left / s_row
+
+
+@nb.njit(cache=True, nogil=True)
 def _direct_value(A, B, C, dx, dy, a, b, c, mahalanobis, k_chirp):
     """exp(E) at one pixel with the −50 floor on the envelope's exponent (the slow, exact path)."""
     mahalanobis2 = a * dx * dx + 2.0 * b * dx * dy + c * dy * dy
@@ -94,26 +108,16 @@ def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumb
             left, right = _column_span(x0, r, dy, width)
             row_re, row_im = out[0, ch, py], out[1, ch, py]
             if walk:
-                z, s = z_row, s_right
-                for px in range(cx, right + 1):
-                    if px >= left:
-                        value = amplitude * z
-                        row_re[px] += value.real
-                        row_im[px] += value.imag
-                    z *= s
-                    s *= s_step
-                z, s = z_row * s_left, s_left * s_step
-                for px in range(cx - 1, left - 1, -1):
-                    if px <= right:
-                        value = amplitude * z
-                        row_re[px] += value.real
-                        row_im[px] += value.imag
-                    z *= s
-                    s *= s_step
-                z_row *= v
-                v *= v_step
-                s_right *= s_row
-                s_left /= s_row
+                for leftward in (False, True):
+                    z, s, start, stop, step = _half_row(leftward, z_row, s_right, s_left, s_step, cx, left, right)
+                    for px in range(start, stop, step):
+                        if left <= px <= right:
+                            value = amplitude * z
+                            row_re[px] += value.real
+                            row_im[px] += value.imag
+                        z *= s
+                        s *= s_step
+                z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row)
             else:
                 for px in range(left, right + 1):
                     value = amplitude * _direct_value(A, B, C, px - x0, dy, a, b, c, mahalanobis, k_chirp)
@@ -192,24 +196,15 @@ def splat_backward(position, conic, reach, chirp, color, phase, opacity, wavenum
                 dy = py - y0
                 left, right = _column_span(x0, r, dy, width)
                 if walk:
-                    z, s = z_row, s_right
-                    for px in range(cx, right + 1):
-                        if px >= left:
-                            _accumulate_pixel(grad[0, ch, py, px], grad[1, ch, py, px], z, alpha, color_c, k, chirp_n,
-                                              px - x0, dy, a, b, c, mahalanobis, False, sums)
-                        z *= s
-                        s *= s_step
-                    z, s = z_row * s_left, s_left * s_step
-                    for px in range(cx - 1, left - 1, -1):
-                        if px <= right:
-                            _accumulate_pixel(grad[0, ch, py, px], grad[1, ch, py, px], z, alpha, color_c, k, chirp_n,
-                                              px - x0, dy, a, b, c, mahalanobis, False, sums)
-                        z *= s
-                        s *= s_step
-                    z_row *= v
-                    v *= v_step
-                    s_right *= s_row
-                    s_left /= s_row
+                    for leftward in (False, True):
+                        z, s, start, stop, step = _half_row(leftward, z_row, s_right, s_left, s_step, cx, left, right)
+                        for px in range(start, stop, step):
+                            if left <= px <= right:
+                                _accumulate_pixel(grad[0, ch, py, px], grad[1, ch, py, px], z, alpha, color_c, k,
+                                                  chirp_n, px - x0, dy, a, b, c, mahalanobis, False, sums)
+                            z *= s
+                            s *= s_step
+                    z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row)
                 else:
                     for px in range(left, right + 1):
                         dx = px - x0
