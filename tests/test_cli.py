@@ -30,6 +30,7 @@ def test_fit_writes_the_whole_run_folder(demo_run):
     assert len(metrics["per_plane"]["psnr"]) == 2
     assert metrics["steps"] == 3 and metrics["num_gaussians"] == round(0.2 * 48 * 36 / 2)
     assert metrics["num_params"] == metrics["num_gaussians"] * 13
+    assert metrics["skipped_steps"] == 0 and metrics["sanitised_steps"] == 0 and metrics["updates"] == 4
     for name in ("lpips", "cvvdp"):
         assert (metrics["mean"][name] is None) == (name in metrics["unavailable"])
     assert Image.open(demo_run / "recon_plane1.png").size == (48, 36)

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from cvqpg import FitConfig
+from cvqpg import FitConfig, builtin_scene, fit
 from cvqpg.primitives import Gaussians, activate, init_gaussians
 from cvqpg.rasterization import (Splats, rasterize, resolve_backend, splat_fused, splat_reference, splats,
                                  wavenumbers_for)
@@ -116,3 +116,11 @@ def test_auto_backend_picks_fused_kernels_on_cpu():
         resolve_backend("numba", "cuda")
     with pytest.raises(ValueError, match="unknown rasterizer backend"):
         resolve_backend("opengl", "cpu")
+
+
+def test_fit_with_fused_kernels_matches_the_reference_fit():
+    config = FitConfig(width=48, height=36, steps=100, warmup=30, guard_band_px=32)
+    builtin = builtin_scene("demo", config.width, config.height)
+    psnr = {backend: fit(builtin.image, builtin.depth, config.replace(backend=backend), progress=False)
+            .metrics.mean["psnr"] for backend in ("numba", "torch")}
+    assert abs(psnr["numba"] - psnr["torch"]) < 0.01, psnr
