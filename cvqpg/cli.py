@@ -213,10 +213,10 @@ def _prepare(args: argparse.Namespace) -> tuple[Path, FitConfig, dict, Scene, Fi
 
 
 def run_fit(args: argparse.Namespace) -> int:
-    folder, config, source, scene, state = _prepare(args)
-    if args.resume and (folder / METRICS_FILE).is_file():
-        print(f"{folder}: this run is finished; nothing to resume")
+    if args.resume and (Path(args.resume) / METRICS_FILE).is_file():
+        print(f"{args.resume}: this run is finished; nothing to resume")
         return 0
+    folder, config, source, scene, state = _prepare(args)
     checkpoint_file = folder / CHECKPOINT_FILE
     every = args.checkpoint_every
     policy = CheckpointPolicy(save=lambda s: save_checkpoint(checkpoint_file, s.to_payload()),
