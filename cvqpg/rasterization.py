@@ -14,11 +14,13 @@ import math
 from dataclasses import dataclass
 from typing import Callable, Literal, Sequence
 
+import numba
 import numpy as np
 import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
+from . import kernels
 from .primitives import Primitives, inverse_covariance, major_sigma_px
 
 Qpf = Literal["mahalanobis", "standard"]
@@ -134,10 +136,6 @@ class _FusedSplat(torch.autograd.Function):
     @staticmethod
     def forward(ctx, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                 width, height):
-        import numba
-
-        from . import kernels
-
         arrays = tuple(t.detach().to("cpu", torch.float32).contiguous().numpy()
                        for t in (position, conic, reach, chirp, color, phase, opacity))
         k = wavenumbers.detach().to("cpu", torch.float64).numpy()
@@ -152,9 +150,7 @@ class _FusedSplat(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):
-        from . import kernels
-
-        position, conic, reach, chirp, color, phase, opacity = ctx.arrays
+        position, conic, _, chirp, color, phase, opacity = ctx.arrays
         grads = tuple(np.zeros(a.shape, np.float64) for a in (position, conic, chirp, color, phase, opacity))
         kernels.splat_backward(*ctx.arrays, ctx.wavenumbers, ctx.mahalanobis,
                                grad.detach().to("cpu", torch.float32).contiguous().numpy(), *grads)
