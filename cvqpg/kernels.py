@@ -107,22 +107,18 @@ def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumb
             dy = py - y0
             left, right = _column_span(x0, r, dy, width)
             row_re, row_im = out[0, ch, py], out[1, ch, py]
-            if walk:
-                for leftward in (False, True):
-                    z, s, start, stop, step = _half_row(leftward, z_row, s_right, s_left, s_step, cx, left, right)
-                    for px in range(start, stop, step):
-                        if left <= px <= right:
-                            value = amplitude * z
-                            row_re[px] += value.real
-                            row_im[px] += value.imag
-                        z *= s
-                        s *= s_step
-                z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row)
-            else:
-                for px in range(left, right + 1):
-                    value = amplitude * _direct_value(A, B, C, px - x0, dy, a, b, c, mahalanobis, k_chirp)
-                    row_re[px] += value.real
-                    row_im[px] += value.imag
+            for leftward in (False, True):
+                z, s, start, stop, step = _half_row(leftward, z_row, s_right, s_left, s_step, cx, left, right)
+                for px in range(start, stop, step):
+                    if left <= px <= right:
+                        if not walk:
+                            z = _direct_value(A, B, C, px - x0, dy, a, b, c, mahalanobis, k_chirp)
+                        value = amplitude * z
+                        row_re[px] += value.real
+                        row_im[px] += value.imag
+                    z *= s
+                    s *= s_step
+            z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row)
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
@@ -138,52 +134,29 @@ def splat_forward(position, conic, reach, chirp, color, phase, opacity, wavenumb
                        partial[t])
 
 
-@nb.njit(cache=True, nogil=True)
-def _accumulate_pixel(g_re, g_im, z, alpha, color_c, k, chirp_n, dx, dy, a, b, c, mahalanobis, clamped, sums):
-    """Add one pixel's share to the gradient sums of one primitive and channel.
-
-    sums: [color, phase, opacity, chirp, a, b, c, x, y]; z = exp(E) including the phase φ.
-    """
-    t = g_re * z.real + g_im * z.imag
-    u = g_im * z.real - g_re * z.imag
-    d_real = alpha * color_c * t  # dL/dRe(E)
-    d_imag = alpha * color_c * u  # dL/dIm(E)
-    sums[0] += alpha * t
-    sums[1] += d_imag
-    sums[2] += color_c * t
-    mahalanobis2 = a * dx * dx + 2.0 * b * dx * dy + c * dy * dy
-    d_mahalanobis2 = 0.0 if clamped else -0.5 * d_real
-    if mahalanobis:
-        sums[3] += k * d_imag * mahalanobis2
-        d_mahalanobis2 += k * chirp_n * d_imag
-        d_radius2 = 0.0
-    else:
-        sums[3] += k * d_imag * (dx * dx + dy * dy)
-        d_radius2 = k * chirp_n * d_imag
-    sums[4] += d_mahalanobis2 * dx * dx
-    sums[5] += d_mahalanobis2 * 2.0 * dx * dy
-    sums[6] += d_mahalanobis2 * dy * dy
-    sums[7] -= 2.0 * (d_mahalanobis2 * (a * dx + b * dy) + d_radius2 * dx)
-    sums[8] -= 2.0 * (d_mahalanobis2 * (b * dx + c * dy) + d_radius2 * dy)
-
-
 @nb.njit(parallel=True, cache=True)
 def splat_backward(position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                    grad, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity):
-    """Gradients (float64, each row written by its own primitive only) from grad[0|1, c, y, x]."""
+    """Gradients (float64, each row written by its own primitive only) from grad[0|1, c, y, x].
+
+    With z = exp(E) (phase φ included) and g the incoming gradient, a pixel contributes
+    t = Re(ḡz) = dL/dRe(E)/(αc) and u = −Im(ḡz) = dL/dIm(E)/(αc). Every parameter's gradient is a
+    sum of t or u times 1, dx, dy, dx², dx·dy or dy², so each pixel only adds to those moments,
+    which become gradients once per primitive and channel. (The −50 floor's zero gradient is
+    not reproduced: it concerns values below e⁻⁵⁰.)
+    """
     channels, height, width = grad.shape[1], grad.shape[2], grad.shape[3]
     for n in nb.prange(position.shape[0]):
         x0, y0, r = np.float64(position[n, 0]), np.float64(position[n, 1]), np.float64(reach[n])
         if x0 + r < 0 or x0 - r > width - 1:
             continue
         a, b, c = np.float64(conic[n, 0]), np.float64(conic[n, 1]), np.float64(conic[n, 2])
-        alpha = np.float64(opacity[n])
+        alpha, chirp_n = np.float64(opacity[n]), np.float64(chirp[n])
         low, high = _row_span(y0, r, height)
         walk = _walkable(a, b, c, r)
         cx = round(x0)
         dx0, dy0 = cx - x0, low - y0
-        sums = np.zeros(9)
-        chirp_n = np.float64(chirp[n])
+        g_alpha = g_k = ga = gb = gc = gx = gy = 0.0
         for ch in range(channels):
             k, color_c = wavenumbers[ch], np.float64(color[n, ch])
             k_chirp = k * chirp_n
@@ -191,30 +164,65 @@ def splat_backward(position, conic, reach, chirp, color, phase, opacity, wavenum
             rotation = cmath.exp(complex(0.0, phase[n, ch]))
             z_row, v, v_step, s_right, s_left, s_row, s_step = _walk_start(A, B, C, dx0, dy0)
             z_row *= rotation
-            sums[0] = sums[1] = 0.0
+            t00 = t10 = t20 = t01 = t11 = t02 = 0.0
+            u00 = u10 = u20 = u01 = u11 = u02 = 0.0
             for py in range(low, high + 1):
                 dy = py - y0
                 left, right = _column_span(x0, r, dy, width)
-                if walk:
-                    for leftward in (False, True):
-                        z, s, start, stop, step = _half_row(leftward, z_row, s_right, s_left, s_step, cx, left, right)
-                        for px in range(start, stop, step):
-                            if left <= px <= right:
-                                _accumulate_pixel(grad[0, ch, py, px], grad[1, ch, py, px], z, alpha, color_c, k,
-                                                  chirp_n, px - x0, dy, a, b, c, mahalanobis, False, sums)
-                            z *= s
-                            s *= s_step
-                    z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row)
-                else:
-                    for px in range(left, right + 1):
-                        dx = px - x0
-                        z = rotation * _direct_value(A, B, C, dx, dy, a, b, c, mahalanobis, k_chirp)
-                        clamped = -0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy) <= EXPONENT_FLOOR
-                        _accumulate_pixel(grad[0, ch, py, px], grad[1, ch, py, px], z, alpha, color_c, k, chirp_n,
-                                          dx, dy, a, b, c, mahalanobis, clamped, sums)
-            g_color[n, ch] = sums[0]
-            g_phase[n, ch] = sums[1]
-        g_opacity[n] = sums[2]
-        g_chirp[n] = sums[3]
-        g_conic[n, 0], g_conic[n, 1], g_conic[n, 2] = sums[4], sums[5], sums[6]
-        g_position[n, 0], g_position[n, 1] = sums[7], sums[8]
+                grad_re, grad_im = grad[0, ch, py], grad[1, ch, py]
+                t0 = t1 = t2 = u0 = u1 = u2 = 0.0
+                for leftward in (False, True):
+                    z, s, start, stop, step = _half_row(leftward, z_row, s_right, s_left, s_step, cx, left, right)
+                    for px in range(start, stop, step):
+                        if left <= px <= right:
+                            dx = px - x0
+                            if not walk:
+                                z = rotation * _direct_value(A, B, C, dx, dy, a, b, c, mahalanobis, k_chirp)
+                            t = grad_re[px] * z.real + grad_im[px] * z.imag
+                            u = grad_im[px] * z.real - grad_re[px] * z.imag
+                            t0 += t
+                            t1 += t * dx
+                            t2 += t * dx * dx
+                            u0 += u
+                            u1 += u * dx
+                            u2 += u * dx * dx
+                        z *= s
+                        s *= s_step
+                z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row)
+                t00 += t0
+                t10 += t1
+                t20 += t2
+                t01 += t0 * dy
+                t11 += t1 * dy
+                t02 += t0 * dy * dy
+                u00 += u0
+                u10 += u1
+                u20 += u2
+                u01 += u0 * dy
+                u11 += u1 * dy
+                u02 += u0 * dy * dy
+            scale = alpha * color_c
+            g_color[n, ch] = alpha * t00
+            g_phase[n, ch] = scale * u00
+            g_alpha += color_c * t00
+            if mahalanobis:  # D² carries both the envelope (−½) and the phase (k χ)
+                w = -0.5 * scale
+                q = scale * k_chirp
+                m20, m11, m02 = w * t20 + q * u20, w * t11 + q * u11, w * t02 + q * u02
+                m10, m01 = w * t10 + q * u10, w * t01 + q * u01
+                g_k += scale * k * (a * u20 + 2.0 * b * u11 + c * u02)
+                rx = ry = 0.0
+            else:  # D² carries the envelope, |p − x|² the phase
+                w = -0.5 * scale
+                m20, m11, m02, m10, m01 = w * t20, w * t11, w * t02, w * t10, w * t01
+                g_k += scale * k * (u20 + u02)
+                rx, ry = scale * k_chirp * u10, scale * k_chirp * u01
+            ga += m20
+            gb += 2.0 * m11
+            gc += m02
+            gx -= 2.0 * (a * m10 + b * m01 + rx)
+            gy -= 2.0 * (b * m10 + c * m01 + ry)
+        g_opacity[n] = g_alpha
+        g_chirp[n] = g_k
+        g_conic[n, 0], g_conic[n, 1], g_conic[n, 2] = ga, gb, gc
+        g_position[n, 0], g_position[n, 1] = gx, gy
