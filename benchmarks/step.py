@@ -97,12 +97,16 @@ def stage_times(config: FitConfig, repeats: int) -> dict[str, float]:
 
 
 def peak_rss_gib(config: FitConfig, steps: int) -> float:
-    """Peak resident memory of a separate `cvqpg fit` process (GiB)."""
-    command = [sys.executable, "-m", "cvqpg.cli", "fit", "--size", str(config.width), str(config.height),
-               "--color", config.color, "--ratio", str(config.ratio), "--steps", str(steps), "--warmup", "1",
-               "--out", f"/tmp/cvqpg-bench-rss-{config.color}", "--overwrite", "--quiet"]
-    subprocess.run(command, check=True)
-    return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20
+    """Peak resident memory (GiB) of `cvqpg fit` in a fresh process, read by that process itself:
+    a parent's RUSAGE_CHILDREN would count the pages the child shared with it before exec."""
+    arguments = ["fit", "--size", str(config.width), str(config.height), "--color", config.color, "--ratio",
+                 str(config.ratio), "--steps", str(steps), "--warmup", "1",
+                 "--out", f"/tmp/cvqpg-bench-rss-{config.color}", "--overwrite", "--quiet"]
+    program = ("import resource, sys; from cvqpg.cli import main; main(sys.argv[1:]); "
+               "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
+    output = subprocess.run([sys.executable, "-c", program, *arguments], check=True, capture_output=True,
+                            text=True).stdout
+    return int(output.split()[-1]) / 2**20
 
 
 def report(label: str, config: FitConfig, repeats: int, reference_repeats: int) -> dict[str, float]:
