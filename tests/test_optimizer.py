@@ -9,7 +9,7 @@ import torch
 
 from cvqpg.config import FitConfig
 from cvqpg.fitting import initial_state, make_optimizer, optimisation_step, position_learning_rate, trainable_groups
-from cvqpg.primitives import Gaussians, init_gaussians
+from cvqpg.primitives import Gaussians
 from cvqpg.targets import build_scene
 
 GROUPS = ("position", "scale", "rotation", "color", "phase", "opacity", "curvature")

@@ -22,7 +22,7 @@ from cvqpg.fitting import initial_state, optimisation_step
 from cvqpg.optics import reconstruct
 from cvqpg.primitives import Gaussians, activate
 from cvqpg.rasterization import rasterize
-from cvqpg.targets import build_scene, load_scene, prepare_depth
+from cvqpg.targets import build_scene, prepare_depth
 
 SMALL = ["--size", "48", "36", "--steps", "4", "--warmup", "1", "--quiet"]
 
