@@ -57,12 +57,12 @@ def _walkable(a, b, c, reach):
 @nb.njit(cache=True, nogil=True)
 def _walk_start(A, B, C, dx0, dy0):
     """Exact values at the walk's start (column dx0, first row dy0): exp(E), the vertical ratio and
-    its change, the rightward and leftward ratios and their changes per row and per step."""
+    its change, the rightward and leftward ratios, their changes per row (right, left) and per step."""
     e0 = A * dx0 * dx0 + 2.0 * B * dx0 * dy0 + C * dy0 * dy0
     return (cmath.exp(e0),
             cmath.exp(2.0 * B * dx0 + C * (2.0 * dy0 + 1.0)), cmath.exp(2.0 * C),
             cmath.exp(A * (2.0 * dx0 + 1.0) + 2.0 * B * dy0), cmath.exp(A * (1.0 - 2.0 * dx0) - 2.0 * B * dy0),
-            cmath.exp(2.0 * B), cmath.exp(2.0 * A))
+            cmath.exp(2.0 * B), cmath.exp(-2.0 * B), cmath.exp(2.0 * A))
 
 
 @nb.njit(cache=True, nogil=True)
@@ -74,9 +74,10 @@ def _half_row(leftward, z_row, s_right, s_left, s_step, cx, left, right):
 
 
 @nb.njit(cache=True, nogil=True)
-def _next_row(z_row, v, v_step, s_right, s_left, s_row):
-    """The walk's state one row down."""
-    return z_row * v, v * v_step, s_right * s_row, s_left / s_row
+def _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left):
+    """The walk's state one row down (no division: off the walk's range these values overflow to
+    unused infinities, and a division by an underflowed zero would raise)."""
+    return z_row * v, v * v_step, s_right * s_row, s_left * s_row_left
 
 
 @nb.njit(cache=True, nogil=True)
@@ -102,7 +103,7 @@ def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumb
         k_chirp = wavenumbers[ch] * chirp[n]
         A, B, C = _exponent_coefficients(a, b, c, k_chirp, mahalanobis)
         amplitude = opacity[n] * color[n, ch] * cmath.exp(complex(0.0, phase[n, ch]))
-        z_row, v, v_step, s_right, s_left, s_row, s_step = _walk_start(A, B, C, dx0, dy0)
+        z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, dx0, dy0)
         for py in range(low, high + 1):
             dy = py - y0
             left, right = _column_span(x0, r, dy, width)
@@ -118,7 +119,7 @@ def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumb
                         row_im[px] += value.imag
                     z *= s
                     s *= s_step
-            z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row)
+            z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left)
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
@@ -162,7 +163,7 @@ def splat_backward(position, conic, reach, chirp, color, phase, opacity, wavenum
             k_chirp = k * chirp_n
             A, B, C = _exponent_coefficients(a, b, c, k_chirp, mahalanobis)
             rotation = cmath.exp(complex(0.0, phase[n, ch]))
-            z_row, v, v_step, s_right, s_left, s_row, s_step = _walk_start(A, B, C, dx0, dy0)
+            z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, dx0, dy0)
             z_row *= rotation
             t00 = t10 = t20 = t01 = t11 = t02 = 0.0
             u00 = u10 = u20 = u01 = u11 = u02 = 0.0
@@ -188,7 +189,7 @@ def splat_backward(position, conic, reach, chirp, color, phase, opacity, wavenum
                             u2 += u * dx * dx
                         z *= s
                         s *= s_step
-                z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row)
+                z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left)
                 t00 += t0
                 t10 += t1
                 t20 += t2
