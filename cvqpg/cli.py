@@ -1,4 +1,4 @@
-"""Command line: `cvqpg fit` and `cvqpg eval`, thin wrappers over the library API."""
+"""Command line: `cvqpg fit`, `eval`, `export`, `info` and `render`, thin wrappers over the library API."""
 
 from __future__ import annotations
 
@@ -15,10 +15,14 @@ import torch
 
 from . import __version__
 from .allocator import keep_freed_memory
+from .bench import METHODS, PRESETS, BenchError, Overrides, describe_cells, make_plan, parse_shard, peak_bytes, run_plan
 from .config import ConfigError, FitConfig
 from .fitting import CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes, fit_scene, state_from_payload
-from .runs import (CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, MODEL_FILE, evaluate_run, read_run, scene_from_source,
-                   start_run, write_run)
+from .export import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
+from .report import write_summary
+from .runs import (CHECKPOINT_FILE, CONFIG_FILE, EXPORT_FOLDER, METRICS_FILE, MODEL_FILE, RENDER_FOLDER, evaluate_run,
+                   export_run, half_precision_model, model_info, read_run, render_model, scene_from_source, start_run,
+                   write_run)
 from .scenes import SCENES
 from .storage import ModelFileError, load_checkpoint, save_checkpoint
 from .targets import InputError, Scene, check_file
@@ -31,7 +35,7 @@ class UsageError(Exception):
     """Bad input: printed as one line, exit code 2."""
 
 
-USER_ERRORS = (UsageError, ConfigError, InputError, ModelFileError)
+USER_ERRORS = (UsageError, ConfigError, InputError, ModelFileError, BenchError)
 
 
 def _fit_parser(sub: argparse._SubParsersAction) -> None:
@@ -91,16 +95,87 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
 
+def _display_parsers(sub: argparse._SubParsersAction) -> None:
+    x = sub.add_parser("export", help="phase-only SLM patterns of a run, and their simulated display",
+                       description="Encode RUN_DIR's hologram as phase-only patterns (SPEC §8), one per colour "
+                       "channel (PNG gray levels, g ↔ 2πg/LEVELS, and the unquantised phase in rad as .npy), "
+                       "then simulate showing them through a 4f system and compare with the complex field.",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    x.add_argument("run_dir", metavar="RUN_DIR", help="folder written by `cvqpg fit`")
+    x.add_argument("--encoding", choices=ENCODINGS, default="dpac", help="double-phase amplitude coding, "
+                   "or the bare phase of the field (drops the amplitude; for comparison)")
+    x.add_argument("--levels", type=int, default=DEFAULT_LEVELS, help="phase levels of the SLM")
+    x.add_argument("--slm", type=int, nargs=2, metavar=("W", "H"), help="SLM size in px: the pattern is "
+                   "centred on it, the rest at phase 0 (e.g. 4096 2400) [default: the hologram's size]")
+    x.add_argument("--aperture", type=float, default=DEFAULT_APERTURE, help="radius of the 4f filter's "
+                   "circular Fourier aperture as a fraction of the Nyquist frequency (0 disables the filter)")
+    x.add_argument("--out", metavar="DIR", help="output folder [default: RUN_DIR/export]")
+    i = sub.add_parser("info", help="size of a saved model and its compression against the complex field",
+                       description="Print N, parameters, file size, bits per hologram pixel and the "
+                       "compression ratio against the complex64 field of a model.")
+    i.add_argument("target", metavar="RUN_DIR|MODEL", help="run folder or model file")
+    i.add_argument("--half", action="store_true", help="also store the model in float16 "
+                   "(RUN_DIR/model.f16.safetensors) and report the PSNR change (needs a run folder)")
+    i.add_argument("--json", action="store_true", help="print the numbers as JSON")
+    r = sub.add_parser("render", help="render a saved model's hologram and reconstructions without fitting",
+                       description="Render a model's hologram (amplitude.png, phase.png) and its reconstruction "
+                       "at the model's planes or at --distance, optionally resampled to --size.")
+    r.add_argument("target", metavar="RUN_DIR|MODEL", help="run folder or model file")
+    r.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="resample the same physical "
+                   "hologram to W×H px (same aspect ratio; the pixel pitch scales accordingly)")
+    r.add_argument("--distance", type=float, nargs="+", metavar="M", help="reconstruction distances in m "
+                   "(e.g. 0.001 0.002 0.003 to refocus) [default: the model's planes]")
+    r.add_argument("--out", metavar="DIR", help="output folder [default: RUN_DIR/render, or next to MODEL]")
+
+
+def _bench_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="fit a grid of scenes × settings × methods and tabulate it against the paper",
+                       description="Fit every cell of a grid (scenes × colour × ratio × method × seed), one run "
+                       "folder per cell in OUT/cells: finished cells (metrics.json) are skipped, interrupted ones "
+                       "resume from their checkpoint. Then (re)write summary.md, summary.csv, cells.csv, "
+                       "frequency.csv/png, figures/ and report.html in OUT from whatever cells are finished.")
+    p.add_argument("--preset", default="quick", metavar="NAME", help="the grid [default: quick]: " + "; ".join(
+        f"{name}: {preset.description}" for name, preset in PRESETS.items()))
+    p.add_argument("--scenes", metavar="DIR", help="folder of <name>/image.* + <name>/depth.png (e.g. "
+                   "../shared/scenes); needed by paper and ablation, replaces the built-in scenes of star and quick")
+    p.add_argument("--out", metavar="DIR", help="bench folder [default: runs/bench-<preset>]")
+    p.add_argument("--scene-names", nargs="+", metavar="NAME", help="only these scenes [default: all]")
+    p.add_argument("--colors", nargs="+", metavar="COLOR", help="rgb and/or gray [default: the preset's]")
+    p.add_argument("--ratios", nargs="+", type=float, metavar="R", help="primitive ratios [default: the preset's]")
+    p.add_argument("--methods", nargs="+", metavar="METHOD", help=f"any of {', '.join(METHODS)} "
+                   "[default: the preset's]")
+    seeds = p.add_mutually_exclusive_group()
+    seeds.add_argument("--seed", type=int, help=f"random seed [default: {DEFAULTS.seed}]")
+    seeds.add_argument("--seeds", type=int, nargs="+", metavar="SEED", help="several seeds: every cell once "
+                       "per seed (seed spread)")
+    p.add_argument("--steps", type=int, help="optimisation steps [default: the preset's]")
+    p.add_argument("--warmup", type=int, help="curvature warm-up steps [default: steps/5, as 400 of 2000]")
+    p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="hologram size in px [default: the "
+                   "preset's]")
+    p.add_argument("--device", choices=["cpu", "cuda"], help="torch device [default: cpu]")
+    p.add_argument("--backend", choices=["auto", "numba", "torch"], help="rasterizer [default: auto]")
+    p.add_argument("--shard", metavar="I/N", help="fit only cells I, I+N, I+2N, ... of the grid (1 ≤ I ≤ N), "
+                   "e.g. ${SLURM_ARRAY_TASK_ID}/${SLURM_ARRAY_TASK_COUNT} in a job array")
+    p.add_argument("--jobs", type=int, default=1, metavar="K", help="cells fitted at once, each on cores/K "
+                   "threads [default: 1]")
+    p.add_argument("--summary-only", action="store_true", help="fit nothing; rebuild the tables, figures "
+                   "and report from the finished cells")
+    p.add_argument("--dry-run", action="store_true", help="list the cells (of the shard) and their status")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="cvqpg", description="Holograms as complex-valued "
                                      "quadratic-phase Gaussian primitives (CVQPG).")
     parser.add_argument("--version", action="version", version=f"cvqpg {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     _fit_parser(sub)
+    _bench_parser(sub)
     e = sub.add_parser("eval", help="recompute the metrics of a saved run",
                        description="Recompute PSNR/SSIM/FLIP/LPIPS/CVVDP of RUN_DIR's model against "
                        "its targets and rewrite RUN_DIR/metrics.json.")
     e.add_argument("run_dir", metavar="RUN_DIR", help="folder written by `cvqpg fit`")
+    _display_parsers(sub)
     return parser
 
 
@@ -238,19 +313,105 @@ def run_fit(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_eval(args: argparse.Namespace) -> int:
-    folder = Path(args.run_dir)
-    if not (folder / MODEL_FILE).is_file() and (folder / CONFIG_FILE).is_file():
-        raise UsageError(f"{folder} holds no {MODEL_FILE}: the run has not finished (cvqpg fit --resume "
-                         f"{folder})")
+def finished_run(folder: Path) -> Path:
+    """A run folder that holds a model, or a UsageError saying what it is instead."""
     if not (folder / CONFIG_FILE).is_file():
         raise UsageError(f"{folder} is not a run folder (no {CONFIG_FILE}); give a folder written by "
                          "`cvqpg fit`")
+    if not (folder / MODEL_FILE).is_file():
+        raise UsageError(f"{folder} holds no {MODEL_FILE}: the run has not finished (cvqpg fit --resume "
+                         f"{folder})")
+    return folder
+
+
+def run_export(args: argparse.Namespace) -> int:
+    folder = finished_run(Path(args.run_dir))
+    if args.aperture < 0:
+        raise UsageError(f"--aperture {args.aperture}: give a radius ≥ 0 (a fraction of Nyquist; 0: no filter)")
+    record = export_run(folder, args.encoding, args.levels, tuple(args.slm) if args.slm else None,
+                        args.aperture or None, args.out)
+    out = Path(args.out) if args.out else folder / EXPORT_FOLDER
+    print(f"{out}: {len(record['files'])} files; mean PSNR against the targets:")
+    for label, key in (("phase-only display", "phase_only_display"), ("complex field, same display", "complex_display"),
+                       ("complex field, as fitted", "complex_field")):
+        print(f"  {label:28s} {record[key]['mean']['psnr']:.3f} dB")
+    return 0
+
+
+def run_info(args: argparse.Namespace) -> int:
+    target = Path(args.target)
+    if args.half:
+        info = half_precision_model(finished_run(target))
+    else:
+        info = model_info(finished_run(target) / MODEL_FILE if target.is_dir() else target)
+    if args.json:
+        print(json.dumps(info, indent=2))
+        return 0
+    width, height = info["hologram_px"]
+    print(f"{info['file']}\n"
+          f"  primitives       {info['num_primitives']} ({info['primitive']}, {info['channels']} channel(s))\n"
+          f"  parameters       {info['learnable_params']} learnable, {info['stored_values']} stored "
+          f"({info['dtype']})\n"
+          f"  file             {info['file_bytes'] / 2**10:.1f} KiB\n"
+          f"  bits per pixel   {info['bits_per_pixel']:.2f} (of the {width}×{height} hologram)\n"
+          f"  compression      {info['compression_ratio']:.2f}× smaller than the complex64 field "
+          f"({info['complex_field_bytes'] / 2**20:.2f} MiB)")
+    if args.half:
+        print(f"  PSNR             {info['psnr_float16']:.3f} dB in float16, {info['psnr_float32']:.3f} dB in "
+              f"float32 ({info['psnr_change']:+.4f} dB)")
+    return 0
+
+
+def run_render(args: argparse.Namespace) -> int:
+    target = Path(args.target)
+    if target.is_dir():
+        finished_run(target)
+    elif not target.is_file():
+        raise UsageError(f"{target}: no such run folder or model file")
+    out = Path(args.out) if args.out else (target / RENDER_FOLDER if target.is_dir()
+                                           else target.with_name(target.stem + "-render"))
+    if args.distance is not None and min(args.distance) <= 0:
+        raise UsageError("--distance: give positive distances in m (e.g. 0.001 for 1 mm)")
+    record = render_model(target, out, tuple(args.size) if args.size else None, args.distance)
+    width, height = record["hologram_px"]
+    print(f"{out}: {width}×{height} px at {record['pixel_pitch_m'] * 1e6:.3f} µm, planes at "
+          + ", ".join(f"{d * 1e3:g} mm" for d in record["distances_m"]))
+    return 0
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    folder = finished_run(Path(args.run_dir))
     record = evaluate_run(folder)
     print(f"{folder}: {_summary(record)}")
     for name, reason in record["unavailable"].items():
         print(f"  {name}: n/a ({reason})")
     return 0
+
+
+def run_bench(args: argparse.Namespace) -> int:
+    seeds = [args.seed] if args.seed is not None else args.seeds
+    overrides = Overrides(scenes_dir=args.scenes, scene_names=args.scene_names, colors=args.colors,
+                          ratios=args.ratios, methods=args.methods, seeds=seeds, size=args.size, steps=args.steps,
+                          warmup=args.warmup, device=args.device, backend=args.backend)
+    plan = make_plan(args.preset, args.out, overrides)
+    cells = plan.shard(*parse_shard(args.shard)) if args.shard else plan.cells
+    if args.dry_run:
+        print("\n".join(describe_cells(plan, cells) + [f"{len(cells)} of {len(plan.cells)} cells, in {plan.folder}"]))
+        return 0
+    code = 0
+    if not args.summary_only:
+        needed, available = peak_bytes(cells, args.jobs), available_memory_bytes()
+        if plan.cells[0].config.device == "cpu" and available is not None and needed > available:
+            raise UsageError(f"--jobs {args.jobs} needs about {needed / 2**30:.1f} GiB but {available / 2**30:.1f} "
+                             "GiB are available; lower --jobs or --size")
+        with StopRequest() as stop_requested:
+            outcome = run_plan(plan, cells, args.jobs, progress=not args.quiet, stop_requested=stop_requested)
+        print(f"cvqpg bench: {outcome.describe()}")
+        for name, error in outcome.failures.items():
+            print(f"  {name}: {error}", file=sys.stderr)
+        code = 128 + stop_requested.signals[0] if stop_requested.signals else (1 if outcome.failures else 0)
+    print(f"cvqpg bench: {write_summary(plan)}")
+    return code
 
 
 class _NoteHandler(logging.Handler):
@@ -272,7 +433,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     _show_notes()
     keep_freed_memory()
     try:
-        return {"fit": run_fit, "eval": run_eval}[args.command](args)
+        return {"fit": run_fit, "eval": run_eval, "export": run_export, "info": run_info,
+                "render": run_render, "bench": run_bench}[args.command](args)
     except USER_ERRORS as error:
         print(f"cvqpg {args.command}: error: {error}", file=sys.stderr)
         return 2

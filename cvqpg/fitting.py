@@ -17,8 +17,8 @@ from tqdm.auto import tqdm
 from .config import FitConfig
 from .losses import multiplane_loss, noisy_targets
 from .metrics import MetricReport, evaluate
-from .optics import Grid, reconstruct
-from .primitives import Gaussians, activate, init_gaussians
+from .optics import reconstruct
+from .primitives import Gaussians, Primitives, activate, init_gaussians
 from .rasterization import rasterize
 from .targets import Scene, load_scene
 
@@ -37,18 +37,28 @@ class FitResult:
     skipped_steps: int = 0
     sanitised_steps: int = 0
 
+    @property
+    def primitives(self) -> Primitives:
+        """The fitted model's activated, physical parameters (what a model file stores)."""
+        return activate(self.gaussians, self.config)
+
+
+def hologram(primitives: Primitives, config: FitConfig) -> Tensor:
+    """Complex hologram [C, H, W] of activated primitives on `config`'s W×H SLM grid."""
+    return rasterize(primitives, config.width, config.height, config.wavelengths, config.pixel_pitch,
+                     config.qpf, config.backend)
+
 
 def render_hologram(gaussians: Gaussians, config: FitConfig) -> Tensor:
-    """Complex hologram [C, H, W] of raw parameters under `config`."""
-    return rasterize(activate(gaussians, config), config.width, config.height, config.wavelengths,
-                     config.pixel_pitch, config.qpf, config.backend)
+    """Complex hologram [C, H, W] of raw parameters under `config` (differentiable)."""
+    return hologram(activate(gaussians, config), config)
 
 
-def render(gaussians: Gaussians, config: FitConfig) -> tuple[Tensor, Tensor]:
+def render(primitives: Primitives, config: FitConfig) -> tuple[Tensor, Tensor]:
     """Hologram [C, H, W] and clamped reconstructions [M, C, H, W], without gradients."""
     with torch.no_grad():
-        hologram = render_hologram(gaussians, config)
-        return hologram, reconstruct(hologram, config)
+        field = hologram(primitives, config)
+        return field, reconstruct(field, config)
 
 
 def trainable_groups(config: FitConfig) -> tuple[str, ...]:
@@ -169,16 +179,16 @@ def apply_gradients(optimizer: Adan, config: FitConfig, step: int) -> bool:
     return sanitised
 
 
-FULL_GRID_BUFFERS = 10
-BASE_BYTES = 600 * 2**20
+BASE_BYTES = 1.3 * 2**30
+BYTES_PER_PLANE_PIXEL = 250
 
 
 def estimated_peak_bytes(config: FitConfig) -> int:
-    """Rough peak memory (bytes) of a fit on the CPU: a fixed base plus M×C complex arrays of the
-    doubled propagation grid (640×480 RGB, 2 planes: 2.0 GiB estimated, 1.8 GiB measured)."""
-    grid = Grid.for_config(config)
-    full_grid = config.num_planes * config.channels * 4 * grid.padded_height * grid.padded_width * 8
-    return BASE_BYTES + FULL_GRID_BUFFERS * full_grid
+    """Rough peak memory (bytes) of a fit on the CPU: a fixed base plus a cost per pixel of every
+    plane and channel, fitted to measured peaks (RGB, 2 planes: 640×480 1.7 GiB, 1920×1080 4.2 GiB,
+    3840×2160 12.9 GiB)."""
+    plane_pixels = config.num_planes * config.channels * config.width * config.height
+    return int(BASE_BYTES + BYTES_PER_PLANE_PIXEL * plane_pixels)
 
 
 @dataclass(frozen=True)
@@ -248,6 +258,6 @@ def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = Tr
             checkpoint.save(state)
             last_save = time.perf_counter()
     fitted = state.gaussians.detached()
-    _, recon = render(fitted, config)
+    _, recon = render(activate(fitted, config), config)
     return FitResult(fitted, config, evaluate(recon, scene.targets), state.history, state.seconds,
                      state.skipped_steps, state.sanitised_steps)

@@ -55,6 +55,11 @@ def psnr(recon: np.ndarray, target: np.ndarray) -> float:
     return float(peak_signal_noise_ratio(target, recon, data_range=1.0))
 
 
+def mean_psnr(recon: Tensor, targets: Tensor) -> float:
+    """PSNR (dB) of reconstructions [M, C, H, W] against targets, averaged over planes (SPEC §7)."""
+    return float(np.mean([psnr(_hwc(r), _hwc(t)) for r, t in zip(recon, targets)]))
+
+
 def ssim(recon: np.ndarray, target: np.ndarray) -> float:
     """scikit-image SSIM with its defaults (7×7 uniform window), data range 1."""
     if recon.shape[2] == 1:
@@ -125,3 +130,33 @@ def evaluate(recon: Tensor, targets: Tensor) -> MetricReport:
                     report.unavailable[name] = str(reason)
             report.per_plane[name].append(value)
     return report
+
+
+def radial_error_spectrum(recon: Tensor, target: Tensor, bins: int = 32
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Squared error per spatial frequency, averaged in radial bins (SPEC §7's frequency analysis).
+
+    `recon` and `target` are [..., H, W]; leading axes (planes, channels) are averaged. The error
+    spectrum `|FFT2(recon − target)|² / (H·W)` is normalised so that its mean over all frequencies
+    equals the pixel MSE (Parseval). Radial frequency is `ρ = |f| / 0.5` with f in cycles/px from
+    `fftfreq` on each axis, so ρ = 1 is Nyquist along an axis. Bins 0..bins−1 split [0, 1] evenly
+    (intervals closed on the right, the first also on the left, so DC and Nyquist are in band);
+    one extra last bin [1, √2] holds the corner frequencies beyond Nyquist that only diagonals
+    reach, so that `Σ power·counts / Σ counts` is still the pixel MSE.
+
+    Returns `edges` [bins + 2] (ρ), `power` [bins + 1] (mean error power per frequency in the bin,
+    NaN where a bin holds no frequency) and `counts` [bins + 1] (frequencies per bin).
+    """
+    height, width = recon.shape[-2:]
+    error = (recon.detach().double() - target.detach().double()).reshape(-1, height, width).cpu()
+    power = (torch.fft.fft2(error).abs() ** 2).mean(dim=0) / (height * width)
+    fy = torch.fft.fftfreq(height, dtype=torch.float64)[:, None]
+    fx = torch.fft.fftfreq(width, dtype=torch.float64)[None, :]
+    rho = torch.sqrt(fx**2 + fy**2) / 0.5
+    index = torch.clamp(torch.ceil(rho * bins).long() - 1, 0, bins).flatten()
+    counts = torch.bincount(index, minlength=bins + 1).numpy()
+    sums = torch.bincount(index, weights=power.flatten(), minlength=bins + 1).numpy()
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_power = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+    edges = np.append(np.linspace(0.0, 1.0, bins + 1), np.sqrt(2.0))
+    return edges, mean_power, counts

@@ -77,13 +77,14 @@ def slm_field(padded: Tensor) -> Tensor:
     return padded / torch.clamp(padded.abs(), min=1.0)
 
 
-@functools.lru_cache(maxsize=64)
 def transfer_function(rows: int, cols: int, pixel_pitch: float, wavelength: float, distance: float,
-                      device: torch.device) -> Tensor:
-    """BLASM transfer function [rows, cols] (complex64), centred, exactly as odak 0.2.7 builds it.
+                      device: torch.device, centred: bool = True) -> Tensor:
+    """BLASM transfer function [rows, cols] (complex64), exactly as odak 0.2.7 builds it.
 
     Computed in float32 like odak, whose numbers the paper reports. As in odak, the band limit of
     each axis' frequency is taken with the other axis' length (identical on square grids).
+    `centred=False` gives it ifftshift-ed (zero frequency first, FFT order): the shift is applied to
+    the 1D frequency axes, so no second full-size array is ever made.
     """
     length_rows, length_cols = pixel_pitch * rows, pixel_pitch * cols
     f_rows = torch.linspace(-1 / (2 * pixel_pitch) + 0.5 / (2 * length_rows),
@@ -92,6 +93,8 @@ def transfer_function(rows: int, cols: int, pixel_pitch: float, wavelength: floa
     f_cols = torch.linspace(-1 / (2 * pixel_pitch) + 0.5 / (2 * length_cols),
                             1 / (2 * pixel_pitch) - 0.5 / (2 * length_cols), cols,
                             dtype=torch.float32, device=device)
+    if not centred:
+        f_rows, f_cols = torch.fft.ifftshift(f_rows), torch.fft.ifftshift(f_cols)
     fr, fc = torch.meshgrid(f_rows, f_cols, indexing="ij")
     z = torch.tensor([distance], dtype=torch.float32, device=device)
     phase = 2 * math.pi * torch.sqrt(1 / wavelength**2 - (fc**2 + fr**2)) * z
@@ -101,14 +104,58 @@ def transfer_function(rows: int, cols: int, pixel_pitch: float, wavelength: floa
     return torch.polar(passband.float(), phase)
 
 
-@functools.lru_cache(maxsize=64)
-def _unshifted_transfer_functions(rows: int, cols: int, pixel_pitch: float,
-                                  wavelengths: tuple[float, ...], distances: tuple[float, ...],
-                                  device: torch.device) -> Tensor:
-    """[M, C, rows, cols] transfer functions, ifftshift-ed once so propagation needs no shifts."""
-    stack = torch.stack([torch.stack([transfer_function(rows, cols, pixel_pitch, w, z, device)
-                                      for w in wavelengths]) for z in distances])
-    return torch.fft.ifftshift(stack, dim=(-2, -1))
+TRANSFER_CACHE_BYTES = 2**30
+
+
+@dataclass(frozen=True)
+class TransferBank:
+    """BLASM transfer functions of every (plane, channel) on one doubled grid, in FFT order.
+
+    They are built once and kept while all of them fit in `TRANSFER_CACHE_BYTES` (1 GiB: 640×480 RGB
+    needs 0.14 GiB); on larger grids (3840×2160 RGB would need 2.0 GiB) each is rebuilt when asked,
+    which costs far less than the step's transforms.
+    """
+
+    rows: int
+    cols: int
+    pixel_pitch: float
+    wavelengths: tuple[float, ...]
+    distances: tuple[float, ...]
+    device: torch.device
+
+    @property
+    def nbytes(self) -> int:
+        return len(self.distances) * len(self.wavelengths) * self.rows * self.cols * 8
+
+    def __call__(self, plane: int, channel: int) -> Tensor:
+        """[rows, cols] complex64 transfer function to `distances[plane]` at `wavelengths[channel]`."""
+        if self.nbytes <= TRANSFER_CACHE_BYTES:
+            return _transfer_stack(self)[plane, channel]
+        return self.build(plane, channel)
+
+    def build(self, plane: int, channel: int) -> Tensor:
+        return transfer_function(self.rows, self.cols, self.pixel_pitch, self.wavelengths[channel],
+                                 self.distances[plane], self.device, centred=False)
+
+
+@functools.lru_cache(maxsize=4)
+def _transfer_stack(bank: TransferBank) -> Tensor:
+    stack = torch.empty(len(bank.distances), len(bank.wavelengths), bank.rows, bank.cols, dtype=torch.complex64,
+                        device=bank.device)
+    for plane in range(len(bank.distances)):
+        for channel in range(len(bank.wavelengths)):
+            stack[plane, channel] = bank.build(plane, channel)
+    return stack
+
+
+def transfer_bank(field: Tensor, distances_m: Sequence[float], wavelengths_m: Sequence[float],
+                  pixel_pitch: float) -> TransferBank:
+    """The transfer functions that propagate a [C, P_H, P_W] field (zero-padded to 2P_H×2P_W)."""
+    channels, rows, cols = field.shape
+    if len(wavelengths_m) != channels:
+        raise ValueError(f"{len(wavelengths_m)} wavelengths for a field of {channels} channels")
+    return TransferBank(2 * rows, 2 * cols, float(pixel_pitch), tuple(map(float, wavelengths_m)),
+                        tuple(map(float, distances_m)), field.device)
 
 
 def propagate(field: Tensor, distances_m: Sequence[float], wavelengths_m: Sequence[float],
@@ -117,79 +164,79 @@ def propagate(field: Tensor, distances_m: Sequence[float], wavelengths_m: Sequen
 
     odak's recipe: zero-pad to 2P_H×2P_W, centred FFT, BLASM transfer function, inverse, centre
     crop. Because fftshift/ifftshift cancel around a pointwise product on even grids, the shifts are
-    folded into the cached transfer function; one forward FFT per channel serves every plane.
+    folded into the transfer functions; one forward FFT per channel serves every plane.
     """
+    bank = transfer_bank(field, distances_m, wavelengths_m, pixel_pitch)
     channels, rows, cols = field.shape
-    if len(wavelengths_m) != channels:
-        raise ValueError(f"{len(wavelengths_m)} wavelengths for a field of {channels} channels")
     top, left = rows // 2, cols // 2
     padded = field.new_zeros(channels, 2 * rows, 2 * cols)
     padded[:, top:top + rows, left:left + cols] = field
     spectrum = torch.fft.fft2(padded)
-    transfer = _unshifted_transfer_functions(2 * rows, 2 * cols, float(pixel_pitch),
-                                             tuple(map(float, wavelengths_m)),
-                                             tuple(map(float, distances_m)), field.device)
+    transfer = torch.stack([torch.stack([bank(m, c) for c in range(channels)]) for m in range(len(distances_m))])
     output = torch.fft.ifft2(spectrum[None] * transfer)
     return output[..., top:top + rows, left:left + cols]
 
 
 class _ContentPropagation(torch.autograd.Function):
-    """`grid.crop(propagate(field, ...))` with a hand-written adjoint.
+    """`grid.crop(propagate(field, ...))` with a hand-written adjoint, one channel at a time.
 
     Autograd through `propagate` keeps several M×C arrays of the doubled grid alive and allocates
     as many again in the backward pass. Here the forward keeps only the H×W content of each plane,
     and the backward is the same propagation with the conjugate transfer function (the adjoint of
     a unitary-per-frequency filter), summed over planes in the spectrum so it needs one inverse
-    FFT per channel: the transform count of SPEC §3, nothing stored between the passes.
+    FFT per channel: the transform count of SPEC §3, nothing stored between the passes. Working
+    one channel at a time needs two doubled-grid buffers whatever the channel count.
     """
 
     @staticmethod
-    def forward(ctx, field: Tensor, grid: Grid, transfer: Tensor) -> Tensor:
+    def forward(ctx, field: Tensor, grid: Grid, bank: TransferBank) -> Tensor:
         channels, rows, cols = field.shape
-        padded = field.new_zeros(channels, 2 * rows, 2 * cols)
-        padded[:, rows // 2:rows // 2 + rows, cols // 2:cols // 2 + cols] = field
-        spectrum = torch.fft.fft2(padded, out=padded)
         top, left = rows // 2 + grid.top, cols // 2 + grid.left
-        content = field.new_empty(transfer.shape[0], channels, grid.height, grid.width)
+        content = field.new_empty(len(bank.distances), channels, grid.height, grid.width)
+        spectrum = field.new_empty(2 * rows, 2 * cols)
         product = torch.empty_like(spectrum)
-        for plane, plane_transfer in enumerate(transfer):
-            torch.mul(spectrum, plane_transfer, out=product)
-            torch.fft.ifft2(product, out=product)
-            content[plane] = product[:, top:top + grid.height, left:left + grid.width]
-        ctx.grid, ctx.transfer, ctx.field_shape = grid, transfer, field.shape
+        for channel in range(channels):
+            spectrum.zero_()
+            spectrum[rows // 2:rows // 2 + rows, cols // 2:cols // 2 + cols] = field[channel]
+            torch.fft.fft2(spectrum, out=spectrum)
+            for plane in range(len(bank.distances)):
+                torch.mul(spectrum, bank(plane, channel), out=product)
+                torch.fft.ifft2(product, out=product)
+                content[plane, channel] = product[top:top + grid.height, left:left + grid.width]
+        ctx.grid, ctx.bank, ctx.field_shape = grid, bank, field.shape
         return content
 
     @staticmethod
     def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None]:
-        grid, transfer = ctx.grid, ctx.transfer
+        grid, bank = ctx.grid, ctx.bank
         channels, rows, cols = ctx.field_shape
         top, left = rows // 2 + grid.top, cols // 2 + grid.left
-        accumulated = grad.new_zeros(channels, 2 * rows, 2 * cols)
+        grad_field = grad.new_empty(channels, rows, cols)
+        accumulated = grad.new_empty(2 * rows, 2 * cols)
         scattered = torch.empty_like(accumulated)
-        for plane, plane_transfer in enumerate(transfer):
-            scattered.zero_()
-            scattered[:, top:top + grid.height, left:left + grid.width] = grad[plane]
-            torch.fft.fft2(scattered, out=scattered)
-            accumulated.addcmul_(scattered, plane_transfer.conj())
-        torch.fft.ifft2(accumulated, out=accumulated)
-        return accumulated[:, rows // 2:rows // 2 + rows, cols // 2:cols // 2 + cols], None, None
+        for channel in range(channels):
+            accumulated.zero_()
+            for plane in range(len(bank.distances)):
+                scattered.zero_()
+                scattered[top:top + grid.height, left:left + grid.width] = grad[plane, channel]
+                torch.fft.fft2(scattered, out=scattered)
+                accumulated.addcmul_(scattered, bank(plane, channel).conj())
+            torch.fft.ifft2(accumulated, out=accumulated)
+            grad_field[channel] = accumulated[rows // 2:rows // 2 + rows, cols // 2:cols // 2 + cols]
+        return grad_field, None, None
 
 
 def propagate_content(field: Tensor, grid: Grid, distances_m: Sequence[float], wavelengths_m: Sequence[float],
                       pixel_pitch: float) -> Tensor:
     """The H×W content [M, C, H, W] of `propagate(field, ...)` for a [C, P_H, P_W] field, lean in memory."""
-    channels, rows, cols = field.shape
-    if len(wavelengths_m) != channels:
-        raise ValueError(f"{len(wavelengths_m)} wavelengths for a field of {channels} channels")
-    transfer = _unshifted_transfer_functions(2 * rows, 2 * cols, float(pixel_pitch),
-                                             tuple(map(float, wavelengths_m)),
-                                             tuple(map(float, distances_m)), field.device)
-    return _ContentPropagation.apply(field, grid, transfer)
+    return _ContentPropagation.apply(field, grid, transfer_bank(field, distances_m, wavelengths_m, pixel_pitch))
 
 
-def reconstruct(hologram: Tensor, config: FitConfig) -> Tensor:
-    """Hologram [C, H, W] → reconstructed intensity [M, C, H, W] clamped to [0, 1] (SPEC §3)."""
+def reconstruct(hologram: Tensor, config: FitConfig, distances_m: Sequence[float] | None = None) -> Tensor:
+    """Hologram [C, H, W] → reconstructed intensity [M, C, H, W] clamped to [0, 1] (SPEC §3), at
+    `config`'s planes or at `distances_m` (m)."""
     grid = Grid.for_config(config)
     field = slm_field(pad_with_guard_band(hologram, grid))
-    planes = propagate_content(field, grid, config.plane_distances, config.wavelengths, config.pixel_pitch)
+    distances = config.plane_distances if distances_m is None else tuple(distances_m)
+    planes = propagate_content(field, grid, distances, config.wavelengths, config.pixel_pitch)
     return torch.clamp(planes.abs() ** 2, 0.0, 1.0)

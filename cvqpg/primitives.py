@@ -19,8 +19,29 @@ INIT_SCALE_RANGE_PX = (1.5, 5.0)
 INIT_OPACITY_RAW = -0.5
 
 
+class TensorFields:
+    """Per-primitive tensors of a dataclass, handled as one dict (checkpoints, files, devices)."""
+
+    @property
+    def count(self) -> int:
+        return getattr(self, fields(self)[0].name).shape[0]
+
+    def tensors(self) -> dict[str, Tensor]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @classmethod
+    def from_tensors(cls, tensors: dict[str, Tensor]):
+        return cls(**{f.name: tensors[f.name] for f in fields(cls)})
+
+    def to(self, device: torch.device | str, dtype: torch.dtype | None = None):
+        return self.from_tensors({k: v.to(device, dtype) for k, v in self.tensors().items()})
+
+    def detached(self):
+        return self.from_tensors({k: v.detach().clone() for k, v in self.tensors().items()})
+
+
 @dataclass
-class Gaussians:
+class Gaussians(TensorFields):
     """Raw (pre-activation) parameters of N primitives; each tensor is an optimisable leaf."""
 
     position: Tensor  # [N, 2] → px via (tanh+1)/2·(W, H)
@@ -32,38 +53,25 @@ class Gaussians:
     curvature: Tensor  # [N] → 1/m via γ_max·tanh
 
     @property
-    def count(self) -> int:
-        return self.position.shape[0]
-
-    @property
     def channels(self) -> int:
         return self.color.shape[1]
 
-    def tensors(self) -> dict[str, Tensor]:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
-
-    @classmethod
-    def from_tensors(cls, tensors: dict[str, Tensor]) -> "Gaussians":
-        return cls(**{f.name: tensors[f.name] for f in fields(cls)})
-
-    def to(self, device: torch.device | str) -> "Gaussians":
-        return Gaussians.from_tensors({k: v.to(device) for k, v in self.tensors().items()})
-
-    def detached(self) -> "Gaussians":
-        return Gaussians.from_tensors({k: v.detach().clone() for k, v in self.tensors().items()})
-
 
 @dataclass
-class Primitives:
-    """Activated, physical parameters that the rasterizer consumes."""
+class Primitives(TensorFields):
+    """Activated, physical parameters that the rasterizer consumes and a model file stores."""
 
     position_px: Tensor  # [N, 2] (x, y), pixel centres at integers
     scale_px: Tensor  # [N, 2]
     rotation_rad: Tensor  # [N]
-    color: Tensor  # [N, C]
+    amplitude: Tensor  # [N, C]
     phase_rad: Tensor  # [N, C]
     opacity: Tensor  # [N]
     curvature_per_m: Tensor  # [N], γ in 1/m
+
+    @property
+    def channels(self) -> int:
+        return self.amplitude.shape[1]
 
 
 def init_gaussians(count: int, channels: int, width: int, height: int, seed: int,
@@ -113,7 +121,7 @@ def activate(raw: Gaussians, config: FitConfig) -> Primitives:
         position_px=positions_px(raw.position, config.width, config.height),
         scale_px=scale,
         rotation_rad=raw.rotation,
-        color=raw.color,
+        amplitude=raw.color,
         phase_rad=torch.remainder(raw.phase, 2 * math.pi),
         opacity=torch.sigmoid(raw.opacity),
         curvature_per_m=curvature_bound(scale, config) * torch.tanh(raw.curvature),

@@ -40,13 +40,13 @@ class Splats:
     conic: Tensor  # [N, 3]: Σ⁻¹ entries (a, b, c) in 1/px²
     reach_px: Tensor  # [N]: footprint radius 3σ_major (no gradient)
     chirp: Tensor  # [N]: m per unit of the squared distance the QPF uses
-    color: Tensor  # [N, C]
+    amplitude: Tensor  # [N, C]
     phase_rad: Tensor  # [N, C]
     opacity: Tensor  # [N]
     mahalanobis: bool  # QPF over D² (True) or over |p − x|² in px² (False)
 
     def tensors(self) -> tuple[Tensor, ...]:
-        return (self.position_px, self.conic, self.reach_px, self.chirp, self.color, self.phase_rad,
+        return (self.position_px, self.conic, self.reach_px, self.chirp, self.amplitude, self.phase_rad,
                 self.opacity)
 
     def select(self, index: Tensor) -> "Splats":
@@ -61,7 +61,7 @@ def splats(prims: Primitives, pixel_pitch: float, qpf: Qpf) -> Splats:
     half_curvature = 0.5 * prims.curvature_per_m * pixel_pitch**2
     mahalanobis = qpf == "mahalanobis"
     chirp = half_curvature * prims.scale_px.prod(dim=1) if mahalanobis else half_curvature
-    return Splats(prims.position_px, torch.stack([a, b, c], dim=1), reach, chirp, prims.color,
+    return Splats(prims.position_px, torch.stack([a, b, c], dim=1), reach, chirp, prims.amplitude,
                   prims.phase_rad, prims.opacity, mahalanobis)
 
 
@@ -78,7 +78,7 @@ def contributions(s: Splats, px: Tensor, py: Tensor, wavenumbers: Tensor) -> tup
     envelope = torch.exp(torch.clamp(-0.5 * mahalanobis2, min=EXPONENT_FLOOR))
     envelope = envelope * (radius2 <= (s.reach_px * s.reach_px)[:, None])
     path_m = s.chirp[:, None] * (mahalanobis2 if s.mahalanobis else radius2)
-    amplitude = s.color.T[:, :, None] * (s.opacity[:, None] * envelope)[None]  # [C, K, P]
+    amplitude = s.amplitude.T[:, :, None] * (s.opacity[:, None] * envelope)[None]  # [C, K, P]
     phase = s.phase_rad.T[:, :, None] + wavenumbers[:, None, None] * path_m[None]
     return amplitude * torch.cos(phase), amplitude * torch.sin(phase)
 
@@ -104,7 +104,7 @@ def _pixel_sets(centers: Tensor, radius: int, width: int, height: int
 
 def splat_reference(s: Splats, width: int, height: int, wavenumbers: Tensor) -> Tensor:
     """Pure-PyTorch backend: complex hologram [C, H, W] (dtype follows the splats)."""
-    channels = s.color.shape[1]
+    channels = s.amplitude.shape[1]
     real_dtype = s.position_px.dtype
     wavenumbers = wavenumbers.to(device=s.position_px.device, dtype=real_dtype)
     accumulated = s.position_px.new_zeros(2, channels, height * width)

@@ -6,16 +6,22 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
+import torch
 from PIL import Image
+from safetensors import safe_open
 from torch import Tensor
 
 from . import __version__
-from .config import FitConfig
-from .fitting import FitResult, render
-from .metrics import MetricReport, evaluate
+from .config import ConfigError, FitConfig
+from .export import (DEFAULT_APERTURE, DEFAULT_LEVELS, Display, Encoding, PhasePattern, phase_pattern, place_on_canvas,
+                     simulate_display)
+from .fitting import FitResult, hologram, render
+from .metrics import MetricReport, evaluate, mean_psnr
+from .optics import reconstruct, slm_field
+from .primitives import Primitives
 from .scenes import builtin_scene
 from .storage import load_model, save_model
 from .targets import Scene, load_scene
@@ -106,8 +112,9 @@ def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[
     """Save config, metrics, model, per-plane targets and reconstructions, hologram and curve."""
     folder = start_run(folder, result.config, source)
     config = result.config
-    save_model(folder / MODEL_FILE, result.gaussians, config)
-    hologram, recon = render(result.gaussians, config)
+    primitives = result.primitives
+    save_model(folder / MODEL_FILE, primitives, config)
+    hologram, recon = render(primitives, config)
     for plane, (target, image) in enumerate(zip(scene.targets, recon)):
         to_8bit(target).save(folder / f"target_plane{plane}.png")
         to_8bit(image).save(folder / f"recon_plane{plane}.png")
@@ -133,9 +140,9 @@ def evaluate_run(folder: str | Path) -> dict[str, Any]:
     """Recompute a saved run's metrics from its model and inputs; rewrites `metrics.json`."""
     folder = Path(folder)
     _, source = read_run(folder)
-    gaussians, config = load_model(folder / MODEL_FILE)
+    primitives, config = load_model(folder / MODEL_FILE)
     scene = scene_from_source(source, config)
-    _, recon = render(gaussians, config)
+    _, recon = render(primitives, config)
     previous = {}
     if (folder / METRICS_FILE).is_file():
         previous = json.loads((folder / METRICS_FILE).read_text())
@@ -143,3 +150,137 @@ def evaluate_run(folder: str | Path) -> dict[str, Any]:
     record = {**metrics_record(evaluate(recon, scene.targets), config, previous.get("seconds", 0.0)), **kept}
     write_json(folder / METRICS_FILE, record)
     return record
+
+
+EXPORT_FOLDER = "export"
+RENDER_FOLDER = "render"
+HALF_MODEL_FILE = "model.f16.safetensors"
+
+
+def channel_labels(config: FitConfig) -> list[str]:
+    """File-name label per channel: colour and wavelength, e.g. `red_639nm`."""
+    names = ("red", "green", "blue") if config.channels == 3 else ("gray",)
+    return [f"{name}_{round(w * 1e9)}nm" for name, w in zip(names, config.wavelengths)]
+
+
+def save_phase_pattern(pattern: PhasePattern, labels: list[str], folder: Path) -> list[str]:
+    """Per channel: the gray levels as PNG (8-bit up to 256 levels, else 16-bit) and the
+    unquantised phase (rad) as float32 `.npy`. Returns the file names."""
+    written = []
+    for label, gray, phase in zip(labels, pattern.gray, pattern.phase_rad):
+        depth = np.uint8 if pattern.levels <= 256 else np.uint16
+        Image.fromarray(gray.cpu().numpy().astype(depth)).save(folder / f"phase_{label}.png")
+        np.save(folder / f"phase_{label}.npy", phase.cpu().numpy().astype(np.float32))
+        written += [f"phase_{label}.png", f"phase_{label}.npy"]
+    return written
+
+
+def export_run(folder: str | Path, encoding: Encoding = "dpac", levels: int = DEFAULT_LEVELS,
+               slm: tuple[int, int] | None = None, aperture: float | None = DEFAULT_APERTURE,
+               out: str | Path | None = None) -> dict[str, Any]:
+    """Write a run's phase-only SLM patterns and simulate showing them (SPEC §8).
+
+    `slm` is the SLM's (W, H) in px (default: the hologram's own size). Writes the patterns, the
+    simulated display's planes and `metrics.json` (phase-only display, the same 4f display fed
+    the complex field, and the fit's own complex reconstruction, all against the targets).
+    """
+    folder = Path(folder)
+    out = Path(out) if out is not None else folder / EXPORT_FOLDER
+    out.mkdir(parents=True, exist_ok=True)
+    _, source = read_run(folder)
+    primitives, config = load_model(folder / MODEL_FILE)
+    scene = scene_from_source(source, config)
+    hologram, complex_recon = render(primitives, config)
+    canvas = (config.height, config.width) if slm is None else (slm[1], slm[0])
+    pattern = phase_pattern(hologram, encoding, levels, canvas)
+    files = save_phase_pattern(pattern, channel_labels(config), out)
+    display = Display(canvas, aperture)
+    with torch.no_grad():
+        shown = simulate_display(pattern.displayed_field, display, config)
+        complex_shown = simulate_display(place_on_canvas(slm_field(hologram), canvas[1], canvas[0]), display,
+                                         config)
+    for plane, image in enumerate(shown):
+        to_8bit(image).save(out / f"display_plane{plane}.png")
+        files.append(f"display_plane{plane}.png")
+    record = {"encoding": encoding, "levels": levels, "slm_px": list(slm) if slm else None,
+              "hologram_px": [config.width, config.height], "aperture_of_nyquist": aperture,
+              "files": files,
+              "phase_only_display": evaluate(shown, scene.targets).to_dict(),
+              "complex_display": evaluate(complex_shown, scene.targets).to_dict(),
+              "complex_field": evaluate(complex_recon, scene.targets).to_dict()}
+    write_json(out / METRICS_FILE, record)
+    return record
+
+
+def model_path(target: str | Path) -> Path:
+    """A model file, or the model of a run folder."""
+    target = Path(target)
+    return target / MODEL_FILE if target.is_dir() else target
+
+
+def model_info(path: str | Path) -> dict[str, Any]:
+    """Size accounting of a model file: primitives, parameters, bytes, bits per hologram pixel and
+    the compression ratio against the complex64 field it renders (8 bytes per pixel and channel)."""
+    path = model_path(path)
+    primitives, config = load_model(path)
+    file_bytes = path.stat().st_size
+    field_bytes = 8 * config.channels * config.width * config.height
+    with safe_open(str(path), framework="pt") as handle:
+        dtype = (handle.metadata() or {}).get("dtype", "float32")
+    return {"file": str(path), "num_primitives": primitives.count, "primitive": config.primitive,
+            "learnable_params": primitives.count * config.params_per_primitive,
+            "stored_values": sum(t.numel() for t in primitives.tensors().values()), "dtype": dtype,
+            "file_bytes": file_bytes, "hologram_px": [config.width, config.height],
+            "channels": config.channels, "bits_per_pixel": 8 * file_bytes / (config.width * config.height),
+            "complex_field_bytes": field_bytes, "compression_ratio": field_bytes / file_bytes}
+
+
+def half_precision_model(folder: str | Path) -> dict[str, Any]:
+    """Store a run's model in float16 next to it and measure what that costs in PSNR (dB)."""
+    folder = Path(folder)
+    _, source = read_run(folder)
+    primitives, config = load_model(folder / MODEL_FILE)
+    save_model(folder / HALF_MODEL_FILE, primitives, config, dtype="float16")
+    half, _ = load_model(folder / HALF_MODEL_FILE)
+    scene = scene_from_source(source, config)
+    psnr_full = mean_psnr(render(primitives, config)[1], scene.targets)
+    psnr_half = mean_psnr(render(half, config)[1], scene.targets)
+    return {**model_info(folder / HALF_MODEL_FILE), "psnr_float32": psnr_full, "psnr_float16": psnr_half,
+            "psnr_change": psnr_half - psnr_full}
+
+
+def rescaled(primitives: Primitives, config: FitConfig, width: int, height: int) -> tuple[Primitives, FitConfig]:
+    """The same physical hologram sampled on a W×H grid: positions and scales scale with the grid,
+    the pixel pitch shrinks by as much, curvature (1/m) stays. Refuses another aspect ratio."""
+    factor = width / config.width
+    if abs(height / config.height - factor) > 0.01 * factor:
+        raise ConfigError(f"--size {width} {height} changes the aspect ratio of the {config.width}×"
+                         f"{config.height} model; keep W/H = {config.width / config.height:.4f}")
+    values = primitives.tensors()
+    values["position_px"] = (values["position_px"] + 0.5) * factor - 0.5
+    values["scale_px"] = values["scale_px"] * factor
+    return Primitives.from_tensors(values), config.replace(
+        width=width, height=height, pixel_pitch=config.pixel_pitch / factor, num_gaussians=primitives.count)
+
+
+def render_model(target: str | Path, out: str | Path, size: tuple[int, int] | None = None,
+                 distances_m: Sequence[float] | None = None) -> dict[str, Any]:
+    """Render a saved model without fitting: hologram images and the reconstruction at each plane
+    (the model's own, or `distances_m`), optionally resampled to `size` (W, H) px."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    primitives, config = load_model(model_path(target))
+    if size is not None:
+        primitives, config = rescaled(primitives, config, *size)
+    distances = config.plane_distances if distances_m is None else tuple(distances_m)
+    with torch.no_grad():
+        field = hologram(primitives, config)
+        recon = reconstruct(field, config, distances)
+    save_hologram_images(field, out)
+    files = ["amplitude.png", "phase.png"]
+    for distance, image in zip(distances, recon):
+        name = f"recon_{distance * 1e3:g}mm.png"
+        to_8bit(image).save(out / name)
+        files.append(name)
+    return {"hologram_px": [config.width, config.height], "pixel_pitch_m": config.pixel_pitch,
+            "distances_m": list(distances), "files": files}

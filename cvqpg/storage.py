@@ -1,4 +1,5 @@
-"""The fitted representation on disk: `model.safetensors` with its configuration as metadata."""
+"""The fitted representation on disk: `model.safetensors` holds the activated primitives in physical
+units, with the configuration and optics as metadata; checkpoints hold the loop state."""
 
 from __future__ import annotations
 
@@ -11,29 +12,47 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 
 from .config import FitConfig
-from .primitives import Gaussians
+from .primitives import Primitives
 
 MODEL_FORMAT = "cvqpg-model"
-MODEL_FORMAT_VERSION = "1"
+MODEL_FORMAT_VERSION = "2"
+STORED_DTYPES = {"float32": torch.float32, "float16": torch.float16}
+UNITS = {"position_px": "px (x, y), pixel centres at integers", "scale_px": "px (σ along the Gaussian's axes)",
+         "rotation_rad": "rad", "amplitude": "per channel, unitless", "phase_rad": "rad in [0, 2π), per channel",
+         "opacity": "in (0, 1)", "curvature_per_m": "1/m (γ of the quadratic phase)"}
 
 
 class ModelFileError(ValueError):
     """A model file that this version cannot read; the message says what is wrong."""
 
 
-def save_model(path: str | Path, gaussians: Gaussians, config: FitConfig) -> None:
-    """Write the raw parameters (bit-exact) and the configuration, atomically."""
+def model_metadata(primitives: Primitives, config: FitConfig, dtype: str) -> dict[str, str]:
+    """What a model file says about itself: format, configuration, and the optics in plain numbers."""
+    return {"format": MODEL_FORMAT, "format_version": MODEL_FORMAT_VERSION, "dtype": dtype,
+            "config": json.dumps(config.to_dict()), "num_primitives": str(primitives.count),
+            "width_px": str(config.width), "height_px": str(config.height),
+            "pixel_pitch_m": repr(config.pixel_pitch), "wavelengths_m": json.dumps(config.wavelengths),
+            "plane_distances_m": json.dumps(config.plane_distances), "qpf": config.qpf,
+            "units": json.dumps(UNITS)}
+
+
+def save_model(path: str | Path, primitives: Primitives, config: FitConfig, dtype: str = "float32") -> None:
+    """Write the activated primitives (physical units, see `UNITS`) and the optics, atomically.
+
+    `dtype="float16"` halves the file; rendering casts back to float32.
+    """
+    if dtype not in STORED_DTYPES:
+        raise ModelFileError(f"cannot store a model as {dtype!r}; choose one of {', '.join(STORED_DTYPES)}")
     path = Path(path)
-    tensors = {name: t.detach().to("cpu").contiguous() for name, t in gaussians.tensors().items()}
-    metadata = {"format": MODEL_FORMAT, "format_version": MODEL_FORMAT_VERSION,
-                "config": json.dumps(config.to_dict())}
+    tensors = {name: t.detach().to("cpu", STORED_DTYPES[dtype]).contiguous()
+               for name, t in primitives.tensors().items()}
     partial = path.with_name(path.name + ".partial")
-    save_file(tensors, str(partial), metadata=metadata)
+    save_file(tensors, str(partial), metadata=model_metadata(primitives, config, dtype))
     partial.replace(path)
 
 
-def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Gaussians, FitConfig]:
-    """Read a model written by `save_model`."""
+def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Primitives, FitConfig]:
+    """Read a model written by `save_model` as float32 primitives on `device`."""
     path = Path(path)
     if not path.is_file():
         raise ModelFileError(f"{path}: no such model file")
@@ -48,19 +67,18 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Ga
                              f"(found format {metadata.get('format')!r} "
                              f"version {metadata.get('format_version')!r})")
     config = FitConfig.from_dict(json.loads(metadata["config"]))
-    missing = [name for name in Gaussians.__dataclass_fields__ if name not in tensors]
+    missing = [name for name in UNITS if name not in tensors]
     if missing:
         raise ModelFileError(f"{path}: missing tensors {', '.join(missing)}")
-    gaussians = Gaussians.from_tensors(tensors)
-    count, channels = gaussians.count, config.channels
-    expected = {"position": (count, 2), "scale": (count, 2), "rotation": (count,),
-                "color": (count, channels), "phase": (count, channels), "opacity": (count,),
-                "curvature": (count,)}
+    count, channels = tensors["position_px"].shape[0], config.channels
+    expected = {"position_px": (count, 2), "scale_px": (count, 2), "rotation_rad": (count,),
+                "amplitude": (count, channels), "phase_rad": (count, channels), "opacity": (count,),
+                "curvature_per_m": (count,)}
     for name, shape in expected.items():
         if tuple(tensors[name].shape) != shape:
             raise ModelFileError(f"{path}: tensor {name!r} has shape {tuple(tensors[name].shape)}, "
                                  f"expected {shape}")
-    return gaussians, config
+    return Primitives.from_tensors({name: t.float() for name, t in tensors.items()}), config
 
 
 def save_checkpoint(path: str | Path, payload: dict) -> None:

@@ -39,11 +39,11 @@ def test_same_seed_gives_bit_identical_parameters(tiny_config):
 def test_saved_model_loads_and_renders_bit_identically(tiny_config, tmp_path):
     scene = builtin_scene("demo", tiny_config.width, tiny_config.height)
     result = fit(scene.image, scene.depth, tiny_config, progress=False)
-    save_model(tmp_path / "model.safetensors", result.gaussians, result.config)
-    gaussians, config = load_model(tmp_path / "model.safetensors")
+    save_model(tmp_path / "model.safetensors", result.primitives, result.config)
+    primitives, config = load_model(tmp_path / "model.safetensors")
     assert config == result.config
-    hologram, recon = render(result.gaussians, result.config)
-    hologram2, recon2 = render(gaussians, config)
+    hologram, recon = render(result.primitives, result.config)
+    hologram2, recon2 = render(primitives, config)
     assert torch.equal(hologram, hologram2) and torch.equal(recon, recon2)
 
 

@@ -56,7 +56,7 @@ def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primiti
     expected, expected_grads = outputs_and_gradients(splat_reference, s, k)
     actual, actual_grads = outputs_and_gradients(splat_fused, s, k)
     assert relative(actual, expected) < 1e-4
-    names = ["position", "conic", "chirp", "color", "phase", "opacity"]
+    names = ["position", "conic", "chirp", "amplitude", "phase", "opacity"]
     for name, got, want in zip(names, actual_grads, expected_grads):
         if name == "chirp" and primitive == "flat":
             assert torch.isfinite(got).all()

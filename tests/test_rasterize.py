@@ -22,7 +22,7 @@ def rasterize(*args, backend="torch"):
 PITCH = 3.74e-6
 WAVELENGTHS = (639e-9, 473e-9)
 F64 = torch.float64
-FIELDS = ("position_px", "scale_px", "rotation_rad", "color", "phase_rad", "opacity", "curvature_per_m")
+FIELDS = ("position_px", "scale_px", "rotation_rad", "amplitude", "phase_rad", "opacity", "curvature_per_m")
 
 
 # --------------------------------------------------------------------------- independent reference
@@ -67,7 +67,7 @@ def direct_hologram(prims: Primitives, width: int, height: int, wavelengths, pit
     k = torch.tensor([2 * math.pi / w for w in wavelengths], dtype=F64)
     channels = []
     for c in range(len(wavelengths)):
-        amplitude = prims.opacity[:, None] * prims.color[:, c:c + 1] * envelope
+        amplitude = prims.opacity[:, None] * prims.amplitude[:, c:c + 1] * envelope
         phase = prims.phase_rad[:, c:c + 1] + k[c] * psi
         channels.append((amplitude * torch.exp(1j * phase)).sum(0))
     return torch.stack(channels).reshape(len(wavelengths), height, width)
@@ -83,9 +83,9 @@ def footprint_margin(prims: Primitives, width: int, height: int) -> float:
         return float((dist - reach[:, None]).abs().min())
 
 
-def make_prims(position, scale, rotation, color, phase, opacity, curvature) -> Primitives:
+def make_prims(position, scale, rotation, amplitude, phase, opacity, curvature) -> Primitives:
     t = lambda v: torch.as_tensor(v, dtype=F64).clone()  # noqa: E731
-    return Primitives(position_px=t(position), scale_px=t(scale), rotation_rad=t(rotation), color=t(color),
+    return Primitives(position_px=t(position), scale_px=t(scale), rotation_rad=t(rotation), amplitude=t(amplitude),
                       phase_rad=t(phase), opacity=t(opacity), curvature_per_m=t(curvature))
 
 
@@ -100,7 +100,7 @@ def random_prims(count: int, width: int, height: int, seed: int, scale_range=(0.
         position_px=position,
         scale_px=low + (high - low) * u(count, 2),
         rotation_rad=(2 * u(count) - 1) * math.pi,
-        color=u(count, len(WAVELENGTHS)),
+        amplitude=u(count, len(WAVELENGTHS)),
         phase_rad=2 * math.pi * u(count, len(WAVELENGTHS)),
         opacity=0.2 + 0.8 * u(count),
         curvature_per_m=(2 * u(count) - 1) * curvature,
@@ -119,7 +119,7 @@ def assorted_prims(width: int, height: int) -> Primitives:
         position=[[width * 0.4, height * 0.6], [-3.0, height + 2.0], [width + 30.0, -20.0]],
         scale=[[14.0, 6.0], [30.0, 25.0], [12.0, 10.0]],
         rotation=[0.7, -2.1, 1.3],
-        color=[[0.9, 0.3], [0.5, 0.8], [0.6, 0.4]],
+        amplitude=[[0.9, 0.3], [0.5, 0.8], [0.6, 0.4]],
         phase=[[0.3, 5.0], [2.0, 1.0], [4.0, 0.1]],
         opacity=[0.7, 0.4, 0.9],
         curvature=[150.0, -90.0, 60.0],
@@ -128,7 +128,7 @@ def assorted_prims(width: int, height: int) -> Primitives:
         position=[[-2.5, 5.2], [width + 1.7, 3.3], [6.4, -3.1], [-40.0, -40.0], [width + 25.0, height / 2]],
         scale=[[2.0, 1.2], [1.5, 2.5], [3.0, 0.8], [2.0, 2.0], [1.0, 1.0]],
         rotation=[0.4, 1.1, -0.6, 0.0, 0.2],
-        color=[[0.8, 0.2], [0.3, 0.9], [0.5, 0.5], [1.0, 1.0], [1.0, 1.0]],
+        amplitude=[[0.8, 0.2], [0.3, 0.9], [0.5, 0.5], [1.0, 1.0], [1.0, 1.0]],
         phase=[[1.0, 2.0], [3.0, 4.0], [5.0, 6.0], [0.0, 0.0], [0.0, 0.0]],
         opacity=[0.6, 0.5, 0.4, 0.9, 0.9],
         curvature=[2000.0, -1500.0, 800.0, 0.0, 0.0],
@@ -224,7 +224,7 @@ def gradcheck_prims(qpf: str) -> tuple[Primitives, int, int]:
         position=[[4.3, 3.6], [8.15, 6.4], [2.7, 7.8]],
         scale=[[1.7, 1.1], [1.3, 2.2], [1.05, 0.9]],
         rotation=[0.35, -1.2, 2.4],
-        color=[[0.8, 0.4], [0.5, 0.9], [0.7, 0.6]],
+        amplitude=[[0.8, 0.4], [0.5, 0.9], [0.7, 0.6]],
         phase=[[0.4, 1.9], [2.6, 5.1], [3.3, 0.7]],
         opacity=[0.7, 0.55, 0.8],
         curvature=[2500.0, -1800.0, 3200.0],

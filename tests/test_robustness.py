@@ -14,6 +14,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
+from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
 from cvqpg import FitConfig
@@ -149,8 +150,8 @@ def finished_run(tmp_path_factory) -> Path:
 
 
 @pytest.mark.parametrize("damage, message", [
-    ("version", "format version 1"),
-    ("missing", "missing tensors curvature"),
+    ("version", "format version 2"),
+    ("missing", "missing tensors curvature_per_m"),
     ("shape", "has shape"),
     ("garbage", "not a readable safetensors file"),
 ])
@@ -159,14 +160,14 @@ def test_eval_refuses_damaged_models(finished_run, tmp_path, damage, message, ca
     run.mkdir()
     (run / "config.json").write_bytes((finished_run / "config.json").read_bytes())
     tensors = load_file(finished_run / "model.safetensors")
-    metadata = {"format": "cvqpg-model", "format_version": "1",
-                "config": json.dumps(json.loads((finished_run / "config.json").read_text()))}
+    with safe_open(str(finished_run / "model.safetensors"), framework="pt") as handle:
+        metadata = handle.metadata()
     if damage == "version":
         metadata["format_version"] = "0"
     elif damage == "missing":
-        del tensors["curvature"]
+        del tensors["curvature_per_m"]
     elif damage == "shape":
-        tensors["color"] = tensors["color"][:, :1].contiguous()
+        tensors["amplitude"] = tensors["amplitude"][:, :1].contiguous()
     if damage == "garbage":
         (run / "model.safetensors").write_bytes(b"\x00" * 64)
     else:

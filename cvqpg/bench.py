@@ -1,0 +1,486 @@
+"""Benchmark grids (issue #4): scenes × colour × ratio × method × seed, one run folder per cell.
+
+A cell is a `cvqpg fit` run in `<bench>/cells/<cell name>/`. Its `metrics.json`, which
+`runs.write_run` writes last and atomically, is the only "done" marker: a folder holding just a
+config, a checkpoint or partial files is not done and is resumed (from its checkpoint when the
+settings match) or restarted. Shards split the full cell list by position, whatever is done, so
+every node of a job array computes the same split. The tables, figures and report come from
+`cvqpg.report`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import multiprocessing
+import os
+import signal
+import traceback
+from collections.abc import Callable, Sequence
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import numba
+import torch
+from tqdm.auto import tqdm
+
+from .config import FitConfig
+from .fitting import (CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes, fit_scene, render_hologram,
+                      state_from_payload)
+from .metrics import radial_error_spectrum
+from .optics import reconstruct
+from .runs import (CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, read_run, scene_from_source, start_run, write_json,
+                   write_run)
+from .scenes import SCENES
+from .storage import ModelFileError, load_checkpoint, save_checkpoint
+from .targets import check_depth_geometry, load_picture
+
+log = logging.getLogger("cvqpg")
+
+CELLS_DIR = "cells"
+SPECTRUM_FILE = "spectrum.json"
+ERROR_FILE = "error.log"
+SPECTRUM_BINS = 32
+WARMUP_FRACTION = 400 / 2000  # the paper's warm-up share, kept when --steps changes
+FOLDER_SCENE_PLANES = 2
+POLL_SECONDS = 0.5
+COLORS = ("rgb", "gray")
+
+DONE, SKIPPED, INTERRUPTED, NOT_STARTED, FAILED = "done", "skipped", "interrupted", "not started", "failed"
+STARTED, MISSING = "started", "missing"
+
+
+class BenchError(ValueError):
+    """A benchmark request that cannot work; the message names the option and the fix."""
+
+
+@dataclass(frozen=True)
+class Method:
+    """A row of the paper's tables: FitConfig changes, and whether N grows to CVQPG's parameter count."""
+
+    label: str
+    changes: dict[str, str]
+    equal_params: bool = False
+
+
+METHODS = {
+    "baseline": Method("Baseline", {"primitive": "flat"}),
+    "baseline+": Method("Baseline⁺", {"primitive": "flat"}, equal_params=True),
+    "cvqpg": Method("CVQPG", {"primitive": "cvqpg"}),
+    "no-bound": Method("w/o adaptive bound", {"primitive": "cvqpg", "bound": "global"}),
+    "no-mahalanobis": Method("w/o Mahalanobis QPF", {"primitive": "cvqpg", "qpf": "standard"}),
+    "vanilla": Method("vanilla (neither)", {"primitive": "cvqpg", "bound": "global", "qpf": "standard"}),
+}
+
+
+@dataclass(frozen=True)
+class Preset:
+    """Default axes and fit size of a named grid; `builtin_scenes` empty means `--scenes DIR` is needed."""
+
+    description: str
+    colors: tuple[str, ...]
+    ratios: tuple[float, ...]
+    methods: tuple[str, ...]
+    builtin_scenes: tuple[str, ...] = ()
+    size: tuple[int, int] = (640, 480)
+    steps: int = 2000
+
+
+PRESETS = {
+    "paper": Preset("Table 1: every scene × {rgb, gray} × ratio {0.1, 0.2} × {baseline, baseline+, cvqpg}",
+                    COLORS, (0.1, 0.2), ("baseline", "baseline+", "cvqpg")),
+    "ablation": Preset("ablation table: RGB, ratio 0.1, CVQPG and its variants against the baseline",
+                       ("rgb",), (0.1,), ("baseline", "cvqpg", "no-bound", "no-mahalanobis", "vanilla")),
+    "star": Preset("Siemens star: single plane, grayscale, baseline vs CVQPG at equal N",
+                   ("gray",), (0.1,), ("baseline", "cvqpg"), ("star",)),
+    "quick": Preset("smoke test: built-in scenes, 160×120, 60 steps",
+                    ("gray",), (0.1,), ("baseline", "cvqpg"), ("demo", "star"), (160, 120), 60),
+}
+
+
+@dataclass(frozen=True)
+class BenchScene:
+    """A scene of the grid: its name, its input as `config.json` records it, and its plane count."""
+
+    name: str
+    source: dict[str, Any]
+    planes: int
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One fit of the grid."""
+
+    scene: BenchScene
+    method: str
+    config: FitConfig
+
+    @property
+    def setting(self) -> str:
+        """Colour and ratio, e.g. `rgb-20` (the paper's table rows)."""
+        return setting_key(self.config.color, self.config.ratio)
+
+    @property
+    def name(self) -> str:
+        return f"{self.scene.name}_{self.setting}_{self.method.replace('+', '-plus')}_s{self.config.seed}"
+
+
+@dataclass(frozen=True)
+class Overrides:
+    """Command-line replacements of a preset's axes and fit options; None keeps the preset's."""
+
+    scenes_dir: str | Path | None = None
+    scene_names: Sequence[str] | None = None
+    colors: Sequence[str] | None = None
+    ratios: Sequence[float] | None = None
+    methods: Sequence[str] | None = None
+    seeds: Sequence[int] | None = None
+    size: Sequence[int] | None = None
+    steps: int | None = None
+    warmup: int | None = None
+    device: str | None = None
+    backend: str | None = None
+
+
+@dataclass(frozen=True)
+class BenchPlan:
+    """The whole grid of a bench folder, cells in a fixed order (scene, colour, ratio, method, seed)."""
+
+    preset: str
+    folder: Path
+    scenes: tuple[BenchScene, ...]
+    methods: tuple[str, ...]
+    seeds: tuple[int, ...]
+    cells: tuple[Cell, ...]
+
+    def cell_dir(self, cell: Cell) -> Path:
+        return self.folder / CELLS_DIR / cell.name
+
+    def shard(self, index: int, count: int) -> tuple[Cell, ...]:
+        """Cells of shard `index` of `count` (1-based): every `count`-th cell from position index − 1."""
+        return self.cells[index - 1::count]
+
+    @property
+    def settings(self) -> tuple[str, ...]:
+        """Settings in the paper's order: RGB before grayscale, larger ratio first."""
+        keys = {(COLORS.index(c.config.color), -c.config.ratio, c.setting) for c in self.cells}
+        return tuple(key for *_, key in sorted(keys))
+
+
+@dataclass
+class BenchOutcome:
+    """What a run of cells did: a status per cell name, and the error of each failed cell."""
+
+    statuses: dict[str, str] = field(default_factory=dict)
+    failures: dict[str, str] = field(default_factory=dict)
+
+    def count(self, status: str) -> int:
+        return sum(s == status for s in self.statuses.values())
+
+    def describe(self) -> str:
+        """E.g. `3 done, 1 skipped, 0 interrupted, 0 not started, 0 failed`."""
+        return ", ".join(f"{self.count(s)} {s}" for s in (DONE, SKIPPED, INTERRUPTED, NOT_STARTED, FAILED))
+
+
+def setting_key(color: str, ratio: float) -> str:
+    return f"{color}-{ratio * 100:g}"
+
+
+def setting_label(key: str) -> str:
+    color, percent = key.split("-", 1)
+    return f"{'RGB' if color == 'rgb' else 'Grayscale'} {percent}%"
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """`i/n` with 1 ≤ i ≤ n → (i, n)."""
+    try:
+        index, count = (int(part) for part in text.split("/"))
+    except ValueError:
+        index, count = 0, 0
+    if not 1 <= index <= count:
+        raise BenchError(f"--shard {text}: expected i/n with 1 ≤ i ≤ n, e.g. --shard 1/4")
+    return index, count
+
+
+def folder_scenes(root: Path) -> tuple[BenchScene, ...]:
+    """Scenes of a folder of `<name>/image.*` + `<name>/depth.png`; sub-folders without an image are ignored."""
+    if not root.is_dir():
+        raise BenchError(f"--scenes {root}: no such folder")
+    scenes = []
+    for sub in sorted(p for p in root.iterdir() if p.is_dir()):
+        images = sorted(sub.glob("image.*"))
+        if not images:
+            continue
+        if len(images) > 1:
+            raise BenchError(f"scene {sub.name}: several image files ({', '.join(p.name for p in images)}); "
+                             "keep one")
+        depth = sub / "depth.png"
+        if not depth.is_file():
+            raise BenchError(f"scene {sub.name}: {depth} is missing; every scene folder needs image.* and depth.png")
+        scenes.append(BenchScene(sub.name, {"image": str(images[0].resolve()), "depth": str(depth.resolve())},
+                                 FOLDER_SCENE_PLANES))
+    if not scenes:
+        raise BenchError(f"--scenes {root}: no scene folders (<name>/image.* with <name>/depth.png) in it")
+    return tuple(scenes)
+
+
+def _choose(kind: str, given: Sequence[str] | None, default: tuple[str, ...], known: tuple[str, ...]
+            ) -> tuple[str, ...]:
+    chosen = default if given is None else given
+    unknown = [v for v in chosen if v not in known]
+    if unknown or not chosen:
+        raise BenchError(f"--{kind} {' '.join(chosen)}: choose from {', '.join(known)}")
+    return tuple(dict.fromkeys(chosen))
+
+
+def cell_config(base: FitConfig, scene: BenchScene, color: str, ratio: float, method: str, seed: int) -> FitConfig:
+    """The fit of one cell; Baseline⁺ gets N·params(CVQPG)/params(flat) primitives (13/12 RGB, 9/8 gray)."""
+    config = base.replace(color=color, ratio=ratio, seed=seed, num_planes=scene.planes, **METHODS[method].changes)
+    if METHODS[method].equal_params:
+        cvqpg = config.replace(primitive="cvqpg")
+        config = config.replace(num_gaussians=round(
+            cvqpg.primitive_count * cvqpg.params_per_primitive / config.params_per_primitive))
+    return config.validate()
+
+
+def make_plan(preset: str, folder: str | Path | None = None, overrides: Overrides = Overrides()) -> BenchPlan:
+    """The grid of a preset with command-line overrides; `folder` defaults to `runs/bench-<preset>`."""
+    if preset not in PRESETS:
+        raise BenchError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    spec = PRESETS[preset]
+    if overrides.scenes_dir is not None:
+        available = {s.name: s for s in folder_scenes(Path(overrides.scenes_dir))}
+    elif spec.builtin_scenes:
+        available = {name: BenchScene(name, {"scene": name}, SCENES[name].planes) for name in SCENES}
+    else:
+        raise BenchError(f"preset {preset!r} needs --scenes DIR (a folder of <name>/image.* and <name>/depth.png, "
+                         "e.g. ../shared/scenes)")
+    default_names = spec.builtin_scenes if overrides.scenes_dir is None else tuple(available)
+    names = _choose("scene-names", overrides.scene_names, default_names, tuple(available))
+    colors = _choose("colors", overrides.colors, spec.colors, COLORS)
+    methods = _choose("methods", overrides.methods, spec.methods, tuple(METHODS))
+    ratios = spec.ratios if overrides.ratios is None else tuple(dict.fromkeys(overrides.ratios))
+    seeds = (FitConfig().seed,) if overrides.seeds is None else tuple(dict.fromkeys(overrides.seeds))
+    if overrides.device == "cuda" and not torch.cuda.is_available():
+        raise BenchError("--device cuda: no CUDA GPU is visible to PyTorch; use --device cpu")
+    steps = spec.steps if overrides.steps is None else overrides.steps
+    width, height = spec.size if overrides.size is None else tuple(overrides.size)
+    warmup = round(steps * WARMUP_FRACTION) if overrides.warmup is None else overrides.warmup
+    base = FitConfig(width=width, height=height, steps=steps, warmup=warmup)
+    base = base.replace(**{k: v for k, v in (("device", overrides.device), ("backend", overrides.backend))
+                           if v is not None})
+    scenes = tuple(available[name] for name in names)
+    cells = tuple(Cell(scene, method, cell_config(base, scene, color, ratio, method, seed))
+                  for scene in scenes for color in colors for ratio in ratios for method in methods
+                  for seed in seeds)
+    return BenchPlan(preset, Path(folder) if folder else Path("runs") / f"bench-{preset}", scenes, methods,
+                     seeds, cells)
+
+
+def cell_status(folder: Path) -> str:
+    """`done` (metrics.json), `interrupted` (a checkpoint), `failed` (an error log), `started` or `missing`."""
+    if (folder / METRICS_FILE).is_file():
+        return DONE
+    if (folder / CHECKPOINT_FILE).is_file():
+        return INTERRUPTED
+    if (folder / ERROR_FILE).is_file():
+        return FAILED
+    return STARTED if (folder / CONFIG_FILE).is_file() else MISSING
+
+
+def _comparable(config: FitConfig) -> FitConfig:
+    """Device and rasterizer backend change the last bits only; a resumed or finished cell may differ in them."""
+    return config.replace(device="cpu", backend="auto")
+
+
+def config_differences(folder: Path, config: FitConfig) -> list[str]:
+    """Settings in which the run recorded in `folder` differs from `config`."""
+    recorded, _ = read_run(folder)
+    ours, theirs = _comparable(config), _comparable(recorded)
+    return [f"{f.name}={getattr(theirs, f.name)!r} (plan: {getattr(ours, f.name)!r})" for f in fields(FitConfig)
+            if getattr(ours, f.name) != getattr(theirs, f.name)]
+
+
+def describe_cells(plan: BenchPlan, cells: tuple[Cell, ...]) -> list[str]:
+    """One line per cell: status, name, N, steps, size."""
+    return [f"{cell_status(plan.cell_dir(c)):>11}  {c.name}  N={c.config.primitive_count}  steps={c.config.steps}  "
+            f"{c.config.width}×{c.config.height}" for c in cells]
+
+
+def peak_bytes(cells: tuple[Cell, ...], jobs: int) -> int:
+    """Estimated memory (bytes) of `jobs` of the largest cells fitted at once on the CPU."""
+    return jobs * max((estimated_peak_bytes(c.config) for c in cells), default=0)
+
+
+def check_inputs(plan: BenchPlan, cells: tuple[Cell, ...]) -> None:
+    """Before any fit: every scene file decodes, and no finished cell was fitted with other settings."""
+    for scene in {c.scene.name: c.scene for c in cells}.values():
+        if "image" in scene.source:
+            check_depth_geometry(load_picture(scene.source["image"]),
+                                 load_picture(scene.source["depth"], "depth map"), resize_depth=False)
+    for cell in cells:
+        folder = plan.cell_dir(cell)
+        if cell_status(folder) == DONE:
+            differences = config_differences(folder, cell.config)
+            if differences:
+                raise BenchError(f"{folder} was fitted with other settings ({'; '.join(differences[:3])}); "
+                                 "use another --out or delete that cell folder")
+
+
+def spectrum_record(recon: torch.Tensor, targets: torch.Tensor, bins: int = SPECTRUM_BINS) -> dict[str, Any]:
+    """Radial error spectrum of float reconstructions [M, C, H, W] against the targets, for `spectrum.json`."""
+    edges, power, counts = radial_error_spectrum(recon, targets, bins)
+    return {"bins": bins, "edges": edges.tolist(), "counts": counts.tolist(),
+            "power": [None if math.isnan(p) else float(p) for p in power],
+            "mse": float(((recon.double() - targets.double()) ** 2).mean())}
+
+
+def _resume_state(folder: Path, cell: Cell) -> FitState | None:
+    """The checkpoint's loop state when the folder holds one of this cell's settings; else a fresh run folder."""
+    checkpoint = folder / CHECKPOINT_FILE
+    if checkpoint.is_file() and (folder / CONFIG_FILE).is_file() and not config_differences(folder, cell.config):
+        try:
+            return state_from_payload(load_checkpoint(checkpoint), cell.config)
+        except ModelFileError as error:
+            log.warning(f"{error}; cell {cell.name} restarts from step 0")
+    start_run(folder, cell.config, cell.scene.source)
+    return None
+
+
+def run_cell(cell: Cell, folder: Path, stop_requested: Callable[[], bool] | None = None) -> str:
+    """Fit one cell into `folder` (resuming its checkpoint) unless done; returns the cell's new status.
+
+    Writes `spectrum.json` from the float reconstructions, then the run folder, whose `metrics.json`
+    comes last. A stop request saves a checkpoint and returns `interrupted`.
+    """
+    if (folder / METRICS_FILE).is_file():
+        return SKIPPED
+    if stop_requested is not None and stop_requested():
+        return NOT_STARTED
+    config = cell.config
+    scene = scene_from_source(cell.scene.source, config)
+    state = _resume_state(folder, cell)
+    (folder / ERROR_FILE).unlink(missing_ok=True)
+    policy = CheckpointPolicy(save=lambda s: save_checkpoint(folder / CHECKPOINT_FILE, s.to_payload()))
+    try:
+        result = fit_scene(scene, config, progress=False, state=state, checkpoint=policy, stop_requested=stop_requested)
+    except FitInterrupted:
+        return INTERRUPTED
+    with torch.no_grad():
+        recon = reconstruct(render_hologram(result.gaussians, config), config)
+    write_json(folder / SPECTRUM_FILE, spectrum_record(recon, scene.targets.to(recon.device)))
+    write_run(folder, result, scene, cell.scene.source)
+    return DONE
+
+
+def _attempt(cell: Cell, folder: Path, stop_requested: Callable[[], bool] | None) -> tuple[str, str | None]:
+    """`run_cell`, with a failure turned into a status, its traceback kept in the cell's `error.log`."""
+    try:
+        return run_cell(cell, folder, stop_requested), None
+    except Exception as error:  # one broken cell must not cost the rest of the grid; it is reported
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / ERROR_FILE).write_text(traceback.format_exc())
+        return FAILED, f"{type(error).__name__}: {error} (traceback in {folder / ERROR_FILE})"
+
+
+_worker_stop: Any = None
+
+
+def limit_threads(threads: int) -> None:
+    """Torch and Numba threads of this process; Numba would otherwise use every core of a shared node."""
+    torch.set_num_threads(threads)
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+
+
+def _init_worker(threads: int, stop_event: Any) -> None:
+    """Pool worker set-up: its share of the cores, and signals left to the parent, which relays a stop."""
+    global _worker_stop
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    limit_threads(threads)
+    _worker_stop = stop_event
+
+
+def _attempt_in_worker(cell: Cell, folder: Path) -> tuple[str, str | None]:
+    return _attempt(cell, folder, _worker_stop.is_set)
+
+
+def available_cores() -> int:
+    """Cores this process may use (a Slurm allocation, not the whole node)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int = 1, progress: bool = True,
+             stop_requested: Callable[[], bool] | None = None) -> BenchOutcome:
+    """Fit every cell of `cells` (default: the whole plan) that is not done, `jobs` at a time.
+
+    With jobs > 1 a spawn-context process pool runs the cells, each worker on cores // jobs threads.
+    When `stop_requested()` turns true, running fits save a checkpoint and stop, and no new cell starts.
+    """
+    cells = plan.cells if cells is None else cells
+    if jobs < 1:
+        raise BenchError(f"--jobs {jobs}: need at least 1")
+    check_inputs(plan, cells)
+    outcome = BenchOutcome()
+    todo = []
+    for cell in cells:
+        if cell_status(plan.cell_dir(cell)) == DONE:
+            outcome.statuses[cell.name] = SKIPPED
+        else:
+            todo.append(cell)
+    stop = stop_requested or (lambda: False)
+    with tqdm(total=len(todo), desc=f"bench {plan.preset}", unit="cell", disable=not progress,
+              dynamic_ncols=True) as bar:
+        def record(cell: Cell, status: str, error: str | None) -> None:
+            outcome.statuses[cell.name] = status
+            if error is not None:
+                outcome.failures[cell.name] = error
+            bar.set_postfix_str(f"{cell.name}: {status}", refresh=False)
+            bar.update()
+
+        if jobs == 1:
+            limit_threads(available_cores())
+            for cell in todo:
+                record(cell, *_attempt(cell, plan.cell_dir(cell), stop))
+        else:
+            _run_pool(plan, todo, jobs, stop, record)
+    return outcome
+
+
+def _run_pool(plan: BenchPlan, todo: list[Cell], jobs: int, stop: Callable[[], bool],
+              record: Callable[[Cell, str, str | None], None]) -> None:
+    context = multiprocessing.get_context("spawn")
+    stop_event = context.Event()
+    threads = max(1, available_cores() // jobs)
+    with ProcessPoolExecutor(jobs, mp_context=context, initializer=_init_worker,
+                             initargs=(threads, stop_event)) as pool:
+        futures = {pool.submit(_attempt_in_worker, cell, plan.cell_dir(cell)): cell for cell in todo}
+        pending = set(futures)
+        try:
+            while pending:
+                finished, pending = wait(pending, timeout=POLL_SECONDS, return_when=FIRST_COMPLETED)
+                for future in finished:
+                    try:
+                        record(futures[future], *future.result())
+                    except Exception as error:  # a worker that died (out of memory, killed)
+                        record(futures[future], FAILED, f"{type(error).__name__}: {error}")
+                if stop():
+                    stop_event.set()
+        finally:
+            # also on a second Ctrl-C: running fits checkpoint and queued cells return at once
+            stop_event.set()
+
+
+def read_json(path: Path) -> dict[str, Any] | None:
+    """A JSON file's content, or None where there is none."""
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def write_atomic(path: Path, data: bytes | str) -> None:
+    """Write a file so that no reader sees it half-written, even when shards of a job array write it at once."""
+    partial = path.with_name(f"{path.name}.{os.getpid()}.partial")
+    partial.write_bytes(data.encode() if isinstance(data, str) else data)
+    os.replace(partial, path)

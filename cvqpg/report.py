@@ -1,0 +1,470 @@
+"""Tables, CSVs, figures and `report.html` of a bench folder, from whatever cells are finished.
+
+Our numbers are means over finished seeds, then over scenes. Next to them, in parentheses, are the
+paper's per-scene values (supplementary table) averaged over the same scenes, shown only where our
+fits use the paper's setup (640×480, 2 planes, 2000 steps). The ablation table's paper values are
+its own five-scene means (the paper does not name those scenes). Unavailable metrics read "n/a".
+"""
+
+from __future__ import annotations
+
+import csv
+import functools
+import html
+import io
+import json
+import math
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import figures
+from .bench import (DONE, METHODS, METRICS_FILE, SPECTRUM_FILE, BenchPlan, Cell, cell_status, read_json,
+                    setting_label, write_atomic)
+
+TABLE_METRICS = ("psnr", "ssim", "lpips", "flip", "cvvdp")
+HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "lpips": False, "flip": False, "cvvdp": True}
+DECIMALS = {"psnr": 3, "ssim": 4, "lpips": 4, "flip": 4, "cvvdp": 3}
+HEADINGS = {m: f"{m.upper()}{'↑' if up else '↓'}" for m, up in HIGHER_IS_BETTER.items()}
+PAPER_SETUP = {"width": 640, "height": 480, "num_planes": 2, "steps": 2000}
+ABLATION_VARIANTS = ("no-bound", "no-mahalanobis", "vanilla")
+NA, MISSING = "n/a", "–"
+
+Metrics = dict[str, float | None]
+
+
+@dataclass
+class CellResult:
+    """A cell of the plan with what its folder holds."""
+
+    cell: Cell
+    status: str
+    metrics: dict[str, Any] | None
+    spectrum: dict[str, Any] | None
+
+
+@dataclass
+class Table:
+    """A table rendered alike as Markdown and HTML; `bold` holds (row, column) positions."""
+
+    title: str
+    header: list[str]
+    rows: list[list[str]] = field(default_factory=list)
+    bold: set[tuple[int, int]] = field(default_factory=set)
+    note: str = ""
+
+    def _cell(self, row: int, column: int, text: str, strong: str) -> str:
+        return f"{strong}{text}{strong.replace('<', '</')}" if (row, column) in self.bold else text
+
+    def markdown(self) -> str:
+        lines = [f"### {self.title}", "", "| " + " | ".join(self.header) + " |",
+                 "|" + "---|" * len(self.header)]
+        lines += ["| " + " | ".join(self._cell(r, c, text, "**") for c, text in enumerate(row)) + " |"
+                  for r, row in enumerate(self.rows)]
+        return "\n".join(lines + ([f"\n{self.note}"] if self.note else [])) + "\n"
+
+    def html(self) -> str:
+        head = "".join(f"<th>{html.escape(h)}</th>" for h in self.header)
+        body = "".join("<tr>" + "".join(f"<td>{self._cell(r, c, html.escape(text), '<b>')}</td>"
+                                        for c, text in enumerate(row)) + "</tr>" for r, row in enumerate(self.rows))
+        note = f"<p class='note'>{html.escape(self.note)}</p>" if self.note else ""
+        return f"<h3>{html.escape(self.title)}</h3><table><tr>{head}</tr>{body}</table>{note}"
+
+
+@functools.lru_cache(maxsize=1)
+def paper_numbers() -> dict[str, Any]:
+    """The paper's published numbers (`cvqpg/paper_numbers.json`)."""
+    return json.loads(resources.files("cvqpg").joinpath("paper_numbers.json").read_text())
+
+
+def collect(plan: BenchPlan) -> list[CellResult]:
+    """Every cell of the plan with its status, and its metrics and spectrum once done."""
+    results = []
+    for cell in plan.cells:
+        folder = plan.cell_dir(cell)
+        status = cell_status(folder)
+        done = status == DONE
+        results.append(CellResult(cell, status, read_json(folder / METRICS_FILE) if done else None,
+                                  read_json(folder / SPECTRUM_FILE) if done else None))
+    return results
+
+
+def _mean(values: list[float | None]) -> float | None:
+    """Mean, or None when there is nothing or any value is unavailable (never a zero)."""
+    return None if not values or any(v is None for v in values) else float(np.mean(values))
+
+
+def scene_values(results: list[CellResult], setting: str, method: str) -> dict[str, Metrics]:
+    """Per scene, the metrics of its finished cells in `setting` and `method`, averaged over seeds."""
+    by_scene: dict[str, list[Metrics]] = {}
+    for r in results:
+        if r.metrics is not None and r.cell.setting == setting and r.cell.method == method:
+            by_scene.setdefault(r.cell.scene.name, []).append(r.metrics["mean"])
+    return {scene: {m: _mean([v.get(m) for v in values]) for m in TABLE_METRICS} for scene, values in by_scene.items()}
+
+
+def _over_scenes(values: dict[str, Metrics], scenes: list[str]) -> Metrics | None:
+    """Mean over `scenes`; None (shown as –, not n/a) when no scene has finished."""
+    return {m: _mean([values[s][m] for s in scenes]) for m in TABLE_METRICS} if scenes else None
+
+
+def _difference(a: Metrics, b: Metrics) -> Metrics:
+    return {m: None if a[m] is None or b[m] is None else a[m] - b[m] for m in TABLE_METRICS}
+
+
+def paper_setup(plan: BenchPlan, setting: str) -> bool:
+    """Whether every cell of the setting is fitted the way the paper's numbers were."""
+    return all(getattr(c.config, k) == v for c in plan.cells if c.setting == setting for k, v in PAPER_SETUP.items())
+
+
+def paper_scene_mean(scenes: list[str], setting: str, method: str) -> Metrics | None:
+    """The paper's per-scene values averaged over `scenes`; None unless it lists all of them."""
+    table = paper_numbers()["per_scene"]
+    if not scenes or any(method not in table.get(s, {}).get(setting, {}) for s in scenes):
+        return None
+    return {m: float(np.mean([table[s][setting][method][m] for s in scenes])) for m in TABLE_METRICS}
+
+
+def fmt(value: float | None, metric: str, signed: bool = False) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return NA
+    return f"{value:{'+' if signed else ''}.{DECIMALS[metric]}f}"
+
+
+def _with_paper(ours: Metrics | None, paper: Metrics | None, metric: str, signed: bool = False) -> str:
+    if ours is None:
+        return MISSING
+    text = fmt(ours[metric], metric, signed)
+    return text if paper is None else f"{text} ({fmt(paper[metric], metric, signed)})"
+
+
+def _bold_best(table: Table, first_row: int, values: list[Metrics | None], first_column: int) -> None:
+    """Bold the best value of each metric among `values` (rows from `first_row`), ties included."""
+    for k, metric in enumerate(TABLE_METRICS):
+        available = [(i, v[metric]) for i, v in enumerate(values) if v is not None and v[metric] is not None]
+        if len(available) < 2:
+            continue
+        best = (max if HIGHER_IS_BETTER[metric] else min)(v for _, v in available)
+        table.bold |= {(first_row + i, first_column + k) for i, v in available if v == best}
+
+
+def _n(plan: BenchPlan, setting: str, method: str) -> int:
+    return next(c.config.primitive_count for c in plan.cells if c.setting == setting and c.method == method)
+
+
+def main_table(plan: BenchPlan, results: list[CellResult]) -> tuple[Table, list[dict[str, Any]]]:
+    """Table 1's layout: per setting and method N and the mean metrics over scenes; Δ of CVQPG over the
+    baseline over the scenes both finished. Also the same rows for `summary.csv`."""
+    table = Table("Mean over scenes (Table 1 layout); in parentheses: the paper, same scenes",
+                  ["Setting", "Method", "N", "scenes", *(HEADINGS[m] for m in TABLE_METRICS)])
+    rows: list[dict[str, Any]] = []
+    for setting in plan.settings:
+        comparable = paper_setup(plan, setting)
+        block = []
+        for method in plan.methods:
+            per_scene = scene_values(results, setting, method)
+            ours = _over_scenes(per_scene, list(per_scene))
+            paper = paper_scene_mean(list(per_scene), setting, method) if comparable else None
+            block.append(ours)
+            table.rows.append([setting_label(setting), METHODS[method].label, f"{_n(plan, setting, method):,}",
+                               f"{len(per_scene)}/{len(plan.scenes)}",
+                               *(_with_paper(ours, paper, m) for m in TABLE_METRICS)])
+            rows.append(_csv_row(setting, method, _n(plan, setting, method), len(per_scene), ours, paper))
+        _bold_best(table, len(table.rows) - len(block), block, 4)
+        if {"baseline", "cvqpg"} <= set(plan.methods):
+            delta, paper_delta, scenes = paired_delta(results, setting, "cvqpg", comparable)
+            table.rows.append([setting_label(setting), "Δ (CVQPG − Baseline)", "", f"{len(scenes)}/{len(plan.scenes)}",
+                               *(_with_paper(delta, paper_delta, m, signed=True) for m in TABLE_METRICS)])
+            rows.append(_csv_row(setting, "delta cvqpg-baseline", None, len(scenes), delta, paper_delta))
+    return table, rows
+
+
+def paired_delta(results: list[CellResult], setting: str, method: str, comparable: bool
+                 ) -> tuple[Metrics | None, Metrics | None, list[str]]:
+    """Mean over the scenes finished for both of (method − baseline), ours and the paper's, and those scenes."""
+    ours, base = scene_values(results, setting, method), scene_values(results, setting, "baseline")
+    scenes = sorted(set(ours) & set(base))
+    delta = _over_scenes({s: _difference(ours[s], base[s]) for s in scenes}, scenes)
+    paper_method, paper_base = (paper_scene_mean(scenes, setting, m) for m in (method, "baseline"))
+    paper = _difference(paper_method, paper_base) if comparable and paper_method and paper_base else None
+    return delta, paper, scenes
+
+
+def _csv_row(setting: str, method: str, n: int | None, scenes: int, ours: Metrics | None,
+             paper: Metrics | None) -> dict[str, Any]:
+    """A row of summary.csv: n/a for an unavailable metric; empty where no cell has finished or the paper has
+    no comparable value."""
+    row: dict[str, Any] = {"setting": setting, "method": method, "n": "" if n is None else n, "scenes": scenes}
+    row |= {m: "" if ours is None else NA if ours[m] is None else ours[m] for m in TABLE_METRICS}
+    row |= {f"paper_{m}": "" if paper is None else paper[m] for m in TABLE_METRICS}
+    return row
+
+
+def per_scene_table(plan: BenchPlan, results: list[CellResult]) -> Table:
+    """The supplementary table's layout: per scene and setting, each metric for every method in turn."""
+    order = " / ".join(METHODS[m].label for m in plan.methods)
+    table = Table(f"Per scene (each cell: {order})", ["Scene", "Setting", "", *(HEADINGS[m] for m in TABLE_METRICS)])
+    per_scene = paper_numbers()["per_scene"]
+    for scene in plan.scenes:
+        for setting in plan.settings:
+            ours = [scene_values(results, setting, m).get(scene.name) for m in plan.methods]
+            table.rows.append([scene.name, setting_label(setting), "ours", *_slashed(ours)])
+            paper = per_scene.get(scene.name, {}).get(setting)
+            if paper and paper_setup(plan, setting):
+                table.rows.append(["", "", "paper", *_slashed([paper.get(m) for m in plan.methods])])
+    if any(s.name == "star" for s in plan.scenes):
+        base, ours = (paper_numbers()["star"]["methods"][m]["psnr"] for m in ("baseline", "cvqpg"))
+        table.note = (f"Paper, Siemens star (single plane, grayscale, equal N): Baseline {base} dB, CVQPG {ours} dB, "
+                      f"Δ {ours - base:+.2f} dB.")
+    return table
+
+
+def _slashed(values: list[Metrics | None]) -> list[str]:
+    """Per metric, the methods' values joined by " / " (– for a method without a finished cell)."""
+    return [" / ".join(MISSING if v is None else fmt(v[metric], metric) for v in values) for metric in TABLE_METRICS]
+
+
+def ablation_tables(plan: BenchPlan, results: list[CellResult]) -> list[Table]:
+    """The ablation table per setting: Δ PSNR over the baseline (scenes both finished) and the metrics."""
+    variants = [m for m in ("baseline", "cvqpg", *ABLATION_VARIANTS) if m in plan.methods]
+    if not set(ABLATION_VARIANTS) & set(variants):
+        return []
+    ablation = paper_numbers()["ablation"]
+    tables = []
+    for setting in plan.settings:
+        comparable = paper_setup(plan, setting) and setting == ablation["setting"]
+        table = Table(f"Ablation, {setting_label(setting)}; in parentheses: the paper's five-scene means",
+                      ["Variant", "Δ PSNR", "scenes", *(HEADINGS[m] for m in TABLE_METRICS)])
+        block = []
+        for method in variants:
+            per_scene = scene_values(results, setting, method)
+            ours = _over_scenes(per_scene, list(per_scene))
+            paper = ablation["methods"].get(method) if comparable else None
+            delta_text = MISSING
+            if method != "baseline" and "baseline" in variants:
+                delta, _, _ = paired_delta(results, setting, method, False)
+                paper_delta = None if paper is None else {
+                    "psnr": paper["psnr"] - ablation["methods"]["baseline"]["psnr"]}
+                delta_text = _with_paper(delta, paper_delta, "psnr", signed=True)
+            block.append(ours)
+            table.rows.append([METHODS[method].label, delta_text, f"{len(per_scene)}/{len(plan.scenes)}",
+                               *(_with_paper(ours, paper, m) for m in TABLE_METRICS)])
+        _bold_best(table, 0, block, 3)
+        tables.append(table)
+    return tables
+
+
+def seed_tables(plan: BenchPlan, results: list[CellResult]) -> list[Table]:
+    """With several seeds: per setting and method the PSNR mean over scenes of each seed, and its spread."""
+    if len(plan.seeds) < 2:
+        return []
+    header = ["Setting", "Method", *(f"seed {seed}" for seed in plan.seeds), "sd"]
+    table = Table("Seed spread: PSNR mean over scenes per seed", header)
+    for setting in plan.settings:
+        per_seed = {seed: [r for r in results if r.cell.config.seed == seed] for seed in plan.seeds}
+        rows = {METHODS[m].label: [_over_scenes(v, list(v)) for v in
+                                   (scene_values(per_seed[seed], setting, m) for seed in plan.seeds)]
+                for m in plan.methods}
+        if {"baseline", "cvqpg"} <= set(plan.methods):
+            rows["Δ (CVQPG − Baseline)"] = [paired_delta(per_seed[seed], setting, "cvqpg", False)[0]
+                                            for seed in plan.seeds]
+        for label, values in rows.items():
+            psnr = [None if v is None else v["psnr"] for v in values]
+            known = [v for v in psnr if v is not None]
+            spread = float(np.std(known, ddof=1)) if len(known) > 1 else None
+            signed = label.startswith("Δ")
+            table.rows.append([setting_label(setting), label, *(MISSING if v is None else fmt(v, "psnr", signed)
+                                                                for v in psnr), fmt(spread, "psnr")])
+    return [table]
+
+
+def cells_table(plan: BenchPlan, results: list[CellResult]) -> tuple[Table, list[dict[str, Any]]]:
+    """Every cell: status, N, steps, updates, seconds and PSNR."""
+    table = Table("Cells", ["Cell", "Status", "N", "Steps", "Updates", "Seconds", "PSNR"])
+    rows = []
+    for r in results:
+        m = r.metrics or {}
+        row = {"cell": r.cell.name, "scene": r.cell.scene.name, "setting": r.cell.setting, "method": r.cell.method,
+               "seed": r.cell.config.seed, "status": r.status, "n": r.cell.config.primitive_count,
+               "steps": m.get("steps", r.cell.config.steps), "updates": m.get("updates", ""),
+               "seconds": "" if "seconds" not in m else round(m["seconds"], 1),
+               **{k: "" if not m else NA if m["mean"][k] is None else m["mean"][k] for k in TABLE_METRICS}}
+        rows.append(row)
+        table.rows.append([row["cell"], r.status, f"{row['n']:,}", str(row["steps"]), str(row["updates"]),
+                           str(row["seconds"]), fmt(m["mean"]["psnr"], "psnr") if m else MISSING])
+    return table, rows
+
+
+@dataclass
+class FrequencyCurve:
+    """Radially binned error spectra of one setting, baseline vs CVQPG over the (scene, seed) pairs both finished."""
+
+    setting: str
+    edges: np.ndarray
+    mse_baseline: np.ndarray
+    mse_cvqpg: np.ndarray
+    delta_pct: np.ndarray  # mean over pairs of (MSE_base − MSE_cvqpg) / MSE_base, %
+    pairs: int
+
+
+def _nanmean(stack: np.ndarray) -> np.ndarray:
+    """Mean over axis 0 ignoring NaN; NaN where a column has no value (no warning)."""
+    valid = ~np.isnan(stack)
+    counts = valid.sum(axis=0)
+    return np.where(counts > 0, np.where(valid, stack, 0.0).sum(axis=0) / np.maximum(counts, 1), np.nan)
+
+
+def frequency_curves(plan: BenchPlan, results: list[CellResult]) -> list[FrequencyCurve]:
+    """ΔMSE% per radial frequency bin and setting, from each cell's `spectrum.json`."""
+    curves = []
+    for setting in plan.settings:
+        spectra = {(r.cell.scene.name, r.cell.config.seed, r.cell.method): r.spectrum for r in results
+                   if r.spectrum is not None and r.cell.setting == setting}
+        pairs = sorted({key[:2] for key in spectra if key[2] == "baseline" and (*key[:2], "cvqpg") in spectra})
+        if not pairs:
+            continue
+        power = {method: np.array([[np.nan if p is None else p for p in spectra[(*pair, method)]["power"]]
+                                   for pair in pairs], dtype=float) for method in ("baseline", "cvqpg")}
+        base, ours = power["baseline"], power["cvqpg"]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            delta = np.where(base > 0, (base - ours) / base * 100, np.nan)
+        curves.append(FrequencyCurve(setting, np.array(spectra[(*pairs[0], "baseline")]["edges"]), _nanmean(base),
+                                     _nanmean(ours), _nanmean(delta), len(pairs)))
+    return curves
+
+
+def frequency_rows(curves: list[FrequencyCurve]) -> list[dict[str, Any]]:
+    """`frequency.csv`: one row per setting and bin; the last bin holds the corners beyond Nyquist.
+    A bin that no frequency of the image size falls into is left empty."""
+    rows = []
+    for c in curves:
+        for b in range(len(c.delta_pct)):
+            rows.append({"setting": c.setting, "bin": b, "rho_low": c.edges[b], "rho_high": c.edges[b + 1],
+                         "band": "in band" if c.edges[b + 1] <= 1.0 else "beyond Nyquist (corners)",
+                         **{k: "" if math.isnan(v) else v for k, v in (
+                             ("mse_baseline", c.mse_baseline[b]), ("mse_cvqpg", c.mse_cvqpg[b]),
+                             ("delta_mse_pct", c.delta_pct[b]))}, "pairs": c.pairs})
+    return rows
+
+
+def frequency_lines(curves: list[FrequencyCurve]) -> list[str]:
+    """One line per setting: the peak ΔMSE and its band, next to the paper's peak."""
+    if not curves:
+        return ["No setting has both a finished baseline and CVQPG cell yet."]
+    peaks = paper_numbers()["frequency_peak_delta_mse_pct"]
+    lines = []
+    for c in curves:
+        band = c.delta_pct[:-1]
+        if np.all(np.isnan(band)):
+            continue
+        peak = int(np.nanargmax(band))
+        lines.append(f"{setting_label(c.setting)}: peak ΔMSE {band[peak]:+.1f}% at ρ = {c.edges[peak]:.2f}–"
+                     f"{c.edges[peak + 1]:.2f} ({c.pairs} scene/seed pairs; paper, ten scenes: peak about "
+                     f"{peaks[c.setting.split('-')[0]]}%)")
+    return lines
+
+
+def _csv(rows: list[dict[str, Any]]) -> str:
+    if not rows:
+        return ""
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    return buffer.getvalue()
+
+
+def draw_figures(plan: BenchPlan, results: list[CellResult], curves: list[FrequencyCurve]) -> list[Path]:
+    """Frequency plot, QPF figure and one comparison per scene and setting (first seed); relative paths."""
+    folder = plan.folder / "figures"
+    folder.mkdir(parents=True, exist_ok=True)
+    figures.frequency_figure({setting_label(c.setting): ((c.edges[:-2] + c.edges[1:-1]) / 2, c.delta_pct[:-1])
+                              for c in curves}, plan.folder / "frequency.png")
+    figures.qpf_figure(folder / "qpf.png")
+    done = {(r.cell.scene.name, r.cell.setting, r.cell.method, r.cell.config.seed): r for r in results
+            if r.status == DONE}
+    drawn = [Path("frequency.png"), Path("figures/qpf.png")]
+    compared = [m for m in ("baseline", "cvqpg") if m in plan.methods]
+    for scene in plan.scenes:
+        for setting in plan.settings:
+            runs = {METHODS[m].label: done[key] for m in compared
+                    if (key := (scene.name, setting, m, plan.seeds[0])) in done}
+            if len(runs) < 2:
+                continue
+            config = next(iter(runs.values())).cell.config
+            name = Path("figures") / f"compare_{scene.name}_{setting}.png"
+            figures.comparison_figure({label: plan.cell_dir(r.cell) for label, r in runs.items()},
+                                      config.plane_distances, f"{scene.name}, {setting_label(setting)}, "
+                                      f"N = {config.primitive_count:,}, {config.steps} steps", plan.folder / name)
+            drawn.append(name)
+    return drawn
+
+
+def overview_lines(plan: BenchPlan, results: list[CellResult]) -> list[str]:
+    """What the bench folder holds and how it was fitted."""
+    counts: dict[str, int] = {}
+    for r in results:
+        counts[r.status] = counts.get(r.status, 0) + 1
+    config = plan.cells[0].config
+    return [f"cells: {counts.get(DONE, 0)} of {len(results)} done"
+            + "".join(f", {n} {status}" for status, n in sorted(counts.items()) if status != DONE),
+            f"scenes: {', '.join(s.name for s in plan.scenes)}; seeds: {', '.join(map(str, plan.seeds))}",
+            (f"fits: {config.width}×{config.height} px, {config.steps} steps (warm-up {config.warmup}), "
+             f"device {config.device}"),
+            ("metrics that this machine cannot compute read n/a; cells not finished are left out of the means "
+             "(see the scenes column and the cell list)")]
+
+
+def summary_markdown(plan: BenchPlan, overview: list[str], tables: list[Table], frequency: list[str],
+                     images: list[Path]) -> str:
+    """summary.md: overview, the tables, the frequency analysis and links to the figures."""
+    parts = [f"# Bench `{plan.preset}`\n", *(f"- {line}" for line in overview), ""]
+    parts += [t.markdown() for t in tables[:-1]]
+    parts += ["### Frequency analysis (ΔMSE of CVQPG over the baseline)\n", *(f"- {line}" for line in frequency),
+              "", "### Figures\n", *(f"- [{p.stem}]({p.as_posix()})" for p in images), "", tables[-1].markdown()]
+    return "\n".join(parts)
+
+
+REPORT_STYLE = ("body{font-family:sans-serif;max-width:1200px;margin:auto;padding:1em}"
+                "table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #bbb;padding:2px 6px;"
+                "font-size:13px;text-align:right}td:first-child,th:first-child{text-align:left}"
+                "img{max-width:100%}.note{color:#555;font-size:13px}")
+
+
+def _paragraphs(lines: list[str]) -> str:
+    return "".join(f"<p>{html.escape(line)}</p>" for line in lines)
+
+
+def report_html(plan: BenchPlan, overview: list[str], tables: list[Table], frequency: list[str],
+                images: list[Path]) -> str:
+    """One HTML file; the images are referenced by paths relative to the bench folder."""
+    title = f"cvqpg bench {html.escape(plan.preset)}"
+    pictures = "".join(f"<figure><img src='{html.escape(p.as_posix())}' alt='{html.escape(p.stem)}'>"
+                       f"<figcaption>{html.escape(p.stem)}</figcaption></figure>" for p in images)
+    return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{title}</title><style>{REPORT_STYLE}"
+            f"</style></head><body><h1>{title}</h1>{_paragraphs(overview)}{''.join(t.html() for t in tables[:-1])}"
+            f"<h3>Frequency analysis</h3>{_paragraphs(frequency)}<h3>Figures</h3>{pictures}{tables[-1].html()}"
+            "</body></html>\n")
+
+
+def write_summary(plan: BenchPlan) -> Path:
+    """(Re)write summary.md, summary.csv, cells.csv, frequency.csv/png, figures/ and report.html; returns
+    the path of summary.md. Cells that are not finished are marked and left out of the means."""
+    plan.folder.mkdir(parents=True, exist_ok=True)
+    results = collect(plan)
+    main, main_rows = main_table(plan, results)
+    cells, cell_rows = cells_table(plan, results)
+    curves = frequency_curves(plan, results)
+    tables = [main, per_scene_table(plan, results), *ablation_tables(plan, results), *seed_tables(plan, results),
+              cells]
+    overview, frequency = overview_lines(plan, results), frequency_lines(curves)
+    images = draw_figures(plan, results, curves)
+    write_atomic(plan.folder / "summary.csv", _csv(main_rows))
+    write_atomic(plan.folder / "cells.csv", _csv(cell_rows))
+    write_atomic(plan.folder / "frequency.csv", _csv(frequency_rows(curves)))
+    write_atomic(plan.folder / "report.html", report_html(plan, overview, tables, frequency, images))
+    write_atomic(plan.folder / "summary.md", summary_markdown(plan, overview, tables, frequency, images))
+    return plan.folder / "summary.md"

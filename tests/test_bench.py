@@ -1,0 +1,239 @@
+"""`cvqpg bench`: the quick preset end to end, resumable and shardable cells, tables against the
+paper, and the radial error spectrum of the frequency analysis."""
+
+import csv
+import json
+import math
+import re
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from cvqpg.bench import (DONE, INTERRUPTED, BenchError, Overrides, cell_status, make_plan, parse_shard, run_cell,
+                         run_plan)
+from cvqpg.cli import main
+from cvqpg.metrics import radial_error_spectrum
+from cvqpg.report import CellResult, main_table, paper_numbers, seed_tables
+from cvqpg.runs import start_run
+from cvqpg.storage import load_checkpoint
+
+TINY_STAR = {"size": (48, 36), "steps": 3, "methods": ["baseline"]}
+
+
+@pytest.fixture(scope="module")
+def quick_bench(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench") / "quick"
+    assert main(["bench", "--preset", "quick", "--out", str(out), "--quiet"]) == 0
+    return out
+
+
+@pytest.fixture
+def scenes_dir(tmp_path):
+    """Three scene folders as ../shared/scenes holds them, with tiny images (never fitted here)."""
+    root = tmp_path / "scenes"
+    for name in ("sushi", "tiger", "zebra"):
+        (root / name).mkdir(parents=True)
+        Image.new("RGB", (8, 6), (90, 120, 200)).save(root / name / "image.png")
+        Image.fromarray(np.tile(np.linspace(0, 255, 8, dtype=np.uint8), (6, 1))).save(root / name / "depth.png")
+    return root
+
+
+def test_quick_preset_writes_tables_figures_and_report(quick_bench):
+    plan = make_plan("quick", quick_bench)
+    assert len(plan.cells) == 4 and {c.method for c in plan.cells} == {"baseline", "cvqpg"}
+    for cell in plan.cells:
+        assert cell_status(plan.cell_dir(cell)) == DONE
+        spectrum = json.loads((plan.cell_dir(cell) / "spectrum.json").read_text())
+        assert len(spectrum["power"]) == spectrum["bins"] + 1 and spectrum["mse"] > 0
+    summary = (quick_bench / "summary.md").read_text()
+    assert "cells: 4 of 4 done" in summary and "| Grayscale 10% | Δ (CVQPG − Baseline) |  | 2/2 |" in summary
+    with open(quick_bench / "summary.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    assert [r["method"] for r in rows] == ["baseline", "cvqpg", "delta cvqpg-baseline"]
+    assert all(float(r["psnr"]) > 5 for r in rows[:2])
+    metrics = json.loads((plan.cell_dir(plan.cells[0]) / "metrics.json").read_text())
+    for name in ("lpips", "cvvdp"):
+        if metrics["mean"][name] is None:
+            assert {r[name] for r in rows} == {"n/a"}
+    with open(quick_bench / "cells.csv") as handle:
+        cells = list(csv.DictReader(handle))
+    assert {(c["status"], c["steps"], c["updates"]) for c in cells} == {("done", "60", "61")}
+    assert all(float(c["seconds"]) > 0 for c in cells)
+    with open(quick_bench / "frequency.csv") as handle:
+        bands = list(csv.DictReader(handle))
+    assert len(bands) == 33 and {b["pairs"] for b in bands} == {"2"} and bands[-1]["band"].startswith("beyond")
+    report = (quick_bench / "report.html").read_text()
+    images = re.findall(r"src='([^']+)'", report)
+    assert {"frequency.png", "figures/qpf.png", "figures/compare_demo_gray-10.png"} <= set(images)
+    assert all((quick_bench / image).is_file() for image in images) and report.count("<table>") >= 3
+
+
+def test_rerun_skips_finished_cells_and_summary_only_fits_nothing(quick_bench, capsys):
+    stamps = {p: p.stat().st_mtime_ns for p in quick_bench.glob("cells/*/metrics.json")}
+    assert len(stamps) == 4
+    assert main(["bench", "--preset", "quick", "--out", str(quick_bench), "--quiet"]) == 0
+    assert "0 done, 4 skipped" in capsys.readouterr().out
+    (quick_bench / "summary.md").unlink()
+    assert main(["bench", "--preset", "quick", "--out", str(quick_bench), "--summary-only"]) == 0
+    assert (quick_bench / "summary.md").is_file()
+    assert {p: p.stat().st_mtime_ns for p in quick_bench.glob("cells/*/metrics.json")} == stamps
+
+
+def test_finished_cells_with_other_settings_are_refused(quick_bench, capsys):
+    assert main(["bench", "--preset", "quick", "--out", str(quick_bench), "--steps", "5", "--quiet"]) == 2
+    error = capsys.readouterr().err
+    assert "fitted with other settings" in error and "steps=60" in error and error.count("\n") == 1
+
+
+def test_shards_partition_the_grid(scenes_dir, tmp_path):
+    plan = make_plan("paper", tmp_path / "bench", Overrides(scenes_dir=scenes_dir))
+    names = [c.name for c in plan.cells]
+    assert len(names) == len(set(names)) == 3 * 2 * 2 * 3
+    for count in (1, 2, 5, 7, 40):
+        shards = [[c.name for c in plan.shard(index, count)] for index in range(1, count + 1)]
+        assert sorted(n for shard in shards for n in shard) == sorted(names)
+        assert sum(len(shard) for shard in shards) == len(names)
+    assert parse_shard("2/4") == (2, 4)
+    for bad in ("3/2", "0/4", "1/0", "a/b", "1", "1/2/3"):
+        with pytest.raises(BenchError):
+            parse_shard(bad)
+
+
+def test_methods_map_to_the_papers_configurations(scenes_dir, tmp_path):
+    plan = make_plan("paper", tmp_path / "bench", Overrides(scenes_dir=scenes_dir))
+    counts = {(c.setting, c.method): c.config.primitive_count for c in plan.cells}
+    for setting, methods in paper_numbers()["table1"].items():
+        for method, values in methods.items():
+            assert counts[(setting, method)] == values["n"], (setting, method)
+    ablation_plan = make_plan("ablation", tmp_path / "a", Overrides(scenes_dir=scenes_dir))
+    ablation = {c.method: c.config for c in ablation_plan.cells}
+    assert (ablation["baseline"].primitive, ablation["cvqpg"].bound, ablation["cvqpg"].qpf) == ("flat", "adaptive",
+                                                                                                 "mahalanobis")
+    assert (ablation["no-bound"].bound, ablation["no-bound"].qpf) == ("global", "mahalanobis")
+    assert (ablation["no-mahalanobis"].bound, ablation["no-mahalanobis"].qpf) == ("adaptive", "standard")
+    assert (ablation["vanilla"].bound, ablation["vanilla"].qpf, ablation["vanilla"].primitive) == (
+        "global", "standard", "cvqpg")
+    star = make_plan("star").cells
+    assert {(c.config.num_planes, c.config.color, c.config.primitive_count) for c in star} == {(1, "gray", 7680)}
+    assert make_plan("quick", overrides=Overrides(steps=50)).cells[0].config.warmup == 10
+
+
+def test_partial_files_do_not_mark_a_cell_done_and_it_restarts(tmp_path):
+    plan = make_plan("star", tmp_path / "bench", Overrides(**TINY_STAR))
+    cell = plan.cells[0]
+    folder = start_run(plan.cell_dir(cell), cell.config, cell.scene.source)
+    (folder / "metrics.json.partial").write_text('{"mean": ')
+    (folder / "metrics.json.4242.partial").write_text("{}")
+    (folder / "checkpoint.pt").write_bytes(b"cut short")
+    assert cell_status(folder) == INTERRUPTED
+    outcome = run_plan(plan, progress=False)
+    assert outcome.statuses == {cell.name: DONE} and cell_status(folder) == DONE
+    assert json.loads((folder / "metrics.json").read_text())["updates"] == 4
+
+
+def test_interrupted_cell_resumes_from_its_checkpoint_to_the_same_result(tmp_path):
+    overrides = Overrides(size=(48, 36), steps=8, warmup=2, methods=["cvqpg"])
+    plan, reference = (make_plan("star", tmp_path / name, overrides) for name in ("bench", "reference"))
+    cell = plan.cells[0]
+    folder = plan.cell_dir(cell)
+    checks = iter(range(100))
+    assert run_cell(cell, folder, lambda: next(checks) > 5) == INTERRUPTED
+    assert cell_status(folder) == INTERRUPTED and not (folder / "metrics.json").exists()
+    assert load_checkpoint(folder / "checkpoint.pt")["step"] == 5
+    assert run_plan(plan, progress=False).statuses == {cell.name: DONE}
+    assert run_plan(reference, progress=False).statuses == {cell.name: DONE}
+    resumed, fresh = (json.loads((p.cell_dir(cell) / "metrics.json").read_text()) for p in (plan, reference))
+    assert resumed["mean"] == fresh["mean"] and resumed["updates"] == 9
+
+
+def test_jobs_run_cells_in_worker_processes(tmp_path):
+    plan = make_plan("quick", tmp_path / "bench", Overrides(size=(48, 36), steps=2))
+    outcome = run_plan(plan, jobs=2, progress=False)
+    assert outcome.count(DONE) == 4 and not outcome.failures
+    assert all((plan.cell_dir(c) / "spectrum.json").is_file() for c in plan.cells)
+
+
+def test_table_puts_the_papers_same_scene_means_beside_ours_and_na_for_unavailable(scenes_dir, tmp_path):
+    plan = make_plan("paper", tmp_path / "bench", Overrides(scenes_dir=scenes_dir, scene_names=["sushi", "tiger"],
+                                                            colors=["gray"], ratios=[0.1],
+                                                            methods=["baseline", "cvqpg"]))
+    results = [CellResult(c, DONE, {"mean": {"psnr": 28.0 + 0.5 * (c.method == "cvqpg"), "ssim": 0.8,
+                                             "lpips": None, "flip": 0.08, "cvvdp": None}}, None) for c in plan.cells]
+    table, rows = main_table(plan, results)
+    baseline, _, delta = table.rows
+    paper = paper_numbers()["per_scene"]
+    means = {m: np.mean([paper[s]["gray-10"][m]["psnr"] for s in ("sushi", "tiger")]) for m in ("baseline", "cvqpg")}
+    assert baseline[4] == f"28.000 ({means['baseline']:.3f})" and baseline[3] == "2/2"
+    assert delta[4] == f"+0.500 ({means['cvqpg'] - means['baseline']:+.3f})"
+    assert baseline[6].startswith("n/a") and baseline[8].startswith("n/a")
+    assert rows[0]["lpips"] == "n/a" and rows[0]["psnr"] == 28.0
+    assert (1, 4) in table.bold and (0, 4) not in table.bold and (0, 5) in table.bold and (1, 5) in table.bold
+    missing, _ = main_table(plan, [])
+    assert missing.rows[0][4:] == ["–"] * 5
+
+
+def test_seed_spread_table_pairs_methods_within_each_seed(tmp_path):
+    plan = make_plan("quick", tmp_path / "bench", Overrides(seeds=[1, 2]))
+    psnr = {("baseline", 1): 20.0, ("cvqpg", 1): 20.5, ("baseline", 2): 21.0, ("cvqpg", 2): 21.1}
+    results = [CellResult(c, DONE, {"mean": {"psnr": psnr[(c.method, c.config.seed)], "ssim": 0.5, "lpips": None,
+                                             "flip": 0.2, "cvvdp": None}}, None) for c in plan.cells]
+    (table,) = seed_tables(plan, results)
+    assert table.rows[0][2:] == ["20.000", "21.000", f"{math.sqrt(0.5):.3f}"]
+    assert table.rows[2][1:] == ["Δ (CVQPG − Baseline)", "+0.500", "+0.100", f"{math.sqrt(0.08):.3f}"]
+    assert seed_tables(make_plan("quick", tmp_path / "one"), results) == []
+
+
+def test_paper_numbers_per_scene_means_reproduce_table_1():
+    paper = paper_numbers()
+    assert {"sushi", "flower", "dragon", "tiger", "windmill", "bento"} <= set(paper["per_scene"])
+    assert len(paper["per_scene"]) == 10
+    for setting, methods in paper["table1"].items():
+        for method, values in methods.items():
+            for metric in ("psnr", "ssim", "lpips", "flip", "cvvdp"):
+                mean = np.mean([scene[setting][method][metric] for scene in paper["per_scene"].values()])
+                assert mean == pytest.approx(values[metric], abs=5e-4), (setting, method, metric)
+
+
+def test_radial_spectrum_sums_to_the_pixel_mse():
+    generator = torch.Generator().manual_seed(0)
+    recon, target = (torch.rand(2, 3, 36, 50, generator=generator) for _ in range(2))
+    edges, power, counts = radial_error_spectrum(recon, target, bins=16)
+    assert len(edges) == 18 and edges[16] == 1.0 and edges[17] == pytest.approx(math.sqrt(2))
+    assert counts.sum() == 36 * 50 and counts[-1] > 0
+    mse = ((recon.double() - target.double()) ** 2).mean().item()
+    assert np.nansum(power * counts) / counts.sum() == pytest.approx(mse, rel=1e-12)
+
+
+@pytest.mark.parametrize("cycles, expected_bin", [(29, 9), (48, 15), (0, 0)])
+def test_sinusoidal_error_lands_in_its_frequency_bin(cycles, expected_bin):
+    height, width, bins = 64, 96, 16
+    x = torch.arange(width, dtype=torch.float64)
+    error = (0.1 * torch.cos(2 * math.pi * cycles * x / width)).expand(1, height, width)
+    edges, power, counts = radial_error_spectrum(error, torch.zeros_like(error), bins)
+    energy = np.nan_to_num(power * counts)
+    assert int(np.argmax(energy)) == expected_bin and energy[expected_bin] / energy.sum() > 0.999
+    assert edges[expected_bin] <= 2 * cycles / width <= edges[expected_bin + 1]
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["--preset", "paper"], "needs --scenes DIR"),
+    (["--shard", "3/2"], "--shard 3/2"),
+    (["--preset", "nonsense"], "unknown preset"),
+    (["--methods", "magic"], "--methods magic"),
+    (["--scenes", "no-such-folder"], "no such folder"),
+    (["--jobs", "0"], "--jobs 0"),
+])
+def test_bad_bench_input_is_one_line_and_exit_code_2(arguments, message, capsys, tmp_path):
+    assert main(["bench", *arguments, "--out", str(tmp_path / "bench"), "--quiet"]) == 2
+    error = capsys.readouterr().err
+    assert message in error and "Traceback" not in error and error.count("\n") == 1
+    assert not (tmp_path / "bench").exists()
+
+
+def test_scene_folder_without_depth_is_refused(scenes_dir, capsys, tmp_path):
+    (scenes_dir / "tiger" / "depth.png").unlink()
+    assert main(["bench", "--preset", "paper", "--scenes", str(scenes_dir), "--dry-run"]) == 2
+    error = capsys.readouterr().err
+    assert "scene tiger" in error and "depth.png is missing" in error and error.count("\n") == 1
