@@ -39,13 +39,15 @@ def model_metadata(primitives: Primitives, config: FitConfig, dtype: str) -> dic
 def save_model(path: str | Path, primitives: Primitives, config: FitConfig, dtype: str = "float32") -> None:
     """Write the activated primitives (physical units, see `UNITS`) and the optics, atomically.
 
-    `dtype="float16"` halves the file; rendering casts back to float32.
+    `dtype="float16"` stores everything but the positions in float16 and about halves the file;
+    positions stay float32 because float16's spacing grows to 2 px above 2048 px. Rendering casts
+    back to float32.
     """
     if dtype not in STORED_DTYPES:
         raise ModelFileError(f"cannot store a model as {dtype!r}; choose one of {', '.join(STORED_DTYPES)}")
     path = Path(path)
-    tensors = {name: t.detach().to("cpu", STORED_DTYPES[dtype]).contiguous()
-               for name, t in primitives.tensors().items()}
+    tensors = {name: t.detach().to("cpu", torch.float32 if name == "position_px" else STORED_DTYPES[dtype])
+               .contiguous() for name, t in primitives.tensors().items()}
     partial = path.with_name(path.name + ".partial")
     save_file(tensors, str(partial), metadata=model_metadata(primitives, config, dtype))
     partial.replace(path)

@@ -110,7 +110,10 @@ def test_float16_model_round_trips_within_half_precision(tmp_path):
     for name, tensor in primitives.tensors().items():
         got = loaded.tensors()[name]
         assert got.dtype == torch.float32
-        assert torch.all((got - tensor).abs() <= tensor.abs() * 2**-11 + 1e-7), name
+        if name == "position_px":
+            assert torch.equal(got, tensor)  # kept in float32: float16 spacing is 2 px above 2048 px
+        else:
+            assert torch.all((got - tensor).abs() <= tensor.abs() * 2**-11 + 1e-7), name
     full = tmp_path / "full.safetensors"
     save_model(full, primitives, config)
     assert (tmp_path / "half.safetensors").stat().st_size < full.stat().st_size
