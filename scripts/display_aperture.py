@@ -39,8 +39,8 @@ def main() -> None:
     print(f"{'complex field, as fitted':28s} {both(fitted)}")
     for aperture in args.apertures:
         display = Display(canvas, aperture)
-        print(f"aperture {aperture:4.2f}  DPAC 8-bit       {both(simulate_display(pattern.displayed_field, display, config))}")
-        print(f"aperture {aperture:4.2f}  complex field    {both(simulate_display(slm_field(hologram), display, config))}")
+        for label, field in (("DPAC 8-bit", pattern.displayed_field), ("complex field", slm_field(hologram))):
+            print(f"aperture {aperture:4.2f}  {label:16s} {both(simulate_display(field, display, config))}")
 
 
 if __name__ == "__main__":

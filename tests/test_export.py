@@ -11,7 +11,7 @@ from PIL import Image
 from cvqpg import FitConfig, load_model, save_model
 from cvqpg.cli import main
 from cvqpg.config import ConfigError
-from cvqpg.export import (Display, checkerboard, double_phase, encode, place_on_canvas, quantise, dequantise,
+from cvqpg.export import (Display, checkerboard, dequantise, double_phase, encode, place_on_canvas, quantise,
                           simulate_display)
 from cvqpg.fitting import render
 from cvqpg.primitives import Primitives
@@ -89,9 +89,11 @@ def test_aperture_filtered_dpac_reconstructs_like_the_field_itself():
     field = smooth_field(config.height, config.width)
     canvas = (config.height, config.width)
     own = simulate_display(field, Display(canvas, aperture=None), config)
-    shown = {encoding: simulate_display(torch.polar(torch.ones(1, 48, 64), dequantise(quantise(encode(field, encoding)))),
-                                        Display(canvas), config)
-             for encoding in ("dpac", "phase")}
+    def displayed(encoding: str) -> torch.Tensor:
+        pattern = dequantise(quantise(encode(field, encoding)))
+        return simulate_display(torch.polar(torch.ones_like(pattern), pattern), Display(canvas), config)
+
+    shown = {encoding: displayed(encoding) for encoding in ("dpac", "phase")}
     for plane in range(config.num_planes):
         assert correlation(shown["dpac"][plane], own[plane]) > 0.95
         assert correlation(shown["phase"][plane], own[plane]) < correlation(shown["dpac"][plane], own[plane])
