@@ -28,10 +28,8 @@ import torch
 from tqdm.auto import tqdm
 
 from .config import FitConfig
-from .fitting import (CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes, fit_scene, render_hologram,
-                      state_from_payload)
+from .fitting import CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes, fit_scene, state_from_payload
 from .metrics import radial_error_spectrum
-from .optics import reconstruct
 from .runs import (CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, read_run, scene_from_source, start_run, write_json,
                    write_run)
 from .scenes import SCENES
@@ -369,8 +367,7 @@ def run_cell(cell: Cell, folder: Path, stop_requested: Callable[[], bool] | None
         result = fit_scene(scene, config, progress=False, state=state, checkpoint=policy, stop_requested=stop_requested)
     except FitInterrupted:
         return INTERRUPTED
-    with torch.no_grad():
-        recon = reconstruct(render_hologram(result.gaussians, config), config)
+    recon = result.reconstructions
     write_json(folder / SPECTRUM_FILE, spectrum_record(recon, scene.targets.to(recon.device)))
     write_run(folder, result, scene, cell.scene.source)
     return DONE
@@ -477,10 +474,3 @@ def _run_pool(plan: BenchPlan, todo: list[Cell], jobs: int, stop: Callable[[], b
 def read_json(path: Path) -> dict[str, Any] | None:
     """A JSON file's content, or None where there is none."""
     return json.loads(path.read_text()) if path.is_file() else None
-
-
-def write_atomic(path: Path, data: bytes | str) -> None:
-    """Write a file so that no reader sees it half-written, even when shards of a job array write it at once."""
-    partial = path.with_name(f"{path.name}.{os.getpid()}.partial")
-    partial.write_bytes(data.encode() if isinstance(data, str) else data)
-    os.replace(partial, path)

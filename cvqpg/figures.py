@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from .bench import write_atomic
+from .runs import write_atomic
 from .config import FitConfig
 from .fitting import render_hologram
 from .primitives import Gaussians

@@ -32,6 +32,8 @@ class FitResult:
     gaussians: Gaussians
     config: FitConfig
     metrics: MetricReport
+    hologram: Tensor  # [C, H, W] complex, of the fitted model
+    reconstructions: Tensor  # [M, C, H, W] clamped intensities the metrics were taken on
     history: dict[str, list[float]] = field(default_factory=dict)
     seconds: float = 0.0
     skipped_steps: int = 0
@@ -258,6 +260,6 @@ def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = Tr
             checkpoint.save(state)
             last_save = time.perf_counter()
     fitted = state.gaussians.detached()
-    _, recon = render(activate(fitted, config), config)
-    return FitResult(fitted, config, evaluate(recon, scene.targets), state.history, state.seconds,
+    hologram, recon = render(activate(fitted, config), config)
+    return FitResult(fitted, config, evaluate(recon, scene.targets), hologram, recon, state.history, state.seconds,
                      state.skipped_steps, state.sanitised_steps)

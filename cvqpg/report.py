@@ -23,7 +23,8 @@ import numpy as np
 
 from . import figures
 from .bench import (DONE, METHODS, METRICS_FILE, SPECTRUM_FILE, BenchPlan, Cell, cell_status, read_json,
-                    setting_label, write_atomic)
+                    setting_label)
+from .runs import write_atomic
 
 TABLE_METRICS = ("psnr", "ssim", "lpips", "flip", "cvvdp")
 HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "lpips": False, "flip": False, "cvvdp": True}

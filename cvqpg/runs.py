@@ -33,11 +33,17 @@ CHECKPOINT_FILE = "checkpoint.pt"
 PLANE_IMAGES = ("target_plane*.png", "recon_plane*.png")
 
 
-def write_json(path: Path, data: Any) -> None:
-    """Write JSON atomically: a reader never sees a half-written file."""
-    partial = path.with_name(path.name + ".partial")
-    partial.write_text(json.dumps(data, indent=2) + "\n")
+def write_atomic(path: Path, data: bytes | str) -> None:
+    """Write a file so that no reader sees it half-written, even when several processes (the shards
+    of a job array) write it at once."""
+    partial = path.with_name(f"{path.name}.{os.getpid()}.partial")
+    partial.write_bytes(data.encode() if isinstance(data, str) else data)
     os.replace(partial, path)
+
+
+def write_json(path: Path, data: Any) -> None:
+    """Write JSON atomically (see `write_atomic`)."""
+    write_atomic(path, json.dumps(data, indent=2) + "\n")
 
 
 def to_8bit(image: Tensor) -> Image.Image:
@@ -112,13 +118,11 @@ def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[
     """Save config, metrics, model, per-plane targets and reconstructions, hologram and curve."""
     folder = start_run(folder, result.config, source)
     config = result.config
-    primitives = result.primitives
-    save_model(folder / MODEL_FILE, primitives, config)
-    hologram, recon = render(primitives, config)
-    for plane, (target, image) in enumerate(zip(scene.targets, recon)):
+    save_model(folder / MODEL_FILE, result.primitives, config)
+    for plane, (target, image) in enumerate(zip(scene.targets, result.reconstructions)):
         to_8bit(target).save(folder / f"target_plane{plane}.png")
         to_8bit(image).save(folder / f"recon_plane{plane}.png")
-    save_hologram_images(hologram, folder)
+    save_hologram_images(result.hologram, folder)
     save_curve(result.history, folder / "curve.png")
     history = result.history["psnr"]
     write_json(folder / METRICS_FILE, metrics_record(
