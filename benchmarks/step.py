@@ -79,7 +79,8 @@ def stage_times(config: FitConfig, repeats: int) -> dict[str, float]:
     def loss():
         noise = torch.randn(scene.targets.shape, generator=generator)
         value, _ = multiplane_loss(recon, scene.targets, scene.masks,
-                                   noisy_targets(scene.targets, noise, config.target_noise), config.ssim_weight)
+                                   noisy_targets(scene.targets, noise, config.target_noise), config.ssim_weight,
+                                   config.backend)
         value.backward()
 
     render_hologram(gaussians, config).backward(hologram_grad)

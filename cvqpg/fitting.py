@@ -147,7 +147,7 @@ def optimisation_step(state: FitState, scene: Scene, config: FitConfig) -> tuple
     noise = torch.randn(scene.targets.shape, generator=state.generator, device=scene.targets.device)
     loss, mse = multiplane_loss(recon, scene.targets, scene.masks,
                                 noisy_targets(scene.targets, noise, config.target_noise),
-                                config.ssim_weight)
+                                config.ssim_weight, config.backend)
     state.optimizer.zero_grad(set_to_none=True)
     if not torch.isfinite(loss):
         state.skipped_steps += 1

@@ -7,8 +7,10 @@ import math
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 from pytorch_msssim import ssim as msssim_ssim
 
+from cvqpg.blur import gaussian_blur_valid, gaussian_taps
 from cvqpg.config import FitConfig
 from cvqpg.losses import multiplane_loss, noisy_targets, ssim_per_plane
 from cvqpg.targets import build_scene, defocus_targets, gaussian_kernel, plane_masks
@@ -246,3 +248,54 @@ def test_multiplane_loss_gradient_flows_to_reconstruction():
     loss, _ = multiplane_loss(recon, targets, masks, noisy_targets(targets, normal, 1e-3))
     loss.backward()
     assert torch.isfinite(recon.grad).all() and recon.grad.abs().sum() > 0
+
+
+# --------------------------------------------------------------------------- fast SSIM (CPU kernels)
+
+
+def test_blur_kernel_matches_separable_convolution_and_its_adjoint():
+    generator = torch.Generator().manual_seed(11)
+    images = torch.rand(3, 17, 23, dtype=torch.float64, generator=generator)
+    taps = torch.from_numpy(gaussian_taps(11, 1.5))
+    expected = F.conv2d(F.conv2d(images[:, None], taps.view(1, 1, 1, 11)), taps.view(1, 1, 11, 1))[:, 0]
+    blurred = gaussian_blur_valid(images, 11, 1.5)
+    assert blurred.shape == (3, 7, 13)
+    np.testing.assert_allclose(blurred.numpy(), expected.numpy(), rtol=0, atol=1e-14)
+    grad = torch.rand(blurred.shape, dtype=torch.float64, generator=generator)
+    leaf = images.clone().requires_grad_(True)
+    (adjoint,) = torch.autograd.grad(gaussian_blur_valid(leaf, 11, 1.5), leaf, grad)
+    assert float((blurred * grad).sum()) == pytest.approx(float((images * adjoint).sum()), rel=1e-13)
+
+
+def test_fast_ssim_matches_pytorch_msssim_in_value_and_gradient():
+    generator = torch.Generator().manual_seed(12)
+    targets = torch.rand(2, 3, 40, 56, generator=generator)
+    recon = (targets + 0.2 * torch.randn(targets.shape, generator=generator)).clamp(0, 1)
+    grads = {}
+    for backend in ("numba", "torch"):
+        leaf = recon.clone().requires_grad_(True)
+        value = ssim_per_plane(leaf, targets, backend)
+        (grads[backend],) = torch.autograd.grad(value.sum(), leaf)
+        grads[backend + " value"] = value.detach()
+    np.testing.assert_allclose(grads["numba value"].numpy(), grads["torch value"].numpy(), rtol=1e-5)
+    scale = float(grads["torch"].abs().max())
+    assert float((grads["numba"] - grads["torch"]).abs().max()) <= 1e-4 * scale
+
+
+def test_fast_ssim_gradient_matches_finite_differences():
+    generator = torch.Generator().manual_seed(13)
+    recon = torch.rand(2, 1, 13, 15, dtype=torch.float64, generator=generator, requires_grad=True)
+    targets = torch.rand(2, 1, 13, 15, dtype=torch.float64, generator=generator, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda x, y: ssim_per_plane(x, y, "numba"), (recon, targets))
+
+
+def test_ssim_of_images_narrower_than_the_window_uses_the_reference():
+    generator = torch.Generator().manual_seed(14)
+    recon, targets = torch.rand(2, 1, 1, 8, 30, generator=generator)
+    with pytest.warns(UserWarning, match="Skipping Gaussian Smoothing"):
+        fast = ssim_per_plane(recon, targets, "numba")
+        reference = msssim_ssim(recon, targets, data_range=1.0, size_average=False, win_size=11,
+                                win_sigma=1.5)
+    np.testing.assert_allclose(fast.numpy(), reference.numpy(), rtol=1e-6)
+    with pytest.raises(ValueError, match="smaller than the 11-px blur window"):
+        gaussian_blur_valid(recon, 11, 1.5)
