@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import numba
+import numpy as np
 import torch
 from tqdm.auto import tqdm
 
@@ -57,20 +58,27 @@ class BenchError(ValueError):
 
 @dataclass(frozen=True)
 class Method:
-    """A row of the paper's tables: FitConfig changes, and whether N grows to CVQPG's parameter count."""
+    """A row of the paper's tables: FitConfig changes, and the changes of the method whose parameter
+    count N grows to match (None: N as the setting's ratio gives it)."""
 
     label: str
     changes: dict[str, str]
-    equal_params: bool = False
+    params_of: dict[str, str] | None = None
 
 
+CVQPG = {"primitive": "cvqpg"}
+PER_CHANNEL = {"primitive": "cvqpg", "curvature": "per-channel"}
 METHODS = {
     "baseline": Method("Baseline", {"primitive": "flat"}),
-    "baseline+": Method("Baseline⁺", {"primitive": "flat"}, equal_params=True),
-    "cvqpg": Method("CVQPG", {"primitive": "cvqpg"}),
+    "baseline+": Method("Baseline⁺", {"primitive": "flat"}, params_of=CVQPG),
+    "cvqpg": Method("CVQPG", CVQPG),
     "no-bound": Method("w/o adaptive bound", {"primitive": "cvqpg", "bound": "global"}),
     "no-mahalanobis": Method("w/o Mahalanobis QPF", {"primitive": "cvqpg", "qpf": "standard"}),
     "vanilla": Method("vanilla (neither)", {"primitive": "cvqpg", "bound": "global", "qpf": "standard"}),
+    "per-channel": Method("CVQPG, γ per channel", PER_CHANNEL),
+    "channel-bound": Method("CVQPG, bound per λ", {"primitive": "cvqpg", "curvature": "channel-bound"}),
+    "baseline+pc": Method("Baseline (per-channel's params)", {"primitive": "flat"}, params_of=PER_CHANNEL),
+    "cvqpg+pc": Method("CVQPG (per-channel's params)", CVQPG, params_of=PER_CHANNEL),
 }
 
 
@@ -94,6 +102,10 @@ PRESETS = {
                        ("rgb",), (0.1,), ("baseline", "cvqpg", "no-bound", "no-mahalanobis", "vanilla")),
     "star": Preset("Siemens star: single plane, grayscale, baseline vs CVQPG at equal N",
                    ("gray",), (0.1,), ("baseline", "cvqpg"), ("star",)),
+    "chromatic": Preset("issue #6: RGB, ratio {0.1, 0.2}: per-channel curvature and its variant against shared "
+                        "CVQPG and the baseline, at equal N and at per-channel's parameter count",
+                        ("rgb",), (0.1, 0.2), ("baseline", "cvqpg", "per-channel", "channel-bound", "baseline+pc",
+                                               "cvqpg+pc")),
     "quick": Preset("smoke test: built-in scenes, 160×120, 60 steps",
                     ("gray",), (0.1,), ("baseline", "cvqpg"), ("demo", "star"), (160, 120), 60),
 }
@@ -235,12 +247,14 @@ def _choose(kind: str, given: Sequence[str] | None, default: tuple[str, ...], kn
 
 
 def cell_config(base: FitConfig, scene: BenchScene, color: str, ratio: float, method: str, seed: int) -> FitConfig:
-    """The fit of one cell; Baseline⁺ gets N·params(CVQPG)/params(flat) primitives (13/12 RGB, 9/8 gray)."""
+    """The fit of one cell. Methods matched to another's parameter count get N·params(other)/params(own)
+    primitives: Baseline⁺ 13/12 (RGB) or 9/8 (gray) of N, the chromatic comparisons 15/12 and 15/13."""
     config = base.replace(color=color, ratio=ratio, seed=seed, num_planes=scene.planes, **METHODS[method].changes)
-    if METHODS[method].equal_params:
-        cvqpg = config.replace(primitive="cvqpg")
+    params_of = METHODS[method].params_of
+    if params_of is not None:
+        other = config.replace(**params_of)
         config = config.replace(num_gaussians=round(
-            cvqpg.primitive_count * cvqpg.params_per_primitive / config.params_per_primitive))
+            other.primitive_count * other.params_per_primitive / config.params_per_primitive))
     return config.validate()
 
 
@@ -328,12 +342,20 @@ def check_inputs(plan: BenchPlan, cells: tuple[Cell, ...]) -> None:
                                  "use another --out or delete that cell folder")
 
 
+def _json_power(power: np.ndarray) -> list[float | None]:
+    return [None if math.isnan(p) else float(p) for p in power]
+
+
 def spectrum_record(recon: torch.Tensor, targets: torch.Tensor, bins: int = SPECTRUM_BINS) -> dict[str, Any]:
-    """Radial error spectrum of float reconstructions [M, C, H, W] against the targets, for `spectrum.json`."""
+    """Radial error spectrum of float reconstructions [M, C, H, W] against the targets, for `spectrum.json`:
+    over all channels (`power`) and, with several channels, per channel (`channel_power`)."""
     edges, power, counts = radial_error_spectrum(recon, targets, bins)
-    return {"bins": bins, "edges": edges.tolist(), "counts": counts.tolist(),
-            "power": [None if math.isnan(p) else float(p) for p in power],
-            "mse": float(((recon.double() - targets.double()) ** 2).mean())}
+    record = {"bins": bins, "edges": edges.tolist(), "counts": counts.tolist(), "power": _json_power(power),
+              "mse": float(((recon.double() - targets.double()) ** 2).mean())}
+    if recon.shape[1] > 1:
+        record["channel_power"] = [_json_power(radial_error_spectrum(recon[:, c], targets[:, c], bins)[1])
+                                   for c in range(recon.shape[1])]
+    return record
 
 
 def _resume_state(folder: Path, cell: Cell) -> FitState | None:

@@ -16,7 +16,7 @@ import torch
 from . import __version__
 from .allocator import keep_freed_memory
 from .bench import METHODS, PRESETS, BenchError, Overrides, describe_cells, make_plan, parse_shard, peak_bytes, run_plan
-from .config import ConfigError, FitConfig
+from .config import CURVATURES, ConfigError, FitConfig
 from .fitting import CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes, fit_scene, state_from_payload
 from .export import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
 from .report import write_summary
@@ -75,6 +75,10 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
                    f"{DEFAULTS.global_bound:g} 1/m (ablation)")
     p.add_argument("--qpf", choices=["mahalanobis", "standard"], default=DEFAULTS.qpf,
                    help="quadratic phase: follows the Gaussian's ellipse, or circular (ablation)")
+    p.add_argument("--curvature", choices=CURVATURES, default=DEFAULTS.curvature,
+                   help="CVQPG curvature in colour: one γ for all channels bounded by the shortest "
+                   "wavelength (the paper), one γ_c per channel bounded by its own λ_c (15 parameters "
+                   "per RGB primitive), or one shared raw value scaled by each channel's own bound")
     p.add_argument("--pitch", type=float, default=DEFAULTS.pixel_pitch, metavar="M",
                    help="SLM pixel pitch in m")
     p.add_argument("--wavelengths", type=float, nargs="+", metavar="M",
@@ -205,7 +209,8 @@ def _config_and_source(args: argparse.Namespace) -> tuple[FitConfig, dict]:
     config = FitConfig(width=width, height=height, color=color, primitive=args.primitive,
                        ratio=args.ratio, num_gaussians=args.num_gaussians, steps=args.steps,
                        warmup=args.warmup, seed=args.seed, num_planes=planes, bound=args.bound,
-                       qpf=args.qpf, device=args.device, backend=args.backend, pixel_pitch=args.pitch,
+                       qpf=args.qpf, curvature=args.curvature, device=args.device, backend=args.backend,
+                       pixel_pitch=args.pitch,
                        plane_center=args.plane_center, plane_span=args.plane_span,
                        wavelengths_m=tuple(args.wavelengths) if args.wavelengths else None)
     return config.validate(), source

@@ -11,6 +11,8 @@ Color = Literal["rgb", "gray"]
 Primitive = Literal["flat", "cvqpg"]
 Bound = Literal["adaptive", "global"]
 Qpf = Literal["mahalanobis", "standard"]
+Curvature = Literal["shared", "per-channel", "channel-bound"]
+CURVATURES = ("shared", "per-channel", "channel-bound")
 
 RGB_WAVELENGTHS_M = (639e-9, 532e-9, 473e-9)
 GRAY_WAVELENGTH_M = 639e-9
@@ -51,6 +53,7 @@ class FitConfig:
     bound: Bound = "adaptive"
     global_bound: float = 200.0
     qpf: Qpf = "mahalanobis"
+    curvature: Curvature = "shared"
     lr: LearningRates = field(default_factory=LearningRates)
     betas: tuple[float, float, float] = (0.98, 0.92, 0.99)
     adan_eps: float = 1e-8
@@ -85,10 +88,16 @@ class FitConfig:
         return int(round(self.ratio * self.width * self.height / pixels_per_primitive))
 
     @property
+    def learnable_curvatures(self) -> int:
+        """Curvature parameters per primitive: none (flat), one per channel (`per-channel`), else one."""
+        if self.primitive != "cvqpg":
+            return 0
+        return self.channels if self.curvature == "per-channel" else 1
+
+    @property
     def params_per_primitive(self) -> int:
-        """Learnable scalars per primitive: 12/13 (RGB), 8/9 (grayscale)."""
-        flat = 2 + 2 + 1 + 2 * self.channels + 1
-        return flat + (1 if self.primitive == "cvqpg" else 0)
+        """Learnable scalars per primitive: 12/13/15 (RGB flat/CVQPG/per-channel), 8/9 (grayscale)."""
+        return 2 + 2 + 1 + 2 * self.channels + 1 + self.learnable_curvatures
 
     @property
     def plane_distances(self) -> tuple[float, ...]:
@@ -131,6 +140,8 @@ class FitConfig:
         if len(self.wavelengths) != self.channels or any(not w > 0 for w in self.wavelengths):
             raise ConfigError(f"wavelengths {self.wavelengths} m: need {self.channels} positive value(s) "
                               f"for colour mode {self.color!r}")
+        if self.curvature not in CURVATURES:
+            raise ConfigError(f"curvature {self.curvature!r}: choose one of {', '.join(CURVATURES)}")
         if self.warmup < 0 or self.warmup > self.steps:
             raise ConfigError(f"warmup {self.warmup} must lie in 0..steps ({self.steps})")
         count, pixels = self.primitive_count, self.width * self.height

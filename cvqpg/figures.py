@@ -142,9 +142,9 @@ def qpf_figure(path: Path) -> None:
     save_figure(figure, path)
 
 
-def frequency_figure(curves: dict[str, tuple[np.ndarray, np.ndarray]], path: Path) -> None:
-    """ΔMSE% of CVQPG over the baseline against normalised spatial frequency, one curve per setting
-    (label → (bin centres ρ, ΔMSE %))."""
+def frequency_figure(curves: dict[str, tuple[np.ndarray, np.ndarray]], path: Path,
+                     ylabel: str = "ΔMSE of CVQPG over baseline (%)") -> None:
+    """ΔMSE% against normalised spatial frequency, one curve per label (label → (bin centres ρ, ΔMSE %))."""
     plt = _pyplot()
     figure, axis = plt.subplots(figsize=(6.4, 3.8), dpi=110)
     for label, (centres, delta) in curves.items():
@@ -152,7 +152,7 @@ def frequency_figure(curves: dict[str, tuple[np.ndarray, np.ndarray]], path: Pat
     axis.axhline(0.0, color="0.5", linewidth=0.8)
     axis.set_xlim(0, 1)
     axis.set_xlabel("normalised spatial frequency |f| / f_Nyquist")
-    axis.set_ylabel("ΔMSE of CVQPG over baseline (%)")
+    axis.set_ylabel(ylabel)
     if curves:
         axis.legend()
     figure.tight_layout()

@@ -114,7 +114,7 @@ def initial_state(config: FitConfig) -> FitState:
     """The reference initialisation, optimiser and noise generator before step 0."""
     device = torch.device(config.device)
     gaussians = init_gaussians(config.primitive_count, config.channels, config.width, config.height,
-                               config.seed, device)
+                               config.seed, device, config.curvature == "per-channel")
     for name in trainable_groups(config):
         getattr(gaussians, name).requires_grad_(True)
     optimizer = make_optimizer(gaussians, config)

@@ -89,6 +89,12 @@ def _direct_value(A, B, C, dx, dy, a, b, c, mahalanobis, k_chirp):
 
 
 @nb.njit(cache=True, nogil=True)
+def _chirp_slot(channel, chirp):
+    """Column of `chirp` [N, 1 or C] that channel uses: one shared curvature, or its own."""
+    return min(channel, chirp.shape[1] - 1)
+
+
+@nb.njit(cache=True, nogil=True)
 def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, out):
     channels, height, width = out.shape[1], out.shape[2], out.shape[3]
     x0, y0, r = np.float64(position[n, 0]), np.float64(position[n, 1]), np.float64(reach[n])
@@ -100,7 +106,7 @@ def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumb
     cx = round(x0)
     dx0, dy0 = cx - x0, low - y0
     for ch in range(channels):
-        k_chirp = wavenumbers[ch] * chirp[n]
+        k_chirp = wavenumbers[ch] * chirp[n, _chirp_slot(ch, chirp)]
         A, B, C = _exponent_coefficients(a, b, c, k_chirp, mahalanobis)
         amplitude = opacity[n] * color[n, ch] * cmath.exp(complex(0.0, phase[n, ch]))
         z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, dx0, dy0)
@@ -140,6 +146,8 @@ def splat_backward(position, conic, reach, chirp, color, phase, opacity, wavenum
                    grad, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity):
     """Gradients (float64, each row written by its own primitive only) from grad[0|1, c, y, x].
 
+    The gradient arrays start at zero: channels sharing a curvature add into the same `g_chirp` slot.
+
     With z = exp(E) (phase φ included) and g the incoming gradient, a pixel contributes
     t = Re(ḡz) = dL/dRe(E)/(αc) and u = −Im(ḡz) = dL/dIm(E)/(αc). Every parameter's gradient is a
     sum of t or u times 1, dx, dy, dx², dx·dy or dy², so each pixel only adds to those moments,
@@ -152,15 +160,16 @@ def splat_backward(position, conic, reach, chirp, color, phase, opacity, wavenum
         if x0 + r < 0 or x0 - r > width - 1:
             continue
         a, b, c = np.float64(conic[n, 0]), np.float64(conic[n, 1]), np.float64(conic[n, 2])
-        alpha, chirp_n = np.float64(opacity[n]), np.float64(chirp[n])
+        alpha = np.float64(opacity[n])
         low, high = _row_span(y0, r, height)
         walk = _walkable(a, b, c, r)
         cx = round(x0)
         dx0, dy0 = cx - x0, low - y0
-        g_alpha = g_k = ga = gb = gc = gx = gy = 0.0
+        g_alpha = ga = gb = gc = gx = gy = 0.0
         for ch in range(channels):
             k, color_c = wavenumbers[ch], np.float64(color[n, ch])
-            k_chirp = k * chirp_n
+            slot = _chirp_slot(ch, chirp)
+            k_chirp = k * np.float64(chirp[n, slot])
             A, B, C = _exponent_coefficients(a, b, c, k_chirp, mahalanobis)
             rotation = cmath.exp(complex(0.0, phase[n, ch]))
             z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, dx0, dy0)
@@ -211,12 +220,12 @@ def splat_backward(position, conic, reach, chirp, color, phase, opacity, wavenum
                 q = scale * k_chirp
                 m20, m11, m02 = w * t20 + q * u20, w * t11 + q * u11, w * t02 + q * u02
                 m10, m01 = w * t10 + q * u10, w * t01 + q * u01
-                g_k += scale * k * (a * u20 + 2.0 * b * u11 + c * u02)
+                g_chirp[n, slot] += scale * k * (a * u20 + 2.0 * b * u11 + c * u02)
                 rx = ry = 0.0
             else:  # D² carries the envelope, |p − x|² the phase
                 w = -0.5 * scale
                 m20, m11, m02, m10, m01 = w * t20, w * t11, w * t02, w * t10, w * t01
-                g_k += scale * k * (u20 + u02)
+                g_chirp[n, slot] += scale * k * (u20 + u02)
                 rx, ry = scale * k_chirp * u10, scale * k_chirp * u01
             ga += m20
             gb += 2.0 * m11
@@ -224,6 +233,5 @@ def splat_backward(position, conic, reach, chirp, color, phase, opacity, wavenum
             gx -= 2.0 * (a * m10 + b * m01 + rx)
             gy -= 2.0 * (b * m10 + c * m01 + ry)
         g_opacity[n] = g_alpha
-        g_chirp[n] = g_k
         g_conic[n, 0], g_conic[n, 1], g_conic[n, 2] = ga, gb, gc
         g_position[n, 0], g_position[n, 1] = gx, gy

@@ -50,7 +50,7 @@ class Gaussians(TensorFields):
     color: Tensor  # [N, C] amplitude
     phase: Tensor  # [N, C] → rad via mod 2π
     opacity: Tensor  # [N] → sigmoid
-    curvature: Tensor  # [N] → 1/m via γ_max·tanh
+    curvature: Tensor  # [N], or [N, C] per channel → 1/m via γ_max·tanh
 
     @property
     def channels(self) -> int:
@@ -67,7 +67,7 @@ class Primitives(TensorFields):
     amplitude: Tensor  # [N, C]
     phase_rad: Tensor  # [N, C]
     opacity: Tensor  # [N]
-    curvature_per_m: Tensor  # [N], γ in 1/m
+    curvature_per_m: Tensor  # [N] shared, or [N, C] one per channel: γ in 1/m
 
     @property
     def channels(self) -> int:
@@ -75,8 +75,11 @@ class Primitives(TensorFields):
 
 
 def init_gaussians(count: int, channels: int, width: int, height: int, seed: int,
-                   device: torch.device | str = "cpu") -> Gaussians:
-    """The reference initialisation: draws from a CPU generator in SPEC order, then moves to `device`."""
+                   device: torch.device | str = "cpu", per_channel_curvature: bool = False) -> Gaussians:
+    """The reference initialisation: draws from a CPU generator in SPEC order, then moves to `device`.
+
+    Curvature starts at 0, [N] or [N, C] with `per_channel_curvature`; the draws do not depend on it.
+    """
     generator = torch.Generator().manual_seed(seed)
     u_position = torch.rand(count, 2, generator=generator)
     u_color = torch.rand(count, channels, generator=generator)
@@ -90,7 +93,7 @@ def init_gaussians(count: int, channels: int, width: int, height: int, seed: int
         color=u_color,
         phase=torch.zeros(count, channels),
         opacity=torch.full((count,), INIT_OPACITY_RAW),
-        curvature=torch.zeros(count),
+        curvature=torch.zeros((count, channels) if per_channel_curvature else (count,)),
     )
     return raw.to(device)
 
@@ -107,16 +110,33 @@ def scales_px(raw_scale: Tensor) -> Tensor:
 
 
 def curvature_bound(scale_px: Tensor, config: FitConfig) -> Tensor:
-    """γ_max (1/m) per primitive: `η λ_min / (6 σ Δx²)` with σ = max scale (px), or the global bound."""
+    """γ_max (1/m): `η λ / (6 σ Δx²)` with σ = max scale (px), or the global bound.
+
+    Shared curvature: [N], bounded with the shortest wavelength, whose fringes are the finest.
+    `per-channel` and `channel-bound`: [N, C], each channel bounded with its own wavelength.
+    """
+    per_channel = config.curvature != "shared"
     if config.bound == "global":
-        return torch.full_like(scale_px[:, 0], config.global_bound)
+        shape = (scale_px.shape[0], config.channels) if per_channel else scale_px.shape[:1]
+        return torch.full(shape, config.global_bound, dtype=scale_px.dtype, device=scale_px.device)
     sigma_px = scale_px.max(dim=1).values
-    return config.eta * min(config.wavelengths) / (6 * sigma_px * config.pixel_pitch**2)
+    scale = config.eta / (6 * sigma_px * config.pixel_pitch**2)
+    if not per_channel:
+        return scale * min(config.wavelengths)
+    wavelengths = torch.tensor(config.wavelengths, dtype=scale_px.dtype, device=scale_px.device)
+    return scale[:, None] * wavelengths
 
 
 def activate(raw: Gaussians, config: FitConfig) -> Primitives:
-    """Apply SPEC §2's activations; the curvature bound follows `config.bound`."""
+    """Apply SPEC §2's activations; the curvature bound follows `config.bound` and `config.curvature`.
+
+    `channel-bound` shares one raw curvature: every channel gets the same fraction of its own bound.
+    """
     scale = scales_px(raw.scale)
+    bound = curvature_bound(scale, config)
+    share = torch.tanh(raw.curvature)
+    if share.dim() < bound.dim():
+        share = share[:, None]
     return Primitives(
         position_px=positions_px(raw.position, config.width, config.height),
         scale_px=scale,
@@ -124,7 +144,7 @@ def activate(raw: Gaussians, config: FitConfig) -> Primitives:
         amplitude=raw.color,
         phase_rad=torch.remainder(raw.phase, 2 * math.pi),
         opacity=torch.sigmoid(raw.opacity),
-        curvature_per_m=curvature_bound(scale, config) * torch.tanh(raw.curvature),
+        curvature_per_m=bound * share,
     )
 
 

@@ -39,7 +39,7 @@ class Splats:
     position_px: Tensor  # [N, 2]
     conic: Tensor  # [N, 3]: Σ⁻¹ entries (a, b, c) in 1/px²
     reach_px: Tensor  # [N]: footprint radius 3σ_major (no gradient)
-    chirp: Tensor  # [N]: m per unit of the squared distance the QPF uses
+    chirp: Tensor  # [N, 1] shared or [N, C] per channel: m per unit of the squared distance the QPF uses
     amplitude: Tensor  # [N, C]
     phase_rad: Tensor  # [N, C]
     opacity: Tensor  # [N]
@@ -58,9 +58,10 @@ def splats(prims: Primitives, pixel_pitch: float, qpf: Qpf) -> Splats:
     a, b, c = inverse_covariance(prims.scale_px, prims.rotation_rad)
     with torch.no_grad():
         reach = FOOTPRINT_SIGMAS * major_sigma_px(prims.scale_px, prims.rotation_rad)
-    half_curvature = 0.5 * prims.curvature_per_m * pixel_pitch**2
+    curvature = prims.curvature_per_m
+    half_curvature = 0.5 * pixel_pitch**2 * (curvature if curvature.dim() == 2 else curvature[:, None])
     mahalanobis = qpf == "mahalanobis"
-    chirp = half_curvature * prims.scale_px.prod(dim=1) if mahalanobis else half_curvature
+    chirp = half_curvature * prims.scale_px.prod(dim=1, keepdim=True) if mahalanobis else half_curvature
     return Splats(prims.position_px, torch.stack([a, b, c], dim=1), reach, chirp, prims.amplitude,
                   prims.phase_rad, prims.opacity, mahalanobis)
 
@@ -77,9 +78,9 @@ def contributions(s: Splats, px: Tensor, py: Tensor, wavenumbers: Tensor) -> tup
     radius2 = dx * dx + dy * dy
     envelope = torch.exp(torch.clamp(-0.5 * mahalanobis2, min=EXPONENT_FLOOR))
     envelope = envelope * (radius2 <= (s.reach_px * s.reach_px)[:, None])
-    path_m = s.chirp[:, None] * (mahalanobis2 if s.mahalanobis else radius2)
+    path_m = s.chirp.T[:, :, None] * (mahalanobis2 if s.mahalanobis else radius2)[None]  # [1 or C, K, P]
     amplitude = s.amplitude.T[:, :, None] * (s.opacity[:, None] * envelope)[None]  # [C, K, P]
-    phase = s.phase_rad.T[:, :, None] + wavenumbers[:, None, None] * path_m[None]
+    phase = s.phase_rad.T[:, :, None] + wavenumbers[:, None, None] * path_m
     return amplitude * torch.cos(phase), amplitude * torch.sin(phase)
 
 

@@ -32,6 +32,8 @@ DECIMALS = {"psnr": 3, "ssim": 4, "lpips": 4, "flip": 4, "cvvdp": 3}
 HEADINGS = {m: f"{m.upper()}{'↑' if up else '↓'}" for m, up in HIGHER_IS_BETTER.items()}
 PAPER_SETUP = {"width": 640, "height": 480, "num_planes": 2, "steps": 2000}
 ABLATION_VARIANTS = ("no-bound", "no-mahalanobis", "vanilla")
+TABLE1_METHODS = ("baseline", "baseline+", "cvqpg")
+CHANNEL_NAMES = ("red", "green", "blue")
 NA, MISSING = "n/a", "–"
 
 Metrics = dict[str, float | None]
@@ -228,32 +230,35 @@ def _slashed(values: list[Metrics | None]) -> list[str]:
     return [" / ".join(MISSING if v is None else fmt(v[metric], metric) for v in values) for metric in TABLE_METRICS]
 
 
-def ablation_tables(plan: BenchPlan, results: list[CellResult]) -> list[Table]:
-    """The ablation table per setting: Δ PSNR over the baseline (scenes both finished) and the metrics."""
-    variants = [m for m in ("baseline", "cvqpg", *ABLATION_VARIANTS) if m in plan.methods]
-    if not set(ABLATION_VARIANTS) & set(variants):
+def variant_tables(plan: BenchPlan, results: list[CellResult]) -> list[Table]:
+    """For grids beyond Table 1's methods (ablation, chromatic), per setting: Δ PSNR of every method over
+    the baseline (scenes both finished) and the metrics; the paper's ablation values where they apply."""
+    if set(plan.methods) <= set(TABLE1_METHODS):
         return []
     ablation = paper_numbers()["ablation"]
     tables = []
     for setting in plan.settings:
         comparable = paper_setup(plan, setting) and setting == ablation["setting"]
-        table = Table(f"Ablation, {setting_label(setting)}; in parentheses: the paper's five-scene means",
-                      ["Variant", "Δ PSNR", "scenes", *(HEADINGS[m] for m in TABLE_METRICS)])
+        table = Table(f"Variants against the baseline, {setting_label(setting)}",
+                      ["Variant", "N", "Δ PSNR", "scenes", *(HEADINGS[m] for m in TABLE_METRICS)])
+        if comparable and set(ABLATION_VARIANTS) & set(plan.methods):
+            table.note = "In parentheses: the paper's ablation, five-scene means."
         block = []
-        for method in variants:
+        for method in plan.methods:
             per_scene = scene_values(results, setting, method)
             ours = _over_scenes(per_scene, list(per_scene))
             paper = ablation["methods"].get(method) if comparable else None
             delta_text = MISSING
-            if method != "baseline" and "baseline" in variants:
+            if method != "baseline" and "baseline" in plan.methods:
                 delta, _, _ = paired_delta(results, setting, method, False)
                 paper_delta = None if paper is None else {
                     "psnr": paper["psnr"] - ablation["methods"]["baseline"]["psnr"]}
                 delta_text = _with_paper(delta, paper_delta, "psnr", signed=True)
             block.append(ours)
-            table.rows.append([METHODS[method].label, delta_text, f"{len(per_scene)}/{len(plan.scenes)}",
+            table.rows.append([METHODS[method].label, f"{_n(plan, setting, method):,}", delta_text,
+                               f"{len(per_scene)}/{len(plan.scenes)}",
                                *(_with_paper(ours, paper, m) for m in TABLE_METRICS)])
-        _bold_best(table, 0, block, 3)
+        _bold_best(table, 0, block, 4)
         tables.append(table)
     return tables
 
@@ -301,14 +306,23 @@ def cells_table(plan: BenchPlan, results: list[CellResult]) -> tuple[Table, list
 
 @dataclass
 class FrequencyCurve:
-    """Radially binned error spectra of one setting, baseline vs CVQPG over the (scene, seed) pairs both finished."""
+    """Radially binned error spectra of one setting, `method` against `reference`, over the (scene, seed)
+    pairs both finished; of one colour channel, or all (`channel` None)."""
 
     setting: str
+    reference: str
+    method: str
+    channel: int | None
     edges: np.ndarray
-    mse_baseline: np.ndarray
-    mse_cvqpg: np.ndarray
-    delta_pct: np.ndarray  # mean over pairs of (MSE_base − MSE_cvqpg) / MSE_base, %
+    mse_reference: np.ndarray
+    mse_method: np.ndarray
+    delta_pct: np.ndarray  # mean over pairs of (MSE_reference − MSE_method) / MSE_reference, %
     pairs: int
+
+    @property
+    def label(self) -> str:
+        channel = "" if self.channel is None else f", {CHANNEL_NAMES[self.channel]}"
+        return f"{setting_label(self.setting)}{channel}"
 
 
 def _nanmean(stack: np.ndarray) -> np.ndarray:
@@ -318,43 +332,56 @@ def _nanmean(stack: np.ndarray) -> np.ndarray:
     return np.where(counts > 0, np.where(valid, stack, 0.0).sum(axis=0) / np.maximum(counts, 1), np.nan)
 
 
-def frequency_curves(plan: BenchPlan, results: list[CellResult]) -> list[FrequencyCurve]:
-    """ΔMSE% per radial frequency bin and setting, from each cell's `spectrum.json`."""
+def frequency_curves(plan: BenchPlan, results: list[CellResult], reference: str = "baseline",
+                     method: str = "cvqpg", channel: int | None = None) -> list[FrequencyCurve]:
+    """ΔMSE% of `method` over `reference` per radial frequency bin and setting, from each cell's
+    `spectrum.json` (one colour channel's spectrum when `channel` is given)."""
     curves = []
     for setting in plan.settings:
         spectra = {(r.cell.scene.name, r.cell.config.seed, r.cell.method): r.spectrum for r in results
                    if r.spectrum is not None and r.cell.setting == setting}
-        pairs = sorted({key[:2] for key in spectra if key[2] == "baseline" and (*key[:2], "cvqpg") in spectra})
+        if channel is not None:
+            spectra = {key: {**record, "power": record["channel_power"][channel]} for key, record in spectra.items()
+                       if len(record.get("channel_power", ())) > channel}
+        pairs = sorted({key[:2] for key in spectra if key[2] == reference and (*key[:2], method) in spectra})
         if not pairs:
             continue
-        power = {method: np.array([[np.nan if p is None else p for p in spectra[(*pair, method)]["power"]]
-                                   for pair in pairs], dtype=float) for method in ("baseline", "cvqpg")}
-        base, ours = power["baseline"], power["cvqpg"]
+        power = {m: np.array([[np.nan if p is None else p for p in spectra[(*pair, m)]["power"]] for pair in pairs],
+                             dtype=float) for m in (reference, method)}
+        base, ours = power[reference], power[method]
         with np.errstate(invalid="ignore", divide="ignore"):
             delta = np.where(base > 0, (base - ours) / base * 100, np.nan)
-        curves.append(FrequencyCurve(setting, np.array(spectra[(*pairs[0], "baseline")]["edges"]), _nanmean(base),
+        curves.append(FrequencyCurve(setting, reference, method, channel,
+                                     np.array(spectra[(*pairs[0], reference)]["edges"]), _nanmean(base),
                                      _nanmean(ours), _nanmean(delta), len(pairs)))
     return curves
 
 
+def channel_frequency_curves(plan: BenchPlan, results: list[CellResult]) -> list[FrequencyCurve]:
+    """Per colour channel, ΔMSE% of per-channel curvature over shared CVQPG (issue #6), where both ran."""
+    if not {"cvqpg", "per-channel"} <= set(plan.methods):
+        return []
+    return [curve for channel in range(len(CHANNEL_NAMES))
+            for curve in frequency_curves(plan, results, "cvqpg", "per-channel", channel)]
+
+
 def frequency_rows(curves: list[FrequencyCurve]) -> list[dict[str, Any]]:
-    """`frequency.csv`: one row per setting and bin; the last bin holds the corners beyond Nyquist.
-    A bin that no frequency of the image size falls into is left empty."""
+    """`frequency.csv`: one row per setting (and channel) and bin; the last bin holds the corners beyond
+    Nyquist. A bin that no frequency of the image size falls into is left empty."""
     rows = []
     for c in curves:
         for b in range(len(c.delta_pct)):
-            rows.append({"setting": c.setting, "bin": b, "rho_low": c.edges[b], "rho_high": c.edges[b + 1],
+            channel = {} if c.channel is None else {"channel": CHANNEL_NAMES[c.channel]}
+            rows.append({"setting": c.setting, **channel, "bin": b, "rho_low": c.edges[b], "rho_high": c.edges[b + 1],
                          "band": "in band" if c.edges[b + 1] <= 1.0 else "beyond Nyquist (corners)",
                          **{k: "" if math.isnan(v) else v for k, v in (
-                             ("mse_baseline", c.mse_baseline[b]), ("mse_cvqpg", c.mse_cvqpg[b]),
+                             (f"mse_{c.reference}", c.mse_reference[b]), (f"mse_{c.method}", c.mse_method[b]),
                              ("delta_mse_pct", c.delta_pct[b]))}, "pairs": c.pairs})
     return rows
 
 
 def frequency_lines(curves: list[FrequencyCurve]) -> list[str]:
-    """One line per setting: the peak ΔMSE and its band, next to the paper's peak."""
-    if not curves:
-        return ["No setting has both a finished baseline and CVQPG cell yet."]
+    """One line per curve: the peak ΔMSE and its band, next to the paper's peak where it has one."""
     peaks = paper_numbers()["frequency_peak_delta_mse_pct"]
     lines = []
     for c in curves:
@@ -362,10 +389,12 @@ def frequency_lines(curves: list[FrequencyCurve]) -> list[str]:
         if np.all(np.isnan(band)):
             continue
         peak = int(np.nanargmax(band))
-        lines.append(f"{setting_label(c.setting)}: peak ΔMSE {band[peak]:+.1f}% at ρ = {c.edges[peak]:.2f}–"
-                     f"{c.edges[peak + 1]:.2f} ({c.pairs} scene/seed pairs; paper, ten scenes: peak about "
-                     f"{peaks[c.setting.split('-')[0]]}%)")
-    return lines
+        paper = (f"; paper, ten scenes: peak about {peaks[c.setting.split('-')[0]]}%"
+                 if (c.reference, c.method, c.channel) == ("baseline", "cvqpg", None) else "")
+        lines.append(f"{c.label}: peak ΔMSE of {METHODS[c.method].label} over {METHODS[c.reference].label} "
+                     f"{band[peak]:+.1f}% at ρ = {c.edges[peak]:.2f}–{c.edges[peak + 1]:.2f} "
+                     f"({c.pairs} scene/seed pairs{paper})")
+    return lines or ["No setting has both a finished baseline and CVQPG cell yet."]
 
 
 def _csv(rows: list[dict[str, Any]]) -> str:
@@ -378,16 +407,25 @@ def _csv(rows: list[dict[str, Any]]) -> str:
     return buffer.getvalue()
 
 
-def draw_figures(plan: BenchPlan, results: list[CellResult], curves: list[FrequencyCurve]) -> list[Path]:
-    """Frequency plot, QPF figure and one comparison per scene and setting (first seed); relative paths."""
+def _plotted(curves: list[FrequencyCurve]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """label → (in-band bin centres ρ, ΔMSE %)."""
+    return {c.label: ((c.edges[:-2] + c.edges[1:-1]) / 2, c.delta_pct[:-1]) for c in curves}
+
+
+def draw_figures(plan: BenchPlan, results: list[CellResult], curves: list[FrequencyCurve],
+                 channel_curves: list[FrequencyCurve]) -> list[Path]:
+    """Frequency plots, QPF figure and one comparison per scene and setting (first seed); relative paths."""
     folder = plan.folder / "figures"
     folder.mkdir(parents=True, exist_ok=True)
-    figures.frequency_figure({setting_label(c.setting): ((c.edges[:-2] + c.edges[1:-1]) / 2, c.delta_pct[:-1])
-                              for c in curves}, plan.folder / "frequency.png")
+    figures.frequency_figure(_plotted(curves), plan.folder / "frequency.png")
     figures.qpf_figure(folder / "qpf.png")
     done = {(r.cell.scene.name, r.cell.setting, r.cell.method, r.cell.config.seed): r for r in results
             if r.status == DONE}
     drawn = [Path("frequency.png"), Path("figures/qpf.png")]
+    if channel_curves:
+        figures.frequency_figure(_plotted(channel_curves), plan.folder / "frequency_channels.png",
+                                 "ΔMSE of per-channel γ over shared CVQPG (%)")
+        drawn.append(Path("frequency_channels.png"))
     compared = [m for m in ("baseline", "cvqpg") if m in plan.methods]
     for scene in plan.scenes:
         for setting in plan.settings:
@@ -424,7 +462,8 @@ def summary_markdown(plan: BenchPlan, overview: list[str], tables: list[Table], 
     """summary.md: overview, the tables, the frequency analysis and links to the figures."""
     parts = [f"# Bench `{plan.preset}`\n", *(f"- {line}" for line in overview), ""]
     parts += [t.markdown() for t in tables[:-1]]
-    parts += ["### Frequency analysis (ΔMSE of CVQPG over the baseline)\n", *(f"- {line}" for line in frequency),
+    parts += ["### Frequency analysis (ΔMSE: how much lower a method's error is, per frequency band)\n",
+              *(f"- {line}" for line in frequency),
               "", "### Figures\n", *(f"- [{p.stem}]({p.as_posix()})" for p in images), "", tables[-1].markdown()]
     return "\n".join(parts)
 
@@ -458,14 +497,17 @@ def write_summary(plan: BenchPlan) -> Path:
     results = collect(plan)
     main, main_rows = main_table(plan, results)
     cells, cell_rows = cells_table(plan, results)
-    curves = frequency_curves(plan, results)
-    tables = [main, per_scene_table(plan, results), *ablation_tables(plan, results), *seed_tables(plan, results),
+    curves, channel_curves = frequency_curves(plan, results), channel_frequency_curves(plan, results)
+    tables = [main, per_scene_table(plan, results), *variant_tables(plan, results), *seed_tables(plan, results),
               cells]
-    overview, frequency = overview_lines(plan, results), frequency_lines(curves)
-    images = draw_figures(plan, results, curves)
+    overview = overview_lines(plan, results)
+    frequency = frequency_lines(curves) + (frequency_lines(channel_curves) if channel_curves else [])
+    images = draw_figures(plan, results, curves, channel_curves)
     write_atomic(plan.folder / "summary.csv", _csv(main_rows))
     write_atomic(plan.folder / "cells.csv", _csv(cell_rows))
     write_atomic(plan.folder / "frequency.csv", _csv(frequency_rows(curves)))
+    if channel_curves:
+        write_atomic(plan.folder / "frequency_channels.csv", _csv(frequency_rows(channel_curves)))
     write_atomic(plan.folder / "report.html", report_html(plan, overview, tables, frequency, images))
     write_atomic(plan.folder / "summary.md", summary_markdown(plan, overview, tables, frequency, images))
     return plan.folder / "summary.md"

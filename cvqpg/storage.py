@@ -75,7 +75,7 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Pr
     count, channels = tensors["position_px"].shape[0], config.channels
     expected = {"position_px": (count, 2), "scale_px": (count, 2), "rotation_rad": (count,),
                 "amplitude": (count, channels), "phase_rad": (count, channels), "opacity": (count,),
-                "curvature_per_m": (count,)}
+                "curvature_per_m": (count,) if config.curvature == "shared" else (count, channels)}
     for name, shape in expected.items():
         if tuple(tensors[name].shape) != shape:
             raise ModelFileError(f"{path}: tensor {name!r} has shape {tuple(tensors[name].shape)}, "

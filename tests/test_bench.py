@@ -120,6 +120,40 @@ def test_methods_map_to_the_papers_configurations(scenes_dir, tmp_path):
     assert make_plan("quick", overrides=Overrides(steps=50)).cells[0].config.warmup == 10
 
 
+def test_chromatic_preset_compares_at_equal_n_and_at_per_channel_parameter_count(scenes_dir, tmp_path):
+    plan = make_plan("chromatic", tmp_path / "bench", Overrides(scenes_dir=scenes_dir, scene_names=["tiger"]))
+    configs = {(c.setting, c.method): c.config for c in plan.cells}
+    assert plan.settings == ("rgb-20", "rgb-10")
+    for setting, n in (("rgb-10", 15360), ("rgb-20", 30720)):
+        assert {m: configs[(setting, m)].primitive_count for m in plan.methods} == {
+            "baseline": n, "cvqpg": n, "per-channel": n, "channel-bound": n,
+            "baseline+pc": round(n * 15 / 12), "cvqpg+pc": round(n * 15 / 13)}
+    curvatures = {m: (configs[("rgb-10", m)].primitive, configs[("rgb-10", m)].curvature) for m in plan.methods}
+    assert curvatures["per-channel"] == ("cvqpg", "per-channel")
+    assert curvatures["channel-bound"] == ("cvqpg", "channel-bound")
+    assert curvatures["cvqpg+pc"] == ("cvqpg", "shared") and curvatures["baseline+pc"][0] == "flat"
+
+
+def test_chromatic_bench_reports_variants_and_per_channel_spectra(tmp_path):
+    root = tmp_path / "scenes" / "noise"
+    root.mkdir(parents=True)
+    generator = np.random.default_rng(3)
+    Image.fromarray(generator.integers(0, 256, (36, 48, 3), dtype=np.uint8)).save(root / "image.png")
+    Image.fromarray(np.tile(np.linspace(0, 255, 48, dtype=np.uint8), (36, 1))).save(root / "depth.png")
+    out = tmp_path / "bench"
+    assert main(["bench", "--preset", "chromatic", "--scenes", str(root.parent), "--size", "48", "36",
+                 "--steps", "4", "--ratios", "0.1", "--out", str(out), "--quiet"]) == 0
+    summary = (out / "summary.md").read_text()
+    assert "### Variants against the baseline, RGB 10%" in summary
+    assert "| CVQPG, γ per channel | 86 |" in summary and "| Baseline (per-channel's params) | 108 |" in summary
+    with open(out / "frequency_channels.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    assert [r["channel"] for r in rows[::33]] == ["red", "green", "blue"] and len(rows) == 3 * 33
+    assert {"mse_cvqpg", "mse_per-channel", "delta_mse_pct"} <= set(rows[0])
+    assert (out / "frequency_channels.png").is_file()
+    assert "blue: peak ΔMSE of CVQPG, γ per channel over CVQPG" in summary
+
+
 def test_partial_files_do_not_mark_a_cell_done_and_it_restarts(tmp_path):
     plan = make_plan("star", tmp_path / "bench", Overrides(**TINY_STAR))
     cell = plan.cells[0]

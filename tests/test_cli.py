@@ -58,6 +58,20 @@ def test_fit_on_image_and_depth_files(tmp_path):
     assert config["source"]["depth"].endswith("d.png")
 
 
+def test_per_channel_curvature_is_a_fit_option_and_counts_its_parameters(tmp_path, capsys):
+    out = tmp_path / "chromatic"
+    assert main(["fit", "--curvature", "per-channel", *SMALL, "--out", str(out)]) == 0
+    assert json.loads((out / "config.json").read_text())["curvature"] == "per-channel"
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["num_params"] == metrics["num_gaussians"] * 15
+    assert main(["info", str(out), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["learnable_params"] == info["stored_values"] == metrics["num_gaussians"] * 15
+    with pytest.raises(SystemExit) as exited:
+        main(["fit", "--curvature", "rainbow", *SMALL, "--out", str(tmp_path / "bad")])
+    assert exited.value.code == 2 and "invalid choice: 'rainbow'" in capsys.readouterr().err
+
+
 def test_star_scene_runs_single_plane_grayscale(tmp_path):
     out = tmp_path / "star"
     assert main(["fit", "--scene", "star", *SMALL, "--out", str(out)]) == 0

@@ -13,14 +13,14 @@ from cvqpg.rasterization import (Splats, rasterize, resolve_backend, splat_fused
 WIDTH, HEIGHT = 56, 40
 
 
-def random_gaussians(count: int, channels: int, seed: int) -> Gaussians:
+def random_gaussians(count: int, channels: int, seed: int, per_channel: bool = False) -> Gaussians:
     """Random primitives with tiny, huge, elongated, edge and strongly curved members."""
-    g = init_gaussians(count, channels, WIDTH, HEIGHT, seed)
+    g = init_gaussians(count, channels, WIDTH, HEIGHT, seed, per_channel_curvature=per_channel)
     gen = torch.Generator().manual_seed(seed)
     g.scale = g.scale + 0.8 * torch.randn(count, 2, generator=gen)
     g.scale[:3] = torch.tensor([[-4.0, -4.0], [3.6, 3.2], [2.5, -3.0]])  # tiny, huge, needle
     g.position[3:5] = torch.tensor([[2.5, 0.0], [-1.2, -3.0]])  # centres at the image edge
-    g.curvature = 2.0 * torch.randn(count, generator=gen)
+    g.curvature = 2.0 * torch.randn(g.curvature.shape, generator=gen)
     g.color = g.color - 0.2
     g.phase = 3.0 * torch.randn(count, channels, generator=gen)
     return Gaussians.from_tensors({k: v.double() for k, v in g.tensors().items()})
@@ -41,10 +41,12 @@ def relative(a, b):
 
 @pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
 @pytest.mark.parametrize("color", ["rgb", "gray"])
-@pytest.mark.parametrize("primitive", ["flat", "cvqpg"])
+@pytest.mark.parametrize("primitive", ["flat", "cvqpg", "per-channel"])
 def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primitive):
-    config = FitConfig(width=WIDTH, height=HEIGHT, color=color, qpf=qpf, primitive=primitive)
-    raw = random_gaussians(300, config.channels, seed=5)
+    per_channel = primitive == "per-channel"
+    config = FitConfig(width=WIDTH, height=HEIGHT, color=color, qpf=qpf, primitive="cvqpg" if per_channel else primitive,
+                       curvature="per-channel" if per_channel else "shared")
+    raw = random_gaussians(300, config.channels, seed=5, per_channel=per_channel)
     if primitive == "flat":
         raw.curvature = torch.zeros_like(raw.curvature)
     prims = activate(raw, config)
@@ -64,9 +66,10 @@ def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primiti
         assert relative(got, want) < 1e-4, name
 
 
-def test_parameter_gradients_through_activations_match():
-    config = FitConfig(width=WIDTH, height=HEIGHT)
-    raw = random_gaussians(200, 3, seed=11)
+@pytest.mark.parametrize("curvature", ["shared", "per-channel", "channel-bound"])
+def test_parameter_gradients_through_activations_match(curvature):
+    config = FitConfig(width=WIDTH, height=HEIGHT, curvature=curvature)
+    raw = random_gaussians(200, 3, seed=11, per_channel=curvature == "per-channel")
     results = []
     for backend in ("torch", "numba"):
         leaves = {k: v.clone().requires_grad_() for k, v in raw.tensors().items()}
@@ -78,9 +81,10 @@ def test_parameter_gradients_through_activations_match():
         assert relative(got, want) < 1e-4, name
 
 
-def test_fused_gradient_matches_finite_differences():
-    config = FitConfig(width=WIDTH, height=HEIGHT)
-    raw = random_gaussians(40, 3, seed=2)
+@pytest.mark.parametrize("curvature", ["shared", "per-channel"])
+def test_fused_gradient_matches_finite_differences(curvature):
+    config = FitConfig(width=WIDTH, height=HEIGHT, curvature=curvature)
+    raw = random_gaussians(40, 3, seed=2, per_channel=curvature == "per-channel")
     s = splats(activate(raw, config), config.pixel_pitch, "mahalanobis")
     k = wavenumbers_for(config.wavelengths)
     _, grads = outputs_and_gradients(splat_fused, s, k)
@@ -91,8 +95,9 @@ def test_fused_gradient_matches_finite_differences():
         return float((hologram * weights.conj()).real.sum())
 
     base = list(s.tensors())
-    for slot, grad_slot, index in ((0, 0, (7, 0)), (1, 1, (7, 1)), (4, 3, (7, 2)), (5, 4, (7, 0)), (6, 5, (7,))):
-        eps = 1e-6
+    chirp_index = (7, 1) if curvature == "per-channel" else (7, 0)
+    for slot, grad_slot, index, eps in ((0, 0, (7, 0), 1e-6), (1, 1, (7, 1), 1e-6), (3, 2, chirp_index, 1e-12),
+                                        (4, 3, (7, 2), 1e-6), (5, 4, (7, 0), 1e-6), (6, 5, (7,), 1e-6)):
         plus = [t.clone() for t in base]
         minus = [t.clone() for t in base]
         plus[slot][index] += eps

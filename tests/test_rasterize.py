@@ -58,15 +58,16 @@ def direct_hologram(prims: Primitives, width: int, height: int, wavelengths, pit
     reach = 3 * sigma_major_reference(prims.scale_px, prims.rotation_rad)
     inside = torch.sqrt(r2) <= reach[:, None]
     envelope = torch.exp(torch.clamp(-d2 / 2, min=-50.0)) * inside
-    if qpf == "mahalanobis":
-        psi = 0.5 * prims.curvature_per_m[:, None] * prims.scale_px.prod(-1)[:, None] * pitch**2 * d2
-    elif qpf == "standard":
-        psi = 0.5 * prims.curvature_per_m[:, None] * pitch**2 * r2
-    else:
-        raise ValueError(qpf)
     k = torch.tensor([2 * math.pi / w for w in wavelengths], dtype=F64)
     channels = []
     for c in range(len(wavelengths)):
+        gamma = prims.curvature_per_m if prims.curvature_per_m.dim() == 1 else prims.curvature_per_m[:, c]
+        if qpf == "mahalanobis":
+            psi = 0.5 * gamma[:, None] * prims.scale_px.prod(-1)[:, None] * pitch**2 * d2
+        elif qpf == "standard":
+            psi = 0.5 * gamma[:, None] * pitch**2 * r2
+        else:
+            raise ValueError(qpf)
         amplitude = prims.opacity[:, None] * prims.amplitude[:, c:c + 1] * envelope
         phase = prims.phase_rad[:, c:c + 1] + k[c] * psi
         channels.append((amplitude * torch.exp(1j * phase)).sum(0))
@@ -150,12 +151,14 @@ def max_abs(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 @pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
-@pytest.mark.parametrize("flat", [True, False])
-def test_rasterizer_matches_direct_evaluation(qpf, flat):
+@pytest.mark.parametrize("curvature", ["flat", "shared", "per-channel"])
+def test_rasterizer_matches_direct_evaluation(qpf, curvature):
     width, height = 24, 18
     prims = assorted_prims(width, height)
-    if flat:
+    if curvature == "flat":
         prims = with_curvature(prims, torch.zeros_like(prims.curvature_per_m))
+    if curvature == "per-channel":
+        prims = with_curvature(prims, torch.stack([prims.curvature_per_m, 0.3 - 0.7 * prims.curvature_per_m], 1))
     assert footprint_margin(prims, width, height) > 1e-6
     ours = rasterize(prims, width, height, WAVELENGTHS, PITCH, qpf, backend="torch")
     reference = direct_hologram(prims, width, height, WAVELENGTHS, PITCH, qpf)
@@ -354,6 +357,53 @@ def test_adaptive_bound_keeps_edge_frequency_below_nyquist(scale_px):
                     phase=torch.zeros(1, 3, dtype=F64), opacity=torch.zeros(1, dtype=F64),
                     curvature=torch.tensor([40.0], dtype=F64))
     assert float(activate(raw, config).curvature_per_m[0]) == pytest.approx(gamma_max, rel=1e-12)
+
+
+@pytest.mark.parametrize("curvature", ["per-channel", "channel-bound"])
+def test_per_channel_bounds_put_every_channel_at_the_same_edge_frequency(curvature):
+    """Each channel bounded by its own λ_c: every colour's 3σ fringe reaches η/2, not only blue's."""
+    scale_px, wavelengths = 3.0, (639e-9, 532e-9, 473e-9)
+    config = FitConfig(color="rgb", curvature=curvature)
+    bound = curvature_bound(torch.tensor([[scale_px, scale_px]], dtype=F64), config)[0]
+    np.testing.assert_allclose(bound.numpy(), [0.9 * w / (6 * scale_px * PITCH**2) for w in wavelengths],
+                               rtol=1e-12)
+    standard = measured_frequency(scale_px, bound.tolist(), "standard", 3 * scale_px, wavelengths)
+    np.testing.assert_allclose(standard, [0.45] * 3, rtol=1e-6)
+    shared = measured_frequency(scale_px, isotropic_bound(scale_px, "adaptive"), "standard", 3 * scale_px,
+                                wavelengths)
+    assert shared[0] < 0.75 * 0.45  # the shared bound leaves red at λ_min/λ_red of Nyquist's share
+    saturated = torch.full((1, 3) if curvature == "per-channel" else (1,), 40.0, dtype=F64)
+    raw = Gaussians(position=torch.zeros(1, 2, dtype=F64),
+                    scale=torch.tensor([[math.log(scale_px - 0.1)] * 2], dtype=F64),
+                    rotation=torch.zeros(1, dtype=F64), color=torch.ones(1, 3, dtype=F64),
+                    phase=torch.zeros(1, 3, dtype=F64), opacity=torch.zeros(1, dtype=F64), curvature=saturated)
+    np.testing.assert_allclose(activate(raw, config).curvature_per_m[0].numpy(), bound.numpy(), rtol=1e-12)
+
+
+def test_channel_bound_curvature_gives_every_channel_the_same_phase():
+    """One raw curvature times each channel's λ_c-proportional bound: k_c γ_c is the same for all c."""
+    config = FitConfig(width=24, height=18, color="rgb", curvature="channel-bound")
+    raw = init_gaussians(30, 3, 24, 18, seed=3)
+    raw.curvature = torch.linspace(-2.0, 2.0, 30)
+    raw.phase = torch.zeros(30, 3)
+    raw.color = torch.ones(30, 3)
+    hologram = render_hologram(raw, config)
+    np.testing.assert_allclose(hologram[0].numpy(), hologram[2].numpy(), rtol=1e-5, atol=1e-6)
+    shared = render_hologram(raw, config.replace(curvature="shared"))
+    assert not torch.allclose(shared[0], shared[2], atol=1e-3)
+
+
+@pytest.mark.parametrize("backend", ["torch", "numba"])
+def test_equal_per_channel_curvatures_render_as_one_shared_curvature(backend):
+    prims = random_prims(25, 20, 14, seed=8)
+    per_channel = with_curvature(prims, prims.curvature_per_m[:, None].expand(-1, 2).contiguous())
+    shared = rasterize(prims, 20, 14, WAVELENGTHS, PITCH, "mahalanobis", backend=backend)
+    separate = rasterize(per_channel, 20, 14, WAVELENGTHS, PITCH, "mahalanobis", backend=backend)
+    torch.testing.assert_close(separate, shared, rtol=0, atol=0)
+    different = with_curvature(prims, torch.stack([prims.curvature_per_m, -prims.curvature_per_m], dim=1))
+    bent = rasterize(different, 20, 14, WAVELENGTHS, PITCH, "mahalanobis", backend=backend)
+    torch.testing.assert_close(bent[0], shared[0], rtol=0, atol=0)
+    assert not torch.allclose(bent[1], shared[1], atol=1e-3)
 
 
 def test_neighbour_pixel_phase_difference_at_edge_below_half_cycle():
