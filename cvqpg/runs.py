@@ -97,11 +97,12 @@ def metrics_record(report: MetricReport, config: FitConfig, seconds: float,
             "seconds": seconds, **(extra or {})}
 
 
-def start_run(folder: str | Path, config: FitConfig, source: dict[str, Any]) -> Path:
-    """Create the run folder with its `config.json` (enough to resume); clear a previous run's outputs."""
+def start_run(folder: str | Path, config: FitConfig, source: dict[str, Any], keep_checkpoint: bool = False) -> Path:
+    """Create the run folder with its `config.json` (enough to resume); clear a previous run's outputs
+    (and its checkpoint, unless `keep_checkpoint`)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    for pattern in (METRICS_FILE, CHECKPOINT_FILE, MODEL_FILE, *PLANE_IMAGES):
+    for pattern in (METRICS_FILE, MODEL_FILE, *PLANE_IMAGES, *(() if keep_checkpoint else (CHECKPOINT_FILE,))):
         for stale in folder.glob(pattern):
             stale.unlink()
     write_json(folder / CONFIG_FILE, {"cvqpg_version": __version__, "source": source, **config.to_dict()})
@@ -115,8 +116,11 @@ def read_run(folder: str | Path) -> tuple[FitConfig, dict[str, Any]]:
 
 
 def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[str, Any]) -> Path:
-    """Save config, metrics, model, per-plane targets and reconstructions, hologram and curve."""
-    folder = start_run(folder, result.config, source)
+    """Save config, metrics, model, per-plane targets and reconstructions, hologram and curve.
+
+    The checkpoint goes only once `metrics.json`, the mark of a finished run, is written: a run
+    killed while its files are written resumes from the checkpoint instead of starting over."""
+    folder = start_run(folder, result.config, source, keep_checkpoint=True)
     config = result.config
     save_model(folder / MODEL_FILE, result.primitives, config)
     for plane, (target, image) in enumerate(zip(scene.targets, result.reconstructions)):
@@ -129,6 +133,7 @@ def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[
         result.metrics, config, result.seconds,
         {"updates": len(history), "initial_psnr": history[0] if history else None,
          "skipped_steps": result.skipped_steps, "sanitised_steps": result.sanitised_steps}))
+    (folder / CHECKPOINT_FILE).unlink(missing_ok=True)
     return folder
 
 

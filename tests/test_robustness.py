@@ -17,13 +17,14 @@ from PIL import Image
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from cvqpg import FitConfig
+from cvqpg import FitConfig, builtin_scene, fit
 from cvqpg.cli import main
 from cvqpg.fitting import initial_state, optimisation_step
 from cvqpg.optics import reconstruct
 from cvqpg.primitives import Gaussians, activate
 from cvqpg.rasterization import rasterize
-from cvqpg.targets import build_scene, prepare_depth
+from cvqpg.runs import write_run
+from cvqpg.targets import build_scene, load_scene, prepare_depth
 
 SMALL = ["--size", "48", "36", "--steps", "4", "--warmup", "1", "--quiet"]
 
@@ -297,3 +298,24 @@ def test_extreme_primitives_render_finite_fields_and_gradients(data, backend, qp
     recon.sum().backward()
     for name, leaf in raw.tensors().items():
         assert leaf.grad is not None and torch.isfinite(leaf.grad).all(), name
+
+
+def test_checkpoint_stays_until_the_finished_run_is_marked(tiny_config, tmp_path, monkeypatch):
+    """A run killed while its files are written must resume, not restart: the checkpoint goes last."""
+    builtin = builtin_scene("demo", tiny_config.width, tiny_config.height)
+    result = fit(builtin.image, builtin.depth, tiny_config, progress=False)
+    scene = load_scene(builtin.image, builtin.depth, tiny_config)
+    folder = tmp_path / "run"
+    folder.mkdir()
+    (folder / "checkpoint.pt").write_bytes(b"loop state")
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("cvqpg.runs.save_curve", killed)
+    with pytest.raises(KeyboardInterrupt):
+        write_run(folder, result, scene, {"scene": "demo"})
+    assert (folder / "checkpoint.pt").read_bytes() == b"loop state" and not (folder / "metrics.json").exists()
+    monkeypatch.undo()
+    write_run(folder, result, scene, {"scene": "demo"})
+    assert (folder / "metrics.json").is_file() and not (folder / "checkpoint.pt").exists()
