@@ -77,6 +77,37 @@ def slm_field(padded: Tensor) -> Tensor:
     return padded / torch.clamp(padded.abs(), min=1.0)
 
 
+class _GuardedField(torch.autograd.Function):
+    """`slm_field(pad_with_guard_band(hologram, grid))` with a backward over the content alone.
+
+    The guard band carries no gradient and the window is 1 on the content, so the gradient reaches
+    the hologram only through the content's `u = h / max(|h|, 1)`: the identity where |h| < 1, and
+    where the amplitude saturates, the projection onto the phase direction, `i·h·Im(h̄·g)/|h|³`.
+    Autograd through the composition would run its backward over the whole padded array, in several
+    passes; this is a third of a 640×480 field's forward+backward.
+    """
+
+    @staticmethod
+    def forward(ctx, hologram: Tensor, grid: Grid) -> Tensor:
+        ctx.save_for_backward(hologram)
+        ctx.grid = grid
+        return slm_field(pad_with_guard_band(hologram, grid))
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:
+        (hologram,) = ctx.saved_tensors
+        incoming = ctx.grid.crop(grad)
+        magnitude = hologram.abs()
+        normal = (hologram.real * incoming.imag - hologram.imag * incoming.real) / magnitude**3
+        projected = torch.complex(-hologram.imag * normal, hologram.real * normal)
+        return torch.where(magnitude >= 1.0, projected, incoming), None
+
+
+def guarded_field(hologram: Tensor, grid: Grid) -> Tensor:
+    """SLM field [C, P_H, P_W] of a hologram [C, H, W]: guard band, window and clamped amplitude (SPEC §3)."""
+    return _GuardedField.apply(hologram, grid)
+
+
 def transfer_function(rows: int, cols: int, pixel_pitch: float, wavelength: float, distance: float,
                       device: torch.device, centred: bool = True) -> Tensor:
     """BLASM transfer function [rows, cols] (complex64), exactly as odak 0.2.7 builds it.
@@ -181,11 +212,13 @@ class _ContentPropagation(torch.autograd.Function):
     """`grid.crop(propagate(field, ...))` with a hand-written adjoint, one channel at a time.
 
     Autograd through `propagate` keeps several M×C arrays of the doubled grid alive and allocates
-    as many again in the backward pass. Here the forward keeps only the H×W content of each plane,
-    and the backward is the same propagation with the conjugate transfer function (the adjoint of
-    a unitary-per-frequency filter), summed over planes in the spectrum so it needs one inverse
-    FFT per channel: the transform count of SPEC §3, nothing stored between the passes. Working
-    one channel at a time needs two doubled-grid buffers whatever the channel count.
+    as many again in the backward pass. Here the forward keeps only the H×W content of each plane.
+    The adjoint of the propagation is `ifft2(conj(T)·fft2(g))` summed over planes; it is computed
+    as `conj(fft2(Σ_m T_m·ifft2(conj(g_m))))`, the same number, so the transfer functions are never
+    conjugated (a conjugate would be materialised, a full array per plane and channel) and the sum
+    over planes needs one transform per channel: the transform count of SPEC §3. Transforms write
+    fresh arrays (`out=` would add a copy), and the zero padding is written once per pass, since
+    only its centre changes between channels and planes.
     """
 
     @staticmethod
@@ -193,16 +226,14 @@ class _ContentPropagation(torch.autograd.Function):
         channels, rows, cols = field.shape
         top, left = rows // 2 + grid.top, cols // 2 + grid.left
         content = field.new_empty(len(bank.distances), channels, grid.height, grid.width)
-        spectrum = field.new_empty(2 * rows, 2 * cols)
-        product = torch.empty_like(spectrum)
+        padded = field.new_zeros(2 * rows, 2 * cols)
         for channel in range(channels):
-            spectrum.zero_()
-            spectrum[rows // 2:rows // 2 + rows, cols // 2:cols // 2 + cols] = field[channel]
-            torch.fft.fft2(spectrum, out=spectrum)
+            padded[rows // 2:rows // 2 + rows, cols // 2:cols // 2 + cols] = field[channel]
+            spectrum = torch.fft.fft2(padded)
             for plane in range(len(bank.distances)):
-                torch.mul(spectrum, bank(plane, channel), out=product)
-                torch.fft.ifft2(product, out=product)
-                content[plane, channel] = product[top:top + grid.height, left:left + grid.width]
+                planes = torch.fft.ifft2(spectrum.mul_(bank(plane, channel)) if plane == len(bank.distances) - 1
+                                         else spectrum * bank(plane, channel))
+                content[plane, channel] = planes[top:top + grid.height, left:left + grid.width]
         ctx.grid, ctx.bank, ctx.field_shape = grid, bank, field.shape
         return content
 
@@ -212,17 +243,15 @@ class _ContentPropagation(torch.autograd.Function):
         channels, rows, cols = ctx.field_shape
         top, left = rows // 2 + grid.top, cols // 2 + grid.left
         grad_field = grad.new_empty(channels, rows, cols)
-        accumulated = grad.new_empty(2 * rows, 2 * cols)
-        scattered = torch.empty_like(accumulated)
+        scattered = grad.new_zeros(2 * rows, 2 * cols)
         for channel in range(channels):
-            accumulated.zero_()
+            accumulated = None
             for plane in range(len(bank.distances)):
-                scattered.zero_()
-                scattered[top:top + grid.height, left:left + grid.width] = grad[plane, channel]
-                torch.fft.fft2(scattered, out=scattered)
-                accumulated.addcmul_(scattered, bank(plane, channel).conj())
-            torch.fft.ifft2(accumulated, out=accumulated)
-            grad_field[channel] = accumulated[rows // 2:rows // 2 + rows, cols // 2:cols // 2 + cols]
+                scattered[top:top + grid.height, left:left + grid.width] = grad[plane, channel].conj()
+                filtered = torch.fft.ifft2(scattered).mul_(bank(plane, channel))
+                accumulated = filtered if accumulated is None else accumulated.add_(filtered)
+            spectrum = torch.fft.fft2(accumulated)
+            grad_field[channel] = spectrum[rows // 2:rows // 2 + rows, cols // 2:cols // 2 + cols].conj()
         return grad_field, None, None
 
 
@@ -236,7 +265,7 @@ def reconstruct(hologram: Tensor, config: FitConfig, distances_m: Sequence[float
     """Hologram [C, H, W] → reconstructed intensity [M, C, H, W] clamped to [0, 1] (SPEC §3), at
     `config`'s planes or at `distances_m` (m)."""
     grid = Grid.for_config(config)
-    field = slm_field(pad_with_guard_band(hologram, grid))
+    field = guarded_field(hologram, grid)
     distances = config.plane_distances if distances_m is None else tuple(distances_m)
     planes = propagate_content(field, grid, distances, config.wavelengths, config.pixel_pitch)
     return torch.clamp(planes.abs() ** 2, 0.0, 1.0)

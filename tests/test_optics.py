@@ -11,7 +11,7 @@ import torch
 
 from cvqpg.config import FitConfig
 from cvqpg import optics
-from cvqpg.optics import (Grid, guard_window, pad_with_guard_band, propagate, propagate_content, slm_field,
+from cvqpg.optics import (Grid, guard_window, guarded_field, pad_with_guard_band, propagate, propagate_content, slm_field,
                          transfer_function)
 
 CPU = torch.device("cpu")
@@ -304,6 +304,39 @@ def test_guard_band_passes_no_gradient_through_replicated_values():
     (padded.abs() ** 2).sum().backward()
     # only the content (window 1) contributes: d/dH* Σ|H|² = 2H
     assert torch.allclose(hologram.grad, 2 * hologram.detach(), rtol=0, atol=1e-12)
+
+
+def test_guarded_field_matches_autograd_through_the_composition():
+    """The fused field (hand-written backward over the content) against autograd through
+    `slm_field(pad_with_guard_band(·))`, with amplitudes on both sides of the clamp at 1."""
+    grid = small_grid()
+    generator = torch.Generator().manual_seed(8)
+    shape = (3, grid.height, grid.width)
+    hologram = torch.complex(torch.randn(shape, generator=generator, dtype=torch.float64),
+                             torch.randn(shape, generator=generator, dtype=torch.float64))
+    hologram[0, :2] = 0
+    magnitude = hologram.abs()
+    assert (magnitude > 1).float().mean() > 0.2 and (magnitude < 1).float().mean() > 0.2
+    weights = torch.complex(torch.randn(3, grid.padded_height, grid.padded_width, generator=generator,
+                                        dtype=torch.float64),
+                            torch.randn(3, grid.padded_height, grid.padded_width, generator=generator,
+                                        dtype=torch.float64))
+
+    def value_and_gradient(build):
+        leaf = hologram.clone().requires_grad_(True)
+        field = build(leaf)
+        ((field * weights.conj()).real.sum() + (field.abs() ** 2).sum()).backward()
+        return field.detach(), leaf.grad
+
+    fused, fused_grad = value_and_gradient(lambda h: guarded_field(h, grid))
+    reference, reference_grad = value_and_gradient(lambda h: slm_field(pad_with_guard_band(h, grid)))
+    assert torch.equal(fused, reference)
+    assert torch.allclose(fused_grad, reference_grad, rtol=1e-12, atol=1e-12)
+    assert torch.isfinite(fused_grad).all()
+    # finite differences see the replicated guard band move too, which by SPEC carries no gradient:
+    # they are taken on the content
+    assert torch.autograd.gradcheck(lambda h: grid.crop(guarded_field(h, grid)),
+                                    (hologram[:1].clone().requires_grad_(True),), fast_mode=True)
 
 
 # --------------------------------------------------------------------------- SLM field
