@@ -66,11 +66,11 @@ def _walk_start(A, B, C, dx0, dy0):
 
 
 @nb.njit(cache=True, nogil=True)
-def _half_row(leftward, z_row, s_right, s_left, s_step, cx, left, right):
-    """Start value, ratio and pixel range of the walk from column cx to the right or to the left."""
-    if leftward:
-        return z_row * s_left, s_left * s_step, cx - 1, left - 1, -1
-    return z_row, s_right, cx, right + 1, 1
+def _row_walks(z_row, s_right, s_left, s_step, cx, left, right):
+    """Both walks of a row, stepped together so that their two multiplication chains overlap: the
+    rightward one from column cx (value, ratio), the leftward one from cx − 1, and the step count
+    that covers [left, right] from there."""
+    return z_row, s_right, z_row * s_left, s_left * s_step, max(right + 1 - cx, cx - left)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -110,21 +110,21 @@ def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumb
         A, B, C = _exponent_coefficients(a, b, c, k_chirp, mahalanobis)
         amplitude = opacity[n] * color[n, ch] * cmath.exp(complex(0.0, phase[n, ch]))
         z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, dx0, dy0)
+        z_row *= amplitude
         for py in range(low, high + 1):
             dy = py - y0
             left, right = _column_span(x0, r, dy, width)
             row_re, row_im = out[0, ch, py], out[1, ch, py]
-            for leftward in (False, True):
-                z, s, start, stop, step = _half_row(leftward, z_row, s_right, s_left, s_step, cx, left, right)
-                for px in range(start, stop, step):
+            z_r, s_r, z_l, s_l, steps = _row_walks(z_row, s_right, s_left, s_step, cx, left, right)
+            for i in range(steps):
+                for px, z in ((cx + i, z_r), (cx - 1 - i, z_l)):
                     if left <= px <= right:
                         if not walk:
-                            z = _direct_value(A, B, C, px - x0, dy, a, b, c, mahalanobis, k_chirp)
-                        value = amplitude * z
-                        row_re[px] += value.real
-                        row_im[px] += value.imag
-                    z *= s
-                    s *= s_step
+                            z = amplitude * _direct_value(A, B, C, px - x0, dy, a, b, c, mahalanobis, k_chirp)
+                        row_re[px] += z.real
+                        row_im[px] += z.imag
+                z_r, s_r = z_r * s_r, s_r * s_step
+                z_l, s_l = z_l * s_l, s_l * s_step
             z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left)
 
 
@@ -181,9 +181,9 @@ def splat_backward(position, conic, reach, chirp, color, phase, opacity, wavenum
                 left, right = _column_span(x0, r, dy, width)
                 grad_re, grad_im = grad[0, ch, py], grad[1, ch, py]
                 t0 = t1 = t2 = u0 = u1 = u2 = 0.0
-                for leftward in (False, True):
-                    z, s, start, stop, step = _half_row(leftward, z_row, s_right, s_left, s_step, cx, left, right)
-                    for px in range(start, stop, step):
+                z_r, s_r, z_l, s_l, steps = _row_walks(z_row, s_right, s_left, s_step, cx, left, right)
+                for i in range(steps):
+                    for px, z in ((cx + i, z_r), (cx - 1 - i, z_l)):
                         if left <= px <= right:
                             dx = px - x0
                             if not walk:
@@ -196,8 +196,8 @@ def splat_backward(position, conic, reach, chirp, color, phase, opacity, wavenum
                             u0 += u
                             u1 += u * dx
                             u2 += u * dx * dx
-                        z *= s
-                        s *= s_step
+                    z_r, s_r = z_r * s_r, s_r * s_step
+                    z_l, s_l = z_l * s_l, s_l * s_step
                 z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left)
                 t00 += t0
                 t10 += t1
