@@ -1,12 +1,19 @@
-"""The multi-plane training loss (SPEC §6)."""
+"""The multi-plane training loss (SPEC §6).
+
+Two implementations of one formula. The reference (`--backend torch`, and CUDA) is plain PyTorch
+with pytorch-msssim's SSIM, differentiated by autograd. On the CPU the pixel-wise parts run as the
+fused kernels of `loss_kernels` behind two autograd Functions whose backward passes are written
+out; the tests hold them against the reference in value and gradient.
+"""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from pytorch_msssim import ssim
 from torch import Tensor
 
-from cvqpg.blur import gaussian_blur_valid
+from cvqpg.loss_kernels import blur_valid, blur_valid_adjoint, gaussian_taps, pixel_terms, ssim_maps
 from cvqpg.rasterization import resolve_backend
 
 SSIM_WINDOW_PX = 11
@@ -21,29 +28,76 @@ def noisy_targets(targets: Tensor, standard_normal: Tensor, level: float) -> Ten
     return targets + level * spread * standard_normal
 
 
+def _cpu_array(tensor: Tensor) -> np.ndarray:
+    return tensor.detach().cpu().contiguous().numpy()
+
+
+class _FusedSsim(torch.autograd.Function):
+    """SSIM per plane [M] of [M, C, H, W] images; differentiable in the reconstruction only (the
+    targets are constants of a fit). The backward pass is the chain rule through the blurred
+    moments: ∂SSIM/∂x = B*(∂S/∂μx) + 2x·B*(∂S/∂E[x²]) + y·B*(∂S/∂E[xy]), B* the adjoint blur."""
+
+    @staticmethod
+    def forward(ctx, recon: Tensor, targets: Tensor) -> Tensor:
+        planes, channels, height, width = recon.shape
+        moments = _cpu_array(torch.stack((recon, targets, recon * recon, targets * targets, recon * targets)))
+        taps = gaussian_taps(SSIM_WINDOW_PX, SSIM_SIGMA_PX).astype(moments.dtype)
+        blurred = blur_valid(moments.reshape(-1, height, width), taps)
+        blurred = blurred.reshape(5, planes * channels, *blurred.shape[-2:])
+        derivatives = np.empty((3, *blurred.shape[1:]), moments.dtype)
+        sums = ssim_maps(*blurred, SSIM_K1**2, SSIM_K2**2, *derivatives)
+        count = channels * blurred.shape[-2] * blurred.shape[-1]
+        ctx.derivatives, ctx.taps, ctx.count = derivatives, taps, count
+        ctx.save_for_backward(recon, targets)
+        return torch.from_numpy(sums.reshape(planes, channels).sum(axis=1) / count).to(recon.device, recon.dtype)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:
+        recon, targets = ctx.saved_tensors
+        planes, channels, height, width = recon.shape
+        per_image = np.repeat(_cpu_array(grad).astype(np.float64) / ctx.count, channels)
+        scaled = ctx.derivatives * per_image[None, :, None, None].astype(ctx.derivatives.dtype)
+        adjoint = blur_valid_adjoint(scaled.reshape(-1, *scaled.shape[-2:]), ctx.taps, height, width)
+        d_mean_x, d_mean_xx, d_mean_xy = torch.from_numpy(adjoint).to(recon.device).view(3, *recon.shape)
+        return d_mean_x + 2 * recon * d_mean_xx + targets * d_mean_xy, None
+
+
 def ssim_per_plane(recon: Tensor, targets: Tensor, backend: str = "auto") -> Tensor:
     """SSIM [M] of [M, C, H, W] images, Gaussian window 11 px, σ 1.5 px, data range 1.
 
-    Backend `torch` is pytorch-msssim, the reference. On the CPU (`auto`, `numba`) the same formula
-    runs on `blur.gaussian_blur_valid`: PyTorch's CPU convolutions made SSIM half of a grayscale
-    step. Images smaller than the window go to the reference, which then blurs only the long axis.
+    Backend `torch` is pytorch-msssim, the reference, differentiable in both arguments. On the CPU
+    (`auto`, `numba`) the fused kernels compute the same numbers, differentiable in `recon`. Images
+    smaller than the window go to the reference, which then blurs only the long axis.
     """
     if resolve_backend(backend, recon.device) == "torch" or min(recon.shape[-2:]) < SSIM_WINDOW_PX:
         # oneDNN's depthwise 1×11 convolutions cost 3× PyTorch's own on one channel.
         with torch.backends.mkldnn.flags(enabled=False, allow_tf32=None):
             return ssim(recon, targets, data_range=1.0, size_average=False,
                         win_size=SSIM_WINDOW_PX, win_sigma=SSIM_SIGMA_PX)
-    c1, c2 = SSIM_K1**2, SSIM_K2**2
-    mean_x, mean_xx, mean_xy = gaussian_blur_valid(
-        torch.stack((recon, recon * recon, recon * targets)), SSIM_WINDOW_PX, SSIM_SIGMA_PX)
-    mean_y, mean_yy = gaussian_blur_valid(
-        torch.stack((targets, targets * targets)), SSIM_WINDOW_PX, SSIM_SIGMA_PX)
-    mean_x_mean_y = mean_x * mean_y
-    mean_x2, mean_y2 = mean_x * mean_x, mean_y * mean_y
-    contrast_structure = (2 * (mean_xy - mean_x_mean_y) + c2) / (
-        (mean_xx - mean_x2) + (mean_yy - mean_y2) + c2)
-    luminance = (2 * mean_x_mean_y + c1) / (mean_x2 + mean_y2 + c1)
-    return (luminance * contrast_structure).flatten(1).mean(dim=1)
+    return _FusedSsim.apply(recon, targets)
+
+
+class _FusedPixelTerms(torch.autograd.Function):
+    """Per plane [M]: MSE(Î,T) + MSE(Î·Mask, T̃·Mask) + MSE(Î·T̃, T̃·T̃), and MSE(Î,T) alone (not
+    differentiated). The gradient is formed in the same pass as the value and scaled in backward."""
+
+    @staticmethod
+    def forward(ctx, recon: Tensor, targets: Tensor, noisy: Tensor, masks: Tensor) -> tuple[Tensor, Tensor]:
+        x = _cpu_array(recon)
+        gradient = np.empty_like(x)
+        sums = pixel_terms(x, _cpu_array(targets).astype(x.dtype, copy=False),
+                           _cpu_array(noisy).astype(x.dtype, copy=False),
+                           _cpu_array(masks).astype(x.dtype, copy=False), gradient)
+        count = x[0].size
+        ctx.gradient, ctx.count = gradient, count
+        values, mse = (torch.from_numpy(v / count).to(recon.device, recon.dtype) for v in (sums.sum(axis=1), sums[:, 0]))
+        ctx.mark_non_differentiable(mse)
+        return values, mse
+
+    @staticmethod
+    def backward(ctx, grad: Tensor, _: Tensor) -> tuple[Tensor, None, None, None]:
+        scale = (grad / ctx.count).view(-1, 1, 1, 1)
+        return torch.from_numpy(ctx.gradient).to(grad.device) * scale, None, None, None
 
 
 def multiplane_loss(recon: Tensor, targets: Tensor, masks: Tensor, noisy: Tensor,
@@ -52,12 +106,15 @@ def multiplane_loss(recon: Tensor, targets: Tensor, masks: Tensor, noisy: Tensor
 
     recon, targets, noisy: [M, C, H, W]; masks: [M, H, W]. Returns the loss and the plain
     per-plane MSE(Î, T) [M] (detached), from which progress PSNR is read at no extra cost. `backend`
-    picks the SSIM implementation, as it picks the rasterizer.
+    picks the reference or the fused CPU kernels, as it picks the rasterizer.
     """
+    structure = ssim_weight * (1 - ssim_per_plane(recon, targets, backend))
+    if resolve_backend(backend, recon.device) != "torch":
+        pixel, mse = _FusedPixelTerms.apply(recon, targets, noisy, masks)
+        return (pixel + structure).sum(), mse
     dims = (1, 2, 3)
     mask = masks[:, None]
     mse = ((recon - targets) ** 2).mean(dim=dims)
     masked = ((recon * mask - noisy * mask) ** 2).mean(dim=dims)
     correlation = ((recon * noisy - noisy * noisy) ** 2).mean(dim=dims)
-    structure = ssim_weight * (1 - ssim_per_plane(recon, targets, backend))
     return (mse + masked + correlation + structure).sum(), mse.detach()

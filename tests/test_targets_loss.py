@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 from pytorch_msssim import ssim as msssim_ssim
 
-from cvqpg.blur import gaussian_blur_valid, gaussian_taps
+from cvqpg.loss_kernels import blur_valid, blur_valid_adjoint, gaussian_taps
 from cvqpg.config import FitConfig
 from cvqpg.losses import multiplane_loss, noisy_targets, ssim_per_plane
 from cvqpg.targets import build_scene, defocus_targets, gaussian_kernel, plane_masks
@@ -256,15 +256,15 @@ def test_multiplane_loss_gradient_flows_to_reconstruction():
 def test_blur_kernel_matches_separable_convolution_and_its_adjoint():
     generator = torch.Generator().manual_seed(11)
     images = torch.rand(3, 17, 23, dtype=torch.float64, generator=generator)
-    taps = torch.from_numpy(gaussian_taps(11, 1.5))
-    expected = F.conv2d(F.conv2d(images[:, None], taps.view(1, 1, 1, 11)), taps.view(1, 1, 11, 1))[:, 0]
-    blurred = gaussian_blur_valid(images, 11, 1.5)
+    taps = gaussian_taps(11, 1.5)
+    kernel = torch.from_numpy(taps)
+    expected = F.conv2d(F.conv2d(images[:, None], kernel.view(1, 1, 1, 11)), kernel.view(1, 1, 11, 1))[:, 0]
+    blurred = blur_valid(images.numpy(), taps)
     assert blurred.shape == (3, 7, 13)
-    np.testing.assert_allclose(blurred.numpy(), expected.numpy(), rtol=0, atol=1e-14)
-    grad = torch.rand(blurred.shape, dtype=torch.float64, generator=generator)
-    leaf = images.clone().requires_grad_(True)
-    (adjoint,) = torch.autograd.grad(gaussian_blur_valid(leaf, 11, 1.5), leaf, grad)
-    assert float((blurred * grad).sum()) == pytest.approx(float((images * adjoint).sum()), rel=1e-13)
+    np.testing.assert_allclose(blurred, expected.numpy(), rtol=0, atol=1e-14)
+    grad = torch.rand(blurred.shape, dtype=torch.float64, generator=generator).numpy()
+    adjoint = blur_valid_adjoint(grad, taps, 17, 23)
+    assert float((blurred * grad).sum()) == pytest.approx(float((images.numpy() * adjoint).sum()), rel=1e-13)
 
 
 def test_fast_ssim_matches_pytorch_msssim_in_value_and_gradient():
@@ -285,8 +285,35 @@ def test_fast_ssim_matches_pytorch_msssim_in_value_and_gradient():
 def test_fast_ssim_gradient_matches_finite_differences():
     generator = torch.Generator().manual_seed(13)
     recon = torch.rand(2, 1, 13, 15, dtype=torch.float64, generator=generator, requires_grad=True)
-    targets = torch.rand(2, 1, 13, 15, dtype=torch.float64, generator=generator, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda x, y: ssim_per_plane(x, y, "numba"), (recon, targets))
+    targets = torch.rand(2, 1, 13, 15, dtype=torch.float64, generator=generator)
+    assert torch.autograd.gradcheck(lambda x: ssim_per_plane(x, targets, "numba"), (recon,))
+
+
+@pytest.mark.parametrize("seed", [15, 16])
+def test_fused_loss_matches_reference_in_value_and_gradient(seed):
+    """The CPU kernels' loss against the plain PyTorch formula with pytorch-msssim (backend torch)."""
+    recon, targets, masks, normal = loss_inputs(seed)
+    noisy = noisy_targets(targets, normal, 1e-3)
+    results = {}
+    for backend in ("numba", "torch"):
+        leaf = recon.clone().requires_grad_(True)
+        loss, mse = multiplane_loss(leaf, targets, masks, noisy, 0.5, backend)
+        (gradient,) = torch.autograd.grad(loss, leaf)
+        results[backend] = (loss.detach(), mse, gradient)
+    fused, reference = results["numba"], results["torch"]
+    assert float(fused[0]) == pytest.approx(float(reference[0]), rel=1e-5)
+    np.testing.assert_allclose(fused[1].numpy(), reference[1].numpy(), rtol=1e-5)
+    scale = float(reference[2].abs().max())
+    assert float((fused[2] - reference[2]).abs().max()) <= 1e-4 * scale
+
+
+def test_fused_loss_gradient_matches_finite_differences():
+    recon, targets, masks, normal = (t.double() for t in loss_inputs(17))
+    noisy = noisy_targets(targets, normal, 1e-3)
+    leaf = recon[:, :, :13, :14].clone().requires_grad_(True)
+    crop = (targets[:, :, :13, :14], masks[:, :13, :14], noisy[:, :, :13, :14])
+    assert torch.autograd.gradcheck(lambda x: multiplane_loss(x, crop[0], crop[1], crop[2], 0.5, "numba")[0],
+                                    (leaf,))
 
 
 def test_ssim_of_images_narrower_than_the_window_uses_the_reference():
@@ -297,5 +324,3 @@ def test_ssim_of_images_narrower_than_the_window_uses_the_reference():
         reference = msssim_ssim(recon, targets, data_range=1.0, size_average=False, win_size=11,
                                 win_sigma=1.5)
     np.testing.assert_allclose(fast.numpy(), reference.numpy(), rtol=1e-6)
-    with pytest.raises(ValueError, match="smaller than the 11-px blur window"):
-        gaussian_blur_valid(recon, 11, 1.5)
