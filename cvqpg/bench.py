@@ -28,6 +28,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from .allocator import keep_freed_memory
 from .config import FitConfig
 from .fitting import CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes, fit_scene, state_from_payload
 from .metrics import radial_error_spectrum
@@ -415,11 +416,13 @@ def limit_threads(threads: int) -> None:
 
 
 def _init_worker(threads: int, stop_event: Any) -> None:
-    """Pool worker set-up: its share of the cores, and signals left to the parent, which relays a stop."""
+    """Pool worker set-up: its share of the cores, the allocator setting of the command line (a
+    spawned process does not inherit it), and signals left to the parent, which relays a stop."""
     global _worker_stop
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     limit_threads(threads)
+    keep_freed_memory()
     _worker_stop = stop_event
 
 
