@@ -231,9 +231,9 @@ class _ContentPropagation(torch.autograd.Function):
             padded[rows // 2:rows // 2 + rows, cols // 2:cols // 2 + cols] = field[channel]
             spectrum = torch.fft.fft2(padded)
             for plane in range(len(bank.distances)):
-                planes = torch.fft.ifft2(spectrum.mul_(bank(plane, channel)) if plane == len(bank.distances) - 1
-                                         else spectrum * bank(plane, channel))
-                content[plane, channel] = planes[top:top + grid.height, left:left + grid.width]
+                last = plane == len(bank.distances) - 1  # the last plane may filter the spectrum in place
+                filtered = spectrum.mul_(bank(plane, channel)) if last else spectrum * bank(plane, channel)
+                content[plane, channel] = torch.fft.ifft2(filtered)[top:top + grid.height, left:left + grid.width]
         ctx.grid, ctx.bank, ctx.field_shape = grid, bank, field.shape
         return content
 

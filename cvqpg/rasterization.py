@@ -140,6 +140,12 @@ def locality_order(position_px: Tensor, width: int) -> Tensor:
     return torch.argsort(band * (4 * width) + column)
 
 
+def _in_caller_order(values: np.ndarray, order: Tensor) -> Tensor:
+    """Rows given in `order` ([N, ...], row i belongs to primitive order[i]) back in primitive order."""
+    ordered = torch.from_numpy(values)
+    return torch.empty_like(ordered).index_copy_(0, order, ordered)
+
+
 class _FusedSplat(torch.autograd.Function):
     """The Numba kernels behind one autograd boundary: real/imag planes [2, C, H, W].
 
@@ -169,8 +175,7 @@ class _FusedSplat(torch.autograd.Function):
         kernels.splat_backward(*ctx.arrays, ctx.wavenumbers, ctx.mahalanobis,
                                grad.detach().to("cpu", torch.float32).contiguous().numpy(), *grads)
         g_position, g_conic, g_chirp, g_color, g_phase, g_opacity = (
-            torch.from_numpy(g).new_empty(g.shape).index_copy_(0, ctx.order, torch.from_numpy(g))
-            .to(device=ctx.device, dtype=ctx.dtype) for g in grads)
+            _in_caller_order(g, ctx.order).to(device=ctx.device, dtype=ctx.dtype) for g in grads)
         return (g_position, g_conic, None, g_chirp, g_color, g_phase, g_opacity, None, None, None, None)
 
 
