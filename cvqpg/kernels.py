@@ -7,16 +7,20 @@ is its neighbour's times a ratio that itself changes by a constant factor, and t
 row to row along the primitive's centre column. The kernels walk the footprint outwards from that
 column with complex multiplications only, a few exact exponentials per primitive and channel.
 
-The walk leaves out SPEC's floor of −50 on the exponent (values below e⁻⁵⁰ ≈ 2e-22 of the
-amplitude, invisible in float32). Primitives so elongated that the exponent inside the footprint
-could leave float64's range for such products (D² > 600) are evaluated pixel by pixel instead,
-with the floor. The forward pass gives each thread its own slice of primitives and its own output
-buffer, summed in a fixed order, so results do not depend on scheduling. The backward pass gives
-each thread whole primitives. Arithmetic is float64 inside, float32 in the arrays.
+The kernels leave out the pixels where SPEC's floor of −50 on the envelope exponent applies
+(D² > 100: values below e⁻⁵⁰ ≈ 2e-22 of the amplitude, invisible in float32), so each row's span is
+the 3σ circle cut to the band where D² ≤ 100; for elongated primitives that is most of the circle.
+Primitives so elongated that a walk down the centre column could leave float64's range (D² > 600
+inside the footprint) start each row instead at its own envelope maximum with exact values, three
+exponentials per row, and walk outwards from there, where values only decrease. The forward pass
+gives each thread its own slice of primitives and its own output buffer, summed in a fixed order, so
+results do not depend on scheduling; the backward pass gives each thread the same slice, and each
+primitive's gradients are written by that thread alone. Arithmetic is float64 inside, float32 in the
+arrays.
 
 Both kernels compile with fast-math, which lets LLVM drop the infinity and NaN recovery of complex
 products (a fifth of the backward pass). That is safe here: a walk state that overflows belongs to
-a primitive evaluated pixel by pixel, and is never read.
+a primitive whose rows start from exact values, and is never read.
 """
 
 from __future__ import annotations
@@ -27,19 +31,26 @@ import math
 import numba as nb
 import numpy as np
 
-EXPONENT_FLOOR = -50.0
+FLOOR_MAHALANOBIS2 = 100.0  # D² where the envelope exponent −½D² reaches SPEC's floor of −50
 MAX_WALKED_MAHALANOBIS2 = 600.0
 
 
 @nb.njit(cache=True, nogil=True)
-def _row_span(center_y: float, reach: float, height: int) -> tuple[int, int]:
-    return max(0, math.ceil(center_y - reach)), min(height - 1, math.floor(center_y + reach))
+def _row_span(center_y, reach, a, b, c, height):
+    """Rows of the footprint: the 3σ circle's, within the band |dy| ≤ 10·√Σ_yy where D² ≤ 100 can hold."""
+    determinant = a * c - b * b
+    half = reach if determinant <= 0.0 else min(reach, math.sqrt(FLOOR_MAHALANOBIS2 * a / determinant))
+    return max(0, math.ceil(center_y - half)), min(height - 1, math.floor(center_y + half))
 
 
 @nb.njit(cache=True, nogil=True)
-def _column_span(center_x: float, reach: float, dy: float, width: int) -> tuple[int, int]:
-    half = math.sqrt(max(reach * reach - dy * dy, 0.0))
-    return max(0, math.ceil(center_x - half)), min(width - 1, math.floor(center_x + half))
+def _column_span(center_x, reach, dy, a, b, c, width):
+    """Columns of row dy (px from the centre) inside the 3σ circle where D² ≤ 100 (empty: left > right)."""
+    circle = math.sqrt(max(reach * reach - dy * dy, 0.0))
+    ridge = -b * dy / a  # the row's envelope maximum, relative to the centre
+    band = math.sqrt(max(FLOOR_MAHALANOBIS2 * a - dy * dy * (a * c - b * b), 0.0)) / a
+    return (max(0, math.ceil(center_x + max(-circle, ridge - band))),
+            min(width - 1, math.floor(center_x + min(circle, ridge + band))))
 
 
 @nb.njit(cache=True, nogil=True)
@@ -59,22 +70,38 @@ def _walkable(a, b, c, reach):
 
 
 @nb.njit(cache=True, nogil=True)
+def _exact_at(A, B, C, dx, dy):
+    """exp(E) at offset (dx, dy), and the ratios to its right and left neighbours."""
+    return (cmath.exp(A * dx * dx + 2.0 * B * dx * dy + C * dy * dy),
+            cmath.exp(A * (2.0 * dx + 1.0) + 2.0 * B * dy), cmath.exp(A * (1.0 - 2.0 * dx) - 2.0 * B * dy))
+
+
+@nb.njit(cache=True, nogil=True)
 def _walk_start(A, B, C, dx0, dy0):
     """Exact values at the walk's start (column dx0, first row dy0): exp(E), the vertical ratio and
     its change, the rightward and leftward ratios, their changes per row (right, left) and per step."""
-    e0 = A * dx0 * dx0 + 2.0 * B * dx0 * dy0 + C * dy0 * dy0
-    return (cmath.exp(e0),
-            cmath.exp(2.0 * B * dx0 + C * (2.0 * dy0 + 1.0)), cmath.exp(2.0 * C),
-            cmath.exp(A * (2.0 * dx0 + 1.0) + 2.0 * B * dy0), cmath.exp(A * (1.0 - 2.0 * dx0) - 2.0 * B * dy0),
+    z0, s_right, s_left = _exact_at(A, B, C, dx0, dy0)
+    return (z0, cmath.exp(2.0 * B * dx0 + C * (2.0 * dy0 + 1.0)), cmath.exp(2.0 * C), s_right, s_left,
             cmath.exp(2.0 * B), cmath.exp(-2.0 * B), cmath.exp(2.0 * A))
 
 
 @nb.njit(cache=True, nogil=True)
-def _row_walks(z_row, s_right, s_left, s_step, cx, left, right):
-    """Both walks of a row, stepped together so that their two multiplication chains overlap: the
-    rightward one from column cx (value, ratio), the leftward one from cx − 1, and the step count
-    that covers [left, right] from there."""
-    return z_row, s_right, z_row * s_left, s_left * s_step, max(right + 1 - cx, cx - left)
+def _row_walks(walk, A, B, C, scale, z_row, s_right, s_left, s_step, x0, dy, cx, ridge_slope, left, right):
+    """Both walks of a row, stepped together so that their two multiplication chains overlap.
+
+    Returns the start column, the rightward walk's value and ratio there, the leftward walk's one
+    column to the left, and the step count that covers [left, right]. A walked primitive starts at
+    its centre column with the state carried down from the row above; any other starts at the row's
+    envelope maximum (clamped to the span) from exact values, times `scale`.
+    """
+    if walk:
+        start = cx
+    else:
+        start = min(max(round(x0 + ridge_slope * dy), left), right)
+        z_row, s_right, s_left = _exact_at(A, B, C, start - x0, dy)
+        z_row *= scale
+    steps = max(right + 1 - start, start - left) if left <= right else 0
+    return start, z_row, s_right, z_row * s_left, s_left * s_step, steps
 
 
 @nb.njit(cache=True, nogil=True)
@@ -85,27 +112,19 @@ def _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left):
 
 
 @nb.njit(cache=True, nogil=True)
-def _direct_value(A, B, C, dx, dy, a, b, c, mahalanobis, k_chirp):
-    """exp(E) at one pixel with the −50 floor on the envelope's exponent (the slow, exact path)."""
-    mahalanobis2 = a * dx * dx + 2.0 * b * dx * dy + c * dy * dy
-    path = k_chirp * (mahalanobis2 if mahalanobis else dx * dx + dy * dy)
-    return math.exp(max(-0.5 * mahalanobis2, EXPONENT_FLOOR)) * cmath.exp(complex(0.0, path))
-
-
-@nb.njit(cache=True, nogil=True)
 def _chirp_slot(channel, chirp):
     """Column of `chirp` [N, 1 or C] that channel uses: one shared curvature, or its own."""
     return min(channel, chirp.shape[1] - 1)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, fastmath=True)
 def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, out):
     channels, height, width = out.shape[1], out.shape[2], out.shape[3]
     x0, y0, r = np.float64(position[n, 0]), np.float64(position[n, 1]), np.float64(reach[n])
     if x0 + r < 0 or x0 - r > width - 1:
         return
     a, b, c = np.float64(conic[n, 0]), np.float64(conic[n, 1]), np.float64(conic[n, 2])
-    low, high = _row_span(y0, r, height)
+    low, high = _row_span(y0, r, a, b, c, height)
     walk = _walkable(a, b, c, r)
     cx = round(x0)
     dx0, dy0 = cx - x0, low - y0
@@ -117,14 +136,13 @@ def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumb
         z_row *= amplitude
         for py in range(low, high + 1):
             dy = py - y0
-            left, right = _column_span(x0, r, dy, width)
+            left, right = _column_span(x0, r, dy, a, b, c, width)
             row_re, row_im = out[0, ch, py], out[1, ch, py]
-            z_r, s_r, z_l, s_l, steps = _row_walks(z_row, s_right, s_left, s_step, cx, left, right)
+            start, z_r, s_r, z_l, s_l, steps = _row_walks(walk, A, B, C, amplitude, z_row, s_right, s_left,
+                                                          s_step, x0, dy, cx, -b / a, left, right)
             for i in range(steps):
-                for px, z in ((cx + i, z_r), (cx - 1 - i, z_l)):
+                for px, z in ((start + i, z_r), (start - 1 - i, z_l)):
                     if left <= px <= right:
-                        if not walk:
-                            z = amplitude * _direct_value(A, B, C, px - x0, dy, a, b, c, mahalanobis, k_chirp)
                         row_re[px] += z.real
                         row_im[px] += z.imag
                 z_r, s_r = z_r * s_r, s_r * s_step
@@ -145,10 +163,96 @@ def splat_forward(position, conic, reach, chirp, color, phase, opacity, wavenumb
                        partial[t])
 
 
+@nb.njit(cache=True, nogil=True, fastmath=True)
+def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
+                      grad, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity):
+    channels, height, width = grad.shape[1], grad.shape[2], grad.shape[3]
+    x0, y0, r = np.float64(position[n, 0]), np.float64(position[n, 1]), np.float64(reach[n])
+    if x0 + r < 0 or x0 - r > width - 1:
+        return
+    a, b, c = np.float64(conic[n, 0]), np.float64(conic[n, 1]), np.float64(conic[n, 2])
+    alpha = np.float64(opacity[n])
+    low, high = _row_span(y0, r, a, b, c, height)
+    walk = _walkable(a, b, c, r)
+    cx = round(x0)
+    dx0, dy0 = cx - x0, low - y0
+    g_alpha = ga = gb = gc = gx = gy = 0.0
+    for ch in range(channels):
+        k, color_c = wavenumbers[ch], np.float64(color[n, ch])
+        slot = _chirp_slot(ch, chirp)
+        k_chirp = k * np.float64(chirp[n, slot])
+        A, B, C = _exponent_coefficients(a, b, c, k_chirp, mahalanobis)
+        rotation = cmath.exp(complex(0.0, phase[n, ch]))
+        z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, dx0, dy0)
+        z_row *= rotation
+        t00 = t10 = t20 = t01 = t11 = t02 = 0.0
+        u00 = u10 = u20 = u01 = u11 = u02 = 0.0
+        for py in range(low, high + 1):
+            dy = py - y0
+            left, right = _column_span(x0, r, dy, a, b, c, width)
+            grad_re, grad_im = grad[0, ch, py], grad[1, ch, py]
+            t0 = t1 = t2 = u0 = u1 = u2 = 0.0
+            start, z_r, s_r, z_l, s_l, steps = _row_walks(walk, A, B, C, rotation, z_row, s_right, s_left,
+                                                          s_step, x0, dy, cx, -b / a, left, right)
+            for i in range(steps):
+                for px, z in ((start + i, z_r), (start - 1 - i, z_l)):
+                    if left <= px <= right:
+                        dx = px - x0
+                        t = grad_re[px] * z.real + grad_im[px] * z.imag
+                        u = grad_im[px] * z.real - grad_re[px] * z.imag
+                        t0 += t
+                        t1 += t * dx
+                        t2 += t * dx * dx
+                        u0 += u
+                        u1 += u * dx
+                        u2 += u * dx * dx
+                z_r, s_r = z_r * s_r, s_r * s_step
+                z_l, s_l = z_l * s_l, s_l * s_step
+            z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left)
+            t00 += t0
+            t10 += t1
+            t20 += t2
+            t01 += t0 * dy
+            t11 += t1 * dy
+            t02 += t0 * dy * dy
+            u00 += u0
+            u10 += u1
+            u20 += u2
+            u01 += u0 * dy
+            u11 += u1 * dy
+            u02 += u0 * dy * dy
+        scale = alpha * color_c
+        g_color[n, ch] = alpha * t00
+        g_phase[n, ch] = scale * u00
+        g_alpha += color_c * t00
+        if mahalanobis:  # D² carries both the envelope (−½) and the phase (k χ)
+            w = -0.5 * scale
+            q = scale * k_chirp
+            m20, m11, m02 = w * t20 + q * u20, w * t11 + q * u11, w * t02 + q * u02
+            m10, m01 = w * t10 + q * u10, w * t01 + q * u01
+            g_chirp[n, slot] += scale * k * (a * u20 + 2.0 * b * u11 + c * u02)
+            rx = ry = 0.0
+        else:  # D² carries the envelope, |p − x|² the phase
+            w = -0.5 * scale
+            m20, m11, m02, m10, m01 = w * t20, w * t11, w * t02, w * t10, w * t01
+            g_chirp[n, slot] += scale * k * (u20 + u02)
+            rx, ry = scale * k_chirp * u10, scale * k_chirp * u01
+        ga += m20
+        gb += 2.0 * m11
+        gc += m02
+        gx -= 2.0 * (a * m10 + b * m01 + rx)
+        gy -= 2.0 * (b * m10 + c * m01 + ry)
+    g_opacity[n] = g_alpha
+    g_conic[n, 0], g_conic[n, 1], g_conic[n, 2] = ga, gb, gc
+    g_position[n, 0], g_position[n, 1] = gx, gy
+
+
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def splat_backward(position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                   grad, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity):
+                   grad, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, threads):
     """Gradients (float64, each row written by its own primitive only) from grad[0|1, c, y, x].
+
+    Thread t of `threads` takes primitives t, t+T, t+2T, ..., as in the forward pass.
 
     The gradient arrays start at zero: channels sharing a curvature add into the same `g_chirp` slot.
 
@@ -158,84 +262,7 @@ def splat_backward(position, conic, reach, chirp, color, phase, opacity, wavenum
     which become gradients once per primitive and channel. (The −50 floor's zero gradient is
     not reproduced: it concerns values below e⁻⁵⁰.)
     """
-    channels, height, width = grad.shape[1], grad.shape[2], grad.shape[3]
-    for n in nb.prange(position.shape[0]):
-        x0, y0, r = np.float64(position[n, 0]), np.float64(position[n, 1]), np.float64(reach[n])
-        if x0 + r < 0 or x0 - r > width - 1:
-            continue
-        a, b, c = np.float64(conic[n, 0]), np.float64(conic[n, 1]), np.float64(conic[n, 2])
-        alpha = np.float64(opacity[n])
-        low, high = _row_span(y0, r, height)
-        walk = _walkable(a, b, c, r)
-        cx = round(x0)
-        dx0, dy0 = cx - x0, low - y0
-        g_alpha = ga = gb = gc = gx = gy = 0.0
-        for ch in range(channels):
-            k, color_c = wavenumbers[ch], np.float64(color[n, ch])
-            slot = _chirp_slot(ch, chirp)
-            k_chirp = k * np.float64(chirp[n, slot])
-            A, B, C = _exponent_coefficients(a, b, c, k_chirp, mahalanobis)
-            rotation = cmath.exp(complex(0.0, phase[n, ch]))
-            z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, dx0, dy0)
-            z_row *= rotation
-            t00 = t10 = t20 = t01 = t11 = t02 = 0.0
-            u00 = u10 = u20 = u01 = u11 = u02 = 0.0
-            for py in range(low, high + 1):
-                dy = py - y0
-                left, right = _column_span(x0, r, dy, width)
-                grad_re, grad_im = grad[0, ch, py], grad[1, ch, py]
-                t0 = t1 = t2 = u0 = u1 = u2 = 0.0
-                z_r, s_r, z_l, s_l, steps = _row_walks(z_row, s_right, s_left, s_step, cx, left, right)
-                for i in range(steps):
-                    for px, z in ((cx + i, z_r), (cx - 1 - i, z_l)):
-                        if left <= px <= right:
-                            dx = px - x0
-                            if not walk:
-                                z = rotation * _direct_value(A, B, C, dx, dy, a, b, c, mahalanobis, k_chirp)
-                            t = grad_re[px] * z.real + grad_im[px] * z.imag
-                            u = grad_im[px] * z.real - grad_re[px] * z.imag
-                            t0 += t
-                            t1 += t * dx
-                            t2 += t * dx * dx
-                            u0 += u
-                            u1 += u * dx
-                            u2 += u * dx * dx
-                    z_r, s_r = z_r * s_r, s_r * s_step
-                    z_l, s_l = z_l * s_l, s_l * s_step
-                z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left)
-                t00 += t0
-                t10 += t1
-                t20 += t2
-                t01 += t0 * dy
-                t11 += t1 * dy
-                t02 += t0 * dy * dy
-                u00 += u0
-                u10 += u1
-                u20 += u2
-                u01 += u0 * dy
-                u11 += u1 * dy
-                u02 += u0 * dy * dy
-            scale = alpha * color_c
-            g_color[n, ch] = alpha * t00
-            g_phase[n, ch] = scale * u00
-            g_alpha += color_c * t00
-            if mahalanobis:  # D² carries both the envelope (−½) and the phase (k χ)
-                w = -0.5 * scale
-                q = scale * k_chirp
-                m20, m11, m02 = w * t20 + q * u20, w * t11 + q * u11, w * t02 + q * u02
-                m10, m01 = w * t10 + q * u10, w * t01 + q * u01
-                g_chirp[n, slot] += scale * k * (a * u20 + 2.0 * b * u11 + c * u02)
-                rx = ry = 0.0
-            else:  # D² carries the envelope, |p − x|² the phase
-                w = -0.5 * scale
-                m20, m11, m02, m10, m01 = w * t20, w * t11, w * t02, w * t10, w * t01
-                g_chirp[n, slot] += scale * k * (u20 + u02)
-                rx, ry = scale * k_chirp * u10, scale * k_chirp * u01
-            ga += m20
-            gb += 2.0 * m11
-            gc += m02
-            gx -= 2.0 * (a * m10 + b * m01 + rx)
-            gy -= 2.0 * (b * m10 + c * m01 + ry)
-        g_opacity[n] = g_alpha
-        g_conic[n, 0], g_conic[n, 1], g_conic[n, 2] = ga, gb, gc
-        g_position[n, 0], g_position[n, 1] = gx, gy
+    for t in nb.prange(threads):
+        for n in range(t, position.shape[0], threads):
+            _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
+                              grad, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity)

@@ -173,7 +173,8 @@ class _FusedSplat(torch.autograd.Function):
         position, conic, _, chirp, color, phase, opacity = ctx.arrays
         grads = tuple(np.zeros(a.shape, np.float64) for a in (position, conic, chirp, color, phase, opacity))
         kernels.splat_backward(*ctx.arrays, ctx.wavenumbers, ctx.mahalanobis,
-                               grad.detach().to("cpu", torch.float32).contiguous().numpy(), *grads)
+                               grad.detach().to("cpu", torch.float32).contiguous().numpy(), *grads,
+                               numba.get_num_threads())
         g_position, g_conic, g_chirp, g_color, g_phase, g_opacity = (
             _in_caller_order(g, ctx.order).to(device=ctx.device, dtype=ctx.dtype) for g in grads)
         return (g_position, g_conic, None, g_chirp, g_color, g_phase, g_opacity, None, None, None, None)

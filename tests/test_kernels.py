@@ -66,6 +66,28 @@ def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primiti
         assert relative(got, want) < 1e-4, name
 
 
+@pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
+def test_needles_walked_from_each_rows_maximum_match_reference(qpf):
+    """Primitives too elongated for the centre-column walk (aspect 10 to 60, every orientation,
+    curved) start each row from exact values at its envelope maximum; alone, they must still agree."""
+    config = FitConfig(width=WIDTH, height=HEIGHT, qpf=qpf)
+    raw = random_gaussians(24, 3, seed=4)
+    aspect = torch.linspace(math.log(10.0), math.log(60.0), 24, dtype=torch.float64)
+    raw.scale = torch.stack([torch.full_like(aspect, 2.5), 2.5 - aspect], dim=1)
+    raw.rotation = torch.linspace(0.0, math.pi, 24, dtype=torch.float64)
+    s = splats(activate(raw, config), config.pixel_pitch, qpf)
+    a, b, c = s.conic.unbind(1)
+    largest_inverse_eigenvalue = 0.5 * (a + c) + torch.sqrt(0.25 * (a - c) ** 2 + b * b)
+    assert (s.reach_px**2 * largest_inverse_eigenvalue > 600).all()  # none of them is walked by column
+    k = wavenumbers_for(config.wavelengths)
+    expected, expected_grads = outputs_and_gradients(splat_reference, s, k)
+    actual, actual_grads = outputs_and_gradients(splat_fused, s, k)
+    assert relative(actual, expected) < 1e-4
+    for name, got, want in zip(["position", "conic", "chirp", "amplitude", "phase", "opacity"], actual_grads,
+                               expected_grads):
+        assert relative(got, want) < 1e-4, name
+
+
 @pytest.mark.parametrize("curvature", ["shared", "per-channel", "channel-bound"])
 def test_parameter_gradients_through_activations_match(curvature):
     config = FitConfig(width=WIDTH, height=HEIGHT, curvature=curvature)
