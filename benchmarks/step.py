@@ -1,7 +1,12 @@
 """Cost of one fitting step at 640×480, by stage, against the FFT floor, measured side by side.
 
-    python benchmarks/step.py            # RGB 20% and grayscale 10%, ~5 minutes on 2 cores
-    python benchmarks/step.py --quick    # smaller, for a smoke test
+    python benchmarks/step.py                        # RGB 20% and grayscale 10%, ~5 minutes on 2 cores
+    python benchmarks/step.py --quick                # smaller, for a smoke test
+    python benchmarks/step.py --model runs/bento     # the primitives of a fitted model instead
+
+Primitives at initialisation are small and round, with zero curvature; a fitted model's are not (a
+few grow to hundreds of pixels, some become needles, curvatures spread), and its rasterizer costs
+more. `--model` measures a step of that model's configuration on its own primitives.
 
 The floor is the Fourier transforms that BLASM propagation cannot avoid, timed alone in the same
 process on the same grid: per step one forward FFT per channel and one inverse per channel and
@@ -26,8 +31,13 @@ from cvqpg.allocator import keep_freed_memory
 from cvqpg.fitting import apply_gradients, initial_state, optimisation_step, render_hologram
 from cvqpg.losses import multiplane_loss, noisy_targets
 from cvqpg.optics import Grid, reconstruct
+from cvqpg.primitives import MIN_SCALE_PX, Gaussians, Primitives, curvature_bound
+from cvqpg.runs import model_path
 from cvqpg.scenes import builtin_scene
+from cvqpg.storage import load_model
 from cvqpg.targets import load_scene
+
+OPEN_INTERVAL_MARGIN = 1e-6  # keeps atanh and logit finite at saturated values
 
 
 def median_seconds(action: Callable[[], object], repeats: int) -> float:
@@ -42,28 +52,62 @@ def median_seconds(action: Callable[[], object], repeats: int) -> float:
 
 def fft_floor(config: FitConfig, repeats: int) -> tuple[float, float]:
     """Seconds of a step's transforms alone, and of the transforms with the transfer-function products
-    that a library FFT cannot fold into its passes (one per plane and channel, forward and backward)."""
+    that a library FFT cannot fold into its passes (one per plane and channel, forward and backward).
+
+    Each is timed batched over channels and planes and one array at a time, and the faster counts:
+    which one wins depends on the machine's caches (here a single 1536×1920 transform takes about
+    half the time per array of a batch of three).
+    """
     grid = Grid.for_config(config)
     shape = (config.channels, 2 * grid.padded_height, 2 * grid.padded_width)
     field = torch.randn(shape, dtype=torch.complex64)
     spectra = torch.randn((config.num_planes, *shape), dtype=torch.complex64)
     transfer = torch.randn((config.num_planes, *shape), dtype=torch.complex64)
 
-    def transforms():
+    def batched():
         torch.fft.fft2(field)
         torch.fft.ifft2(spectra)
 
-    def products():
+    def one_at_a_time():
+        for channel in range(config.channels):
+            torch.fft.fft2(field[channel])
+            for plane in range(config.num_planes):
+                torch.fft.ifft2(spectra[plane, channel])
+
+    def products_batched():
         torch.mul(spectra, transfer)
 
-    fft = 2 * median_seconds(transforms, repeats)
-    return fft, fft + 2 * median_seconds(products, repeats)
+    def products_one_at_a_time():
+        for plane in range(config.num_planes):
+            for channel in range(config.channels):
+                torch.mul(spectra[plane, channel], transfer[plane, channel])
+
+    fft = 2 * min(median_seconds(batched, repeats), median_seconds(one_at_a_time, repeats))
+    products = 2 * min(median_seconds(products_batched, repeats), median_seconds(products_one_at_a_time, repeats))
+    return fft, fft + products
 
 
-def stage_times(config: FitConfig, repeats: int) -> dict[str, float]:
+def load_raw_parameters(gaussians: Gaussians, primitives: Primitives, config: FitConfig) -> None:
+    """Set raw parameters so that they activate to `primitives` (SPEC §2's activations inverted)."""
+    inside = 1 - OPEN_INTERVAL_MARGIN
+    extent = torch.tensor([config.width, config.height], dtype=primitives.position_px.dtype)
+    share = primitives.curvature_per_m / curvature_bound(primitives.scale_px, config)
+    with torch.no_grad():
+        gaussians.position.copy_(torch.atanh((2 * primitives.position_px / extent - 1).clamp(-inside, inside)))
+        gaussians.scale.copy_(torch.log((primitives.scale_px - MIN_SCALE_PX).clamp(min=OPEN_INTERVAL_MARGIN)))
+        gaussians.rotation.copy_(primitives.rotation_rad)
+        gaussians.color.copy_(primitives.amplitude)
+        gaussians.phase.copy_(primitives.phase_rad)
+        gaussians.opacity.copy_(torch.logit(primitives.opacity, eps=OPEN_INTERVAL_MARGIN))
+        gaussians.curvature.copy_(torch.atanh(share.clamp(-inside, inside)).view_as(gaussians.curvature))
+
+
+def stage_times(config: FitConfig, repeats: int, primitives: Primitives | None = None) -> dict[str, float]:
     builtin = builtin_scene("demo", config.width, config.height)
     scene = load_scene(builtin.image, builtin.depth, config)
     state = initial_state(config)
+    if primitives is not None:
+        load_raw_parameters(state.gaussians, primitives, config)
     state.step = config.warmup + 1
     gaussians, optimizer, generator = state.gaussians, state.optimizer, state.generator
     hologram_grad = torch.randn(config.channels, config.height, config.width, dtype=torch.complex64)
@@ -116,13 +160,16 @@ def peak_rss_gib(config: FitConfig, steps: int) -> float:
     return int(output.split()[-1]) / 2**20
 
 
-def report(label: str, config: FitConfig, repeats: int, reference_repeats: int) -> dict[str, float]:
+def report(label: str, config: FitConfig, repeats: int, reference_repeats: int,
+           primitives: Primitives | None = None) -> dict[str, float]:
     fast = config.replace(backend="numba", warmup=0)
-    times = stage_times(fast, repeats)
+    times = stage_times(fast, repeats, primitives)
     floor, library_floor = fft_floor(fast, repeats)
-    reference = stage_times(fast.replace(backend="torch"), reference_repeats) if reference_repeats else None
+    reference = (stage_times(fast.replace(backend="torch"), reference_repeats, primitives)
+                 if reference_repeats else None)
     raster = times["raster forward+backward"]
-    print(f"\n## {label}: {config.width}×{config.height}, N = {config.primitive_count}, "
+    count = config.primitive_count if primitives is None else primitives.position_px.shape[0]
+    print(f"\n## {label}: {config.width}×{config.height}, N = {count}, "
           f"{config.num_planes} planes, {torch.get_num_threads()} threads")
     for name in ("raster forward", "raster backward", "propagation forward+backward", "loss forward+backward",
                  "optimizer", "whole step"):
@@ -147,15 +194,25 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--reference-repeats", type=int, default=1, help="steps of the torch backend (slow)")
     parser.add_argument("--rss-steps", type=int, default=5, help="steps of the fit whose peak RSS is measured")
+    parser.add_argument("--model", help="a fitted model (run folder or .safetensors): measure its configuration "
+                                            "on its primitives instead of RGB 20%% and grayscale 10%% at initialisation")
     parser.add_argument("--json", help="also write the numbers here")
     args = parser.parse_args()
     width, height = (320, 240) if args.quick else (640, 480)
-    settings = {"RGB 20%": FitConfig(width=width, height=height, color="rgb", ratio=0.2),
-                "grayscale 10%": FitConfig(width=width, height=height, color="gray", ratio=0.1)}
+    rgb = FitConfig(width=width, height=height, color="rgb", ratio=0.2)
+    if args.model and args.quick:
+        parser.error("--quick sets the size, --model brings its own; pass one of them")
+    if args.model:
+        primitives, config = load_model(model_path(args.model))
+        settings = {f"fitted model {args.model}": (config, primitives)}
+    else:
+        settings = {"RGB 20%, at initialisation": (rgb, None),
+                    "grayscale 10%, at initialisation": (FitConfig(width=width, height=height, color="gray",
+                                                                   ratio=0.1), None)}
     results = {}
-    for label, config in settings.items():
-        results[label] = report(label, config, args.repeats, args.reference_repeats)
-    rss = peak_rss_gib(settings["RGB 20%"], args.rss_steps)
+    for label, (config, primitives) in settings.items():
+        results[label] = report(label, config, args.repeats, args.reference_repeats, primitives)
+    rss = peak_rss_gib(rgb, args.rss_steps)
     print(f"\npeak RSS of an RGB 20% fit ({args.rss_steps} steps, separate process): {rss:.2f} GiB")
     results["peak rss gib"] = rss
     if args.json:

@@ -10,7 +10,9 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from . import field_kernels
 from .config import FitConfig, padded_size
+from .rasterization import resolve_backend
 
 
 @dataclass(frozen=True)
@@ -52,10 +54,16 @@ def _taper(length: int, start: int, stop: int, device: torch.device) -> Tensor:
 
 
 @functools.lru_cache(maxsize=16)
+def guard_tapers(grid: Grid, device: torch.device) -> tuple[Tensor, Tensor]:
+    """The window's two factors: [P_H] over rows and [P_W] over columns."""
+    return (_taper(grid.padded_height, grid.top, grid.top + grid.height, device),
+            _taper(grid.padded_width, grid.left, grid.left + grid.width, device))
+
+
+@functools.lru_cache(maxsize=16)
 def guard_window(grid: Grid, device: torch.device) -> Tensor:
     """Separable raised-cosine window [P_H, P_W]: 1 on the content, 0 at the array edge."""
-    rows = _taper(grid.padded_height, grid.top, grid.top + grid.height, device)
-    cols = _taper(grid.padded_width, grid.left, grid.left + grid.width, device)
+    rows, cols = guard_tapers(grid, device)
     return rows[:, None] * cols[None, :]
 
 
@@ -77,6 +85,10 @@ def slm_field(padded: Tensor) -> Tensor:
     return padded / torch.clamp(padded.abs(), min=1.0)
 
 
+def _cpu_array(tensor: Tensor):
+    return tensor.detach().contiguous().numpy()
+
+
 class _GuardedField(torch.autograd.Function):
     """`slm_field(pad_with_guard_band(hologram, grid))` with a backward over the content alone.
 
@@ -84,28 +96,72 @@ class _GuardedField(torch.autograd.Function):
     the hologram only through the content's `u = h / max(|h|, 1)`: the identity where |h| < 1, and
     where the amplitude saturates, the projection onto the phase direction, `i·h·Im(h̄·g)/|h|³`.
     Autograd through the composition would run its backward over the whole padded array, in several
-    passes; this is a third of a 640×480 field's forward+backward.
+    passes. `fused` runs both directions as the one-pass kernels of `field_kernels` (CPU).
     """
 
     @staticmethod
-    def forward(ctx, hologram: Tensor, grid: Grid) -> Tensor:
+    def forward(ctx, hologram: Tensor, grid: Grid, fused: bool) -> Tensor:
         ctx.save_for_backward(hologram)
-        ctx.grid = grid
-        return slm_field(pad_with_guard_band(hologram, grid))
+        ctx.grid, ctx.fused = grid, fused
+        if not fused:
+            return slm_field(pad_with_guard_band(hologram, grid))
+        rows, cols = guard_tapers(grid, hologram.device)
+        field = hologram.new_empty(hologram.shape[0], grid.padded_height, grid.padded_width)
+        field_kernels.guarded_field(_cpu_array(hologram), rows.numpy(), cols.numpy(), grid.top, grid.left,
+                                    field.numpy())
+        return field
 
     @staticmethod
-    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None]:
         (hologram,) = ctx.saved_tensors
-        incoming = ctx.grid.crop(grad)
+        grid = ctx.grid
+        if ctx.fused:
+            gradient = torch.empty_like(hologram)
+            field_kernels.guarded_field_backward(_cpu_array(hologram), _cpu_array(grad), grid.top, grid.left,
+                                                 gradient.numpy())
+            return gradient, None, None
+        incoming = grid.crop(grad)
         magnitude = hologram.abs()
         normal = (hologram.real * incoming.imag - hologram.imag * incoming.real) / magnitude**3
         projected = torch.complex(-hologram.imag * normal, hologram.real * normal)
-        return torch.where(magnitude >= 1.0, projected, incoming), None
+        return torch.where(magnitude >= 1.0, projected, incoming), None, None
 
 
-def guarded_field(hologram: Tensor, grid: Grid) -> Tensor:
-    """SLM field [C, P_H, P_W] of a hologram [C, H, W]: guard band, window and clamped amplitude (SPEC §3)."""
-    return _GuardedField.apply(hologram, grid)
+def guarded_field(hologram: Tensor, grid: Grid, backend: str = "auto") -> Tensor:
+    """SLM field [C, P_H, P_W] of a hologram [C, H, W]: guard band, window and clamped amplitude (SPEC §3).
+
+    `backend` picks the PyTorch formulas (`torch`) or the fused CPU kernels, as it picks the rasterizer.
+    """
+    return _GuardedField.apply(hologram, grid, resolve_backend(backend, hologram.device) == "numba")
+
+
+class _FusedIntensity(torch.autograd.Function):
+    """`clamp(|u|², 0, 1)` of a complex array and its gradient `2·u·g` (where |u|² ≤ 1), one pass each."""
+
+    @staticmethod
+    def forward(ctx, field: Tensor) -> Tensor:
+        ctx.save_for_backward(field)
+        intensity = torch.empty(field.shape, dtype=field.real.dtype)
+        field_kernels.clamped_intensity(_cpu_array(field).reshape(-1, field.shape[-1]),
+                                        intensity.numpy().reshape(-1, field.shape[-1]))
+        return intensity
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> Tensor:
+        (field,) = ctx.saved_tensors
+        gradient = torch.empty_like(field)
+        width = field.shape[-1]
+        field_kernels.clamped_intensity_backward(_cpu_array(field).reshape(-1, width),
+                                                 _cpu_array(grad).reshape(-1, width),
+                                                 gradient.numpy().reshape(-1, width))
+        return gradient
+
+
+def clamped_intensity(field: Tensor, backend: str = "auto") -> Tensor:
+    """Intensity `clamp(|u|², 0, 1)` of a complex field (SPEC §3), through the backend's formulas."""
+    if resolve_backend(backend, field.device) == "numba":
+        return _FusedIntensity.apply(field)
+    return torch.clamp(field.abs() ** 2, 0.0, 1.0)
 
 
 def transfer_function(rows: int, cols: int, pixel_pitch: float, wavelength: float, distance: float,
@@ -248,8 +304,11 @@ class _ContentPropagation(torch.autograd.Function):
             accumulated = None
             for plane in range(len(bank.distances)):
                 scattered[top:top + grid.height, left:left + grid.width] = grad[plane, channel].conj()
-                filtered = torch.fft.ifft2(scattered).mul_(bank(plane, channel))
-                accumulated = filtered if accumulated is None else accumulated.add_(filtered)
+                spectrum = torch.fft.ifft2(scattered)
+                if accumulated is None:
+                    accumulated = spectrum.mul_(bank(plane, channel))
+                else:
+                    accumulated.addcmul_(spectrum, bank(plane, channel))
             spectrum = torch.fft.fft2(accumulated)
             grad_field[channel] = spectrum[rows // 2:rows // 2 + rows, cols // 2:cols // 2 + cols].conj()
         return grad_field, None, None
@@ -265,7 +324,7 @@ def reconstruct(hologram: Tensor, config: FitConfig, distances_m: Sequence[float
     """Hologram [C, H, W] → reconstructed intensity [M, C, H, W] clamped to [0, 1] (SPEC §3), at
     `config`'s planes or at `distances_m` (m)."""
     grid = Grid.for_config(config)
-    field = guarded_field(hologram, grid)
+    field = guarded_field(hologram, grid, config.backend)
     distances = config.plane_distances if distances_m is None else tuple(distances_m)
     planes = propagate_content(field, grid, distances, config.wavelengths, config.pixel_pitch)
-    return torch.clamp(planes.abs() ** 2, 0.0, 1.0)
+    return clamped_intensity(planes, config.backend)

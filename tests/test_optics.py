@@ -11,8 +11,8 @@ import torch
 
 from cvqpg.config import FitConfig
 from cvqpg import optics
-from cvqpg.optics import (Grid, guard_window, guarded_field, pad_with_guard_band, propagate, propagate_content, slm_field,
-                         transfer_function)
+from cvqpg.optics import (Grid, clamped_intensity, guard_window, guarded_field, pad_with_guard_band, propagate,
+                          propagate_content, slm_field, transfer_function)
 
 CPU = torch.device("cpu")
 PITCH = 3.74e-6
@@ -306,9 +306,11 @@ def test_guard_band_passes_no_gradient_through_replicated_values():
     assert torch.allclose(hologram.grad, 2 * hologram.detach(), rtol=0, atol=1e-12)
 
 
-def test_guarded_field_matches_autograd_through_the_composition():
-    """The fused field (hand-written backward over the content) against autograd through
-    `slm_field(pad_with_guard_band(·))`, with amplitudes on both sides of the clamp at 1."""
+@pytest.mark.parametrize("backend", ["torch", "numba"])
+def test_guarded_field_matches_autograd_through_the_composition(backend):
+    """The fused field (hand-written backward over the content; PyTorch formulas or the one-pass CPU
+    kernels) against autograd through `slm_field(pad_with_guard_band(·))`, with amplitudes on both
+    sides of the clamp at 1."""
     grid = small_grid()
     generator = torch.Generator().manual_seed(8)
     shape = (3, grid.height, grid.width)
@@ -328,15 +330,36 @@ def test_guarded_field_matches_autograd_through_the_composition():
         ((field * weights.conj()).real.sum() + (field.abs() ** 2).sum()).backward()
         return field.detach(), leaf.grad
 
-    fused, fused_grad = value_and_gradient(lambda h: guarded_field(h, grid))
+    fused, fused_grad = value_and_gradient(lambda h: guarded_field(h, grid, backend))
     reference, reference_grad = value_and_gradient(lambda h: slm_field(pad_with_guard_band(h, grid)))
-    assert torch.equal(fused, reference)
+    assert torch.allclose(fused, reference, rtol=1e-13, atol=1e-15)
     assert torch.allclose(fused_grad, reference_grad, rtol=1e-12, atol=1e-12)
     assert torch.isfinite(fused_grad).all()
     # finite differences see the replicated guard band move too, which by SPEC carries no gradient:
     # they are taken on the content
-    assert torch.autograd.gradcheck(lambda h: grid.crop(guarded_field(h, grid)),
+    assert torch.autograd.gradcheck(lambda h: grid.crop(guarded_field(h, grid, backend)),
                                     (hologram[:1].clone().requires_grad_(True),), fast_mode=True)
+
+
+def test_fused_clamped_intensity_matches_the_formula_and_its_gradient():
+    """The one-pass intensity kernels against `clamp(|u|², 0, 1)` under autograd, with values on both
+    sides of the clamp, and against finite differences."""
+    generator = torch.Generator().manual_seed(3)
+    field = torch.complex(torch.randn(2, 3, 9, 11, generator=generator, dtype=torch.float64),
+                          torch.randn(2, 3, 9, 11, generator=generator, dtype=torch.float64))
+    assert ((field.abs() > 1).float().mean() > 0.2) and ((field.abs() < 1).float().mean() > 0.2)
+    weights = torch.rand(field.shape, generator=generator, dtype=torch.float64)
+    results = []
+    for backend in ("torch", "numba"):
+        leaf = field.clone().requires_grad_(True)
+        intensity = clamped_intensity(leaf, backend)
+        (intensity * weights).sum().backward()
+        results.append((intensity.detach(), leaf.grad))
+    (fused, fused_grad), (reference, reference_grad) = results[1], results[0]
+    assert torch.allclose(fused, reference, rtol=1e-14, atol=0)
+    assert torch.allclose(fused_grad, reference_grad, rtol=1e-14, atol=0)
+    assert torch.autograd.gradcheck(lambda u: clamped_intensity(u, "numba"), (field.clone().requires_grad_(True),),
+                                    fast_mode=True)
 
 
 # --------------------------------------------------------------------------- SLM field
