@@ -119,7 +119,7 @@ def _chirp_slot(channel, chirp):
 
 @nb.njit(cache=True, nogil=True, fastmath=True)
 def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, out):
-    channels, height, width = out.shape[1], out.shape[2], out.shape[3]
+    channels, height, width = out.shape
     x0, y0, r = np.float64(position[n, 0]), np.float64(position[n, 1]), np.float64(reach[n])
     if x0 + r < 0 or x0 - r > width - 1:
         return
@@ -137,14 +137,13 @@ def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumb
         for py in range(low, high + 1):
             dy = py - y0
             left, right = _column_span(x0, r, dy, a, b, c, width)
-            row_re, row_im = out[0, ch, py], out[1, ch, py]
+            row = out[ch, py]
             start, z_r, s_r, z_l, s_l, steps = _row_walks(walk, A, B, C, amplitude, z_row, s_right, s_left,
                                                           s_step, x0, dy, cx, -b / a, left, right)
             for i in range(steps):
                 for px, z in ((start + i, z_r), (start - 1 - i, z_l)):
                     if left <= px <= right:
-                        row_re[px] += z.real
-                        row_im[px] += z.imag
+                        row[px] += z
                 z_r, s_r = z_r * s_r, s_r * s_step
                 z_l, s_l = z_l * s_l, s_l * s_step
             z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left)
@@ -152,9 +151,9 @@ def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumb
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def splat_forward(position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, partial):
-    """partial[t] = Re|Im of the sum over primitives t, t+T, t+2T, ... (T = partial.shape[0]).
+    """partial[t] = the sum over primitives t, t+T, t+2T, ... (T = partial.shape[0]).
 
-    `partial` [T, 2, C, H, W] starts at zero; the caller sums it over t in order.
+    `partial` [T, C, H, W] (complex64) starts at zero; the caller sums it over t in order.
     """
     threads = partial.shape[0]
     for t in nb.prange(threads):
@@ -166,7 +165,7 @@ def splat_forward(position, conic, reach, chirp, color, phase, opacity, wavenumb
 @nb.njit(cache=True, nogil=True, fastmath=True)
 def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                       grad, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity):
-    channels, height, width = grad.shape[1], grad.shape[2], grad.shape[3]
+    channels, height, width = grad.shape
     x0, y0, r = np.float64(position[n, 0]), np.float64(position[n, 1]), np.float64(reach[n])
     if x0 + r < 0 or x0 - r > width - 1:
         return
@@ -190,7 +189,7 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
         for py in range(low, high + 1):
             dy = py - y0
             left, right = _column_span(x0, r, dy, a, b, c, width)
-            grad_re, grad_im = grad[0, ch, py], grad[1, ch, py]
+            grad_row = grad[ch, py]
             t0 = t1 = t2 = u0 = u1 = u2 = 0.0
             start, z_r, s_r, z_l, s_l, steps = _row_walks(walk, A, B, C, rotation, z_row, s_right, s_left,
                                                           s_step, x0, dy, cx, -b / a, left, right)
@@ -198,8 +197,9 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
                 for px, z in ((start + i, z_r), (start - 1 - i, z_l)):
                     if left <= px <= right:
                         dx = px - x0
-                        t = grad_re[px] * z.real + grad_im[px] * z.imag
-                        u = grad_im[px] * z.real - grad_re[px] * z.imag
+                        g = grad_row[px]
+                        t = g.real * z.real + g.imag * z.imag
+                        u = g.imag * z.real - g.real * z.imag
                         t0 += t
                         t1 += t * dx
                         t2 += t * dx * dx
@@ -250,7 +250,7 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def splat_backward(position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                    grad, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, threads):
-    """Gradients (float64, each row written by its own primitive only) from grad[0|1, c, y, x].
+    """Gradients (float64, each row written by its own primitive only) from grad [C, H, W] (complex64).
 
     Thread t of `threads` takes primitives t, t+T, t+2T, ..., as in the forward pass.
 

@@ -147,7 +147,7 @@ def _in_caller_order(values: np.ndarray, order: Tensor) -> Tensor:
 
 
 class _FusedSplat(torch.autograd.Function):
-    """The Numba kernels behind one autograd boundary: real/imag planes [2, C, H, W].
+    """The Numba kernels behind one autograd boundary: the complex hologram [C, H, W].
 
     The kernels see the primitives in `locality_order`; the gradients are returned in the caller's.
     """
@@ -159,21 +159,21 @@ class _FusedSplat(torch.autograd.Function):
         arrays = tuple(t.detach().to("cpu", torch.float32)[order].contiguous().numpy()
                        for t in (position, conic, reach, chirp, color, phase, opacity))
         k = wavenumbers.detach().to("cpu", torch.float64).numpy()
-        plane_bytes = 2 * color.shape[1] * height * width * 4
+        plane_bytes = color.shape[1] * height * width * 8
         threads = max(1, min(numba.get_num_threads(), PARTIAL_BUFFER_BYTES // plane_bytes))
-        partial = np.zeros((threads, 2, color.shape[1], height, width), np.float32)
+        partial = np.zeros((threads, color.shape[1], height, width), np.complex64)
         kernels.splat_forward(*arrays, k, mahalanobis, partial)
         ctx.arrays, ctx.order, ctx.wavenumbers, ctx.mahalanobis = arrays, order, k, mahalanobis
         ctx.dtype, ctx.device = position.dtype, position.device
         out = torch.from_numpy(partial).sum(dim=0) if threads > 1 else torch.from_numpy(partial[0])
-        return out.to(device=position.device, dtype=position.dtype)
+        return out.to(device=position.device, dtype=torch.promote_types(position.dtype, torch.complex64))
 
     @staticmethod
     def backward(ctx, grad):
         position, conic, _, chirp, color, phase, opacity = ctx.arrays
         grads = tuple(np.zeros(a.shape, np.float64) for a in (position, conic, chirp, color, phase, opacity))
         kernels.splat_backward(*ctx.arrays, ctx.wavenumbers, ctx.mahalanobis,
-                               grad.detach().to("cpu", torch.float32).contiguous().numpy(), *grads,
+                               grad.detach().to("cpu", torch.complex64).contiguous().numpy(), *grads,
                                numba.get_num_threads())
         g_position, g_conic, g_chirp, g_color, g_phase, g_opacity = (
             _in_caller_order(g, ctx.order).to(device=ctx.device, dtype=ctx.dtype) for g in grads)
@@ -182,8 +182,7 @@ class _FusedSplat(torch.autograd.Function):
 
 def splat_fused(s: Splats, width: int, height: int, wavenumbers: Tensor) -> Tensor:
     """Fused CPU backend (Numba): complex hologram [C, H, W], float32 inside."""
-    planes = _FusedSplat.apply(*s.tensors(), wavenumbers, s.mahalanobis, width, height)
-    return torch.complex(planes[0], planes[1])
+    return _FusedSplat.apply(*s.tensors(), wavenumbers, s.mahalanobis, width, height)
 
 
 Backend = Callable[[Splats, int, int, Tensor], Tensor]
