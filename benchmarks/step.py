@@ -148,13 +148,15 @@ def stage_times(config: FitConfig, repeats: int, primitives: Primitives | None =
 
 
 def peak_rss_gib(config: FitConfig, steps: int) -> float:
-    """Peak resident memory (GiB) of `cvqpg fit` in a fresh process, read by that process itself:
-    a parent's RUSAGE_CHILDREN would count the pages the child shared with it before exec."""
+    """Peak resident memory (GiB) of `cvqpg fit` in a fresh process, read by that process itself from
+    the high-water mark of its own address space (`VmHWM`). Linux carries `ru_maxrss` over `exec`
+    from the forked copy of the parent, so both RUSAGE_CHILDREN and the child's RUSAGE_SELF would
+    report at least the parent's size at the fork."""
     arguments = ["fit", "--size", str(config.width), str(config.height), "--color", config.color, "--ratio",
                  str(config.ratio), "--steps", str(steps), "--warmup", "1",
                  "--out", f"/tmp/cvqpg-bench-rss-{config.color}", "--overwrite", "--quiet"]
-    program = ("import resource, sys; from cvqpg.cli import main; main(sys.argv[1:]); "
-               "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
+    program = ("import sys; from cvqpg.cli import main; main(sys.argv[1:]); "
+               "print(next(line.split()[1] for line in open('/proc/self/status') if line.startswith('VmHWM:')))")
     output = subprocess.run([sys.executable, "-c", program, *arguments], check=True, capture_output=True,
                             text=True).stdout
     return int(output.split()[-1]) / 2**20
