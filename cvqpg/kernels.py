@@ -111,6 +111,14 @@ def _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left):
     return z_row * v, v * v_step, s_right * s_row, s_left * s_row_left
 
 
+@nb.njit(cache=True, nogil=True, fastmath=True)
+def _with_row(moments, m0, m1, m2, dy):
+    """A primitive's moments (Σm, Σm·dx, Σm·dx², Σm·dy, Σm·dx·dy, Σm·dy²) with one row's sums
+    (Σm, Σm·dx, Σm·dx² over the row, at offset dy) added."""
+    s00, s10, s20, s01, s11, s02 = moments
+    return s00 + m0, s10 + m1, s20 + m2, s01 + m0 * dy, s11 + m1 * dy, s02 + m0 * dy * dy
+
+
 @nb.njit(cache=True, nogil=True)
 def _chirp_slot(channel, chirp):
     """Column of `chirp` [N, 1 or C] that channel uses: one shared curvature, or its own."""
@@ -184,8 +192,7 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
         rotation = cmath.exp(complex(0.0, phase[n, ch]))
         z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, dx0, dy0)
         z_row *= rotation
-        t00 = t10 = t20 = t01 = t11 = t02 = 0.0
-        u00 = u10 = u20 = u01 = u11 = u02 = 0.0
+        t_moments = u_moments = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         for py in range(low, high + 1):
             dy = py - y0
             left, right = _column_span(x0, r, dy, a, b, c, width)
@@ -209,18 +216,10 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
                 z_r, s_r = z_r * s_r, s_r * s_step
                 z_l, s_l = z_l * s_l, s_l * s_step
             z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left)
-            t00 += t0
-            t10 += t1
-            t20 += t2
-            t01 += t0 * dy
-            t11 += t1 * dy
-            t02 += t0 * dy * dy
-            u00 += u0
-            u10 += u1
-            u20 += u2
-            u01 += u0 * dy
-            u11 += u1 * dy
-            u02 += u0 * dy * dy
+            t_moments = _with_row(t_moments, t0, t1, t2, dy)
+            u_moments = _with_row(u_moments, u0, u1, u2, dy)
+        t00, t10, t20, t01, t11, t02 = t_moments
+        u00, u10, u20, u01, u11, u02 = u_moments
         scale = alpha * color_c
         g_color[n, ch] = alpha * t00
         g_phase[n, ch] = scale * u00

@@ -159,9 +159,15 @@ def covariance(scale_px: Tensor, rotation_rad: Tensor) -> tuple[Tensor, Tensor, 
 
 
 def inverse_covariance(scale_px: Tensor, rotation_rad: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Entries (a, b, c) of Σ⁻¹ = [[a, b], [b, c]] in 1/px², determinant clamped at 1e-10."""
+    """Entries (a, b, c) of Σ⁻¹ = [[a, b], [b, c]] in 1/px², determinant clamped at 1e-10.
+
+    The determinant is taken as the product of Σ's eigenvalues, (s_x² + 0.1)(s_y² + 0.1): the same
+    number as Σxx·Σyy − Σxy², without the float32 cancellation that makes the latter zero or
+    negative for elongated primitives (one scale of 8000 px, the other of 1 px).
+    """
     sxx, sxy, syy = covariance(scale_px, rotation_rad)
-    det = torch.clamp(sxx * syy - sxy * sxy, min=DET_FLOOR)
+    eigenvalues = scale_px**2 + COVARIANCE_REGULARISER_PX2
+    det = torch.clamp(eigenvalues[:, 0] * eigenvalues[:, 1], min=DET_FLOOR)
     return syy / det, -sxy / det, sxx / det
 
 

@@ -21,7 +21,7 @@ from cvqpg import FitConfig, builtin_scene, fit
 from cvqpg.cli import main
 from cvqpg.fitting import initial_state, optimisation_step
 from cvqpg.optics import reconstruct
-from cvqpg.primitives import Gaussians, activate
+from cvqpg.primitives import Gaussians, activate, inverse_covariance
 from cvqpg.rasterization import rasterize
 from cvqpg.runs import write_run
 from cvqpg.targets import build_scene, load_scene, prepare_depth
@@ -319,3 +319,20 @@ def test_checkpoint_stays_until_the_finished_run_is_marked(tiny_config, tmp_path
     monkeypatch.undo()
     write_run(folder, result, scene, {"scene": "demo"})
     assert (folder / "metrics.json").is_file() and not (folder / "checkpoint.pt").exists()
+
+
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+def test_needle_thousands_of_pixels_long_stays_finite(backend):
+    """Σ of an 8000 px × 1 px primitive cancels to a zero or negative determinant in float32 when
+    formed as Σxx·Σyy − Σxy², which made its inverse 1e17 and the field NaN; the inverse must use
+    the exact determinant (found by the test above)."""
+    config = FitConfig(width=20, height=16, num_gaussians=1, backend=backend, guard_band_px=8)
+    raw = Gaussians(position=torch.zeros(1, 2), scale=torch.tensor([[0.0, 9.0]]),
+                    rotation=torch.tensor([1415.6461917095712]), color=torch.full((1, 3), 0.5),
+                    phase=torch.zeros(1, 3), opacity=torch.zeros(1), curvature=torch.zeros(1))
+    prims = activate(raw, config)
+    a, b, c = inverse_covariance(prims.scale_px, prims.rotation_rad)
+    assert (a > 0).all() and (c > 0).all() and torch.isfinite(b).all()
+    hologram = rasterize(prims, 20, 16, config.wavelengths, config.pixel_pitch, backend=backend)
+    assert torch.isfinite(torch.view_as_real(hologram)).all()
+    assert torch.isfinite(reconstruct(hologram, config)).all()
