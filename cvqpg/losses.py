@@ -14,7 +14,7 @@ from pytorch_msssim import ssim
 from torch import Tensor
 
 from cvqpg.loss_kernels import blur_valid, blur_valid_adjoint, gaussian_taps, pixel_terms, ssim_maps
-from cvqpg.rasterization import resolve_backend
+from cvqpg.rasterization import cpu_array, resolve_backend
 
 SSIM_WINDOW_PX = 11
 SSIM_SIGMA_PX = 1.5
@@ -28,10 +28,6 @@ def noisy_targets(targets: Tensor, standard_normal: Tensor, level: float) -> Ten
     return targets + level * spread * standard_normal
 
 
-def _cpu_array(tensor: Tensor) -> np.ndarray:
-    return tensor.detach().cpu().contiguous().numpy()
-
-
 class _FusedSsim(torch.autograd.Function):
     """SSIM per plane [M] of [M, C, H, W] images; differentiable in the reconstruction only (the
     targets are constants of a fit). The backward pass is the chain rule through the blurred
@@ -40,7 +36,7 @@ class _FusedSsim(torch.autograd.Function):
     @staticmethod
     def forward(ctx, recon: Tensor, targets: Tensor) -> Tensor:
         planes, channels, height, width = recon.shape
-        moments = _cpu_array(torch.stack((recon, targets, recon * recon, targets * targets, recon * targets)))
+        moments = cpu_array(torch.stack((recon, targets, recon * recon, targets * targets, recon * targets)))
         taps = gaussian_taps(SSIM_WINDOW_PX, SSIM_SIGMA_PX).astype(moments.dtype)
         blurred = blur_valid(moments.reshape(-1, height, width), taps)
         blurred = blurred.reshape(5, planes * channels, *blurred.shape[-2:])
@@ -55,7 +51,7 @@ class _FusedSsim(torch.autograd.Function):
     def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:
         recon, targets = ctx.saved_tensors
         planes, channels, height, width = recon.shape
-        per_image = np.repeat(_cpu_array(grad).astype(np.float64) / ctx.count, channels)
+        per_image = np.repeat(cpu_array(grad).astype(np.float64) / ctx.count, channels)
         scaled = ctx.derivatives * per_image[None, :, None, None].astype(ctx.derivatives.dtype)
         adjoint = blur_valid_adjoint(scaled.reshape(-1, *scaled.shape[-2:]), ctx.taps, height, width)
         d_mean_x, d_mean_xx, d_mean_xy = torch.from_numpy(adjoint).to(recon.device).view(3, *recon.shape)
@@ -83,11 +79,11 @@ class _FusedPixelTerms(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, recon: Tensor, targets: Tensor, noisy: Tensor, masks: Tensor) -> tuple[Tensor, Tensor]:
-        x = _cpu_array(recon)
+        x = cpu_array(recon)
         gradient = np.empty_like(x)
-        sums = pixel_terms(x, _cpu_array(targets).astype(x.dtype, copy=False),
-                           _cpu_array(noisy).astype(x.dtype, copy=False),
-                           _cpu_array(masks).astype(x.dtype, copy=False), gradient)
+        sums = pixel_terms(x, cpu_array(targets).astype(x.dtype, copy=False),
+                           cpu_array(noisy).astype(x.dtype, copy=False),
+                           cpu_array(masks).astype(x.dtype, copy=False), gradient)
         count = x[0].size
         ctx.gradient, ctx.count = gradient, count
         values, mse = (torch.from_numpy(v / count).to(recon.device, recon.dtype) for v in (sums.sum(axis=1), sums[:, 0]))

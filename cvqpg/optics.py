@@ -12,7 +12,7 @@ from torch import Tensor
 
 from . import field_kernels
 from .config import FitConfig, padded_size
-from .rasterization import resolve_backend
+from .rasterization import cpu_array, resolve_backend
 
 
 @dataclass(frozen=True)
@@ -85,10 +85,6 @@ def slm_field(padded: Tensor) -> Tensor:
     return padded / torch.clamp(padded.abs(), min=1.0)
 
 
-def _cpu_array(tensor: Tensor):
-    return tensor.detach().contiguous().numpy()
-
-
 class _GuardedField(torch.autograd.Function):
     """`slm_field(pad_with_guard_band(hologram, grid))` with a backward over the content alone.
 
@@ -107,7 +103,7 @@ class _GuardedField(torch.autograd.Function):
             return slm_field(pad_with_guard_band(hologram, grid))
         rows, cols = guard_tapers(grid, hologram.device)
         field = hologram.new_empty(hologram.shape[0], grid.padded_height, grid.padded_width)
-        field_kernels.guarded_field(_cpu_array(hologram), rows.numpy(), cols.numpy(), grid.top, grid.left,
+        field_kernels.guarded_field(cpu_array(hologram), rows.numpy(), cols.numpy(), grid.top, grid.left,
                                     field.numpy())
         return field
 
@@ -117,7 +113,7 @@ class _GuardedField(torch.autograd.Function):
         grid = ctx.grid
         if ctx.fused:
             gradient = torch.empty_like(hologram)
-            field_kernels.guarded_field_backward(_cpu_array(hologram), _cpu_array(grad), grid.top, grid.left,
+            field_kernels.guarded_field_backward(cpu_array(hologram), cpu_array(grad), grid.top, grid.left,
                                                  gradient.numpy())
             return gradient, None, None
         incoming = grid.crop(grad)
@@ -142,7 +138,7 @@ class _FusedIntensity(torch.autograd.Function):
     def forward(ctx, field: Tensor) -> Tensor:
         ctx.save_for_backward(field)
         intensity = torch.empty(field.shape, dtype=field.real.dtype)
-        field_kernels.clamped_intensity(_cpu_array(field).reshape(-1, field.shape[-1]),
+        field_kernels.clamped_intensity(cpu_array(field).reshape(-1, field.shape[-1]),
                                         intensity.numpy().reshape(-1, field.shape[-1]))
         return intensity
 
@@ -151,8 +147,8 @@ class _FusedIntensity(torch.autograd.Function):
         (field,) = ctx.saved_tensors
         gradient = torch.empty_like(field)
         width = field.shape[-1]
-        field_kernels.clamped_intensity_backward(_cpu_array(field).reshape(-1, width),
-                                                 _cpu_array(grad).reshape(-1, width),
+        field_kernels.clamped_intensity_backward(cpu_array(field).reshape(-1, width),
+                                                 cpu_array(grad).reshape(-1, width),
                                                  gradient.numpy().reshape(-1, width))
         return gradient
 

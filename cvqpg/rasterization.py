@@ -189,6 +189,11 @@ Backend = Callable[[Splats, int, int, Tensor], Tensor]
 BACKENDS: dict[str, Backend] = {"torch": splat_reference, "numba": splat_fused}
 
 
+def cpu_array(tensor: Tensor) -> np.ndarray:
+    """A tensor's values as a contiguous NumPy array on the CPU (no gradient), for the Numba kernels."""
+    return tensor.detach().cpu().contiguous().numpy()
+
+
 def resolve_backend(backend: str, device: torch.device | str) -> str:
     """`auto` → the fused kernels on CPU, the PyTorch reference elsewhere."""
     if backend == "auto":
