@@ -70,6 +70,27 @@ def _walkable(a, b, c, reach):
 
 
 @nb.njit(cache=True, nogil=True)
+def _footprint(n, position, conic, reach, height, width):
+    """Primitive n's geometry: whether it can touch the image, centre (px), reach (px), Σ⁻¹ (a, b, c),
+    its rows, whether it is walked down its centre column, that column, and the walk's start offset."""
+    x0, y0, r = np.float64(position[n, 0]), np.float64(position[n, 1]), np.float64(reach[n])
+    a, b, c = np.float64(conic[n, 0]), np.float64(conic[n, 1]), np.float64(conic[n, 2])
+    low, high = _row_span(y0, r, a, b, c, height)
+    cx = round(x0)
+    visible = not (x0 + r < 0 or x0 - r > width - 1)
+    return visible, x0, y0, r, a, b, c, low, high, _walkable(a, b, c, r), cx, cx - x0, low - y0
+
+
+@nb.njit(cache=True, nogil=True)
+def _is_flat(n, chirp):
+    """Whether primitive n has no curvature in any channel: then its exponent is the real −½D²."""
+    for slot in range(chirp.shape[1]):
+        if chirp[n, slot] != 0.0:
+            return False
+    return True
+
+
+@nb.njit(cache=True, nogil=True)
 def _exact_at(A, B, C, dx, dy):
     """exp(E) at offset (dx, dy), and the ratios to its right and left neighbours."""
     return (cmath.exp(A * dx * dx + 2.0 * B * dx * dy + C * dy * dy),
@@ -128,14 +149,9 @@ def _chirp_slot(channel, chirp):
 @nb.njit(cache=True, nogil=True, fastmath=True)
 def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, out):
     channels, height, width = out.shape
-    x0, y0, r = np.float64(position[n, 0]), np.float64(position[n, 1]), np.float64(reach[n])
-    if x0 + r < 0 or x0 - r > width - 1:
+    visible, x0, y0, r, a, b, c, low, high, walk, cx, dx0, dy0 = _footprint(n, position, conic, reach, height, width)
+    if not visible:
         return
-    a, b, c = np.float64(conic[n, 0]), np.float64(conic[n, 1]), np.float64(conic[n, 2])
-    low, high = _row_span(y0, r, a, b, c, height)
-    walk = _walkable(a, b, c, r)
-    cx = round(x0)
-    dx0, dy0 = cx - x0, low - y0
     for ch in range(channels):
         k_chirp = wavenumbers[ch] * chirp[n, _chirp_slot(ch, chirp)]
         A, B, C = _exponent_coefficients(a, b, c, k_chirp, mahalanobis)
@@ -157,6 +173,34 @@ def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumb
             z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left)
 
 
+@nb.njit(cache=True, nogil=True, fastmath=True)
+def _splat_flat_one(n, position, conic, reach, color, phase, opacity, mahalanobis, amplitudes, out):
+    """A primitive without curvature: exp(E) is the real envelope exp(−½D²) in every channel, so one
+    real walk serves all channels, each adding its own α c e^{iφ} times the envelope."""
+    channels, height, width = out.shape
+    visible, x0, y0, r, a, b, c, low, high, walk, cx, dx0, dy0 = _footprint(n, position, conic, reach, height, width)
+    if not visible:
+        return
+    for ch in range(channels):
+        amplitudes[ch] = opacity[n] * color[n, ch] * cmath.exp(complex(0.0, phase[n, ch]))
+    A, B, C = _exponent_coefficients(a, b, c, 0.0, mahalanobis)
+    z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, dx0, dy0)
+    for py in range(low, high + 1):
+        dy = py - y0
+        left, right = _column_span(x0, r, dy, a, b, c, width)
+        start, z_r, s_r, z_l, s_l, steps = _row_walks(walk, A, B, C, complex(1.0, 0.0), z_row, s_right, s_left,
+                                                      s_step, x0, dy, cx, -b / a, left, right)
+        e_r, q_r, e_l, q_l, q_step = z_r.real, s_r.real, z_l.real, s_l.real, s_step.real
+        for i in range(steps):
+            for px, e in ((start + i, e_r), (start - 1 - i, e_l)):
+                if left <= px <= right:
+                    for ch in range(channels):
+                        out[ch, py, px] += amplitudes[ch] * e
+            e_r, q_r = e_r * q_r, q_r * q_step
+            e_l, q_l = e_l * q_l, q_l * q_step
+        z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left)
+
+
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def splat_forward(position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, partial):
     """partial[t] = the sum over primitives t, t+T, t+2T, ... (T = partial.shape[0]).
@@ -165,24 +209,23 @@ def splat_forward(position, conic, reach, chirp, color, phase, opacity, wavenumb
     """
     threads = partial.shape[0]
     for t in nb.prange(threads):
+        amplitudes = np.empty(color.shape[1], np.complex128)
         for n in range(t, position.shape[0], threads):
-            _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                       partial[t])
+            if _is_flat(n, chirp):
+                _splat_flat_one(n, position, conic, reach, color, phase, opacity, mahalanobis, amplitudes, partial[t])
+            else:
+                _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
+                           partial[t])
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True)
 def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                       grad, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity):
     channels, height, width = grad.shape
-    x0, y0, r = np.float64(position[n, 0]), np.float64(position[n, 1]), np.float64(reach[n])
-    if x0 + r < 0 or x0 - r > width - 1:
+    visible, x0, y0, r, a, b, c, low, high, walk, cx, dx0, dy0 = _footprint(n, position, conic, reach, height, width)
+    if not visible:
         return
-    a, b, c = np.float64(conic[n, 0]), np.float64(conic[n, 1]), np.float64(conic[n, 2])
     alpha = np.float64(opacity[n])
-    low, high = _row_span(y0, r, a, b, c, height)
-    walk = _walkable(a, b, c, r)
-    cx = round(x0)
-    dx0, dy0 = cx - x0, low - y0
     g_alpha = ga = gb = gc = gx = gy = 0.0
     for ch in range(channels):
         k, color_c = wavenumbers[ch], np.float64(color[n, ch])

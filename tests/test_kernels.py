@@ -49,6 +49,8 @@ def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primiti
     raw = random_gaussians(300, config.channels, seed=5, per_channel=per_channel)
     if primitive == "flat":
         raw.curvature = torch.zeros_like(raw.curvature)
+    else:
+        raw.curvature[::3] = 0.0  # flat and curved primitives in one set: the kernels take each its own way
     prims = activate(raw, config)
     offsets = torch.tensor([[-9.0, 3.0], [WIDTH + 4.0, 0.0], [0.0, -HEIGHT - 1.0], [0.0, 30.0]])
     prims.position_px = torch.cat([prims.position_px[:5], prims.position_px[5:9] + offsets,
@@ -60,9 +62,6 @@ def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primiti
     assert relative(actual, expected) < 1e-4
     names = ["position", "conic", "chirp", "amplitude", "phase", "opacity"]
     for name, got, want in zip(names, actual_grads, expected_grads):
-        if name == "chirp" and primitive == "flat":
-            assert torch.isfinite(got).all()
-            continue
         assert relative(got, want) < 1e-4, name
 
 

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from cvqpg.config import FitConfig
-from cvqpg import optics
+from cvqpg import optics, optics_kernels
 from cvqpg.optics import (Grid, clamped_intensity, guard_window, guarded_field, pad_with_guard_band, propagate,
                           propagate_content, slm_field, transfer_function)
 
@@ -159,6 +159,48 @@ def test_lean_content_propagation_and_its_adjoint_match_autograd_through_propaga
     (reference * upstream.conj()).real.sum().backward()
     assert torch.allclose(lean_input.grad, reference_input.grad, atol=1e-4)
     assert lean_input.grad.abs().max() > 0.1
+
+
+@pytest.mark.parametrize("dtype", [torch.complex64, torch.complex128])
+def test_propagation_transposes_move_exactly_the_values_they_name(dtype):
+    """The CPU kernels behind the pruned propagation: a transpose into columns of a wider array (the
+    rest untouched) and a transposed window of columns, odd sizes, both precisions."""
+    generator = torch.Generator().manual_seed(8)
+    source = torch.complex(torch.randn(13, 21, generator=generator), torch.randn(13, 21, generator=generator)).to(dtype)
+    out = torch.full((21, 40), 7.0 + 0j, dtype=dtype)
+    optics_kernels.transpose_into(source.numpy(), 5, out.numpy())
+    assert torch.equal(out[:, 5:18], source.T)
+    assert (out[:, :5] == 7).all() and (out[:, 18:] == 7).all()
+    window = torch.empty(9, 21, dtype=dtype)
+    optics_kernels.transpose_window(out.numpy(), 6, window.numpy())
+    assert torch.equal(window, out[:, 6:15].T)
+
+
+def test_pruned_content_propagation_in_float32_matches_the_full_transforms():
+    """At float32, on a wide grid like the paper's (content off-centre in its padded array, three
+    channels, two planes), the pruned transforms give the full transforms' numbers to float32 noise,
+    forward and adjoint; a second call reuses the zero-margined arrays and gives the same numbers."""
+    grid = Grid(height=30, width=44, padded_height=64, padded_width=80)
+    generator = torch.Generator().manual_seed(12)
+    field = torch.complex(torch.randn(3, 64, 80, generator=generator), torch.randn(3, 64, 80, generator=generator))
+    upstream = torch.complex(torch.randn(2, 3, 30, 44, generator=generator),
+                             torch.randn(2, 3, 30, 44, generator=generator))
+    distances, wavelengths = [1e-3, 5e-3], [RED, 532e-9, BLUE]
+    runs = []
+    for _ in range(2):
+        leaf = field.clone().requires_grad_(True)
+        content = propagate_content(leaf, grid, distances, wavelengths, PITCH)
+        (content * upstream.conj()).real.sum().backward()
+        runs.append((content.detach(), leaf.grad))
+    reference_leaf = field.to(torch.complex128).requires_grad_(True)
+    reference = grid.crop(propagate(reference_leaf, distances, wavelengths, PITCH))
+    (reference * upstream.to(torch.complex128).conj()).real.sum().backward()
+    reference = reference.detach()
+    for content, gradient in runs:
+        assert content.dtype == torch.complex64
+        assert float((content - reference).abs().max() / reference.abs().max()) < 1e-5
+        assert float((gradient - reference_leaf.grad).abs().max() / reference_leaf.grad.abs().max()) < 1e-5
+    assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
 
 
 def test_energy_conserved_equals_band_limited_input_energy():
