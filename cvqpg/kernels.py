@@ -33,6 +33,7 @@ import numpy as np
 
 FLOOR_MAHALANOBIS2 = 100.0  # D² where the envelope exponent −½D² reaches SPEC's floor of −50
 MAX_WALKED_MAHALANOBIS2 = 600.0
+MAX_TABULATED_MAHALANOBIS2 = 300.0
 
 
 @nb.njit(cache=True, nogil=True)
@@ -219,12 +220,126 @@ def splat_forward(position, conic, reach, chirp, color, phase, opacity, wavenumb
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True)
+def _walked_moments(grad, A, B, C, rotation, walk, x0, y0, r, a, b, c, low, high, cx, dx0, dy0):
+    """One channel's moments of t and u (see `splat_backward`) over the footprint, walking each row
+    outwards from its start by complex multiplication."""
+    width = grad.shape[1]
+    z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, dx0, dy0)
+    z_row *= rotation
+    t_moments = u_moments = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    for py in range(low, high + 1):
+        dy = py - y0
+        left, right = _column_span(x0, r, dy, a, b, c, width)
+        grad_row = grad[py]
+        t0 = t1 = t2 = u0 = u1 = u2 = 0.0
+        start, z_r, s_r, z_l, s_l, steps = _row_walks(walk, A, B, C, rotation, z_row, s_right, s_left,
+                                                      s_step, x0, dy, cx, -b / a, left, right)
+        for i in range(steps):
+            for px, z in ((start + i, z_r), (start - 1 - i, z_l)):
+                if left <= px <= right:
+                    dx = px - x0
+                    g = grad_row[px]
+                    t = g.real * z.real + g.imag * z.imag
+                    u = g.imag * z.real - g.real * z.imag
+                    t0 += t
+                    t1 += t * dx
+                    t2 += t * dx * dx
+                    u0 += u
+                    u1 += u * dx
+                    u2 += u * dx * dx
+            z_r, s_r = z_r * s_r, s_r * s_step
+            z_l, s_l = z_l * s_l, s_l * s_step
+        z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left)
+        t_moments = _with_row(t_moments, t0, t1, t2, dy)
+        u_moments = _with_row(u_moments, u0, u1, u2, dy)
+    return t_moments, u_moments
+
+
+@nb.njit(cache=True, nogil=True)
+def _tabulated(a, b, c, reach):
+    """Whether the column tables of `_tabulated_moments` stay well inside float64's range: every
+    partial exponent A dx² + 2B dx dy in the footprint is below 450 in magnitude."""
+    largest_inverse_eigenvalue = 0.5 * (a + c) + math.sqrt(0.25 * (a - c) ** 2 + b * b)
+    return reach * reach * largest_inverse_eigenvalue <= MAX_TABULATED_MAHALANOBIS2
+
+
+@nb.njit(cache=True, nogil=True)
+def _row_spans(x0, y0, r, a, b, c, low, high, width, lefts, rights):
+    """Each footprint row's columns into lefts/rights [row − low]; returns the columns they cover
+    (first > last when none)."""
+    first, last = width, -1
+    for py in range(low, high + 1):
+        left, right = _column_span(x0, r, py - y0, a, b, c, width)
+        lefts[py - low], rights[py - low] = left, right
+        if left <= right:
+            first, last = min(first, left), max(last, right)
+    return first, last
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True)
+def _tabulated_moments(grad, A, B, C, rotation, x0, y0, low, high, lefts, rights, first, last,
+                       g_real, g_imag, h_real, h_imag):
+    """One channel's moments of t and u over the footprint, from column tables.
+
+    exp(E) = exp(C dy²)·G(dx) with G(dx) = exp(A dx² + 2B dx dy): a row factor times a table over
+    the footprint's columns that moves one row down by the factor h(dx) = exp(2B dx). Neither needs
+    a recurrence along the row, so each row is one loop of independent products that LLVM
+    vectorises, and the row factor is applied once to the row's sums Σḡ·G·{1, dx, dx²}."""
+    columns = last + 1 - first
+    dx_first, dy0 = first - x0, low - y0
+    g = cmath.exp(A * dx_first * dx_first + 2.0 * B * dx_first * dy0)
+    ratio, ratio_step = cmath.exp(A * (2.0 * dx_first + 1.0) + 2.0 * B * dy0), cmath.exp(2.0 * A)
+    h, h_step = cmath.exp(2.0 * B * dx_first), cmath.exp(2.0 * B)
+    for i in range(columns):
+        g_real[i], g_imag[i], h_real[i], h_imag[i] = g.real, g.imag, h.real, h.imag
+        g, ratio, h = g * ratio, ratio * ratio_step, h * h_step
+    row_factor = rotation * cmath.exp(C * dy0 * dy0)
+    down, down_step = cmath.exp(C * (2.0 * dy0 + 1.0)), cmath.exp(2.0 * C)
+    t_moments = u_moments = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    for k in range(high + 1 - low):
+        left, right = lefts[k], rights[k]
+        if left <= right:
+            count, offset = right + 1 - left, left - first
+            grad_row = grad[low + k, left:right + 1]
+            table_real, table_imag = g_real[offset:offset + count], g_imag[offset:offset + count]
+            dx_left = left - x0
+            s0r = s0i = s1r = s1i = s2r = s2i = 0.0
+            for j in range(count):  # zero-based slices: LLVM proves the indices and vectorises
+                gr, gi = grad_row[j].real, grad_row[j].imag
+                wr = gr * table_real[j] + gi * table_imag[j]
+                wi = gr * table_imag[j] - gi * table_real[j]
+                dx = dx_left + j
+                s0r += wr
+                s0i += wi
+                s1r += wr * dx
+                s1i += wi * dx
+                s2r += wr * dx * dx
+                s2i += wi * dx * dx
+            fr, fi = row_factor.real, row_factor.imag  # t + i·(−u) = row factor · Σḡ·G
+            dy = low + k - y0
+            t_moments = _with_row(t_moments, fr * s0r - fi * s0i, fr * s1r - fi * s1i, fr * s2r - fi * s2i, dy)
+            u_moments = _with_row(u_moments, -(fr * s0i + fi * s0r), -(fr * s1i + fi * s1r),
+                                  -(fr * s2i + fi * s2r), dy)
+        for i in range(columns):
+            gr = g_real[i] * h_real[i] - g_imag[i] * h_imag[i]
+            g_imag[i] = g_real[i] * h_imag[i] + g_imag[i] * h_real[i]
+            g_real[i] = gr
+        row_factor, down = row_factor * down, down * down_step
+    return t_moments, u_moments
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True)
 def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                      grad, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity):
+                      grad, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts, rights, tables):
     channels, height, width = grad.shape
     visible, x0, y0, r, a, b, c, low, high, walk, cx, dx0, dy0 = _footprint(n, position, conic, reach, height, width)
     if not visible:
         return
+    tabulated = _tabulated(a, b, c, r)
+    if tabulated:
+        first, last = _row_spans(x0, y0, r, a, b, c, low, high, width, lefts, rights)
+        if first > last:
+            return
     alpha = np.float64(opacity[n])
     g_alpha = ga = gb = gc = gx = gy = 0.0
     for ch in range(channels):
@@ -233,34 +348,12 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
         k_chirp = k * np.float64(chirp[n, slot])
         A, B, C = _exponent_coefficients(a, b, c, k_chirp, mahalanobis)
         rotation = cmath.exp(complex(0.0, phase[n, ch]))
-        z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, dx0, dy0)
-        z_row *= rotation
-        t_moments = u_moments = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-        for py in range(low, high + 1):
-            dy = py - y0
-            left, right = _column_span(x0, r, dy, a, b, c, width)
-            grad_row = grad[ch, py]
-            t0 = t1 = t2 = u0 = u1 = u2 = 0.0
-            start, z_r, s_r, z_l, s_l, steps = _row_walks(walk, A, B, C, rotation, z_row, s_right, s_left,
-                                                          s_step, x0, dy, cx, -b / a, left, right)
-            for i in range(steps):
-                for px, z in ((start + i, z_r), (start - 1 - i, z_l)):
-                    if left <= px <= right:
-                        dx = px - x0
-                        g = grad_row[px]
-                        t = g.real * z.real + g.imag * z.imag
-                        u = g.imag * z.real - g.real * z.imag
-                        t0 += t
-                        t1 += t * dx
-                        t2 += t * dx * dx
-                        u0 += u
-                        u1 += u * dx
-                        u2 += u * dx * dx
-                z_r, s_r = z_r * s_r, s_r * s_step
-                z_l, s_l = z_l * s_l, s_l * s_step
-            z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left)
-            t_moments = _with_row(t_moments, t0, t1, t2, dy)
-            u_moments = _with_row(u_moments, u0, u1, u2, dy)
+        if tabulated:
+            t_moments, u_moments = _tabulated_moments(grad[ch], A, B, C, rotation, x0, y0, low, high, lefts, rights,
+                                                      first, last, tables[0], tables[1], tables[2], tables[3])
+        else:
+            t_moments, u_moments = _walked_moments(grad[ch], A, B, C, rotation, walk, x0, y0, r, a, b, c, low, high,
+                                                   cx, dx0, dy0)
         t00, t10, t20, t01, t11, t02 = t_moments
         u00, u10, u20, u01, u11, u02 = u_moments
         scale = alpha * color_c
@@ -304,7 +397,10 @@ def splat_backward(position, conic, reach, chirp, color, phase, opacity, wavenum
     which become gradients once per primitive and channel. (The −50 floor's zero gradient is
     not reproduced: it concerns values below e⁻⁵⁰.)
     """
+    height, width = grad.shape[1], grad.shape[2]
     for t in nb.prange(threads):
+        lefts, rights = np.empty(height, np.int64), np.empty(height, np.int64)
+        tables = (np.empty(width), np.empty(width), np.empty(width), np.empty(width))  # separate: no aliasing
         for n in range(t, position.shape[0], threads):
             _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                              grad, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity)
+                              grad, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts, rights, tables)
