@@ -148,10 +148,13 @@ def _chirp_slot(channel, chirp):
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True)
-def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, out):
+def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, out, lefts, rights):
     channels, height, width = out.shape
     visible, x0, y0, r, a, b, c, low, high, walk, cx, dx0, dy0 = _footprint(n, position, conic, reach, height, width)
     if not visible:
+        return
+    first, last = _row_spans(x0, y0, r, a, b, c, low, high, width, lefts, rights)
+    if first > last:
         return
     for ch in range(channels):
         k_chirp = wavenumbers[ch] * chirp[n, _chirp_slot(ch, chirp)]
@@ -161,7 +164,7 @@ def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumb
         z_row *= amplitude
         for py in range(low, high + 1):
             dy = py - y0
-            left, right = _column_span(x0, r, dy, a, b, c, width)
+            left, right = lefts[py - low], rights[py - low]
             row = out[ch, py]
             start, z_r, s_r, z_l, s_l, steps = _row_walks(walk, A, B, C, amplitude, z_row, s_right, s_left,
                                                           s_step, x0, dy, cx, -b / a, left, right)
@@ -211,29 +214,29 @@ def splat_forward(position, conic, reach, chirp, color, phase, opacity, wavenumb
     threads = partial.shape[0]
     for t in nb.prange(threads):
         amplitudes = np.empty(color.shape[1], np.complex128)
+        lefts, rights = np.empty(partial.shape[2], np.int64), np.empty(partial.shape[2], np.int64)
         for n in range(t, position.shape[0], threads):
             if _is_flat(n, chirp):
                 _splat_flat_one(n, position, conic, reach, color, phase, opacity, mahalanobis, amplitudes, partial[t])
             else:
                 _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                           partial[t])
+                           partial[t], lefts, rights)
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True)
-def _walked_moments(grad, A, B, C, rotation, walk, x0, y0, r, a, b, c, low, high, cx, dx0, dy0):
+def _walked_moments(grad, A, B, C, rotation, walk, x0, y0, ridge_slope, low, high, lefts, rights, cx, dx0, dy0):
     """One channel's moments of t and u (see `splat_backward`) over the footprint, walking each row
     outwards from its start by complex multiplication."""
-    width = grad.shape[1]
     z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, dx0, dy0)
     z_row *= rotation
     t_moments = u_moments = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     for py in range(low, high + 1):
         dy = py - y0
-        left, right = _column_span(x0, r, dy, a, b, c, width)
+        left, right = lefts[py - low], rights[py - low]
         grad_row = grad[py]
         t0 = t1 = t2 = u0 = u1 = u2 = 0.0
         start, z_r, s_r, z_l, s_l, steps = _row_walks(walk, A, B, C, rotation, z_row, s_right, s_left,
-                                                      s_step, x0, dy, cx, -b / a, left, right)
+                                                      s_step, x0, dy, cx, ridge_slope, left, right)
         for i in range(steps):
             for px, z in ((start + i, z_r), (start - 1 - i, z_l)):
                 if left <= px <= right:
@@ -335,11 +338,10 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
     visible, x0, y0, r, a, b, c, low, high, walk, cx, dx0, dy0 = _footprint(n, position, conic, reach, height, width)
     if not visible:
         return
+    first, last = _row_spans(x0, y0, r, a, b, c, low, high, width, lefts, rights)
+    if first > last:
+        return
     tabulated = _tabulated(a, b, c, r)
-    if tabulated:
-        first, last = _row_spans(x0, y0, r, a, b, c, low, high, width, lefts, rights)
-        if first > last:
-            return
     alpha = np.float64(opacity[n])
     g_alpha = ga = gb = gc = gx = gy = 0.0
     for ch in range(channels):
@@ -352,8 +354,8 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
             t_moments, u_moments = _tabulated_moments(grad[ch], A, B, C, rotation, x0, y0, low, high, lefts, rights,
                                                       first, last, tables[0], tables[1], tables[2], tables[3])
         else:
-            t_moments, u_moments = _walked_moments(grad[ch], A, B, C, rotation, walk, x0, y0, r, a, b, c, low, high,
-                                                   cx, dx0, dy0)
+            t_moments, u_moments = _walked_moments(grad[ch], A, B, C, rotation, walk, x0, y0, -b / a, low, high,
+                                                   lefts, rights, cx, dx0, dy0)
         t00, t10, t20, t01, t11, t02 = t_moments
         u00, u10, u20, u01, u11, u02 = u_moments
         scale = alpha * color_c

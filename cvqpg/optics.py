@@ -288,13 +288,19 @@ def _placed_transposed(values: Tensor, length: int, offset: int) -> Tensor:
     return out
 
 
-def _transposed_window(values: Tensor, offset: int, count: int) -> Tensor:
-    """[N, L] → [count, N]: columns offset..offset+count of `values`, transposed (contiguous)."""
-    if values.device.type != "cpu":
-        return values[:, offset:offset + count].T.contiguous()
-    out = values.new_empty(count, values.shape[0])
-    optics_kernels.transpose_window(values.numpy(), offset, out.numpy())
-    return out
+def _window_into(values: Tensor, offset: int, out: Tensor) -> None:
+    """out [R, N] = columns offset..offset+R of `values` [N, L], transposed."""
+    if values.device.type == "cpu":
+        optics_kernels.transpose_window(values.numpy(), offset, out.numpy())
+    else:
+        out.copy_(values[:, offset:offset + out.shape[0]].T)
+
+
+SPECTRUM_BLOCK_ROWS = 128  # rows of a transposed spectrum handled at once: 1.5 MB at 640×480, cache-sized
+
+
+def _blocks(count: int) -> list[slice]:
+    return [slice(start, min(start + SPECTRUM_BLOCK_ROWS, count)) for start in range(0, count, SPECTRUM_BLOCK_ROWS)]
 
 
 class _ContentPropagation(torch.autograd.Function):
@@ -308,6 +314,10 @@ class _ContentPropagation(torch.autograd.Function):
     whose input is the content and whose output the field. The y passes run over all 2P_W columns.
     That is about 0.4 of the 2D transforms' work, and the result is the same to float32 rounding.
 
+    Between the two x passes everything works on blocks of `SPECTRUM_BLOCK_ROWS` spectrum rows (f_x):
+    transpose in, y transform, transfer product, inverse y transform, transpose out, while the block
+    is in cache; whole-array passes would stream each array through memory several times.
+
     The forward keeps only the H×W content of each plane. The adjoint of the propagation is
     `ifft2(conj(T)·fft2(g))` summed over planes; it is computed as `conj(fft2(Σ_m T_m·ifft2(conj g_m)))`,
     the same number, so the transfer functions are never conjugated (a conjugate would be
@@ -318,16 +328,20 @@ class _ContentPropagation(torch.autograd.Function):
     @staticmethod
     def forward(ctx, field: Tensor, grid: Grid, bank: TransferBank) -> Tensor:
         channels, rows, cols = field.shape
+        planes = len(bank.distances)
         top, left = rows // 2 + grid.top, cols // 2 + grid.left
-        content = field.new_empty(len(bank.distances), channels, grid.height, grid.width)
+        content = field.new_empty(planes, channels, grid.height, grid.width)
+        along_y = field.new_empty(planes, grid.height, 2 * cols)
         for channel in range(channels):
             along_x = torch.fft.fft(_placed(field[channel], 2 * cols, cols // 2))
-            spectrum = torch.fft.fft(_placed_transposed(along_x, 2 * rows, rows // 2))
-            for plane in range(len(bank.distances)):
-                last = plane == len(bank.distances) - 1  # the last plane may filter the spectrum in place
-                filtered = spectrum.mul_(bank(plane, channel)) if last else spectrum * bank(plane, channel)
-                along_y = _transposed_window(torch.fft.ifft(filtered), top, grid.height)
-                content[plane, channel] = torch.fft.ifft(along_y)[:, left:left + grid.width]
+            for block in _blocks(2 * cols):
+                spectrum = torch.fft.fft(_placed_transposed(along_x[:, block], 2 * rows, rows // 2))
+                for plane in range(planes):
+                    transfer = bank(plane, channel)[block]
+                    last = plane == planes - 1  # the last plane may filter the spectrum in place
+                    filtered = spectrum.mul_(transfer) if last else spectrum * transfer
+                    _window_into(torch.fft.ifft(filtered), top, along_y[plane, :, block])
+            content[:, channel] = torch.fft.ifft(along_y)[..., left:left + grid.width]
         ctx.grid, ctx.bank, ctx.field_shape = grid, bank, field.shape
         return content
 
@@ -335,18 +349,22 @@ class _ContentPropagation(torch.autograd.Function):
     def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None]:
         grid, bank = ctx.grid, ctx.bank
         channels, rows, cols = ctx.field_shape
+        planes = len(bank.distances)
         top, left = rows // 2 + grid.top, cols // 2 + grid.left
         grad_field = grad.new_empty(channels, rows, cols)
+        along_y = grad.new_empty(rows, 2 * cols)
         for channel in range(channels):
-            accumulated = None
-            for plane in range(len(bank.distances)):
-                along_x = torch.fft.ifft(_placed(grad[plane, channel].conj(), 2 * cols, left))
-                spectrum = torch.fft.ifft(_placed_transposed(along_x, 2 * rows, top))
-                if accumulated is None:
-                    accumulated = spectrum.mul_(bank(plane, channel))
-                else:
-                    accumulated.addcmul_(spectrum, bank(plane, channel))
-            along_y = _transposed_window(torch.fft.fft(accumulated), rows // 2, rows)
+            along_x = [torch.fft.ifft(_placed(grad[plane, channel].conj(), 2 * cols, left)) for plane in range(planes)]
+            for block in _blocks(2 * cols):
+                accumulated = None
+                for plane in range(planes):
+                    spectrum = torch.fft.ifft(_placed_transposed(along_x[plane][:, block], 2 * rows, top))
+                    transfer = bank(plane, channel)[block]
+                    if accumulated is None:
+                        accumulated = spectrum.mul_(transfer)
+                    else:
+                        accumulated.addcmul_(spectrum, transfer)
+                _window_into(torch.fft.fft(accumulated), rows // 2, along_y[:, block])
             grad_field[channel] = torch.fft.fft(along_y)[:, cols // 2:cols // 2 + cols].conj()
         return grad_field, None, None
 
