@@ -5,10 +5,11 @@ element-wise passes, forward and backward, and runs SSIM's 11-tap depthwise blur
 1 GMAC/s on the CPU. Here:
 
 - `pixel_terms` makes one pass for the three MSE terms and their gradient;
-- `blur_valid` blurs with each thread owning whole output rows: it sums the K input rows under the
-  window into one row buffer, then filters that buffer along x, so nothing larger than one row is
-  stored between the passes; `blur_valid_adjoint` scatters the same taps back;
-- `ssim_maps` makes one pass for the SSIM map and its partial derivatives.
+- `ssim_forward` blurs the five moments of SSIM (formed on the fly from the two images) and turns
+  them into the map and its partial derivatives in one pass over the output rows, each thread
+  owning whole rows with one row of column sums per moment, so nothing larger than a row is stored
+  between the blur's passes; `ssim_backward` scatters the derivatives back through the adjoint blur
+  and combines them with the images in one pass over the input rows.
 
 Each thread owns whole rows and rows are summed in a fixed order, so results do not depend on
 scheduling.
@@ -25,52 +26,6 @@ def gaussian_taps(size_px: int, sigma_px: float) -> np.ndarray:
     offsets = np.arange(size_px, dtype=np.float64) - size_px // 2
     taps = np.exp(-offsets**2 / (2 * sigma_px**2))
     return taps / taps.sum()
-
-
-@nb.njit(parallel=True, cache=True, fastmath=True)
-def blur_valid(images, taps):
-    """[B, H, W] → [B, H − K + 1, W − K + 1]: the separable blur with the K taps, valid pixels only."""
-    count, height, width = images.shape
-    size = taps.size
-    out_height, out_width = height - size + 1, width - size + 1
-    out = np.empty((count, out_height, out_width), images.dtype)
-    for row in nb.prange(count * out_height):
-        b, i = row // out_height, row % out_height
-        column_sums = np.zeros(width, images.dtype)
-        for k in range(size):
-            tap = taps[k]
-            source = images[b, i + k]
-            for j in range(width):
-                column_sums[j] += tap * source[j]
-        target = out[b, i]
-        target[:] = 0.0
-        for k in range(size):
-            tap = taps[k]
-            for j in range(out_width):
-                target[j] += tap * column_sums[j + k]
-    return out
-
-
-@nb.njit(parallel=True, cache=True, fastmath=True)
-def blur_valid_adjoint(grad, taps, height, width):
-    """The adjoint of `blur_valid`: [B, h, w] → [B, height, width]."""
-    count, out_height, out_width = grad.shape
-    size = taps.size
-    out = np.zeros((count, height, width), grad.dtype)
-    for row in nb.prange(count * height):
-        b, i = row // height, row % height
-        column_sums = np.zeros(out_width, grad.dtype)
-        for k in range(max(0, i - out_height + 1), min(size, i + 1)):
-            tap = taps[k]
-            source = grad[b, i - k]
-            for j in range(out_width):
-                column_sums[j] += tap * source[j]
-        target = out[b, i]
-        for k in range(size):
-            tap = taps[k]
-            for j in range(out_width):
-                target[j + k] += tap * column_sums[j]
-    return out
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
@@ -98,26 +53,67 @@ def pixel_terms(recon, targets, noisy, masks, gradient):
     return rows.reshape(planes, height, 2).sum(axis=1)
 
 
-@nb.njit(parallel=True, cache=True, fastmath=True)
-def ssim_maps(mean_x, mean_y, mean_xx, mean_yy, mean_xy, c1, c2, d_mean_x, d_mean_xx, d_mean_xy):
-    """Sum of the SSIM map per image ([B], float64) from the blurred moments [B, h, w].
+@nb.njit(cache=True, nogil=True, fastmath=True)
+def _filtered_row(row, taps, count):
+    """The first `count` outputs of the K-tap filter along a row: out[j] = Σ_k taps[k]·row[j + k]."""
+    out = np.zeros(count, row.dtype)
+    for k in range(taps.size):
+        tap = taps[k]
+        for j in range(count):
+            out[j] += tap * row[j + k]
+    return out
 
-    SSIM = a1·a2 / (b1·b2) with a1 = 2μxμy + c1, b1 = μx² + μy² + c1, a2 = 2σxy + c2,
-    b2 = σx² + σy² + c2. Writes its partial derivatives with respect to μx, E[x²] and E[xy] into
-    `d_mean_x`, `d_mean_xx`, `d_mean_xy`; they are written without dividing by a1 or a2, which may
-    vanish (b1, b2 ≥ c1, c2 > 0).
+
+@nb.njit(cache=True, nogil=True, fastmath=True)
+def _spread_row(row, taps, length):
+    """The adjoint of `_filtered_row`: out[j + k] += taps[k]·row[j], `length` outputs."""
+    out = np.zeros(length, row.dtype)
+    for k in range(taps.size):
+        tap = taps[k]
+        for j in range(row.size):
+            out[j + k] += tap * row[j]
+    return out
+
+
+@nb.njit(parallel=True, cache=True, fastmath=True)
+def ssim_forward(x, y, taps, c1, c2, d_mean_x, d_mean_xx, d_mean_xy):
+    """Sum of the SSIM map per image ([B], float64) of x against y [B, H, W], over the valid window
+    positions [h, w] = [H − K + 1, W − K + 1] of the K-tap separable blur.
+
+    Each thread owns output rows. For one row it sums the K input rows under the window into one row
+    of column sums per moment (x, y, x², y², xy, formed on the fly), filters those along x, and turns
+    the five blurred moments into the map: SSIM = a1·a2 / (b1·b2) with a1 = 2μxμy + c1,
+    b1 = μx² + μy² + c1, a2 = 2σxy + c2, b2 = σx² + σy² + c2. It writes the map's partial derivatives
+    with respect to μx, E[x²] and E[xy] into `d_mean_x`, `d_mean_xx`, `d_mean_xy` [B, h, w]; they are
+    written without dividing by a1 or a2, which may vanish (b1, b2 ≥ c1, c2 > 0).
     """
-    images, height, width = mean_x.shape
-    rows = np.zeros(images * height)
-    for row in nb.prange(images * height):
-        b, i = row // height, row % height
+    images, height, width = x.shape
+    size = taps.size
+    out_height, out_width = height - size + 1, width - size + 1
+    rows = np.zeros(images * out_height)
+    for row in nb.prange(images * out_height):
+        b, i = row // out_height, row % out_height
+        s_x, s_y, s_xx, s_yy, s_xy = (np.zeros(width, x.dtype), np.zeros(width, x.dtype), np.zeros(width, x.dtype),
+                                      np.zeros(width, x.dtype), np.zeros(width, x.dtype))  # apart: no aliasing
+        for k in range(size):
+            tap, xs, ys = taps[k], x[b, i + k], y[b, i + k]
+            for j in range(width):
+                xv, yv = tap * xs[j], ys[j]
+                s_x[j] += xv
+                s_y[j] += tap * yv
+                s_xx[j] += xv * xs[j]
+                s_yy[j] += tap * yv * yv
+                s_xy[j] += xv * yv
+        m_x, m_y, m_xx = _filtered_row(s_x, taps, out_width), _filtered_row(s_y, taps, out_width), \
+            _filtered_row(s_xx, taps, out_width)
+        m_yy, m_xy = _filtered_row(s_yy, taps, out_width), _filtered_row(s_xy, taps, out_width)
         total = 0.0
-        for j in range(width):
-            mx, my = np.float64(mean_x[b, i, j]), np.float64(mean_y[b, i, j])
+        for j in range(out_width):
+            mx, my = np.float64(m_x[j]), np.float64(m_y[j])
             mxy = mx * my
             a1, b1 = 2.0 * mxy + c1, mx * mx + my * my + c1
-            a2 = 2.0 * (mean_xy[b, i, j] - mxy) + c2
-            b2 = (mean_xx[b, i, j] - mx * mx) + (mean_yy[b, i, j] - my * my) + c2
+            a2 = 2.0 * (m_xy[j] - mxy) + c2
+            b2 = (m_xx[j] - mx * mx) + (m_yy[j] - my * my) + c2
             denominator = b1 * b2
             value = a1 * a2 / denominator
             total += value
@@ -125,4 +121,31 @@ def ssim_maps(mean_x, mean_y, mean_xx, mean_yy, mean_xy, c1, c2, d_mean_x, d_mea
             d_mean_xx[b, i, j] = -value / b2
             d_mean_xy[b, i, j] = 2.0 * a1 / denominator
         rows[row] = total
-    return rows.reshape(images, height).sum(axis=1)
+    return rows.reshape(images, out_height).sum(axis=1)
+
+
+@nb.njit(parallel=True, cache=True, fastmath=True)
+def ssim_backward(d_mean_x, d_mean_xx, d_mean_xy, weights, x, y, taps, out):
+    """out [B, H, W] = w_b·(B*(∂μx) + 2x·B*(∂E[x²]) + y·B*(∂E[xy])): the gradient of Σ_b w_b·ΣSSIM_b
+    with respect to x, from `ssim_forward`'s derivative maps [B, h, w], B* the adjoint of the blur.
+
+    Each thread owns input rows: it gathers the output rows whose windows cover its row into column
+    sums, scatters them back along x, and combines the three maps with x and y in the same pass.
+    """
+    images, height, width = x.shape
+    out_height, out_width = d_mean_x.shape[1], d_mean_x.shape[2]
+    size = taps.size
+    for row in nb.prange(images * height):
+        b, i = row // height, row % height
+        c_x, c_xx, c_xy = np.zeros(out_width, x.dtype), np.zeros(out_width, x.dtype), np.zeros(out_width, x.dtype)
+        for k in range(max(0, i - out_height + 1), min(size, i + 1)):
+            tap = taps[k]
+            d_x, d_xx, d_xy = d_mean_x[b, i - k], d_mean_xx[b, i - k], d_mean_xy[b, i - k]
+            for j in range(out_width):
+                c_x[j] += tap * d_x[j]
+                c_xx[j] += tap * d_xx[j]
+                c_xy[j] += tap * d_xy[j]
+        g_x, g_xx, g_xy = _spread_row(c_x, taps, width), _spread_row(c_xx, taps, width), _spread_row(c_xy, taps, width)
+        weight, xs, ys, target = weights[b], x[b, i], y[b, i], out[b, i]
+        for j in range(width):
+            target[j] = weight * (g_x[j] + 2.0 * xs[j] * g_xx[j] + ys[j] * g_xy[j])

@@ -13,7 +13,7 @@ import torch
 from pytorch_msssim import ssim
 from torch import Tensor
 
-from cvqpg.loss_kernels import blur_valid, blur_valid_adjoint, gaussian_taps, pixel_terms, ssim_maps
+from cvqpg.loss_kernels import gaussian_taps, pixel_terms, ssim_backward, ssim_forward
 from cvqpg.rasterization import cpu_array, resolve_backend
 
 SSIM_WINDOW_PX = 11
@@ -23,9 +23,8 @@ SSIM_K1, SSIM_K2 = 0.01, 0.03  # stabilisers, as fractions of the data range (1)
 
 def noisy_targets(targets: Tensor, standard_normal: Tensor, level: float) -> Tensor:
     """`T̃ = T + level·(max T − min T)·N(0,1)`, range taken per plane over [C, H, W]."""
-    flat = targets.flatten(1)
-    spread = (flat.max(dim=1).values - flat.min(dim=1).values).view(-1, 1, 1, 1)
-    return targets + level * spread * standard_normal
+    low, high = torch.aminmax(targets.flatten(1), dim=1)
+    return torch.addcmul(targets, (level * (high - low)).view(-1, 1, 1, 1), standard_normal)
 
 
 class _FusedSsim(torch.autograd.Function):
@@ -34,28 +33,31 @@ class _FusedSsim(torch.autograd.Function):
     moments: ∂SSIM/∂x = B*(∂S/∂μx) + 2x·B*(∂S/∂E[x²]) + y·B*(∂S/∂E[xy]), B* the adjoint blur."""
 
     @staticmethod
+    def images(recon: Tensor, targets: Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """[M, C, H, W] tensors as [M·C, H, W] arrays of the reconstruction's dtype."""
+        x = cpu_array(recon).reshape(-1, *recon.shape[-2:])
+        return x, cpu_array(targets).astype(x.dtype, copy=False).reshape(x.shape)
+
+    @staticmethod
     def forward(ctx, recon: Tensor, targets: Tensor) -> Tensor:
         planes, channels, height, width = recon.shape
-        moments = cpu_array(torch.stack((recon, targets, recon * recon, targets * targets, recon * targets)))
-        taps = gaussian_taps(SSIM_WINDOW_PX, SSIM_SIGMA_PX).astype(moments.dtype)
-        blurred = blur_valid(moments.reshape(-1, height, width), taps)
-        blurred = blurred.reshape(5, planes * channels, *blurred.shape[-2:])
-        derivatives = np.empty((3, *blurred.shape[1:]), moments.dtype)
-        sums = ssim_maps(*blurred, SSIM_K1**2, SSIM_K2**2, *derivatives)
-        count = channels * blurred.shape[-2] * blurred.shape[-1]
-        ctx.derivatives, ctx.taps, ctx.count = derivatives, taps, count
+        x, y = _FusedSsim.images(recon, targets)
+        taps = gaussian_taps(SSIM_WINDOW_PX, SSIM_SIGMA_PX).astype(x.dtype)
+        valid = (x.shape[0], height - taps.size + 1, width - taps.size + 1)
+        derivatives = tuple(np.empty(valid, x.dtype) for _ in range(3))
+        sums = ssim_forward(x, y, taps, SSIM_K1**2, SSIM_K2**2, *derivatives)
+        ctx.derivatives, ctx.taps, ctx.count = derivatives, taps, channels * valid[1] * valid[2]
         ctx.save_for_backward(recon, targets)
-        return torch.from_numpy(sums.reshape(planes, channels).sum(axis=1) / count).to(recon.device, recon.dtype)
+        return torch.from_numpy(sums.reshape(planes, channels).sum(axis=1) / ctx.count).to(recon.device, recon.dtype)
 
     @staticmethod
     def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:
         recon, targets = ctx.saved_tensors
-        planes, channels, height, width = recon.shape
-        per_image = np.repeat(cpu_array(grad).astype(np.float64) / ctx.count, channels)
-        scaled = ctx.derivatives * per_image[None, :, None, None].astype(ctx.derivatives.dtype)
-        adjoint = blur_valid_adjoint(scaled.reshape(-1, *scaled.shape[-2:]), ctx.taps, height, width)
-        d_mean_x, d_mean_xx, d_mean_xy = torch.from_numpy(adjoint).to(recon.device).view(3, *recon.shape)
-        return d_mean_x + 2 * recon * d_mean_xx + targets * d_mean_xy, None
+        x, y = _FusedSsim.images(recon, targets)
+        weights = np.repeat(cpu_array(grad).astype(np.float64) / ctx.count, recon.shape[1])
+        gradient = np.empty_like(x)
+        ssim_backward(*ctx.derivatives, weights, x, y, ctx.taps, gradient)
+        return torch.from_numpy(gradient).view(recon.shape).to(recon.device), None
 
 
 def ssim_per_plane(recon: Tensor, targets: Tensor, backend: str = "auto") -> Tensor:

@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 from pytorch_msssim import ssim as msssim_ssim
 
-from cvqpg.loss_kernels import blur_valid, blur_valid_adjoint, gaussian_taps
+from cvqpg.loss_kernels import gaussian_taps, ssim_forward
 from cvqpg.config import FitConfig
 from cvqpg.losses import multiplane_loss, noisy_targets, ssim_per_plane
 from cvqpg.targets import build_scene, defocus_targets, gaussian_kernel, plane_masks
@@ -253,18 +253,28 @@ def test_multiplane_loss_gradient_flows_to_reconstruction():
 # --------------------------------------------------------------------------- fast SSIM (CPU kernels)
 
 
-def test_blur_kernel_matches_separable_convolution_and_its_adjoint():
+def test_fused_ssim_kernel_matches_the_formula_on_separably_blurred_moments():
+    """`ssim_forward` (moments formed and blurred row by row) against SSIM written out from
+    `conv2d` blurs of x, y, x², y², xy, in value and in its three derivative maps."""
     generator = torch.Generator().manual_seed(11)
-    images = torch.rand(3, 17, 23, dtype=torch.float64, generator=generator)
+    x, y = torch.rand(2, 3, 17, 23, dtype=torch.float64, generator=generator)
     taps = gaussian_taps(11, 1.5)
     kernel = torch.from_numpy(taps)
-    expected = F.conv2d(F.conv2d(images[:, None], kernel.view(1, 1, 1, 11)), kernel.view(1, 1, 11, 1))[:, 0]
-    blurred = blur_valid(images.numpy(), taps)
-    assert blurred.shape == (3, 7, 13)
-    np.testing.assert_allclose(blurred, expected.numpy(), rtol=0, atol=1e-14)
-    grad = torch.rand(blurred.shape, dtype=torch.float64, generator=generator).numpy()
-    adjoint = blur_valid_adjoint(grad, taps, 17, 23)
-    assert float((blurred * grad).sum()) == pytest.approx(float((images.numpy() * adjoint).sum()), rel=1e-13)
+
+    def blur(images):
+        return F.conv2d(F.conv2d(images[:, None], kernel.view(1, 1, 1, 11)), kernel.view(1, 1, 11, 1))[:, 0]
+
+    mx, my, mxx, myy, mxy = (blur(m).requires_grad_(True) for m in (x, y, x * x, y * y, x * y))
+    c1, c2 = 0.01**2, 0.03**2
+    ssim_map = ((2 * mx * my + c1) * (2 * (mxy - mx * my) + c2)
+                / ((mx**2 + my**2 + c1) * (mxx - mx**2 + myy - my**2 + c2)))
+    expected = ssim_map.sum(dim=(1, 2))
+    partials = torch.autograd.grad(expected.sum(), (mx, mxx, mxy))
+    maps = tuple(np.empty((3, 7, 13)) for _ in range(3))
+    sums = ssim_forward(x.numpy(), y.numpy(), taps, c1, c2, *maps)
+    np.testing.assert_allclose(sums, expected.detach().numpy(), rtol=1e-12)
+    for got, want in zip(maps, partials):
+        np.testing.assert_allclose(got, want.numpy(), rtol=1e-9, atol=1e-12)
 
 
 def test_fast_ssim_matches_pytorch_msssim_in_value_and_gradient():
