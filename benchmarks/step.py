@@ -4,14 +4,18 @@
     python benchmarks/step.py --quick                # smaller, for a smoke test
     python benchmarks/step.py --model runs/bento     # the primitives of a fitted model instead
 
-Primitives at initialisation are small and round, with zero curvature; a fitted model's are not (a
-few grow to hundreds of pixels, some become needles, curvatures spread), and its rasterizer costs
-more. `--model` measures a step of that model's configuration on its own primitives.
+Primitives at initialisation are small and round. They are measured twice for RGB: flat, as in the
+baseline and during CVQPG's warm-up (curvature frozen at zero), and curved, as after the warm-up
+(each curvature a random fraction of its Nyquist bound). A fitted model's primitives are not small
+and round (a few grow to hundreds of pixels, some become needles), and its rasterizer costs more;
+`--model` measures a step of that model's configuration on its own primitives.
 
-The floor is the Fourier transforms that BLASM propagation cannot avoid, timed alone in the same
-process on the same grid: per step one forward FFT per channel and one inverse per channel and
-plane, and as many again in the backward pass. Medians over repeated steps; the machine is shared,
-so only ratios measured in one run are meaningful.
+The floor is the Fourier transforms that BLASM propagation cannot avoid, as 2D transforms of the
+zero-padded grid, timed alone in the same process: per step one forward FFT per channel and one
+inverse per channel and plane, and as many again in the backward pass. This package prunes them
+(only the rows each 1D pass needs); the same 1D transforms, timed alone, are printed next to it.
+Medians over repeated steps; the machine is shared, so only ratios measured in one run are
+meaningful.
 """
 
 from __future__ import annotations
@@ -51,18 +55,18 @@ def median_seconds(action: Callable[[], object], repeats: int) -> float:
 
 
 def fft_floor(config: FitConfig, repeats: int) -> tuple[float, float]:
-    """Seconds of a step's transforms alone, and of the transforms with the transfer-function products
-    that a library FFT cannot fold into its passes (one per plane and channel, forward and backward).
+    """Seconds of a step's 2D transforms alone (the floor), and of the pruned 1D transforms that
+    `propagate_content` runs instead, alone.
 
-    Each is timed batched over channels and planes and one array at a time, and the faster counts:
-    which one wins depends on the machine's caches (here a single 1536×1920 transform takes about
-    half the time per array of a batch of three).
+    The floor is timed batched over channels and planes and one array at a time, and the faster
+    counts: which one wins depends on the machine's caches (here a single 1536×1920 transform takes
+    about half the time per array of a batch of three).
     """
     grid = Grid.for_config(config)
-    shape = (config.channels, 2 * grid.padded_height, 2 * grid.padded_width)
+    rows, cols = 2 * grid.padded_height, 2 * grid.padded_width
+    shape = (config.channels, rows, cols)
     field = torch.randn(shape, dtype=torch.complex64)
     spectra = torch.randn((config.num_planes, *shape), dtype=torch.complex64)
-    transfer = torch.randn((config.num_planes, *shape), dtype=torch.complex64)
 
     def batched():
         torch.fft.fft2(field)
@@ -74,17 +78,20 @@ def fft_floor(config: FitConfig, repeats: int) -> tuple[float, float]:
             for plane in range(config.num_planes):
                 torch.fft.ifft2(spectra[plane, channel])
 
-    def products_batched():
-        torch.mul(spectra, transfer)
+    field_rows = torch.randn(grid.padded_height, cols, dtype=torch.complex64)
+    content_rows = torch.randn(grid.height, cols, dtype=torch.complex64)
+    columns = torch.randn(cols, rows, dtype=torch.complex64)
 
-    def products_one_at_a_time():
-        for plane in range(config.num_planes):
-            for channel in range(config.channels):
-                torch.mul(spectra[plane, channel], transfer[plane, channel])
+    def pruned():  # forward, then adjoint: x pass over the rows needed, y pass over all columns
+        for channel in range(config.channels):
+            torch.fft.fft(field_rows), torch.fft.fft(columns)
+            for plane in range(config.num_planes):
+                torch.fft.ifft(columns), torch.fft.ifft(content_rows)
+                torch.fft.ifft(content_rows), torch.fft.ifft(columns)
+            torch.fft.fft(columns), torch.fft.fft(field_rows)
 
-    fft = 2 * min(median_seconds(batched, repeats), median_seconds(one_at_a_time, repeats))
-    products = 2 * min(median_seconds(products_batched, repeats), median_seconds(products_one_at_a_time, repeats))
-    return fft, fft + products
+    floor = 2 * min(median_seconds(batched, repeats), median_seconds(one_at_a_time, repeats))
+    return floor, median_seconds(pruned, repeats)
 
 
 def load_raw_parameters(gaussians: Gaussians, primitives: Primitives, config: FitConfig) -> None:
@@ -102,13 +109,22 @@ def load_raw_parameters(gaussians: Gaussians, primitives: Primitives, config: Fi
         gaussians.curvature.copy_(torch.atanh(share.clamp(-inside, inside)).view_as(gaussians.curvature))
 
 
-def stage_times(config: FitConfig, repeats: int, primitives: Primitives | None = None) -> dict[str, float]:
+def stage_times(config: FitConfig, repeats: int, primitives: Primitives | None = None,
+                curved: bool = True) -> dict[str, float]:
+    """Median seconds of each stage and of whole steps. `curved` unlocks the curvature (at
+    initialisation, each a random fraction of its bound); otherwise it stays frozen at zero, as in
+    the warm-up, through the whole-step measurement too."""
     builtin = builtin_scene("demo", config.width, config.height)
     scene = load_scene(builtin.image, builtin.depth, config)
+    config = config.replace(warmup=0 if curved else 10**9)
     state = initial_state(config)
     if primitives is not None:
         load_raw_parameters(state.gaussians, primitives, config)
-    state.step = config.warmup + 1
+    elif curved:
+        with torch.no_grad():
+            curvature = state.gaussians.curvature
+            curvature.copy_(2 * torch.rand(curvature.shape, generator=torch.Generator().manual_seed(1)) - 1)
+    state.gaussians.curvature.requires_grad_(curved)
     gaussians, optimizer, generator = state.gaussians, state.optimizer, state.generator
     hologram_grad = torch.randn(config.channels, config.height, config.width, dtype=torch.complex64)
 
@@ -140,7 +156,7 @@ def stage_times(config: FitConfig, repeats: int, primitives: Primitives | None =
         "raster forward+backward": median_seconds(raster_forward_backward, repeats),
         "propagation forward+backward": median_seconds(propagation, repeats),
         "loss forward+backward": median_seconds(loss, repeats),
-        "optimizer": median_seconds(lambda: apply_gradients(optimizer, config, config.warmup + 1), repeats),
+        "optimizer": median_seconds(lambda: apply_gradients(optimizer, config, state.step), repeats),
         "whole step": median_seconds(lambda: optimisation_step(state, scene, config), repeats),
     }
     times["raster backward"] = times["raster forward+backward"] - times["raster forward"]
@@ -163,11 +179,11 @@ def peak_rss_gib(config: FitConfig, steps: int) -> float:
 
 
 def report(label: str, config: FitConfig, repeats: int, reference_repeats: int,
-           primitives: Primitives | None = None) -> dict[str, float]:
-    fast = config.replace(backend="numba", warmup=0)
-    times = stage_times(fast, repeats, primitives)
-    floor, library_floor = fft_floor(fast, repeats)
-    reference = (stage_times(fast.replace(backend="torch"), reference_repeats, primitives)
+           primitives: Primitives | None = None, curved: bool = True) -> dict[str, float]:
+    fast = config.replace(backend="numba")
+    times = stage_times(fast, repeats, primitives, curved)
+    floor, pruned = fft_floor(fast, repeats)
+    reference = (stage_times(fast.replace(backend="torch"), reference_repeats, primitives, curved)
                  if reference_repeats else None)
     raster = times["raster forward+backward"]
     count = config.primitive_count if primitives is None else primitives.position_px.shape[0]
@@ -178,7 +194,7 @@ def report(label: str, config: FitConfig, repeats: int, reference_repeats: int,
         print(f"{name:>30}: {1000 * times[name]:9.1f} ms")
     print(f"{'FFT floor':>30}: {1000 * floor:9.1f} ms")
     print(f"{'step / floor':>30}: {times['whole step'] / floor:9.2f}")
-    print(f"{'FFT + transfer products':>30}: {1000 * library_floor:9.1f} ms = {library_floor / floor:.2f} × floor")
+    print(f"{'pruned transforms alone':>30}: {1000 * pruned:9.1f} ms = {pruned / floor:.2f} × floor")
     print(f"{'raster / step':>30}: {raster / times['whole step']:9.1%}")
     if reference:
         torch_raster = reference["raster forward+backward"]
@@ -186,7 +202,7 @@ def report(label: str, config: FitConfig, repeats: int, reference_repeats: int,
         print(f"{'torch-backend step':>30}: {1000 * reference['whole step']:9.1f} ms")
         print(f"{'raster speed-up':>30}: {torch_raster / raster:9.1f}×")
         print(f"{'step speed-up':>30}: {reference['whole step'] / times['whole step']:9.1f}×")
-    return {**times, "fft floor": floor, "fft and transfer products": library_floor, "torch backend": reference}
+    return {**times, "fft floor": floor, "pruned transforms": pruned, "torch backend": reference}
 
 
 def main() -> None:
@@ -204,16 +220,17 @@ def main() -> None:
     rgb = FitConfig(width=width, height=height, color="rgb", ratio=0.2)
     if args.model and args.quick:
         parser.error("--quick sets the size, --model brings its own; pass one of them")
+    gray = FitConfig(width=width, height=height, color="gray", ratio=0.1)
     if args.model:
         primitives, config = load_model(model_path(args.model))
-        settings = {f"fitted model {args.model}": (config, primitives)}
+        settings = {f"fitted model {args.model}": (config, primitives, True)}
     else:
-        settings = {"RGB 20%, at initialisation": (rgb, None),
-                    "grayscale 10%, at initialisation": (FitConfig(width=width, height=height, color="gray",
-                                                                   ratio=0.1), None)}
+        settings = {"RGB 20%, at initialisation, flat (warm-up)": (rgb, None, False),
+                    "RGB 20%, at initialisation, curved": (rgb, None, True),
+                    "grayscale 10%, at initialisation, curved": (gray, None, True)}
     results = {}
-    for label, (config, primitives) in settings.items():
-        results[label] = report(label, config, args.repeats, args.reference_repeats, primitives)
+    for label, (config, primitives, curved) in settings.items():
+        results[label] = report(label, config, args.repeats, args.reference_repeats, primitives, curved)
     rss = peak_rss_gib(rgb, args.rss_steps)
     print(f"\npeak RSS of an RGB 20% fit ({args.rss_steps} steps, separate process): {rss:.2f} GiB")
     results["peak rss gib"] = rss

@@ -277,11 +277,16 @@ def _placed(values: Tensor, length: int, offset: int) -> Tensor:
     return out
 
 
+def _moved_by_kernels(tensor: Tensor) -> bool:
+    """Whether the propagation's transposes run as the CPU kernels (else as PyTorch copies, on any device)."""
+    return tensor.device.type == "cpu"
+
+
 def _placed_transposed(values: Tensor, length: int, offset: int) -> Tensor:
     """[R, N] → [N, length]: `values.T` at columns offset..offset+R, zero elsewhere (a reused array)."""
     rows, count = values.shape
     out = _zero_margined(count, length, offset, offset + rows, values.dtype, values.device, threading.get_ident())
-    if values.device.type == "cpu":
+    if _moved_by_kernels(values):
         optics_kernels.transpose_into(values.numpy(), offset, out.numpy())
     else:
         out[:, offset:offset + rows] = values.T
@@ -290,7 +295,7 @@ def _placed_transposed(values: Tensor, length: int, offset: int) -> Tensor:
 
 def _window_into(values: Tensor, offset: int, out: Tensor) -> None:
     """out [R, N] = columns offset..offset+R of `values` [N, L], transposed."""
-    if values.device.type == "cpu":
+    if _moved_by_kernels(values):
         optics_kernels.transpose_window(values.numpy(), offset, out.numpy())
     else:
         out.copy_(values[:, offset:offset + out.shape[0]].T)
@@ -341,7 +346,8 @@ class _ContentPropagation(torch.autograd.Function):
                     last = plane == planes - 1  # the last plane may filter the spectrum in place
                     filtered = spectrum.mul_(transfer) if last else spectrum * transfer
                     _window_into(torch.fft.ifft(filtered), top, along_y[plane, :, block])
-            content[:, channel] = torch.fft.ifft(along_y)[..., left:left + grid.width]
+            for plane in range(planes):  # one 2D batch each: MKL runs a 3D batch several times slower
+                content[plane, channel] = torch.fft.ifft(along_y[plane])[:, left:left + grid.width]
         ctx.grid, ctx.bank, ctx.field_shape = grid, bank, field.shape
         return content
 

@@ -176,10 +176,15 @@ def test_propagation_transposes_move_exactly_the_values_they_name(dtype):
     assert torch.equal(window, out[:, 6:15].T)
 
 
-def test_pruned_content_propagation_in_float32_matches_the_full_transforms():
+@pytest.mark.parametrize("kernels", [True, False], ids=["cpu-kernels", "torch-copies"])
+def test_pruned_content_propagation_in_float32_matches_the_full_transforms(kernels, monkeypatch):
     """At float32, on a wide grid like the paper's (content off-centre in its padded array, three
-    channels, two planes), the pruned transforms give the full transforms' numbers to float32 noise,
-    forward and adjoint; a second call reuses the zero-margined arrays and gives the same numbers."""
+    channels, two planes, spectra in several blocks), the pruned transforms give the full transforms'
+    numbers to float32 noise, forward and adjoint; a second call reuses the zero-margined arrays and
+    gives the same numbers. With the kernels switched off the transposes are the PyTorch copies that
+    other devices (CUDA) run."""
+    monkeypatch.setattr(optics, "_moved_by_kernels", lambda tensor: kernels)
+    monkeypatch.setattr(optics, "SPECTRUM_BLOCK_ROWS", 48)
     grid = Grid(height=30, width=44, padded_height=64, padded_width=80)
     generator = torch.Generator().manual_seed(12)
     field = torch.complex(torch.randn(3, 64, 80, generator=generator), torch.randn(3, 64, 80, generator=generator))
