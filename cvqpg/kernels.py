@@ -12,7 +12,16 @@ The kernels leave out the pixels where SPEC's floor of −50 on the envelope exp
 the 3σ circle cut to the band where D² ≤ 100; for elongated primitives that is most of the circle.
 Primitives so elongated that a walk down the centre column could leave float64's range (D² > 600
 inside the footprint) start each row instead at its own envelope maximum with exact values, three
-exponentials per row, and walk outwards from there, where values only decrease. The forward pass
+exponentials per row, and walk outwards from there, where values only decrease.
+
+Two special cases take most of the work. A primitive without curvature (the flat baseline, CVQPG's
+warm-up) has the same real envelope in every channel, so the forward pass walks it once, as a real
+number, for all channels. In the backward pass a walk is a chain of dependent multiplications that
+LLVM cannot vectorise; most primitives (D² ≤ 300 across the footprint) instead split exp(E) into a
+row factor and a table over the footprint's columns that moves down one row by an elementwise
+product, and each row's sums become independent products over contiguous arrays.
+
+The forward pass
 gives each thread its own slice of primitives and its own output buffer, summed in a fixed order, so
 results do not depend on scheduling; the backward pass gives each thread the same slice, and each
 primitive's gradients are written by that thread alone. Arithmetic is float64 inside, float32 in the
