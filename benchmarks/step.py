@@ -14,8 +14,8 @@ The floor is the Fourier transforms that BLASM propagation cannot avoid, as 2D t
 zero-padded grid, timed alone in the same process: per step one forward FFT per channel and one
 inverse per channel and plane, and as many again in the backward pass. This package prunes them
 (only the rows each 1D pass needs); the same 1D transforms, timed alone, are printed next to it.
-Medians over repeated steps; the machine is shared, so only ratios measured in one run are
-meaningful.
+The stages and the floor take turns round by round, and the ratios are the medians of the rounds'
+ratios: the machine is shared and has slow spells, and only ratios of the same round are meaningful.
 """
 
 from __future__ import annotations
@@ -44,29 +44,34 @@ from cvqpg.targets import load_scene
 OPEN_INTERVAL_MARGIN = 1e-6  # keeps atanh and logit finite at saturated values
 
 
-def median_seconds(action: Callable[[], object], repeats: int) -> float:
-    action()
-    times = []
-    for _ in range(repeats):
-        started = time.perf_counter()
+def interleaved_seconds(actions: dict[str, Callable[[], object]], rounds: int) -> dict[str, list[float]]:
+    """Seconds of each action in each of `rounds` rounds, the actions taking turns within a round
+    (after one untimed call each). The machine is shared and has slow spells lasting seconds; taken in
+    turns, a round's stages and floor see the same machine, so ratios are formed round by round."""
+    for action in actions.values():
         action()
-        times.append(time.perf_counter() - started)
-    return statistics.median(times)
+    times: dict[str, list[float]] = {name: [] for name in actions}
+    for _ in range(rounds):
+        for name, action in actions.items():
+            started = time.perf_counter()
+            action()
+            times[name].append(time.perf_counter() - started)
+    return times
 
 
-def fft_floor(config: FitConfig, repeats: int) -> tuple[float, float]:
-    """Seconds of a step's 2D transforms alone (the floor), and of the pruned 1D transforms that
-    `propagate_content` runs instead, alone.
-
-    The floor is timed batched over channels and planes and one array at a time, and the faster
-    counts: which one wins depends on the machine's caches (here a single 1536×1920 transform takes
-    about half the time per array of a batch of three).
-    """
+def transform_actions(config: FitConfig) -> dict[str, Callable[[], object]]:
+    """A step's transforms alone, forward pass only (the backward pass has as many): the floor's 2D
+    transforms batched over channels and planes and one array at a time (which one is faster depends
+    on the machine's caches: here a single 1536×1920 transform takes about half the time per array of
+    a batch of three), and the pruned 1D transforms that `propagate_content` runs instead."""
     grid = Grid.for_config(config)
     rows, cols = 2 * grid.padded_height, 2 * grid.padded_width
     shape = (config.channels, rows, cols)
     field = torch.randn(shape, dtype=torch.complex64)
     spectra = torch.randn((config.num_planes, *shape), dtype=torch.complex64)
+    field_rows = torch.randn(grid.padded_height, cols, dtype=torch.complex64)
+    content_rows = torch.randn(grid.height, cols, dtype=torch.complex64)
+    columns = torch.randn(cols, rows, dtype=torch.complex64)
 
     def batched():
         torch.fft.fft2(field)
@@ -78,20 +83,13 @@ def fft_floor(config: FitConfig, repeats: int) -> tuple[float, float]:
             for plane in range(config.num_planes):
                 torch.fft.ifft2(spectra[plane, channel])
 
-    field_rows = torch.randn(grid.padded_height, cols, dtype=torch.complex64)
-    content_rows = torch.randn(grid.height, cols, dtype=torch.complex64)
-    columns = torch.randn(cols, rows, dtype=torch.complex64)
-
-    def pruned():  # forward, then adjoint: x pass over the rows needed, y pass over all columns
-        for channel in range(config.channels):
+    def pruned():  # x pass over the rows needed, y pass over all columns
+        for _ in range(config.channels):
             torch.fft.fft(field_rows), torch.fft.fft(columns)
-            for plane in range(config.num_planes):
+            for _ in range(config.num_planes):
                 torch.fft.ifft(columns), torch.fft.ifft(content_rows)
-                torch.fft.ifft(content_rows), torch.fft.ifft(columns)
-            torch.fft.fft(columns), torch.fft.fft(field_rows)
 
-    floor = 2 * min(median_seconds(batched, repeats), median_seconds(one_at_a_time, repeats))
-    return floor, median_seconds(pruned, repeats)
+    return {"floor, batched": batched, "floor, one at a time": one_at_a_time, "pruned transforms": pruned}
 
 
 def load_raw_parameters(gaussians: Gaussians, primitives: Primitives, config: FitConfig) -> None:
@@ -109,11 +107,11 @@ def load_raw_parameters(gaussians: Gaussians, primitives: Primitives, config: Fi
         gaussians.curvature.copy_(torch.atanh(share.clamp(-inside, inside)).view_as(gaussians.curvature))
 
 
-def stage_times(config: FitConfig, repeats: int, primitives: Primitives | None = None,
-                curved: bool = True) -> dict[str, float]:
-    """Median seconds of each stage and of whole steps. `curved` unlocks the curvature (at
-    initialisation, each a random fraction of its bound); otherwise it stays frozen at zero, as in
-    the warm-up, through the whole-step measurement too."""
+def stage_actions(config: FitConfig, primitives: Primitives | None = None,
+                  curved: bool = True) -> dict[str, Callable[[], object]]:
+    """Each stage of a step, and whole steps. `curved` unlocks the curvature (at initialisation, each
+    a random fraction of its bound); otherwise it stays frozen at zero, as in the warm-up, through the
+    whole steps too."""
     builtin = builtin_scene("demo", config.width, config.height)
     scene = load_scene(builtin.image, builtin.depth, config)
     config = config.replace(warmup=0 if curved else 10**9)
@@ -151,16 +149,10 @@ def stage_times(config: FitConfig, repeats: int, primitives: Primitives | None =
         value.backward()
 
     render_hologram(gaussians, config).backward(hologram_grad)
-    times = {
-        "raster forward": median_seconds(raster_forward, repeats),
-        "raster forward+backward": median_seconds(raster_forward_backward, repeats),
-        "propagation forward+backward": median_seconds(propagation, repeats),
-        "loss forward+backward": median_seconds(loss, repeats),
-        "optimizer": median_seconds(lambda: apply_gradients(optimizer, config, state.step), repeats),
-        "whole step": median_seconds(lambda: optimisation_step(state, scene, config), repeats),
-    }
-    times["raster backward"] = times["raster forward+backward"] - times["raster forward"]
-    return times
+    return {"raster forward": raster_forward, "raster forward+backward": raster_forward_backward,
+            "propagation forward+backward": propagation, "loss forward+backward": loss,
+            "optimizer": lambda: apply_gradients(optimizer, config, state.step),
+            "whole step": lambda: optimisation_step(state, scene, config)}
 
 
 def peak_rss_gib(config: FitConfig, steps: int) -> float:
@@ -178,39 +170,50 @@ def peak_rss_gib(config: FitConfig, steps: int) -> float:
     return int(output.split()[-1]) / 2**20
 
 
-def report(label: str, config: FitConfig, repeats: int, reference_repeats: int,
+def report(label: str, config: FitConfig, rounds: int, reference_rounds: int,
            primitives: Primitives | None = None, curved: bool = True) -> dict[str, float]:
     fast = config.replace(backend="numba")
-    times = stage_times(fast, repeats, primitives, curved)
-    floor, pruned = fft_floor(fast, repeats)
-    reference = (stage_times(fast.replace(backend="torch"), reference_repeats, primitives, curved)
-                 if reference_repeats else None)
-    raster = times["raster forward+backward"]
+    times = interleaved_seconds({**stage_actions(fast, primitives, curved), **transform_actions(fast)}, rounds)
+    per_round = {name: torch.tensor(values, dtype=torch.float64) for name, values in times.items()}
+    per_round["raster backward"] = per_round["raster forward+backward"] - per_round["raster forward"]
+    per_round["FFT floor"] = 2 * torch.minimum(per_round["floor, batched"], per_round["floor, one at a time"])
+    per_round["pruned transforms"] = 2 * per_round["pruned transforms"]
+    step = per_round["whole step"]
+    median = {name: float(values.median()) for name, values in per_round.items()}
+    ratios = {"step / floor": float((step / per_round["FFT floor"]).median()),
+              "pruned / floor": float((per_round["pruned transforms"] / per_round["FFT floor"]).median()),
+              "raster / step": float((per_round["raster forward+backward"] / step).median())}
+    reference = None
+    if reference_rounds:
+        reference_times = interleaved_seconds(
+            {name: action for name, action in stage_actions(fast.replace(backend="torch"), primitives, curved).items()
+             if name in ("raster forward+backward", "whole step")}, reference_rounds)
+        reference = {name: statistics.median(values) for name, values in reference_times.items()}
     count = config.primitive_count if primitives is None else primitives.position_px.shape[0]
     print(f"\n## {label}: {config.width}×{config.height}, N = {count}, "
-          f"{config.num_planes} planes, {torch.get_num_threads()} threads")
+          f"{config.num_planes} planes, {torch.get_num_threads()} threads, medians of {rounds} rounds")
     for name in ("raster forward", "raster backward", "propagation forward+backward", "loss forward+backward",
-                 "optimizer", "whole step"):
-        print(f"{name:>30}: {1000 * times[name]:9.1f} ms")
-    print(f"{'FFT floor':>30}: {1000 * floor:9.1f} ms")
-    print(f"{'step / floor':>30}: {times['whole step'] / floor:9.2f}")
-    print(f"{'pruned transforms alone':>30}: {1000 * pruned:9.1f} ms = {pruned / floor:.2f} × floor")
-    print(f"{'raster / step':>30}: {raster / times['whole step']:9.1%}")
+                 "optimizer", "whole step", "FFT floor"):
+        print(f"{name:>30}: {1000 * median[name]:9.1f} ms")
+    print(f"{'step / floor':>30}: {ratios['step / floor']:9.2f}")
+    print(f"{'pruned transforms alone':>30}: {1000 * median['pruned transforms']:9.1f} ms = "
+          f"{ratios['pruned / floor']:.2f} × floor")
+    print(f"{'raster / step':>30}: {ratios['raster / step']:9.1%}")
     if reference:
         torch_raster = reference["raster forward+backward"]
         print(f"{'torch-backend raster f+b':>30}: {1000 * torch_raster:9.1f} ms")
         print(f"{'torch-backend step':>30}: {1000 * reference['whole step']:9.1f} ms")
-        print(f"{'raster speed-up':>30}: {torch_raster / raster:9.1f}×")
-        print(f"{'step speed-up':>30}: {reference['whole step'] / times['whole step']:9.1f}×")
-    return {**times, "fft floor": floor, "pruned transforms": pruned, "torch backend": reference}
+        print(f"{'raster speed-up':>30}: {torch_raster / median['raster forward+backward']:9.1f}×")
+        print(f"{'step speed-up':>30}: {reference['whole step'] / median['whole step']:9.1f}×")
+    return {**median, **ratios, "torch backend": reference}
 
 
 def main() -> None:
     keep_freed_memory()
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="320×240, few repeats")
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--reference-repeats", type=int, default=1, help="steps of the torch backend (slow)")
+    parser.add_argument("--quick", action="store_true", help="320×240, for a smoke test")
+    parser.add_argument("--rounds", type=int, default=7, help="rounds in which every stage and the floor take turns")
+    parser.add_argument("--reference-rounds", type=int, default=1, help="rounds of the torch backend (slow)")
     parser.add_argument("--rss-steps", type=int, default=5, help="steps of the fit whose peak RSS is measured")
     parser.add_argument("--model", help="a fitted model (run folder or .safetensors): measure its configuration "
                                             "on its primitives instead of RGB 20%% and grayscale 10%% at initialisation")
@@ -230,7 +233,7 @@ def main() -> None:
                     "grayscale 10%, at initialisation, curved": (gray, None, True)}
     results = {}
     for label, (config, primitives, curved) in settings.items():
-        results[label] = report(label, config, args.repeats, args.reference_repeats, primitives, curved)
+        results[label] = report(label, config, args.rounds, args.reference_rounds, primitives, curved)
     rss = peak_rss_gib(rgb, args.rss_steps)
     print(f"\npeak RSS of an RGB 20% fit ({args.rss_steps} steps, separate process): {rss:.2f} GiB")
     results["peak rss gib"] = rss
