@@ -317,7 +317,8 @@ class _ContentPropagation(torch.autograd.Function):
     needs: the forward transform's x pass runs over the P_H rows that hold the field (of 2P_H), each
     inverse's x pass only over the H content rows it returns, and the same holds for the adjoint,
     whose input is the content and whose output the field. The y passes run over all 2P_W columns.
-    That is about 0.4 of the 2D transforms' work, and the result is the same to float32 rounding.
+    That is about 0.4 of the 2D transforms' arithmetic (0.6 of their time on the development machine,
+    docs/performance.md), and the result is the same to float32 rounding.
 
     Between the two x passes everything works on blocks of `SPECTRUM_BLOCK_ROWS` spectrum rows (f_x):
     transpose in, y transform, transfer product, inverse y transform, transpose out, while the block

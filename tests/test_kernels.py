@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from cvqpg import FitConfig, builtin_scene, fit
+from cvqpg import FitConfig, builtin_scene, fit, kernels
 from cvqpg.primitives import Gaussians, activate, init_gaussians
 from cvqpg.rasterization import (Splats, rasterize, resolve_backend, splat_fused, splat_reference, splats,
                                  wavenumbers_for)
@@ -35,6 +35,13 @@ def outputs_and_gradients(backend, s: Splats, wavenumbers):
     return hologram.detach().to(torch.complex128), torch.autograd.grad(loss, differentiable)
 
 
+def elongation(s: Splats) -> torch.Tensor:
+    """reach² · λ_max(Σ⁻¹): the largest D² in each primitive's footprint circle, which picks its way
+    through the kernels."""
+    a, b, c = s.conic.unbind(1)
+    return s.reach_px**2 * (0.5 * (a + c) + torch.sqrt(0.25 * (a - c) ** 2 + b * b))
+
+
 def relative(a, b):
     return float((a - b).abs().norm() / b.abs().norm().clamp(min=1e-30))
 
@@ -56,6 +63,9 @@ def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primiti
     prims.position_px = torch.cat([prims.position_px[:5], prims.position_px[5:9] + offsets,
                                    prims.position_px[9:]])  # partly and fully off the image
     s = splats(prims, config.pixel_pitch, qpf)
+    spread = elongation(s)  # every way the kernels have: column tables, the centre-column walk, row maxima
+    assert (spread <= kernels.MAX_TABULATED_MAHALANOBIS2).any() and (spread > kernels.MAX_WALKED_MAHALANOBIS2).any()
+    assert ((spread > kernels.MAX_TABULATED_MAHALANOBIS2) & (spread <= kernels.MAX_WALKED_MAHALANOBIS2)).any()
     k = wavenumbers_for(config.wavelengths)
     expected, expected_grads = outputs_and_gradients(splat_reference, s, k)
     actual, actual_grads = outputs_and_gradients(splat_fused, s, k)
@@ -75,9 +85,7 @@ def test_needles_walked_from_each_rows_maximum_match_reference(qpf):
     raw.scale = torch.stack([torch.full_like(aspect, 2.5), 2.5 - aspect], dim=1)
     raw.rotation = torch.linspace(0.0, math.pi, 24, dtype=torch.float64)
     s = splats(activate(raw, config), config.pixel_pitch, qpf)
-    a, b, c = s.conic.unbind(1)
-    largest_inverse_eigenvalue = 0.5 * (a + c) + torch.sqrt(0.25 * (a - c) ** 2 + b * b)
-    assert (s.reach_px**2 * largest_inverse_eigenvalue > 600).all()  # none of them is walked by column
+    assert (elongation(s) > kernels.MAX_WALKED_MAHALANOBIS2).all()  # none of them is walked by column
     k = wavenumbers_for(config.wavelengths)
     expected, expected_grads = outputs_and_gradients(splat_reference, s, k)
     actual, actual_grads = outputs_and_gradients(splat_fused, s, k)
