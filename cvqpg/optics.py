@@ -278,7 +278,7 @@ def _placed(values: Tensor, length: int, offset: int) -> Tensor:
 
 
 def _moved_by_kernels(tensor: Tensor) -> bool:
-    """Whether the propagation's transposes run as the CPU kernels (else as PyTorch copies, on any device)."""
+    """Whether the propagation's transposes run as the CPU kernel (else as PyTorch copies, on any device)."""
     return tensor.device.type == "cpu"
 
 
@@ -286,19 +286,16 @@ def _placed_transposed(values: Tensor, length: int, offset: int) -> Tensor:
     """[R, N] → [N, length]: `values.T` at columns offset..offset+R, zero elsewhere (a reused array)."""
     rows, count = values.shape
     out = _zero_margined(count, length, offset, offset + rows, values.dtype, values.device, threading.get_ident())
-    if _moved_by_kernels(values):
-        optics_kernels.transpose_into(values.numpy(), offset, out.numpy())
-    else:
-        out[:, offset:offset + rows] = values.T
+    _transpose(values, out[:, offset:offset + rows])
     return out
 
 
-def _window_into(values: Tensor, offset: int, out: Tensor) -> None:
-    """out [R, N] = columns offset..offset+R of `values` [N, L], transposed."""
+def _transpose(values: Tensor, out: Tensor) -> None:
+    """out [N, R] = values [R, N] transposed; either may be a view into a wider array."""
     if _moved_by_kernels(values):
-        optics_kernels.transpose_window(values.numpy(), offset, out.numpy())
+        optics_kernels.transpose(values.numpy(), out.numpy())
     else:
-        out.copy_(values[:, offset:offset + out.shape[0]].T)
+        out.copy_(values.T)
 
 
 SPECTRUM_BLOCK_ROWS = 128  # rows of a transposed spectrum handled at once: 1.5 MB at 640×480, cache-sized
@@ -346,7 +343,7 @@ class _ContentPropagation(torch.autograd.Function):
                     transfer = bank(plane, channel)[block]
                     last = plane == planes - 1  # the last plane may filter the spectrum in place
                     filtered = spectrum.mul_(transfer) if last else spectrum * transfer
-                    _window_into(torch.fft.ifft(filtered), top, along_y[plane, :, block])
+                    _transpose(torch.fft.ifft(filtered)[:, top:top + grid.height], along_y[plane, :, block])
             for plane in range(planes):  # one 2D batch each: MKL runs a 3D batch several times slower
                 content[plane, channel] = torch.fft.ifft(along_y[plane])[:, left:left + grid.width]
         ctx.grid, ctx.bank, ctx.field_shape = grid, bank, field.shape
@@ -371,7 +368,7 @@ class _ContentPropagation(torch.autograd.Function):
                         accumulated = spectrum.mul_(transfer)
                     else:
                         accumulated.addcmul_(spectrum, transfer)
-                _window_into(torch.fft.fft(accumulated), rows // 2, along_y[:, block])
+                _transpose(torch.fft.fft(accumulated)[:, rows // 2:rows // 2 + rows], along_y[:, block])
             grad_field[channel] = torch.fft.fft(along_y)[:, cols // 2:cols // 2 + cols].conj()
         return grad_field, None, None
 

@@ -5,7 +5,7 @@ PyTorch builds the guard-banded, windowed, amplitude-clamped field in about eigh
 the padded array (gather, content copy, window product, magnitude, clamp, quotient) and the clamped
 intensity |u|² and its gradient in about ten. Each kernel here is one pass, with each thread owning
 whole rows. `optics` holds the PyTorch formulas, which serve CUDA and `--backend torch`; the tests
-hold these kernels against them. The two transposes move the propagation's arrays between row and
+hold these kernels against them. The transpose moves the propagation's arrays between row and
 column layout (PyTorch's strided copies take about twice as long).
 """
 
@@ -74,24 +74,14 @@ TRANSPOSE_BAND = 8  # target rows per task: 8 complex64 values of a source row a
 
 
 @nb.njit(parallel=True, cache=True)
-def transpose_into(source, offset, out):
-    """out[j, offset + i] = source[i, j] for a source [R, N] and out [N, L]; the rest of out is untouched."""
+def transpose(source, out):
+    """out[j, i] = source[i, j] for a source [R, N] and out [N, R], either of them a view into a wider
+    array. Each task takes a band of target rows and reads the source row by row, a cache line at a
+    time, while it writes its rows in order."""
     rows, columns = source.shape
     for band in nb.prange((columns + TRANSPOSE_BAND - 1) // TRANSPOSE_BAND):
         first, stop = band * TRANSPOSE_BAND, min(columns, (band + 1) * TRANSPOSE_BAND)
         for i in range(rows):
             line = source[i]
             for j in range(first, stop):
-                out[j, offset + i] = line[j]
-
-
-@nb.njit(parallel=True, cache=True)
-def transpose_window(source, offset, out):
-    """out[i, j] = source[j, offset + i] for a source [N, L] and out [R, N]: R columns, transposed."""
-    rows, columns = out.shape
-    for band in nb.prange((columns + TRANSPOSE_BAND - 1) // TRANSPOSE_BAND):
-        first, stop = band * TRANSPOSE_BAND, min(columns, (band + 1) * TRANSPOSE_BAND)
-        for i in range(rows):
-            line = out[i]
-            for j in range(first, stop):
-                line[j] = source[j, offset + i]
+                out[j, i] = line[j]
