@@ -73,10 +73,15 @@ def _exponent_coefficients(a, b, c, k_chirp, mahalanobis):
 
 
 @nb.njit(cache=True, nogil=True)
+def _largest_mahalanobis2(a, b, c, reach):
+    """reach² · λ_max(Σ⁻¹): a bound on D² over the footprint circle, which picks the kernels' way."""
+    return reach * reach * (0.5 * (a + c) + math.sqrt(0.25 * (a - c) ** 2 + b * b))
+
+
+@nb.njit(cache=True, nogil=True)
 def _walkable(a, b, c, reach):
     """Whether every exponent in the footprint stays in the range the multiplicative walk needs."""
-    largest_inverse_eigenvalue = 0.5 * (a + c) + math.sqrt(0.25 * (a - c) ** 2 + b * b)
-    return reach * reach * largest_inverse_eigenvalue <= MAX_WALKED_MAHALANOBIS2
+    return _largest_mahalanobis2(a, b, c, reach) <= MAX_WALKED_MAHALANOBIS2
 
 
 @nb.njit(cache=True, nogil=True)
@@ -271,8 +276,7 @@ def _walked_moments(grad, A, B, C, rotation, walk, x0, y0, ridge_slope, low, hig
 def _tabulated(a, b, c, reach):
     """Whether the column tables of `_tabulated_moments` stay well inside float64's range: every
     partial exponent A dx² + 2B dx dy in the footprint is below 450 in magnitude."""
-    largest_inverse_eigenvalue = 0.5 * (a + c) + math.sqrt(0.25 * (a - c) ** 2 + b * b)
-    return reach * reach * largest_inverse_eigenvalue <= MAX_TABULATED_MAHALANOBIS2
+    return _largest_mahalanobis2(a, b, c, reach) <= MAX_TABULATED_MAHALANOBIS2
 
 
 @nb.njit(cache=True, nogil=True)
