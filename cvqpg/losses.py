@@ -13,8 +13,8 @@ import torch
 from pytorch_msssim import ssim
 from torch import Tensor
 
-from cvqpg.loss_kernels import gaussian_taps, pixel_terms, ssim_backward, ssim_forward
-from cvqpg.rasterization import cpu_array, resolve_backend
+from .loss_kernels import gaussian_taps, pixel_terms, ssim_backward, ssim_forward
+from .rasterization import cpu_array, resolve_backend
 
 SSIM_WINDOW_PX = 11
 SSIM_SIGMA_PX = 1.5

@@ -11,14 +11,41 @@ column layout (PyTorch's strided copies take about twice as long).
 
 from __future__ import annotations
 
+import math
+
 import numba as nb
+import numpy as np
+
+
+@nb.njit(inline="always", fastmath=True)
+def _unit_clamped(value):
+    """u(v) = v / max(|v|, 1), as a product with a reciprocal square root that LLVM vectorises (the
+    `abs` of a complex number is a `hypot` call, which it does not)."""
+    one = np.float32(1.0)
+    return value * (one / math.sqrt(max(value.real * value.real + value.imag * value.imag, one)))
+
+
+@nb.njit(inline="always", fastmath=True)
+def _windowed_clamped(source, weight_y, column_window, target):
+    """target[x] = u(source[x] · w_y · w_x) over a row segment. Zero-based over slices, the loop
+    vectorises (a start offset that may be negative costs every index a wrap-around check)."""
+    for x in range(target.shape[0]):
+        target[x] = _unit_clamped(source[x] * (weight_y * column_window[x]))
+
+
+@nb.njit(inline="always", fastmath=True)
+def _windowed_clamped_edge(edge, weight_y, column_window, target):
+    """target[x] = u(edge · w_y · w_x): a guard band beside the content, replicating its edge value."""
+    for x in range(target.shape[0]):
+        target[x] = _unit_clamped(edge * (weight_y * column_window[x]))
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def guarded_field(hologram, row_window, column_window, top, left, out):
     """out [C, P_H, P_W] = u(h[c, clamp(y − top), clamp(x − left)] · w_y · w_x), u(v) = v / max(|v|, 1).
 
-    The clamped indices replicate the content's edges into the guard band.
+    The clamped indices replicate the content's edges into the guard band; each row is written as
+    its left band, content and right band.
     """
     channels, height, width = hologram.shape
     padded_height, padded_width = out.shape[1], out.shape[2]
@@ -26,10 +53,10 @@ def guarded_field(hologram, row_window, column_window, top, left, out):
         channel, y = row // padded_height, row % padded_height
         source = hologram[channel, min(max(y - top, 0), height - 1)]
         weight_y = row_window[y]
-        for x in range(padded_width):
-            value = source[min(max(x - left, 0), width - 1)] * (weight_y * column_window[x])
-            magnitude = abs(value)
-            out[channel, y, x] = value / magnitude if magnitude > 1.0 else value
+        _windowed_clamped_edge(source[0], weight_y, column_window[:left], out[channel, y, :left])
+        _windowed_clamped(source, weight_y, column_window[left:left + width], out[channel, y, left:left + width])
+        _windowed_clamped_edge(source[width - 1], weight_y, column_window[left + width:],
+                               out[channel, y, left + width:])
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
@@ -40,15 +67,13 @@ def guarded_field_backward(hologram, grad, top, left, out):
     channels, height, width = hologram.shape
     for row in nb.prange(channels * height):
         channel, y = row // height, row % height
+        source, incoming, target = hologram[channel, y], grad[channel, y + top, left:left + width], out[channel, y]
         for x in range(width):
-            h = hologram[channel, y, x]
-            g = grad[channel, y + top, x + left]
-            magnitude = abs(h)
-            if magnitude >= 1.0:
-                normal = (h.real * g.imag - h.imag * g.real) / magnitude**3
-                out[channel, y, x] = complex(-h.imag * normal, h.real * normal)
-            else:
-                out[channel, y, x] = g
+            h, g = source[x], incoming[x]
+            magnitude2 = h.real * h.real + h.imag * h.imag
+            bounded = max(magnitude2, 1.0)  # the quotient is used only where magnitude2 ≥ 1
+            normal = (h.real * g.imag - h.imag * g.real) / (bounded * math.sqrt(bounded))
+            target[x] = complex(-h.imag * normal, h.real * normal) if magnitude2 >= 1.0 else g
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
@@ -70,18 +95,22 @@ def clamped_intensity_backward(field, grad, out):
             out[row, x] = 2.0 * grad[row, x] * u if passes else 0.0
 
 
-TRANSPOSE_BAND = 8  # target rows per task: 8 complex64 values of a source row are one cache line
+TRANSPOSE_TILE = 16  # a 16×16 tile of complex64 is 2 KiB: source and target tiles stay in L1
 
 
 @nb.njit(parallel=True, cache=True)
 def transpose(source, out):
     """out[j, i] = source[i, j] for a source [R, N] and out [N, R], either of them a view into a wider
-    array. Each task takes a band of target rows and reads the source row by row, a cache line at a
-    time, while it writes its rows in order."""
+    array. Each task takes a band of 16 target rows and moves it tile by tile; the tiles are
+    zero-based slices, so no index needs a wrap-around check."""
     rows, columns = source.shape
-    for band in nb.prange((columns + TRANSPOSE_BAND - 1) // TRANSPOSE_BAND):
-        first, stop = band * TRANSPOSE_BAND, min(columns, (band + 1) * TRANSPOSE_BAND)
-        for i in range(rows):
-            line = source[i]
-            for j in range(first, stop):
-                out[j, i] = line[j]
+    for band in nb.prange((columns + TRANSPOSE_TILE - 1) // TRANSPOSE_TILE):
+        first = band * TRANSPOSE_TILE
+        stop = min(columns, first + TRANSPOSE_TILE)
+        for top in range(0, rows, TRANSPOSE_TILE):
+            bottom = min(rows, top + TRANSPOSE_TILE)
+            tile, target = source[top:bottom, first:stop], out[first:stop, top:bottom]
+            for j in range(stop - first):
+                target_row = target[j]
+                for i in range(bottom - top):
+                    target_row[i] = tile[i, j]
