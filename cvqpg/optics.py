@@ -195,10 +195,13 @@ TRANSFER_CACHE_BYTES = 2**30
 class TransferBank:
     """BLASM transfer functions of every (plane, channel) on one doubled grid, in FFT order.
 
-    They are built once and kept while all of them fit in `TRANSFER_CACHE_BYTES` (1 GiB: 640×480 RGB
-    needs 0.14 GiB); on larger grids (3840×2160 RGB would need 2.0 GiB) each is rebuilt when asked,
-    which costs far less than the step's transforms. `transposed` banks hold each function as
-    [cols, rows] (frequency f_x first), the layout of `propagate_content`'s spectra.
+    In FFT order each function is even about the middle of both axes (odak's frequencies are
+    symmetric about zero, exactly so in float32), so its first axis' first half holds all of it:
+    the bank keeps those halves, half the memory and half the memory traffic of the products. They
+    are built once and kept while all of them fit in `TRANSFER_CACHE_BYTES` (1 GiB: 640×480 RGB needs
+    0.07 GiB); on larger grids (3840×2160 RGB would need 1.0 GiB) each is rebuilt when asked, which
+    costs far less than the step's transforms. `transposed` banks hold each function as [cols, rows]
+    (frequency f_x first), the layout of `propagate_content`'s spectra.
     """
 
     rows: int
@@ -211,23 +214,31 @@ class TransferBank:
 
     @property
     def nbytes(self) -> int:
-        return len(self.distances) * len(self.wavelengths) * self.rows * self.cols * 8
+        """Bytes of all the kept halves."""
+        return len(self.distances) * len(self.wavelengths) * self.rows * self.cols * 4
+
+    def half(self, plane: int, channel: int) -> Tensor:
+        """First half (along the first axis) of the complex64 transfer function to `distances[plane]`
+        at `wavelengths[channel]`; row k of the whole function is row min(k, length − 1 − k) of it."""
+        if self.nbytes <= TRANSFER_CACHE_BYTES:
+            return _transfer_halves(self)[plane, channel]
+        return self.build_half(plane, channel)
 
     def __call__(self, plane: int, channel: int) -> Tensor:
-        """Complex64 transfer function to `distances[plane]` at `wavelengths[channel]`."""
-        if self.nbytes <= TRANSFER_CACHE_BYTES:
-            return _transfer_stack(self)[plane, channel]
-        return self.build(plane, channel)
+        """The whole complex64 transfer function to `distances[plane]` at `wavelengths[channel]`."""
+        half = self.half(plane, channel)
+        return torch.cat([half, half.flip(0)])
 
-    def build(self, plane: int, channel: int) -> Tensor:
+    def build_half(self, plane: int, channel: int) -> Tensor:
         transfer = transfer_function(self.rows, self.cols, self.pixel_pitch, self.wavelengths[channel],
                                      self.distances[plane], self.device, centred=False)
-        return transfer.T.contiguous() if self.transposed else transfer
+        transfer = transfer.T if self.transposed else transfer
+        return transfer[:transfer.shape[0] // 2].contiguous()
 
 
 @functools.lru_cache(maxsize=4)
-def _transfer_stack(bank: TransferBank) -> Tensor:
-    return torch.stack([torch.stack([bank.build(plane, channel) for channel in range(len(bank.wavelengths))])
+def _transfer_halves(bank: TransferBank) -> Tensor:
+    return torch.stack([torch.stack([bank.build_half(plane, channel) for channel in range(len(bank.wavelengths))])
                         for plane in range(len(bank.distances))])
 
 
@@ -277,8 +288,9 @@ def _placed(values: Tensor, length: int, offset: int) -> Tensor:
     return out
 
 
-def _moved_by_kernels(tensor: Tensor) -> bool:
-    """Whether the propagation's transposes run as the CPU kernel (else as PyTorch copies, on any device)."""
+def _uses_cpu_kernels(tensor: Tensor) -> bool:
+    """Whether the propagation's transposes and transfer products run as the CPU kernels (else as
+    PyTorch operations, on any device)."""
     return tensor.device.type == "cpu"
 
 
@@ -292,10 +304,21 @@ def _placed_transposed(values: Tensor, length: int, offset: int) -> Tensor:
 
 def _transpose(values: Tensor, out: Tensor) -> None:
     """out [N, R] = values [R, N] transposed; either may be a view into a wider array."""
-    if _moved_by_kernels(values):
+    if _uses_cpu_kernels(values):
         optics_kernels.transpose(values.numpy(), out.numpy())
     else:
         out.copy_(values.T)
+
+
+def _filtered(spectrum: Tensor, half: Tensor, rows: slice, out: Tensor, accumulate: bool = False) -> Tensor:
+    """out = spectrum · T[rows] (or out += it) for a transfer function T given as the first half of its
+    first axis (`TransferBank.half`); `out` may be `spectrum` itself."""
+    if _uses_cpu_kernels(spectrum):
+        optics_kernels.mirrored_product(spectrum.numpy(), half.numpy(), rows.start, out.numpy(), accumulate)
+        return out
+    index = torch.arange(rows.start, rows.stop, device=half.device)
+    transfer = half[torch.minimum(index, 2 * half.shape[0] - 1 - index)]
+    return out.addcmul_(spectrum, transfer) if accumulate else torch.mul(spectrum, transfer, out=out)
 
 
 SPECTRUM_BLOCK_ROWS = 128  # rows of a transposed spectrum handled at once: 1.5 MB at 640×480, cache-sized
@@ -336,13 +359,14 @@ class _ContentPropagation(torch.autograd.Function):
         content = field.new_empty(planes, channels, grid.height, grid.width)
         along_y = field.new_empty(planes, grid.height, 2 * cols)
         for channel in range(channels):
+            halves = [bank.half(plane, channel) for plane in range(planes)]  # once: they may be rebuilt
             along_x = torch.fft.fft(_placed(field[channel], 2 * cols, cols // 2))
             for block in _blocks(2 * cols):
                 spectrum = torch.fft.fft(_placed_transposed(along_x[:, block], 2 * rows, rows // 2))
                 for plane in range(planes):
-                    transfer = bank(plane, channel)[block]
                     last = plane == planes - 1  # the last plane may filter the spectrum in place
-                    filtered = spectrum.mul_(transfer) if last else spectrum * transfer
+                    filtered = _filtered(spectrum, halves[plane], block,
+                                         spectrum if last else torch.empty_like(spectrum))
                     _transpose(torch.fft.ifft(filtered)[:, top:top + grid.height], along_y[plane, :, block])
             for plane in range(planes):  # one 2D batch each: MKL runs a 3D batch several times slower
                 content[plane, channel] = torch.fft.ifft(along_y[plane])[:, left:left + grid.width]
@@ -358,16 +382,15 @@ class _ContentPropagation(torch.autograd.Function):
         grad_field = grad.new_empty(channels, rows, cols)
         along_y = grad.new_empty(rows, 2 * cols)
         for channel in range(channels):
+            halves = [bank.half(plane, channel) for plane in range(planes)]
             along_x = [torch.fft.ifft(_placed(grad[plane, channel].conj(), 2 * cols, left)) for plane in range(planes)]
             for block in _blocks(2 * cols):
                 accumulated = None
                 for plane in range(planes):
                     spectrum = torch.fft.ifft(_placed_transposed(along_x[plane][:, block], 2 * rows, top))
-                    transfer = bank(plane, channel)[block]
-                    if accumulated is None:
-                        accumulated = spectrum.mul_(transfer)
-                    else:
-                        accumulated.addcmul_(spectrum, transfer)
+                    accumulated = _filtered(spectrum, halves[plane], block,
+                                            spectrum if accumulated is None else accumulated,
+                                            accumulate=accumulated is not None)
                 _transpose(torch.fft.fft(accumulated)[:, rows // 2:rows // 2 + rows], along_y[:, block])
             grad_field[channel] = torch.fft.fft(along_y)[:, cols // 2:cols // 2 + cols].conj()
         return grad_field, None, None

@@ -6,7 +6,8 @@ the padded array (gather, content copy, window product, magnitude, clamp, quotie
 intensity |u|² and its gradient in about ten. Each kernel here is one pass, with each thread owning
 whole rows. `optics` holds the PyTorch formulas, which serve CUDA and `--backend torch`; the tests
 hold these kernels against them. The transpose moves the propagation's arrays between row and
-column layout (PyTorch's strided copies take about twice as long).
+column layout (PyTorch's strided copies take about twice as long), and the product applies a
+transfer function kept as half of its rows.
 """
 
 from __future__ import annotations
@@ -114,3 +115,20 @@ def transpose(source, out):
                 target_row = target[j]
                 for i in range(bottom - top):
                     target_row[i] = tile[i, j]
+
+
+@nb.njit(parallel=True, cache=True, fastmath=True)
+def mirrored_product(spectrum, half, first_row, out, accumulate):
+    """out[r] = spectrum[r] · T[first_row + r] (or out[r] += it) for a transfer function T [2K, N]
+    even about the middle of its first axis (T[k] = T[2K − 1 − k]), given as its first half [K, N].
+    `out` may be `spectrum` itself."""
+    length = 2 * half.shape[0]
+    for r in nb.prange(spectrum.shape[0]):
+        k = first_row + r
+        transfer, source, target = half[min(k, length - 1 - k)], spectrum[r], out[r]
+        if accumulate:
+            for j in range(source.shape[0]):
+                target[j] += source[j] * transfer[j]
+        else:
+            for j in range(source.shape[0]):
+                target[j] = source[j] * transfer[j]

@@ -11,8 +11,8 @@ import torch
 
 from cvqpg.config import FitConfig
 from cvqpg import optics, optics_kernels
-from cvqpg.optics import (Grid, clamped_intensity, guard_window, guarded_field, pad_with_guard_band, propagate,
-                          propagate_content, slm_field, transfer_function)
+from cvqpg.optics import (Grid, TransferBank, clamped_intensity, guard_window, guarded_field, pad_with_guard_band,
+                          propagate, propagate_content, slm_field, transfer_function)
 
 CPU = torch.device("cpu")
 PITCH = 3.74e-6
@@ -122,6 +122,22 @@ def test_transfer_function_band_limit_uses_odak_axis_convention():
     assert np.abs(ours.numpy().astype(np.complex128) - expected_kernel).max() < 2e-2
 
 
+@pytest.mark.parametrize("rows, cols", [(64, 40), (1536, 1920)])
+@pytest.mark.parametrize("transposed", [False, True], ids=["rows-first", "transposed"])
+def test_transfer_bank_halves_hold_the_whole_functions_exactly(rows, cols, transposed):
+    """In FFT order a BLASM transfer function is even about the middle of its axes, exactly so in
+    float32, so the bank keeps half of each: mirrored, the half is the whole function bit for bit
+    (on a small grid and on the 640×480 fit's doubled grid)."""
+    distances, wavelengths = (1e-3, 5e-3), (RED, BLUE)
+    bank = TransferBank(rows, cols, PITCH, wavelengths, distances, CPU, transposed)
+    for plane, distance in enumerate(distances):
+        for channel, wavelength in enumerate(wavelengths):
+            whole = transfer_function(rows, cols, PITCH, wavelength, distance, CPU, centred=False)
+            whole = whole.T if transposed else whole
+            assert bank.half(plane, channel).shape[0] == whole.shape[0] // 2
+            assert torch.equal(bank(plane, channel), whole)
+
+
 # --------------------------------------------------------------------------- propagation
 
 
@@ -163,10 +179,14 @@ def test_pruned_content_propagation_and_its_adjoint_match_the_full_transforms(ke
     padded array, three channels, two planes, spectra in several blocks), the same numbers to float32
     noise, forward and adjoint; a second call reuses the zero-margined arrays and gives the same
     numbers. With the kernels switched off the transposes are the PyTorch copies that other devices
-    (CUDA) run; transfer functions are kept in memory or rebuilt on demand (large grids)."""
-    monkeypatch.setattr(optics, "_moved_by_kernels", lambda tensor: kernels)
+    (CUDA) run; transfer functions are kept in memory or rebuilt on demand (large grids), once per
+    pass."""
+    monkeypatch.setattr(optics, "_uses_cpu_kernels", lambda tensor: kernels)
+    builds = []
     if not cached:
         monkeypatch.setattr(optics, "TRANSFER_CACHE_BYTES", 0)
+        build_half = TransferBank.build_half
+        monkeypatch.setattr(TransferBank, "build_half", lambda bank, *key: builds.append(key) or build_half(bank, *key))
     monkeypatch.setattr(optics, "SPECTRUM_BLOCK_ROWS", 48)
     grid = Grid(height=30, width=44, padded_height=64, padded_width=80)
     generator = torch.Generator().manual_seed(12)
@@ -180,6 +200,7 @@ def test_pruned_content_propagation_and_its_adjoint_match_the_full_transforms(ke
         content = propagate_content(leaf, grid, distances, wavelengths, PITCH)
         (content * upstream.conj()).real.sum().backward()
         runs.append((content.detach(), leaf.grad))
+    built_in_runs = len(builds)
     reference_leaf = field.to(torch.complex128).requires_grad_(True)
     reference = grid.crop(propagate(reference_leaf, distances, wavelengths, PITCH))
     (reference * upstream.to(torch.complex128).conj()).real.sum().backward()
@@ -190,6 +211,8 @@ def test_pruned_content_propagation_and_its_adjoint_match_the_full_transforms(ke
         assert float((content - reference).abs().max() / reference.abs().max()) < 1e-5
         assert float((gradient - reference_leaf.grad).abs().max() / reference_leaf.grad.abs().max()) < 1e-5
     assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
+    # rebuilt functions are built once per pass, not once per block (a 3840×2160 build takes seconds)
+    assert built_in_runs == (0 if cached else 2 * 2 * len(distances) * len(wavelengths))
 
 
 def test_energy_conserved_equals_band_limited_input_energy():
