@@ -321,7 +321,7 @@ def _filtered(spectrum: Tensor, half: Tensor, rows: slice, out: Tensor, accumula
     return out.addcmul_(spectrum, transfer) if accumulate else torch.mul(spectrum, transfer, out=out)
 
 
-SPECTRUM_BLOCK_ROWS = 128  # rows of a transposed spectrum handled at once: 1.5 MB at 640×480, cache-sized
+SPECTRUM_BLOCK_ROWS = 256  # rows of a transposed spectrum handled at once: 3 MB at 640×480, half per core in L2
 
 
 def _blocks(count: int) -> list[slice]:
