@@ -197,11 +197,10 @@ class TransferBank:
 
     In FFT order each function is even about the middle of both axes (odak's frequencies are
     symmetric about zero, exactly so in float32), so its first axis' first half holds all of it:
-    the bank keeps those halves, half the memory and half the memory traffic of the products. They
-    are built once and kept while all of them fit in `TRANSFER_CACHE_BYTES` (1 GiB: 640×480 RGB needs
-    0.07 GiB); on larger grids (3840×2160 RGB would need 1.0 GiB) each is rebuilt when asked, which
-    costs far less than the step's transforms. `transposed` banks hold each function as [cols, rows]
-    (frequency f_x first), the layout of `propagate_content`'s spectra.
+    the bank keeps those halves, half the memory. They are built once and kept while all of them
+    fit in `TRANSFER_CACHE_BYTES` (1 GiB: 640×480 RGB needs 0.07 GiB, 3840×2160 RGB 0.93 GiB); past
+    that each is rebuilt when asked, which its users do once per pass. `transposed` banks hold each
+    function as [cols, rows] (frequency f_x first), the layout of `propagate_content`'s spectra.
     """
 
     rows: int
