@@ -26,10 +26,12 @@ import statistics
 import subprocess
 import sys
 import time
+from pathlib import Path
 from typing import Callable
 
 import torch
 
+import cvqpg
 from cvqpg import FitConfig
 from cvqpg.allocator import keep_freed_memory
 from cvqpg.fitting import apply_gradients, initial_state, optimisation_step, render_hologram
@@ -159,14 +161,15 @@ def peak_rss_gib(config: FitConfig, steps: int) -> float:
     """Peak resident memory (GiB) of `cvqpg fit` in a fresh process, read by that process itself from
     the high-water mark of its own address space (`VmHWM`). Linux carries `ru_maxrss` over `exec`
     from the forked copy of the parent, so both RUSAGE_CHILDREN and the child's RUSAGE_SELF would
-    report at least the parent's size at the fork."""
+    report at least the parent's size at the fork. The child starts in the folder that holds this
+    process's `cvqpg`, so that it imports the same code (a worktree on PYTHONPATH, for instance)."""
     arguments = ["fit", "--size", str(config.width), str(config.height), "--color", config.color, "--ratio",
                  str(config.ratio), "--steps", str(steps), "--warmup", "1",
                  "--out", f"/tmp/cvqpg-bench-rss-{config.color}", "--overwrite", "--quiet"]
     program = ("import sys; from cvqpg.cli import main; main(sys.argv[1:]); "
                "print(next(line.split()[1] for line in open('/proc/self/status') if line.startswith('VmHWM:')))")
     output = subprocess.run([sys.executable, "-c", program, *arguments], check=True, capture_output=True,
-                            text=True).stdout
+                            text=True, cwd=Path(cvqpg.__file__).parents[1]).stdout
     return int(output.split()[-1]) / 2**20
 
 
