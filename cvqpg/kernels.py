@@ -1,35 +1,35 @@
 """Fused CPU kernels (Numba) for the splatting sum and its gradient.
 
 Both passes visit only the pixels inside each primitive's 3σ_major circle and store nothing of size
-N × pixels. Per channel a primitive is `G = α c exp(E)` with a complex exponent E that is quadratic
-in the pixel offset (the envelope −½D² and the quadratic phase), so along a row each pixel's value
-is its neighbour's times a ratio that itself changes by a constant factor, and the same holds from
-row to row along the primitive's centre column. The kernels walk the footprint outwards from that
-column with complex multiplications only, a few exact exponentials per primitive and channel.
+N × pixels. Per channel a primitive is `G = α c e^{iφ} exp(E)` with a complex exponent E that is
+quadratic in the pixel offset (dx, dy) from its centre, E = A dx² + 2B dx dy + C dy² (the envelope
+−½D² and the quadratic phase). The kernels leave out the pixels where SPEC's floor of −50 on the
+envelope exponent applies (D² > 100: values below e⁻⁵⁰ ≈ 2e-22 of the amplitude, invisible in
+float32), so each row's span is the 3σ circle cut to the band where D² ≤ 100.
 
-The kernels leave out the pixels where SPEC's floor of −50 on the envelope exponent applies
-(D² > 100: values below e⁻⁵⁰ ≈ 2e-22 of the amplitude, invisible in float32), so each row's span is
-the 3σ circle cut to the band where D² ≤ 100; for elongated primitives that is most of the circle.
-Primitives so elongated that a walk down the centre column could leave float64's range (D² > 600
-inside the footprint) start each row instead at its own envelope maximum with exact values, three
-exponentials per row, and walk outwards from there, where values only decrease.
+**Lane tables (most primitives).** Down a column the value moves one row by the ratio
+H = exp(2B dx + C(2dy + 1)), which itself changes by the constant Q = exp(2C) per row. The kernels
+keep G and H for every column of the footprint's bounding box and every channel in float32 "lanes"
+(lane = column · C + channel, the layout of the image arrays too), so one row of a primitive is one
+loop over contiguous lanes for all channels: add the masked values, then G ← G·H and H ← H·Q. The
+loop has no recurrence along the row, and LLVM vectorises it (eight lanes per instruction on AVX2).
+The lanes start on the box's first row from exact values walked along it in float64, six complex
+exponentials per primitive and channel. Lanes hold primitives whose values stay inside float32's
+range over the box, ½D² ≤ `TABLE_EXPONENT_LIMIT` at its top corners: at initialisation all of them,
+and about 98% of a fitted model's (96% of its pixel visits).
 
-Two special cases take most of the work. A primitive without curvature (the flat baseline, CVQPG's
-warm-up) has the same real envelope in every channel, so the forward pass walks it once, as a real
-number, for all channels. In the backward pass a walk is a chain of dependent multiplications that
-LLVM cannot vectorise; most primitives (D² ≤ 300 across the footprint) instead split exp(E) into a
-row factor and a table over the footprint's columns that moves down one row by an elementwise
-product, and each row's sums become independent products over contiguous arrays.
+**Walks (the others: needles).** Along a row each pixel's value is its neighbour's times a ratio
+that itself changes by a constant factor, and the same holds from row to row down the centre
+column; such primitives are walked outwards from that column in float64 with complex
+multiplications only. Needles so elongated that a walk down the centre column could leave float64's
+range (D² > 600 inside the footprint) start each row instead at its own envelope maximum from exact
+values, and walk outwards from there, where values only decrease.
 
-The forward pass
-gives each thread its own slice of primitives and its own output buffer, summed in a fixed order, so
-results do not depend on scheduling; the backward pass gives each thread the same slice, and each
-primitive's gradients are written by that thread alone. Arithmetic is float64 inside, float32 in the
-arrays.
-
-Both kernels compile with fast-math, which lets LLVM drop the infinity and NaN recovery of complex
-products (a fifth of the backward pass). That is safe here: a walk state that overflows belongs to
-a primitive whose rows start from exact values, and is never read.
+The hologram and its gradient travel as float32 lane images [2, H, (W + LANES)·C] (real and
+imaginary planes; `LANES` zero columns on the right that a row's last block of lanes may run into).
+The forward pass gives each thread its own slice of primitives and its own image, summed in a fixed
+order, so results do not depend on scheduling; the backward pass gives each thread the same slice,
+and each primitive's gradients are written by that thread alone. Both compile with fast-math.
 """
 
 from __future__ import annotations
@@ -42,7 +42,10 @@ import numpy as np
 
 FLOOR_MAHALANOBIS2 = 100.0  # D² where the envelope exponent −½D² reaches SPEC's floor of −50
 MAX_WALKED_MAHALANOBIS2 = 600.0
-MAX_TABULATED_MAHALANOBIS2 = 300.0
+TABLE_EXPONENT_LIMIT = 80.0  # |Re log| of a lane value or ratio on the first row: e^±80 is inside float32
+LANES = 8  # float32 values in one AVX2 register: a row's lanes are processed in whole blocks of them
+
+OFF_IMAGE, TABULATED, WALKED, WALKED_FROM_RIDGE = 0, 1, 2, 3  # the ways through the kernels
 
 
 @nb.njit(cache=True, nogil=True)
@@ -73,36 +76,137 @@ def _exponent_coefficients(a, b, c, k_chirp, mahalanobis):
 
 
 @nb.njit(cache=True, nogil=True)
-def _largest_mahalanobis2(a, b, c, reach):
-    """reach² · λ_max(Σ⁻¹): a bound on D² over the footprint circle, which picks the kernels' way."""
-    return reach * reach * (0.5 * (a + c) + math.sqrt(0.25 * (a - c) ** 2 + b * b))
-
-
-@nb.njit(cache=True, nogil=True)
 def _walkable(a, b, c, reach):
-    """Whether every exponent in the footprint stays in the range the multiplicative walk needs."""
-    return _largest_mahalanobis2(a, b, c, reach) <= MAX_WALKED_MAHALANOBIS2
+    """Whether every exponent in the footprint circle stays in the range the walk down the centre
+    column needs: reach² · λ_max(Σ⁻¹), a bound on D² there, is at most 600."""
+    return reach * reach * (0.5 * (a + c) + math.sqrt(0.25 * (a - c) ** 2 + b * b)) <= MAX_WALKED_MAHALANOBIS2
 
 
 @nb.njit(cache=True, nogil=True)
-def _footprint(n, position, conic, reach, height, width):
-    """Primitive n's geometry: whether it can touch the image, centre (px), reach (px), Σ⁻¹ (a, b, c),
-    its rows, whether it is walked down its centre column, that column, and the walk's start offset."""
+def _footprint(n, position, conic, reach, height, width, lefts, rights):
+    """Primitive n's geometry: centre (px), Σ⁻¹ (a, b, c), reach (px), its rows, each row's columns into
+    lefts/rights [row − low], and the columns they cover (first > last when it misses the image)."""
     x0, y0, r = np.float64(position[n, 0]), np.float64(position[n, 1]), np.float64(reach[n])
     a, b, c = np.float64(conic[n, 0]), np.float64(conic[n, 1]), np.float64(conic[n, 2])
     low, high = _row_span(y0, r, a, b, c, height)
-    cx = round(x0)
-    visible = not (x0 + r < 0 or x0 - r > width - 1)
-    return visible, x0, y0, r, a, b, c, low, high, _walkable(a, b, c, r), cx, cx - x0, low - y0
+    first, last = width, -1
+    if x0 + r < 0 or x0 - r > width - 1:
+        return x0, y0, a, b, c, r, low, high, first, last
+    for py in range(low, high + 1):
+        left, right = _column_span(x0, r, py - y0, a, b, c, width)
+        lefts[py - low], rights[py - low] = left, right
+        if left <= right:
+            first, last = min(first, left), max(last, right)
+    return x0, y0, a, b, c, r, low, high, first, last
 
 
 @nb.njit(cache=True, nogil=True)
-def _is_flat(n, chirp):
-    """Whether primitive n has no curvature in any channel: then its exponent is the real −½D²."""
-    for slot in range(chirp.shape[1]):
-        if chirp[n, slot] != 0.0:
-            return False
-    return True
+def _fits_lanes(x0, y0, a, b, c, low, first, last):
+    """Whether float32 lanes hold the primitive: its envelope exponent ½D² and its vertical ratio's
+    |Re log H| = |b dx + c(dy + ½)| stay within TABLE_EXPONENT_LIMIT at the box's top corners. Both
+    are extreme at a row's ends (D² is convex in dx, the other linear), and down the rows values only
+    matter where D² ≤ 100, so the first row bounds them."""
+    dy = low - y0
+    worst = 0.0
+    for dx in (first - x0, last - x0):
+        worst = max(worst, 0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy), abs(b * dx + c * (dy + 0.5)))
+    return worst <= TABLE_EXPONENT_LIMIT
+
+
+@nb.njit(cache=True, nogil=True)
+def _way(n, position, conic, reach, height, width, lefts, rights):
+    """How primitive n goes through the kernels (OFF_IMAGE, TABULATED, WALKED or WALKED_FROM_RIDGE),
+    with its geometry (`_footprint`)."""
+    x0, y0, a, b, c, r, low, high, first, last = _footprint(n, position, conic, reach, height, width, lefts, rights)
+    if first > last:
+        way = OFF_IMAGE
+    elif _fits_lanes(x0, y0, a, b, c, low, first, last):
+        way = TABULATED
+    else:
+        way = WALKED if _walkable(a, b, c, r) else WALKED_FROM_RIDGE
+    return way, x0, y0, a, b, c, r, low, high, first, last
+
+
+@nb.njit(parallel=True, cache=True)
+def ways(position, conic, reach, height, width):
+    """The way each primitive goes through the kernels on an H×W image (for tests and diagnostics)."""
+    result = np.empty(position.shape[0], np.int64)
+    for n in nb.prange(position.shape[0]):
+        lefts, rights = np.empty(height, np.int64), np.empty(height, np.int64)
+        result[n] = _way(n, position, conic, reach, height, width, lefts, rights)[0]
+    return result
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True)
+def _fill_lanes(A, B, C, start, dx, dy, columns, lane, channels, lanes):
+    """One channel's lanes lane, lane + channels, ... (one per box column, from offset dx, on row dy):
+    G starts at `start` and is walked along the row by its ratio exp(A(2dx + 1) + 2B dy), which
+    changes by exp(2A) per column; H = exp(2B dx + C(2dy + 1)) changes by exp(2B); Q = exp(2C)."""
+    g_re, g_im, h_re, h_im, q_re, q_im = lanes[:6]
+    g, ratio, step = start, cmath.exp(A * (2.0 * dx + 1.0) + 2.0 * B * dy), cmath.exp(2.0 * A)
+    h, h_step, q = cmath.exp(2.0 * B * dx + C * (2.0 * dy + 1.0)), cmath.exp(2.0 * B), cmath.exp(2.0 * C)
+    for i in range(columns):
+        j = i * channels + lane
+        g_re[j], g_im[j], h_re[j], h_im[j], q_re[j], q_im[j] = g.real, g.imag, h.real, h.imag, q.real, q.imag
+        g, ratio, h = g * ratio, ratio * step, h * h_step
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True)
+def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, opacity, wavenumbers, mahalanobis,
+                 amplitude, count, lanes):
+    """Every channel's lanes on the box's first row, zero past them up to `count` (a whole number of
+    blocks). `amplitude` includes α·c (the hologram) or not (the gradient's moments, per unit αc)."""
+    channels = color.shape[1]
+    dx, dy = first - x0, low - y0
+    for ch in range(channels):
+        A, B, C = _exponent_coefficients(a, b, c, wavenumbers[ch] * chirp[n, _chirp_slot(ch, chirp)], mahalanobis)
+        scale = opacity[n] * color[n, ch] if amplitude else 1.0
+        start = scale * cmath.exp(complex(0.0, phase[n, ch]) + A * dx * dx + 2.0 * B * dx * dy + C * dy * dy)
+        _fill_lanes(A, B, C, start, dx, dy, columns, ch, channels, lanes)
+    for lane in lanes:
+        lane[columns * channels:count] = 0.0
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _add_lane_row(lanes, count, left, right, out_re, out_im):
+    """out += G over the lanes left..right − 1 of count (the others masked), then G ← G·H, H ← H·Q."""
+    g_re, g_im, h_re, h_im, q_re, q_im = lanes[:6]
+    low, high, x = np.float32(left), np.float32(right), np.float32(0.0)
+    for j in range(count):  # zero-based slices, a float mask and a plain count: LLVM vectorises the loop
+        gr, gi, hr, hi = g_re[j], g_im[j], h_re[j], h_im[j]
+        inside = np.float32((x >= low) & (x < high))
+        out_re[j] += gr * inside
+        out_im[j] += gi * inside
+        g_re[j] = gr * hr - gi * hi
+        g_im[j] = gr * hi + gi * hr
+        h_re[j] = hr * q_re[j] - hi * q_im[j]
+        h_im[j] = hr * q_im[j] + hi * q_re[j]
+        x += np.float32(1.0)
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _accumulate_lane_row(lanes, count, left, right, dy, grad_re, grad_im):
+    """Per lane, with w = ḡ·G over the lanes left..right − 1 of count (the others masked): Σw, Σw·dy
+    and Σw·dy² (real and imaginary parts) += this row's; then G ← G·H, H ← H·Q."""
+    g_re, g_im, h_re, h_im, q_re, q_im, s0r, s0i, s1r, s1i, s2r, s2i = lanes
+    low, high, x = np.float32(left), np.float32(right), np.float32(0.0)
+    dy1, dy2 = np.float32(dy), np.float32(dy * dy)
+    for j in range(count):
+        gr, gi, hr, hi = g_re[j], g_im[j], h_re[j], h_im[j]
+        inside = np.float32((x >= low) & (x < high))
+        wr = (grad_re[j] * gr + grad_im[j] * gi) * inside
+        wi = (grad_re[j] * gi - grad_im[j] * gr) * inside
+        s0r[j] += wr
+        s0i[j] += wi
+        s1r[j] += wr * dy1
+        s1i[j] += wi * dy1
+        s2r[j] += wr * dy2
+        s2i[j] += wi * dy2
+        g_re[j] = gr * hr - gi * hi
+        g_im[j] = gr * hi + gi * hr
+        h_re[j] = hr * q_re[j] - hi * q_im[j]
+        h_im[j] = hr * q_im[j] + hi * q_re[j]
+        x += np.float32(1.0)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -162,102 +266,129 @@ def _chirp_slot(channel, chirp):
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True)
-def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, out, lefts, rights):
-    channels, height, width = out.shape
-    visible, x0, y0, r, a, b, c, low, high, walk, cx, dx0, dy0 = _footprint(n, position, conic, reach, height, width)
-    if not visible:
-        return
-    first, last = _row_spans(x0, y0, r, a, b, c, low, high, width, lefts, rights)
-    if first > last:
-        return
-    for ch in range(channels):
-        k_chirp = wavenumbers[ch] * chirp[n, _chirp_slot(ch, chirp)]
-        A, B, C = _exponent_coefficients(a, b, c, k_chirp, mahalanobis)
-        amplitude = opacity[n] * color[n, ch] * cmath.exp(complex(0.0, phase[n, ch]))
-        z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, dx0, dy0)
-        z_row *= amplitude
-        for py in range(low, high + 1):
-            dy = py - y0
-            left, right = lefts[py - low], rights[py - low]
-            row = out[ch, py]
-            start, z_r, s_r, z_l, s_l, steps = _row_walks(walk, A, B, C, amplitude, z_row, s_right, s_left,
-                                                          s_step, x0, dy, cx, -b / a, left, right)
-            for i in range(steps):
-                for px, z in ((start + i, z_r), (start - 1 - i, z_l)):
-                    if left <= px <= right:
-                        row[px] += z
-                z_r, s_r = z_r * s_r, s_r * s_step
-                z_l, s_l = z_l * s_l, s_l * s_step
-            z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left)
+def _walked_rows(A, B, C, amplitude, way, x0, y0, low, high, lefts, rights, lane, channels, out_re, out_im):
+    """out += amplitude · exp(E) over the footprint, each row walked outwards (see the module notes)."""
+    cx = round(x0)
+    z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, cx - x0, low - y0)
+    z_row *= amplitude
+    for py in range(low, high + 1):
+        dy = py - y0
+        left, right = lefts[py - low], rights[py - low]
+        row_re, row_im = out_re[py], out_im[py]
+        start, z_r, s_r, z_l, s_l, steps = _row_walks(way == WALKED, A, B, C, amplitude, z_row, s_right, s_left,
+                                                      s_step, x0, dy, cx, -B.real / A.real, left, right)
+        for i in range(steps):
+            for px, z in ((start + i, z_r), (start - 1 - i, z_l)):
+                if left <= px <= right:
+                    row_re[px * channels + lane] += z.real
+                    row_im[px * channels + lane] += z.imag
+            z_r, s_r = z_r * s_r, s_r * s_step
+            z_l, s_l = z_l * s_l, s_l * s_step
+        z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left)
+
+
+@nb.njit(cache=True, nogil=True)
+def _block_lanes(columns, channels):
+    """Lanes of `columns` box columns, rounded up to whole blocks of LANES."""
+    return (columns * channels + LANES - 1) // LANES * LANES
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True)
-def _splat_flat_one(n, position, conic, reach, color, phase, opacity, mahalanobis, amplitudes, out):
-    """A primitive without curvature: exp(E) is the real envelope exp(−½D²) in every channel, so one
-    real walk serves all channels, each adding its own α c e^{iφ} times the envelope."""
-    channels, height, width = out.shape
-    visible, x0, y0, r, a, b, c, low, high, walk, cx, dx0, dy0 = _footprint(n, position, conic, reach, height, width)
-    if not visible:
+def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, out_re, out_im,
+               lefts, rights, lanes):
+    channels = color.shape[1]
+    height, width = out_re.shape[0], out_re.shape[1] // channels - LANES
+    way, x0, y0, a, b, c, r, low, high, first, last = _way(n, position, conic, reach, height, width, lefts, rights)
+    if way == OFF_IMAGE:
         return
-    for ch in range(channels):
-        amplitudes[ch] = opacity[n] * color[n, ch] * cmath.exp(complex(0.0, phase[n, ch]))
-    A, B, C = _exponent_coefficients(a, b, c, 0.0, mahalanobis)
-    z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, dx0, dy0)
-    for py in range(low, high + 1):
-        dy = py - y0
-        left, right = _column_span(x0, r, dy, a, b, c, width)
-        start, z_r, s_r, z_l, s_l, steps = _row_walks(walk, A, B, C, complex(1.0, 0.0), z_row, s_right, s_left,
-                                                      s_step, x0, dy, cx, -b / a, left, right)
-        e_r, q_r, e_l, q_l, q_step = z_r.real, s_r.real, z_l.real, s_l.real, s_step.real
-        for i in range(steps):
-            for px, e in ((start + i, e_r), (start - 1 - i, e_l)):
-                if left <= px <= right:
-                    for ch in range(channels):
-                        out[ch, py, px] += amplitudes[ch] * e
-            e_r, q_r = e_r * q_r, q_r * q_step
-            e_l, q_l = e_l * q_l, q_l * q_step
-        z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left)
+    if way != TABULATED:
+        for ch in range(channels):
+            A, B, C = _exponent_coefficients(a, b, c, wavenumbers[ch] * chirp[n, _chirp_slot(ch, chirp)],
+                                             mahalanobis)
+            amplitude = opacity[n] * color[n, ch] * cmath.exp(complex(0.0, phase[n, ch]))
+            _walked_rows(A, B, C, amplitude, way, x0, y0, low, high, lefts, rights, ch, channels, out_re, out_im)
+        return
+    count = _block_lanes(last + 1 - first, channels)
+    box = (lanes[0][:count], lanes[1][:count], lanes[2][:count], lanes[3][:count], lanes[4][:count],
+           lanes[5][:count])
+    _lane_tables(n, a, b, c, x0, y0, low, first, last + 1 - first, chirp, color, phase, opacity, wavenumbers,
+                 mahalanobis, True, count, box)
+    origin = first * channels
+    for k in range(high + 1 - low):
+        _add_lane_row(box, count, (lefts[k] - first) * channels, (rights[k] + 1 - first) * channels,
+                      out_re[low + k, origin:origin + count], out_im[low + k, origin:origin + count])
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def splat_forward(position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, partial):
-    """partial[t] = the sum over primitives t, t+T, t+2T, ... (T = partial.shape[0]).
+    """partial[t] += the sum over primitives t, t+T, t+2T, ... (T = partial.shape[0]).
 
-    `partial` [T, C, H, W] (complex64) starts at zero; the caller sums it over t in order.
+    `partial` [T, 2, H, (W + LANES)·C] (float32 lane images) starts at zero; `gather_partials` sums it
+    over t in order.
     """
-    threads = partial.shape[0]
+    threads, height, width = partial.shape[0], partial.shape[2], partial.shape[3]
     for t in nb.prange(threads):
-        amplitudes = np.empty(color.shape[1], np.complex128)
-        lefts, rights = np.empty(partial.shape[2], np.int64), np.empty(partial.shape[2], np.int64)
+        lefts, rights = np.empty(height, np.int64), np.empty(height, np.int64)
+        lanes = (np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
+                 np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32))
         for n in range(t, position.shape[0], threads):
-            if _is_flat(n, chirp):
-                _splat_flat_one(n, position, conic, reach, color, phase, opacity, mahalanobis, amplitudes, partial[t])
-            else:
-                _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                           partial[t], lefts, rights)
+            _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
+                       partial[t, 0], partial[t, 1], lefts, rights, lanes)
+
+
+@nb.njit(parallel=True, cache=True)
+def gather_partials(partial, out):
+    """out [C, H, W] (complex64) = Σ_t partial[t] in order of t, from lane images; partial is left
+    zero, ready for the next forward pass."""
+    channels, height, width = out.shape
+    for y in nb.prange(height):
+        for ch in range(channels):
+            target = out[ch, y]
+            for x in range(width):
+                target[x] = complex(partial[0, 0, y, x * channels + ch], partial[0, 1, y, x * channels + ch])
+            for t in range(1, partial.shape[0]):
+                for x in range(width):
+                    target[x] += complex(partial[t, 0, y, x * channels + ch], partial[t, 1, y, x * channels + ch])
+        for t in range(partial.shape[0]):
+            partial[t, 0, y, :] = 0.0
+            partial[t, 1, y, :] = 0.0
+
+
+@nb.njit(parallel=True, cache=True)
+def split_lanes(values, out):
+    """out [2, H, (W + LANES)·C] (float32 lane image) = values [C, H, W] (complex64); the padding
+    columns are left as they are (zero in a zero-initialised array)."""
+    channels, height, width = values.shape
+    for y in nb.prange(height):
+        real, imag = out[0, y], out[1, y]
+        for ch in range(channels):
+            source = values[ch, y]
+            for x in range(width):
+                real[x * channels + ch], imag[x * channels + ch] = source[x].real, source[x].imag
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True)
-def _walked_moments(grad, A, B, C, rotation, walk, x0, y0, ridge_slope, low, high, lefts, rights, cx, dx0, dy0):
+def _walked_moments(grad_re, grad_im, A, B, C, rotation, way, x0, y0, low, high, lefts, rights, lane, channels):
     """One channel's moments of t and u (see `splat_backward`) over the footprint, walking each row
     outwards from its start by complex multiplication."""
-    z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, dx0, dy0)
+    cx = round(x0)
+    z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, cx - x0, low - y0)
     z_row *= rotation
     t_moments = u_moments = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     for py in range(low, high + 1):
         dy = py - y0
         left, right = lefts[py - low], rights[py - low]
-        grad_row = grad[py]
+        row_re, row_im = grad_re[py], grad_im[py]
         t0 = t1 = t2 = u0 = u1 = u2 = 0.0
-        start, z_r, s_r, z_l, s_l, steps = _row_walks(walk, A, B, C, rotation, z_row, s_right, s_left,
-                                                      s_step, x0, dy, cx, ridge_slope, left, right)
+        start, z_r, s_r, z_l, s_l, steps = _row_walks(way == WALKED, A, B, C, rotation, z_row, s_right, s_left,
+                                                      s_step, x0, dy, cx, -B.real / A.real, left, right)
         for i in range(steps):
             for px, z in ((start + i, z_r), (start - 1 - i, z_l)):
                 if left <= px <= right:
                     dx = px - x0
-                    g = grad_row[px]
-                    t = g.real * z.real + g.imag * z.imag
-                    u = g.imag * z.real - g.real * z.imag
+                    gr, gi = np.float64(row_re[px * channels + lane]), np.float64(row_im[px * channels + lane])
+                    t = gr * z.real + gi * z.imag
+                    u = gi * z.real - gr * z.imag
                     t0 += t
                     t1 += t * dx
                     t2 += t * dx * dx
@@ -272,103 +403,67 @@ def _walked_moments(grad, A, B, C, rotation, walk, x0, y0, ridge_slope, low, hig
     return t_moments, u_moments
 
 
-@nb.njit(cache=True, nogil=True)
-def _tabulated(a, b, c, reach):
-    """Whether the column tables of `_tabulated_moments` stay well inside float64's range: every
-    partial exponent A dx² + 2B dx dy in the footprint is below 450 in magnitude."""
-    return _largest_mahalanobis2(a, b, c, reach) <= MAX_TABULATED_MAHALANOBIS2
-
-
-@nb.njit(cache=True, nogil=True)
-def _row_spans(x0, y0, r, a, b, c, low, high, width, lefts, rights):
-    """Each footprint row's columns into lefts/rights [row − low]; returns the columns they cover
-    (first > last when none)."""
-    first, last = width, -1
-    for py in range(low, high + 1):
-        left, right = _column_span(x0, r, py - y0, a, b, c, width)
-        lefts[py - low], rights[py - low] = left, right
-        if left <= right:
-            first, last = min(first, left), max(last, right)
-    return first, last
-
-
 @nb.njit(cache=True, nogil=True, fastmath=True)
-def _tabulated_moments(grad, A, B, C, rotation, x0, y0, low, high, lefts, rights, first, last,
-                       g_real, g_imag, h_real, h_imag):
-    """One channel's moments of t and u over the footprint, from column tables.
-
-    exp(E) = exp(C dy²)·G(dx) with G(dx) = exp(A dx² + 2B dx dy): a row factor times a table over
-    the footprint's columns that moves one row down by the factor h(dx) = exp(2B dx). Neither needs
-    a recurrence along the row, so each row is one loop of independent products that LLVM
-    vectorises, and the row factor is applied once to the row's sums Σḡ·G·{1, dx, dx²}."""
-    columns = last + 1 - first
-    dx_first, dy0 = first - x0, low - y0
-    g = cmath.exp(A * dx_first * dx_first + 2.0 * B * dx_first * dy0)
-    ratio, ratio_step = cmath.exp(A * (2.0 * dx_first + 1.0) + 2.0 * B * dy0), cmath.exp(2.0 * A)
-    h, h_step = cmath.exp(2.0 * B * dx_first), cmath.exp(2.0 * B)
+def _lane_moments(lanes, lane, channels, columns, dx_first):
+    """One channel's moments of t and u from its lanes' sums Σw, Σw·dy, Σw·dy² (w = t − i·u): each
+    column adds them weighted by 1, dx, dx²."""
+    s0r, s0i, s1r, s1i, s2r, s2i = lanes[6:]
+    t00 = t10 = t20 = t01 = t11 = t02 = u00 = u10 = u20 = u01 = u11 = u02 = 0.0
     for i in range(columns):
-        g_real[i], g_imag[i], h_real[i], h_imag[i] = g.real, g.imag, h.real, h.imag
-        g, ratio, h = g * ratio, ratio * ratio_step, h * h_step
-    row_factor = rotation * cmath.exp(C * dy0 * dy0)
-    down, down_step = cmath.exp(C * (2.0 * dy0 + 1.0)), cmath.exp(2.0 * C)
-    t_moments = u_moments = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    for k in range(high + 1 - low):
-        left, right = lefts[k], rights[k]
-        if left <= right:
-            count, offset = right + 1 - left, left - first
-            grad_row = grad[low + k, left:right + 1]
-            table_real, table_imag = g_real[offset:offset + count], g_imag[offset:offset + count]
-            dx_left = left - x0
-            s0r = s0i = s1r = s1i = s2r = s2i = 0.0
-            for j in range(count):  # zero-based slices: LLVM proves the indices and vectorises
-                gr, gi = grad_row[j].real, grad_row[j].imag
-                wr = gr * table_real[j] + gi * table_imag[j]
-                wi = gr * table_imag[j] - gi * table_real[j]
-                dx = dx_left + j
-                s0r += wr
-                s0i += wi
-                s1r += wr * dx
-                s1i += wi * dx
-                s2r += wr * dx * dx
-                s2i += wi * dx * dx
-            fr, fi = row_factor.real, row_factor.imag  # t + i·(−u) = row factor · Σḡ·G
-            dy = low + k - y0
-            t_moments = _with_row(t_moments, fr * s0r - fi * s0i, fr * s1r - fi * s1i, fr * s2r - fi * s2i, dy)
-            u_moments = _with_row(u_moments, -(fr * s0i + fi * s0r), -(fr * s1i + fi * s1r),
-                                  -(fr * s2i + fi * s2r), dy)
-        for i in range(columns):
-            gr = g_real[i] * h_real[i] - g_imag[i] * h_imag[i]
-            g_imag[i] = g_real[i] * h_imag[i] + g_imag[i] * h_real[i]
-            g_real[i] = gr
-        row_factor, down = row_factor * down, down * down_step
-    return t_moments, u_moments
+        j = i * channels + lane
+        dx = dx_first + i
+        t0, t1, u0, u1 = np.float64(s0r[j]), np.float64(s1r[j]), -np.float64(s0i[j]), -np.float64(s1i[j])
+        t00 += t0
+        t10 += t0 * dx
+        t20 += t0 * dx * dx
+        t01 += t1
+        t11 += t1 * dx
+        t02 += np.float64(s2r[j])
+        u00 += u0
+        u10 += u0 * dx
+        u20 += u0 * dx * dx
+        u01 += u1
+        u11 += u1 * dx
+        u02 -= np.float64(s2i[j])
+    return (t00, t10, t20, t01, t11, t02), (u00, u10, u20, u01, u11, u02)
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True)
 def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                      grad, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts, rights, tables):
-    channels, height, width = grad.shape
-    visible, x0, y0, r, a, b, c, low, high, walk, cx, dx0, dy0 = _footprint(n, position, conic, reach, height, width)
-    if not visible:
+                      grad_re, grad_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts, rights,
+                      lanes):
+    channels = color.shape[1]
+    height, width = grad_re.shape[0], grad_re.shape[1] // channels - LANES
+    way, x0, y0, a, b, c, r, low, high, first, last = _way(n, position, conic, reach, height, width, lefts, rights)
+    if way == OFF_IMAGE:
         return
-    first, last = _row_spans(x0, y0, r, a, b, c, low, high, width, lefts, rights)
-    if first > last:
-        return
-    tabulated = _tabulated(a, b, c, r)
+    columns = last + 1 - first
+    count = _block_lanes(columns, channels) if way == TABULATED else 0
+    box = (lanes[0][:count], lanes[1][:count], lanes[2][:count], lanes[3][:count], lanes[4][:count],
+           lanes[5][:count], lanes[6][:count], lanes[7][:count], lanes[8][:count], lanes[9][:count],
+           lanes[10][:count], lanes[11][:count])
+    if way == TABULATED:
+        _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, opacity, wavenumbers,
+                     mahalanobis, False, count, box)
+        for sums in box[6:]:
+            sums[:] = 0.0
+        origin = first * channels
+        for k in range(high + 1 - low):
+            _accumulate_lane_row(box, count, (lefts[k] - first) * channels, (rights[k] + 1 - first) * channels,
+                                 low + k - y0, grad_re[low + k, origin:origin + count],
+                                 grad_im[low + k, origin:origin + count])
     alpha = np.float64(opacity[n])
     g_alpha = ga = gb = gc = gx = gy = 0.0
     for ch in range(channels):
         k, color_c = wavenumbers[ch], np.float64(color[n, ch])
         slot = _chirp_slot(ch, chirp)
         k_chirp = k * np.float64(chirp[n, slot])
-        A, B, C = _exponent_coefficients(a, b, c, k_chirp, mahalanobis)
-        rotation = cmath.exp(complex(0.0, phase[n, ch]))
-        if tabulated:
-            t_moments, u_moments = _tabulated_moments(grad[ch], A, B, C, rotation, x0, y0, low, high, lefts, rights,
-                                                      first, last, tables[0], tables[1], tables[2], tables[3])
+        if way == TABULATED:
+            t_moments, u_moments = _lane_moments(box, ch, channels, columns, first - x0)
         else:
-            t_moments, u_moments = _walked_moments(grad[ch], A, B, C, rotation, walk, x0, y0, -b / a, low, high,
-                                                   lefts, rights, cx, dx0, dy0)
+            A, B, C = _exponent_coefficients(a, b, c, k_chirp, mahalanobis)
+            t_moments, u_moments = _walked_moments(grad_re, grad_im, A, B, C, cmath.exp(complex(0.0, phase[n, ch])),
+                                                   way, x0, y0, low, high, lefts, rights, ch, channels)
         t00, t10, t20, t01, t11, t02 = t_moments
         u00, u10, u20, u01, u11, u02 = u_moments
         scale = alpha * color_c
@@ -400,7 +495,8 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def splat_backward(position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                    grad, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, threads):
-    """Gradients (float64, each row written by its own primitive only) from grad [C, H, W] (complex64).
+    """Gradients (float64, each row written by its own primitive only) from grad [2, H, (W + LANES)·C]
+    (a float32 lane image, zero in the padding columns).
 
     Thread t of `threads` takes primitives t, t+T, t+2T, ..., as in the forward pass.
 
@@ -415,7 +511,11 @@ def splat_backward(position, conic, reach, chirp, color, phase, opacity, wavenum
     height, width = grad.shape[1], grad.shape[2]
     for t in nb.prange(threads):
         lefts, rights = np.empty(height, np.int64), np.empty(height, np.int64)
-        tables = (np.empty(width), np.empty(width), np.empty(width), np.empty(width))  # separate: no aliasing
+        lanes = (np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
+                 np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
+                 np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
+                 np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32))
         for n in range(t, position.shape[0], threads):
             _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                              grad, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts, rights, tables)
+                              grad[0], grad[1], g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts,
+                              rights, lanes)

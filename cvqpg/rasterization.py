@@ -10,7 +10,9 @@ by the chunk size whatever N is.
 
 from __future__ import annotations
 
+import functools
 import math
+import threading
 from dataclasses import dataclass
 from typing import Callable, Literal, Sequence
 
@@ -146,10 +148,21 @@ def _in_caller_order(values: np.ndarray, order: Tensor) -> Tensor:
     return torch.empty_like(ordered).index_copy_(0, order, ordered)
 
 
+@functools.lru_cache(maxsize=8)
+def _reused_lanes(shape: tuple[int, ...], thread: int) -> np.ndarray:
+    """A zero-initialised float32 array kept between calls (one per calling thread): allocating and
+    zeroing tens of MB per step costs more than the kernels' own passes over them. Its users keep the
+    parts they rely on zero."""
+    return np.zeros(shape, np.float32)
+
+
 class _FusedSplat(torch.autograd.Function):
     """The Numba kernels behind one autograd boundary: the complex hologram [C, H, W].
 
     The kernels see the primitives in `locality_order`; the gradients are returned in the caller's.
+    They work on float32 lane images [2, H, (W + LANES)·C] (`kernels`); the forward pass sums its
+    threads' images into the complex hologram and clears them in one pass, and the backward pass
+    turns the incoming complex gradient into a lane image in one.
     """
 
     @staticmethod
@@ -159,21 +172,29 @@ class _FusedSplat(torch.autograd.Function):
         arrays = tuple(t.detach().to("cpu", torch.float32)[order].contiguous().numpy()
                        for t in (position, conic, reach, chirp, color, phase, opacity))
         k = wavenumbers.detach().to("cpu", torch.float64).numpy()
-        plane_bytes = color.shape[1] * height * width * 8
-        threads = max(1, min(numba.get_num_threads(), PARTIAL_BUFFER_BYTES // plane_bytes))
-        partial = np.zeros((threads, color.shape[1], height, width), np.complex64)
-        kernels.splat_forward(*arrays, k, mahalanobis, partial)
+        channels = color.shape[1]
+        lane_width = (width + kernels.LANES) * channels
+        threads = max(1, min(numba.get_num_threads(), PARTIAL_BUFFER_BYTES // (height * lane_width * 8)))
+        partial = _reused_lanes((threads, 2, height, lane_width), threading.get_ident())
+        out = torch.empty(channels, height, width, dtype=torch.complex64)
+        try:
+            kernels.splat_forward(*arrays, k, mahalanobis, partial)
+            kernels.gather_partials(partial, out.numpy())  # leaves `partial` zero for the next call
+        except BaseException:
+            partial.fill(0.0)
+            raise
         ctx.arrays, ctx.order, ctx.wavenumbers, ctx.mahalanobis = arrays, order, k, mahalanobis
         ctx.dtype, ctx.device = position.dtype, position.device
-        out = torch.from_numpy(partial).sum(dim=0) if threads > 1 else torch.from_numpy(partial[0])
         return out.to(device=position.device, dtype=torch.promote_types(position.dtype, torch.complex64))
 
     @staticmethod
     def backward(ctx, grad):
         position, conic, _, chirp, color, phase, opacity = ctx.arrays
         grads = tuple(np.zeros(a.shape, np.float64) for a in (position, conic, chirp, color, phase, opacity))
-        kernels.splat_backward(*ctx.arrays, ctx.wavenumbers, ctx.mahalanobis,
-                               grad.detach().to("cpu", torch.complex64).contiguous().numpy(), *grads,
+        channels, height, width = grad.shape
+        lanes = _reused_lanes((2, height, (width + kernels.LANES) * channels), threading.get_ident())
+        kernels.split_lanes(grad.detach().to("cpu", torch.complex64).contiguous().numpy(), lanes)  # padding stays 0
+        kernels.splat_backward(*ctx.arrays, ctx.wavenumbers, ctx.mahalanobis, lanes, *grads,
                                numba.get_num_threads())
         g_position, g_conic, g_chirp, g_color, g_phase, g_opacity = (
             _in_caller_order(g, ctx.order).to(device=ctx.device, dtype=ctx.dtype) for g in grads)

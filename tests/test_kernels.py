@@ -35,11 +35,10 @@ def outputs_and_gradients(backend, s: Splats, wavenumbers):
     return hologram.detach().to(torch.complex128), torch.autograd.grad(loss, differentiable)
 
 
-def elongation(s: Splats) -> torch.Tensor:
-    """reach² · λ_max(Σ⁻¹): the largest D² in each primitive's footprint circle, which picks its way
-    through the kernels."""
-    a, b, c = s.conic.unbind(1)
-    return s.reach_px**2 * (0.5 * (a + c) + torch.sqrt(0.25 * (a - c) ** 2 + b * b))
+def ways(s: Splats) -> torch.Tensor:
+    """How each primitive goes through the kernels (kernels.TABULATED, WALKED, ...)."""
+    arrays = (t.detach().float().contiguous().numpy() for t in (s.position_px, s.conic, s.reach_px))
+    return torch.from_numpy(kernels.ways(*arrays, HEIGHT, WIDTH))
 
 
 def relative(a, b):
@@ -63,9 +62,8 @@ def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primiti
     prims.position_px = torch.cat([prims.position_px[:5], prims.position_px[5:9] + offsets,
                                    prims.position_px[9:]])  # partly and fully off the image
     s = splats(prims, config.pixel_pitch, qpf)
-    spread = elongation(s)  # every way the kernels have: column tables, the centre-column walk, row maxima
-    assert (spread <= kernels.MAX_TABULATED_MAHALANOBIS2).any() and (spread > kernels.MAX_WALKED_MAHALANOBIS2).any()
-    assert ((spread > kernels.MAX_TABULATED_MAHALANOBIS2) & (spread <= kernels.MAX_WALKED_MAHALANOBIS2)).any()
+    taken = set(ways(s).tolist())  # every way the kernels have: column tables, the centre-column walk, row maxima
+    assert {kernels.OFF_IMAGE, kernels.TABULATED, kernels.WALKED, kernels.WALKED_FROM_RIDGE} <= taken, taken
     k = wavenumbers_for(config.wavelengths)
     expected, expected_grads = outputs_and_gradients(splat_reference, s, k)
     actual, actual_grads = outputs_and_gradients(splat_fused, s, k)
@@ -78,14 +76,16 @@ def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primiti
 @pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
 def test_needles_walked_from_each_rows_maximum_match_reference(qpf):
     """Primitives too elongated for the centre-column walk (aspect 10 to 60, every orientation,
-    curved) start each row from exact values at its envelope maximum; alone, they must still agree."""
+    curved) start each row from exact values at its envelope maximum, unless they are aligned with
+    the axes and fit the column tables; alone, they must still agree."""
     config = FitConfig(width=WIDTH, height=HEIGHT, qpf=qpf)
     raw = random_gaussians(24, 3, seed=4)
     aspect = torch.linspace(math.log(10.0), math.log(60.0), 24, dtype=torch.float64)
     raw.scale = torch.stack([torch.full_like(aspect, 2.5), 2.5 - aspect], dim=1)
     raw.rotation = torch.linspace(0.0, math.pi, 24, dtype=torch.float64)
     s = splats(activate(raw, config), config.pixel_pitch, qpf)
-    assert (elongation(s) > kernels.MAX_WALKED_MAHALANOBIS2).all()  # none of them is walked by column
+    taken = ways(s)  # axis-aligned needles fit the column tables (the D² ≤ 100 band keeps their box narrow)
+    assert (taken != kernels.WALKED).all() and (taken == kernels.WALKED_FROM_RIDGE).sum() >= 18, taken
     k = wavenumbers_for(config.wavelengths)
     expected, expected_grads = outputs_and_gradients(splat_reference, s, k)
     actual, actual_grads = outputs_and_gradients(splat_fused, s, k)
