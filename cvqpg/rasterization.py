@@ -32,7 +32,6 @@ EXPONENT_FLOOR = -50.0
 CHUNK_ELEMENTS = 1 << 20
 PARTIAL_BUFFER_BYTES = 1 << 30
 MIN_PATCH_RADIUS_PX = 2
-LOCALITY_BAND_PX = 16
 
 
 @dataclass
@@ -134,20 +133,6 @@ def splat_reference(s: Splats, width: int, height: int, wavenumbers: Tensor) -> 
     return torch.complex(accumulated[0], accumulated[1]).reshape(channels, height, width)
 
 
-def locality_order(position_px: Tensor, width: int) -> Tensor:
-    """Primitive order by bands of `LOCALITY_BAND_PX` rows, then by column: primitives that follow one
-    another touch nearby memory, which takes a sixth off both kernels' time at 640×480."""
-    band = torch.div(position_px[:, 1], LOCALITY_BAND_PX, rounding_mode="floor").clamp(-1, 1 << 20)
-    column = position_px[:, 0].clamp(-width, 2 * width)
-    return torch.argsort(band * (4 * width) + column)
-
-
-def _in_caller_order(values: np.ndarray, order: Tensor) -> Tensor:
-    """Rows given in `order` ([N, ...], row i belongs to primitive order[i]) back in primitive order."""
-    ordered = torch.from_numpy(values)
-    return torch.empty_like(ordered).index_copy_(0, order, ordered)
-
-
 @functools.lru_cache(maxsize=8)
 def _reused_lanes(shape: tuple[int, ...], thread: int) -> np.ndarray:
     """A zero-initialised float32 array kept between calls (one per calling thread): allocating and
@@ -159,7 +144,7 @@ def _reused_lanes(shape: tuple[int, ...], thread: int) -> np.ndarray:
 class _FusedSplat(torch.autograd.Function):
     """The Numba kernels behind one autograd boundary: the complex hologram [C, H, W].
 
-    The kernels see the primitives in `locality_order`; the gradients are returned in the caller's.
+    The kernels take the primitives in `kernels.locality_order` (each thread every T-th of them).
     They work on float32 lane images [2, H, (W + LANES)·C] (`kernels`); the forward pass sums its
     threads' images into the complex hologram and clears them in one pass, and the backward pass
     turns the incoming complex gradient into a lane image in one.
@@ -168,9 +153,9 @@ class _FusedSplat(torch.autograd.Function):
     @staticmethod
     def forward(ctx, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                 width, height):
-        order = locality_order(position.detach().to("cpu", torch.float64), width)
-        arrays = tuple(t.detach().to("cpu", torch.float32)[order].contiguous().numpy()
+        arrays = tuple(t.detach().to("cpu", torch.float32).contiguous().numpy()
                        for t in (position, conic, reach, chirp, color, phase, opacity))
+        order = kernels.locality_order(arrays[0], height, width)
         k = wavenumbers.detach().to("cpu", torch.float64).numpy()
         channels = color.shape[1]
         lane_width = (width + kernels.LANES) * channels
@@ -178,7 +163,7 @@ class _FusedSplat(torch.autograd.Function):
         partial = _reused_lanes((threads, 2, height, lane_width), threading.get_ident())
         out = torch.empty(channels, height, width, dtype=torch.complex64)
         try:
-            kernels.splat_forward(*arrays, k, mahalanobis, partial)
+            kernels.splat_forward(order, *arrays, k, mahalanobis, partial)
             kernels.gather_partials(partial, out.numpy())  # leaves `partial` zero for the next call
         except BaseException:
             partial.fill(0.0)
@@ -194,10 +179,10 @@ class _FusedSplat(torch.autograd.Function):
         channels, height, width = grad.shape
         lanes = _reused_lanes((2, height, (width + kernels.LANES) * channels), threading.get_ident())
         kernels.split_lanes(grad.detach().to("cpu", torch.complex64).contiguous().numpy(), lanes)  # padding stays 0
-        kernels.splat_backward(*ctx.arrays, ctx.wavenumbers, ctx.mahalanobis, lanes, *grads,
+        kernels.splat_backward(ctx.order, *ctx.arrays, ctx.wavenumbers, ctx.mahalanobis, lanes, *grads,
                                numba.get_num_threads())
         g_position, g_conic, g_chirp, g_color, g_phase, g_opacity = (
-            _in_caller_order(g, ctx.order).to(device=ctx.device, dtype=ctx.dtype) for g in grads)
+            torch.from_numpy(g).to(device=ctx.device, dtype=ctx.dtype) for g in grads)
         return (g_position, g_conic, None, g_chirp, g_color, g_phase, g_opacity, None, None, None, None)
 
 
