@@ -13,10 +13,11 @@ keep G and H for every column of the footprint's bounding box and every channel 
 (lane = column · C + channel, the layout of the image arrays too), so one row of a primitive is one
 loop over contiguous lanes for all channels: add the masked values, then G ← G·H and H ← H·Q. The
 loop has no recurrence along the row, and LLVM vectorises it (eight lanes per instruction on AVX2).
-The lanes start on the box's first row from exact values walked along it in float64, six complex
-exponentials per primitive and channel. Lanes hold primitives whose values stay inside float32's
-range over the box, ½D² ≤ `TABLE_EXPONENT_LIMIT` at its top corners: at initialisation all of them,
-and about 98% of a fitted model's (96% of its pixel visits).
+The lanes start on the box's first row from six exponentials per channel, walked along the row in
+float64; the channels share their magnitudes, and their angles go through one vectorised cos/sin
+(`_cosines_and_sines`). Lanes hold primitives whose values stay inside float32's range over the box,
+½D² ≤ `TABLE_EXPONENT_LIMIT` at its top corners: at initialisation all of them, and 98% of a fitted
+model's.
 
 **Walks (the others: needles).** Along a row each pixel's value is its neighbour's times a ratio
 that itself changes by a constant factor, and the same holds from row to row down the centre
@@ -187,7 +188,7 @@ def _cosines_and_sines(angles, cosines, sines):
         z = r * r
         sine = r + r * z * (s1 + z * (s2 + z * (s3 + z * (s4 + z * (s5 + z * s6)))))
         cosine = 1.0 - 0.5 * z + z * z * (c1 + z * (c2 + z * (c3 + z * (c4 + z * (c5 + z * c6)))))
-        quadrant = n - 4.0 * np.floor(0.25 * n)  # 0, 1, 2 or 3: (sin, cos) → (s, c), (c, −s), (−s, −c), (−c, s)
+        quadrant = n - 4.0 * np.floor(0.25 * n)  # 0 to 3: (sin, cos) is (s, c), (c, −s), (−s, −c), (−c, s)
         odd = quadrant - 2.0 * np.floor(0.5 * quadrant)
         after = quadrant + 1.0 - 4.0 * np.floor(0.25 * (quadrant + 1.0))
         sines[i] = ((1.0 - odd) * sine + odd * cosine) * (1.0 - 2.0 * np.floor(0.5 * quadrant))
@@ -209,8 +210,16 @@ def _scratch(channels):
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _polar(magnitudes, cosines, sines, channel, j):
-    """The j-th of a channel's six lane exponentials from its magnitude and angle's cos and sin."""
+    """The j-th of a channel's six lane exponentials from its magnitude and its angle's cos and sin."""
     return complex(magnitudes[j] * cosines[6 * channel + j], magnitudes[j] * sines[6 * channel + j])
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _lane_exponentials(magnitudes, cosines, sines, channel):
+    """A channel's six lane exponentials: G, its ratio along the row, the ratio's step, H, its step, Q."""
+    return (_polar(magnitudes, cosines, sines, channel, 0), _polar(magnitudes, cosines, sines, channel, 1),
+            _polar(magnitudes, cosines, sines, channel, 2), _polar(magnitudes, cosines, sines, channel, 3),
+            _polar(magnitudes, cosines, sines, channel, 4), _polar(magnitudes, cosines, sines, channel, 5))
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True)
@@ -235,11 +244,9 @@ def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, o
             k_chirp = wavenumbers[ch] * chirp[n, _chirp_slot(ch, chirp)]
             angles[6 * ch + j] = k_chirp * (u * pa + v * pb + w * pc) + (phase[n, ch] if j == 0 else 0.0)
     _cosines_and_sines(angles[:6 * channels], cosines, sines)
-    g_re, g_im, h_re, h_im, q_re, q_im = lanes[:6]
+    g_re, g_im, h_re, h_im, q_re, q_im = lanes
     for ch in range(channels):
-        g, ratio, step, h, h_step, q = (_polar(magnitudes, cosines, sines, ch, 0), _polar(magnitudes, cosines, sines, ch, 1),
-                                        _polar(magnitudes, cosines, sines, ch, 2), _polar(magnitudes, cosines, sines, ch, 3),
-                                        _polar(magnitudes, cosines, sines, ch, 4), _polar(magnitudes, cosines, sines, ch, 5))
+        g, ratio, step, h, h_step, q = _lane_exponentials(magnitudes, cosines, sines, ch)
         if amplitude:
             g *= opacity[n] * color[n, ch]
         for column in range(columns):
@@ -528,7 +535,7 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
            lanes[10][:count], lanes[11][:count])
     if way == TABULATED:
         _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, opacity, wavenumbers,
-                     mahalanobis, False, count, box, scratch)
+                     mahalanobis, False, count, box[:6], scratch)
         for sums in box[6:]:
             sums[:] = 0.0
         origin = first * channels
