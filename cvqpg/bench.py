@@ -29,7 +29,7 @@ import torch
 from tqdm.auto import tqdm
 
 from .allocator import keep_freed_memory
-from .config import FitConfig
+from .config import FitConfig, default_warmup
 from .fitting import CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes, fit_scene, state_from_payload
 from .metrics import radial_error_spectrum
 from .runs import (CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, read_run, scene_from_source, start_run, write_json,
@@ -44,7 +44,6 @@ CELLS_DIR = "cells"
 SPECTRUM_FILE = "spectrum.json"
 ERROR_FILE = "error.log"
 SPECTRUM_BINS = 32
-WARMUP_FRACTION = 400 / 2000  # the paper's warm-up share, kept when --steps changes
 FOLDER_SCENE_PLANES = 2
 POLL_SECONDS = 0.5
 COLORS = ("rgb", "gray")
@@ -281,7 +280,7 @@ def make_plan(preset: str, folder: str | Path | None = None, overrides: Override
         raise BenchError("--device cuda: no CUDA GPU is visible to PyTorch; use --device cpu")
     steps = spec.steps if overrides.steps is None else overrides.steps
     width, height = spec.size if overrides.size is None else tuple(overrides.size)
-    warmup = round(steps * WARMUP_FRACTION) if overrides.warmup is None else overrides.warmup
+    warmup = default_warmup(steps) if overrides.warmup is None else overrides.warmup
     base = FitConfig(width=width, height=height, steps=steps, warmup=warmup)
     base = base.replace(**{k: v for k, v in (("device", overrides.device), ("backend", overrides.backend))
                            if v is not None})

@@ -16,7 +16,7 @@ import torch
 from . import __version__
 from .allocator import keep_freed_memory
 from .bench import METHODS, PRESETS, BenchError, Overrides, describe_cells, make_plan, parse_shard, peak_bytes, run_plan
-from .config import CURVATURES, ConfigError, FitConfig
+from .config import CURVATURES, ConfigError, FitConfig, default_warmup
 from .fitting import CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes, fit_scene, state_from_payload
 from .export import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
 from .report import write_summary
@@ -59,8 +59,8 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
     count.add_argument("--num-gaussians", type=int, metavar="N", help="explicit primitive count N")
     p.add_argument("--steps", type=int, default=DEFAULTS.steps,
                    help="optimisation steps (the loop runs indices 0..steps, as the reference)")
-    p.add_argument("--warmup", type=int, default=DEFAULTS.warmup,
-                   help="steps with curvature frozen at 0 (CVQPG only)")
+    p.add_argument("--warmup", type=int,
+                   help="steps with curvature frozen at 0 (CVQPG only) [default: steps/5, as 400 of 2000]")
     p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"),
                    default=(DEFAULTS.width, DEFAULTS.height), help="hologram size in px")
     p.add_argument("--planes", type=int, metavar="M", help="depth planes at linspace(1 mm, 5 mm, M) "
@@ -208,7 +208,8 @@ def _config_and_source(args: argparse.Namespace) -> tuple[FitConfig, dict]:
         source["resize_depth"] = True
     config = FitConfig(width=width, height=height, color=color, primitive=args.primitive,
                        ratio=args.ratio, num_gaussians=args.num_gaussians, steps=args.steps,
-                       warmup=args.warmup, seed=args.seed, num_planes=planes, bound=args.bound,
+                       warmup=default_warmup(args.steps) if args.warmup is None else args.warmup,
+                       seed=args.seed, num_planes=planes, bound=args.bound,
                        qpf=args.qpf, curvature=args.curvature, device=args.device, backend=args.backend,
                        pixel_pitch=args.pitch,
                        plane_center=args.plane_center, plane_span=args.plane_span,

@@ -182,13 +182,13 @@ def apply_gradients(optimizer: Adan, config: FitConfig, step: int) -> bool:
 
 
 BASE_BYTES = 2**30
-BYTES_PER_PLANE_PIXEL = 150
+BYTES_PER_PLANE_PIXEL = 165
 
 
 def estimated_peak_bytes(config: FitConfig) -> int:
     """Rough peak memory (bytes) of a fit on the CPU: a fixed base plus a cost per pixel of every
-    plane and channel, about 25% above measured peaks (RGB, 2 planes: 640×480 0.95 GiB,
-    1920×1080 2.1 GiB, 3840×2160 6.3 GiB; docs/performance.md)."""
+    plane and channel, 23–40% above measured peaks (RGB, 2 planes: 640×480 0.91 GiB,
+    1920×1080 2.2 GiB, 3840×2160 7.0 GiB; docs/performance.md)."""
     plane_pixels = config.num_planes * config.channels * config.width * config.height
     return int(BASE_BYTES + BYTES_PER_PLANE_PIXEL * plane_pixels)
 

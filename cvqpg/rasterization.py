@@ -153,7 +153,7 @@ class _FusedSplat(torch.autograd.Function):
     @staticmethod
     def forward(ctx, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                 width, height):
-        arrays = tuple(t.detach().to("cpu", torch.float32).contiguous().numpy()
+        arrays = tuple(t.detach().to("cpu", torch.float32, copy=True).contiguous().numpy()  # kept for backward
                        for t in (position, conic, reach, chirp, color, phase, opacity))
         order = kernels.locality_order(arrays[0], height, width)
         k = wavenumbers.detach().to("cpu", torch.float64).numpy()

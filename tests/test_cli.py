@@ -36,6 +36,13 @@ def test_fit_writes_the_whole_run_folder(demo_run):
     assert Image.open(demo_run / "recon_plane1.png").size == (48, 36)
 
 
+def test_fewer_steps_scale_the_warm_up_as_the_paper_does(tmp_path):
+    """The README's demo command sets --steps alone: the warm-up follows (400 of 2000 → steps/5)."""
+    out = tmp_path / "short"
+    assert main(["fit", "--size", "48", "36", "--steps", "10", "--quiet", "--out", str(out)]) == 0
+    assert json.loads((out / "config.json").read_text())["warmup"] == 2
+
+
 def test_eval_recomputes_the_saved_metrics(demo_run, capsys):
     before = json.loads((demo_run / "metrics.json").read_text())
     assert main(["eval", str(demo_run)]) == 0
