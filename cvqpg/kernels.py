@@ -258,19 +258,26 @@ def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, o
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _step_down(lanes, j, gr, gi, hr, hi):
+    """Lane j (holding G = gr + i·gi and H = hr + i·hi) one row down: G ← G·H, H ← H·Q."""
+    g_re, g_im, h_re, h_im, q_re, q_im = lanes[:6]
+    g_re[j] = gr * hr - gi * hi
+    g_im[j] = gr * hi + gi * hr
+    h_re[j] = hr * q_re[j] - hi * q_im[j]
+    h_im[j] = hr * q_im[j] + hi * q_re[j]
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _add_lane_row(lanes, count, left, right, out_re, out_im):
     """out += G over the lanes left..right − 1 of count (the others masked), then G ← G·H, H ← H·Q."""
-    g_re, g_im, h_re, h_im, q_re, q_im = lanes[:6]
+    g_re, g_im, h_re, h_im = lanes[:4]
     low, high, x = np.float32(left), np.float32(right), np.float32(0.0)
     for j in range(count):  # zero-based slices, a float mask and a plain count: LLVM vectorises the loop
         gr, gi, hr, hi = g_re[j], g_im[j], h_re[j], h_im[j]
         inside = np.float32((x >= low) & (x < high))
         out_re[j] += gr * inside
         out_im[j] += gi * inside
-        g_re[j] = gr * hr - gi * hi
-        g_im[j] = gr * hi + gi * hr
-        h_re[j] = hr * q_re[j] - hi * q_im[j]
-        h_im[j] = hr * q_im[j] + hi * q_re[j]
+        _step_down(lanes, j, gr, gi, hr, hi)
         x += np.float32(1.0)
 
 
@@ -278,7 +285,7 @@ def _add_lane_row(lanes, count, left, right, out_re, out_im):
 def _accumulate_lane_row(lanes, count, left, right, dy, grad_re, grad_im):
     """Per lane, with w = ḡ·G over the lanes left..right − 1 of count (the others masked): Σw, Σw·dy
     and Σw·dy² (real and imaginary parts) += this row's; then G ← G·H, H ← H·Q."""
-    g_re, g_im, h_re, h_im, q_re, q_im, s0r, s0i, s1r, s1i, s2r, s2i = lanes
+    g_re, g_im, h_re, h_im, s0r, s0i, s1r, s1i, s2r, s2i = lanes[:4] + lanes[6:]
     low, high, x = np.float32(left), np.float32(right), np.float32(0.0)
     dy1, dy2 = np.float32(dy), np.float32(dy * dy)
     for j in range(count):
@@ -292,10 +299,7 @@ def _accumulate_lane_row(lanes, count, left, right, dy, grad_re, grad_im):
         s1i[j] += wi * dy1
         s2r[j] += wr * dy2
         s2i[j] += wi * dy2
-        g_re[j] = gr * hr - gi * hi
-        g_im[j] = gr * hi + gi * hr
-        h_re[j] = hr * q_re[j] - hi * q_im[j]
-        h_im[j] = hr * q_im[j] + hi * q_re[j]
+        _step_down(lanes, j, gr, gi, hr, hi)
         x += np.float32(1.0)
 
 
