@@ -63,7 +63,7 @@ def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primiti
     prims.position_px = torch.cat([prims.position_px[:5], prims.position_px[5:9] + offsets,
                                    prims.position_px[9:]])  # partly and fully off the image
     s = splats(prims, config.pixel_pitch, qpf)
-    taken = set(ways(s).tolist())  # every way the kernels have: column tables, the centre-column walk, row maxima
+    taken = set(ways(s).tolist())  # every way the kernels have: lane tables, the centre-column walk, row maxima
     assert {kernels.OFF_IMAGE, kernels.TABULATED, kernels.WALKED, kernels.WALKED_FROM_RIDGE} <= taken, taken
     k = wavenumbers_for(config.wavelengths)
     expected, expected_grads = outputs_and_gradients(splat_reference, s, k)
@@ -78,14 +78,14 @@ def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primiti
 def test_needles_walked_from_each_rows_maximum_match_reference(qpf):
     """Primitives too elongated for the centre-column walk (aspect 10 to 60, every orientation,
     curved) start each row from exact values at its envelope maximum, unless they are aligned with
-    the axes and fit the column tables; alone, they must still agree."""
+    the axes and fit the lane tables; alone, they must still agree."""
     config = FitConfig(width=WIDTH, height=HEIGHT, qpf=qpf)
     raw = random_gaussians(24, 3, seed=4)
     aspect = torch.linspace(math.log(10.0), math.log(60.0), 24, dtype=torch.float64)
     raw.scale = torch.stack([torch.full_like(aspect, 2.5), 2.5 - aspect], dim=1)
     raw.rotation = torch.linspace(0.0, math.pi, 24, dtype=torch.float64)
     s = splats(activate(raw, config), config.pixel_pitch, qpf)
-    taken = ways(s)  # axis-aligned needles fit the column tables (the D² ≤ 100 band keeps their box narrow)
+    taken = ways(s)  # axis-aligned needles fit the lane tables (the D² ≤ 100 band keeps their box narrow)
     assert (taken != kernels.WALKED).all() and (taken == kernels.WALKED_FROM_RIDGE).sum() >= 18, taken
     k = wavenumbers_for(config.wavelengths)
     expected, expected_grads = outputs_and_gradients(splat_reference, s, k)
