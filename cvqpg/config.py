@@ -32,13 +32,13 @@ class LearningRates:
     curvature: float = 0.001
 
 
-
 WARMUP_FRACTION = 400 / 2000  # the paper's curvature warm-up share of the steps
 
 
 def default_warmup(steps: int) -> int:
     """The curvature warm-up for a run of `steps` steps: the paper's 400 of 2000, in proportion."""
     return round(steps * WARMUP_FRACTION)
+
 
 @dataclass(frozen=True)
 class FitConfig:

@@ -58,15 +58,6 @@ def _row_span(center_y, reach, a, b, c, height):
 
 
 @nb.njit(cache=True, nogil=True)
-def _exponent_coefficients(a, b, c, k_chirp, mahalanobis):
-    """(A, B, C) of the complex exponent E = A dx² + 2B dx dy + C dy² (without the constant iφ)."""
-    if mahalanobis:
-        factor = complex(-0.5, k_chirp)
-        return factor * a, factor * b, factor * c
-    return complex(-0.5 * a, k_chirp), complex(-0.5 * b, 0.0), complex(-0.5 * c, k_chirp)
-
-
-@nb.njit(cache=True, nogil=True)
 def _walkable(a, b, c, reach):
     """Whether every exponent in the footprint circle stays in the range the walk down the centre
     column needs: reach² · λ_max(Σ⁻¹), a bound on D² there, is at most 600."""
@@ -197,8 +188,17 @@ def _cosines_and_sines(angles, cosines, sines):
 
 @nb.njit(cache=True, nogil=True)
 def _phase_coefficients(a, b, c, mahalanobis):
-    """(α_A, α_B, α_C): Im(A, B, C) = k·χ·(α_A, α_B, α_C) for either QPF (see `_exponent_coefficients`)."""
+    """(α_A, α_B, α_C) of the quadratic form the phase follows: D² (Σ⁻¹'s a, b, c) for the
+    Mahalanobis QPF, |p − x|² (1, 0, 1) for the standard one."""
     return (a, b, c) if mahalanobis else (1.0, 0.0, 1.0)
+
+
+@nb.njit(cache=True, nogil=True)
+def _exponent_coefficients(a, b, c, k_chirp, mahalanobis):
+    """(A, B, C) of the complex exponent E = A dx² + 2B dx dy + C dy² (without the constant iφ): the
+    envelope −½D² as real parts, k·χ times the phase's quadratic form as imaginary parts."""
+    pa, pb, pc = _phase_coefficients(a, b, c, mahalanobis)
+    return complex(-0.5 * a, k_chirp * pa), complex(-0.5 * b, k_chirp * pb), complex(-0.5 * c, k_chirp * pc)
 
 
 @nb.njit(cache=True, nogil=True)
