@@ -35,7 +35,7 @@ import cvqpg
 from cvqpg import FitConfig
 from cvqpg.allocator import keep_freed_memory
 from cvqpg.fitting import apply_gradients, initial_state, optimisation_step, render_hologram
-from cvqpg.losses import multiplane_loss, noisy_targets
+from cvqpg.losses import multiplane_loss, noisy_targets, standard_normal
 from cvqpg.optics import Grid, reconstruct
 from cvqpg.primitives import MIN_SCALE_PX, Gaussians, Primitives, curvature_bound
 from cvqpg.runs import model_path
@@ -144,7 +144,7 @@ def stage_actions(config: FitConfig, primitives: Primitives | None = None,
     recon = reconstruct(leaf, config).detach().requires_grad_(True)
 
     def loss():
-        noise = torch.randn(scene.targets.shape, generator=generator)
+        noise = standard_normal(scene.targets.shape, generator)
         value, _ = multiplane_loss(recon, scene.targets, scene.masks,
                                    noisy_targets(scene.targets, noise, config.target_noise), config.ssim_weight,
                                    config.backend)

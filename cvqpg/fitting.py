@@ -15,7 +15,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from .config import FitConfig
-from .losses import multiplane_loss, noisy_targets
+from .losses import multiplane_loss, noisy_targets, standard_normal
 from .metrics import MetricReport, evaluate
 from .optics import reconstruct
 from .primitives import Gaussians, Primitives, activate, init_gaussians
@@ -144,7 +144,7 @@ def optimisation_step(state: FitState, scene: Scene, config: FitConfig) -> tuple
     gaussians, step = state.gaussians, state.step
     gaussians.curvature.requires_grad_(config.primitive == "cvqpg" and step >= config.warmup)
     recon = reconstruct(render_hologram(gaussians, config), config)
-    noise = torch.randn(scene.targets.shape, generator=state.generator, device=scene.targets.device)
+    noise = standard_normal(scene.targets.shape, state.generator)
     loss, mse = multiplane_loss(recon, scene.targets, scene.masks,
                                 noisy_targets(scene.targets, noise, config.target_noise),
                                 config.ssim_weight, config.backend)

@@ -387,7 +387,7 @@ def _block_lanes(columns, channels):
     return (columns * channels + LANES - 1) // LANES * LANES
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True)
+@nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, out_re, out_im,
                lefts, rights, lanes, scratch):
     channels = color.shape[1]
@@ -413,6 +413,22 @@ def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumb
                       out_re[low + k, origin:origin + count], out_im[low + k, origin:origin + count])
 
 
+@nb.njit(cache=True, nogil=True, fastmath=True)
+def _splat_share(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
+                 out_re, out_im):
+    """out += the sum over primitives order[t], order[t+T], order[t+2T], ... (T = threads): one thread's
+    share, a plain loop into which each primitive's work is inlined (a call per primitive, or an inlined
+    body in the parallel loop itself, costs a third of the kernel's time)."""
+    height, width = out_re.shape[0], out_re.shape[1]
+    lefts, rights = np.empty(height), np.empty(height)
+    lanes = (np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
+             np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32))
+    scratch = _scratch(color.shape[1])
+    for i in range(t, position.shape[0], threads):
+        _splat_one(order[i], position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
+                   out_re, out_im, lefts, rights, lanes, scratch)
+
+
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def splat_forward(order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, partial):
     """partial[t] += the sum over primitives order[t], order[t+T], order[t+2T], ... (T = partial.shape[0]).
@@ -420,15 +436,10 @@ def splat_forward(order, position, conic, reach, chirp, color, phase, opacity, w
     `partial` [T, 2, H, (W + LANES)·C] (float32 lane images) starts at zero; `gather_partials` sums it
     over t in order.
     """
-    threads, height, width = partial.shape[0], partial.shape[2], partial.shape[3]
+    threads = partial.shape[0]
     for t in nb.prange(threads):
-        lefts, rights = np.empty(height), np.empty(height)
-        lanes = (np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
-                 np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32))
-        scratch = _scratch(color.shape[1])
-        for i in range(t, position.shape[0], threads):
-            _splat_one(order[i], position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                       partial[t, 0], partial[t, 1], lefts, rights, lanes, scratch)
+        _splat_share(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers,
+                     mahalanobis, partial[t, 0], partial[t, 1])
 
 
 @nb.njit(parallel=True, cache=True)
@@ -523,7 +534,7 @@ def _lane_moments(lanes, lane, channels, columns, dx_first):
     return (t00, t10, t20, t01, t11, t02), (u00, u10, u20, u01, u11, u02)
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True)
+@nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                       grad_re, grad_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts, rights,
                       lanes, scratch):
@@ -587,6 +598,24 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
     g_position[n, 0], g_position[n, 1] = gx, gy
 
 
+@nb.njit(cache=True, nogil=True, fastmath=True)
+def _gradients_share(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers,
+                     mahalanobis, grad_re, grad_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity):
+    """The gradients of primitives order[t], order[t+T], ... (T = threads): one thread's share, with each
+    primitive's work inlined (as in `_splat_share`)."""
+    height, width = grad_re.shape[0], grad_re.shape[1]
+    lefts, rights = np.empty(height), np.empty(height)
+    lanes = (np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
+             np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
+             np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
+             np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32))
+    scratch = _scratch(color.shape[1])
+    for i in range(t, position.shape[0], threads):
+        _gradients_of_one(order[i], position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
+                          grad_re, grad_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts, rights,
+                          lanes, scratch)
+
+
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def splat_backward(order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                    grad, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, threads):
@@ -603,15 +632,6 @@ def splat_backward(order, position, conic, reach, chirp, color, phase, opacity, 
     which become gradients once per primitive and channel. (The −50 floor's zero gradient is
     not reproduced: it concerns values below e⁻⁵⁰.)
     """
-    height, width = grad.shape[1], grad.shape[2]
     for t in nb.prange(threads):
-        lefts, rights = np.empty(height), np.empty(height)
-        lanes = (np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
-                 np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
-                 np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
-                 np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32))
-        scratch = _scratch(color.shape[1])
-        for i in range(t, position.shape[0], threads):
-            _gradients_of_one(order[i], position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                              grad[0], grad[1], g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts,
-                              rights, lanes, scratch)
+        _gradients_share(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers,
+                         mahalanobis, grad[0], grad[1], g_position, g_conic, g_chirp, g_color, g_phase, g_opacity)

@@ -4,6 +4,8 @@ PyTorch evaluates the loss's three MSE terms and the SSIM formula as some forty 
 element-wise passes, forward and backward, and runs SSIM's 11-tap depthwise blurs at well under
 1 GMAC/s on the CPU. Here:
 
+- `standard_normals` draws the targets' noise as a pure function of a seed and each value's index,
+  vectorised and threaded (PyTorch's `randn` on the CPU draws from one sequential generator);
 - `pixel_terms` makes one pass for the three MSE terms and their gradient;
 - `ssim_forward` blurs the five moments of SSIM (formed on the fly from the two images) and turns
   them into the map and its partial derivatives in one pass over the output rows, each thread
@@ -17,8 +19,12 @@ scheduling.
 
 from __future__ import annotations
 
+import math
+
 import numba as nb
 import numpy as np
+
+from .kernels import _cosines_and_sines
 
 
 def gaussian_taps(size_px: int, sigma_px: float) -> np.ndarray:
@@ -26,6 +32,67 @@ def gaussian_taps(size_px: int, sigma_px: float) -> np.ndarray:
     offsets = np.arange(size_px, dtype=np.float64) - size_px // 2
     taps = np.exp(-offsets**2 / (2 * sigma_px**2))
     return taps / taps.sum()
+
+
+GOLDEN_GAMMA = np.uint64(0x9E3779B97F4A7C15)  # SplitMix64's increment: 2⁶⁴ over the golden ratio
+NORMAL_PAIRS_PER_TASK = 4096
+UNIFORM_BITS = 23  # a float32 holds k + ½ exactly for k < 2²³: no uniform rounds to 0 or 1
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _mixed(state):
+    """SplitMix64's output function: 64 well-mixed bits from a counter state."""
+    state = (state ^ (state >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    state = (state ^ (state >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return state ^ (state >> np.uint64(31))
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True, error_model="numpy", inline="always")
+def _logarithm(x):
+    """ln x of a positive normal float32 to float32 precision, branch-free so that loops over it
+    vectorise (libm's logf is a call per value): x = m·2ᵉ with m in [√½, √2), and
+    ln m = 2 atanh s = 2(s + s³/3 + ... + s⁹/9), s = (m − 1)/(m + 1), |s| ≤ 0.172."""
+    bits = np.float32(x).view(np.int32)
+    exponent = np.float32((bits >> 23) - 127)
+    mantissa = np.int32((bits & 0x7FFFFF) | 0x3F800000).view(np.float32)  # in [1, 2)
+    high = np.float32(mantissa > np.float32(1.4142135))
+    mantissa *= np.float32(1.0) - np.float32(0.5) * high
+    s = (mantissa - np.float32(1.0)) / (mantissa + np.float32(1.0))
+    z = s * s
+    series = np.float32(1.0) + z * (np.float32(1 / 3) + z * (np.float32(1 / 5) + z * (np.float32(1 / 7)
+                                                                                      + z * np.float32(1 / 9))))
+    return (exponent + high) * np.float32(math.log(2.0)) + np.float32(2.0) * s * series
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+def _normal_pairs(seed, first, count, out):
+    """Pairs first..first + count − 1 of `standard_normals` into out [2·count] (its slice). The steps
+    are separate loops, each of which LLVM vectorises (no division checks: NumPy's error model)."""
+    scale = np.float32(2.0**-UNIFORM_BITS)
+    radii, angles, cosines, sines = np.empty(count, np.float32), np.empty(count), np.empty(count), np.empty(count)
+    for p in range(count):
+        bits = _mixed(np.uint64(seed) + np.uint64(first + p + 1) * GOLDEN_GAMMA)
+        radii[p] = (np.float32(np.int32(bits >> np.uint64(64 - UNIFORM_BITS))) + np.float32(0.5)) * scale
+        angles[p] = np.float64(np.int32(bits & np.uint64(2**UNIFORM_BITS - 1))) * (2.0 * math.pi * scale)
+    for p in range(count):
+        radii[p] = math.sqrt(np.float32(-2.0) * _logarithm(radii[p]))
+    _cosines_and_sines(angles, cosines, sines)
+    for p in range(count):
+        out[2 * p] = radii[p] * cosines[p]
+        out[2 * p + 1] = radii[p] * sines[p]
+
+
+@nb.njit(parallel=True, cache=True)
+def standard_normals(seed, out):
+    """out [2P] (float32) = standard normal draws, values 2p and 2p + 1 from the counter p: SplitMix64's
+    64 bits of seed + (p + 1)·γ give two 23-bit uniforms u (in (0, 1)) and v, and Box–Muller turns
+    them into √(−2 ln u)·(cos 2πv, sin 2πv) (|values| ≤ 5.8). The same seed gives the same values
+    whatever the thread count."""
+    pairs = out.shape[0] // 2
+    for task in nb.prange((pairs + NORMAL_PAIRS_PER_TASK - 1) // NORMAL_PAIRS_PER_TASK):
+        first = task * NORMAL_PAIRS_PER_TASK
+        stop = min(pairs, first + NORMAL_PAIRS_PER_TASK)
+        _normal_pairs(seed, first, stop - first, out[2 * first:2 * stop])
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
@@ -75,7 +142,7 @@ def _spread_row(row, taps, length):
     return out
 
 
-@nb.njit(parallel=True, cache=True, fastmath=True)
+@nb.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
 def ssim_forward(x, y, taps, c1, c2, d_mean_x, d_mean_xx, d_mean_xy):
     """Sum of the SSIM map per image ([B], float64) of x against y [B, H, W], over the valid window
     positions [h, w] = [H − K + 1, W − K + 1] of the K-tap separable blur.

@@ -18,7 +18,7 @@ import numba as nb
 import numpy as np
 
 
-@nb.njit(inline="always", fastmath=True)
+@nb.njit(inline="always", fastmath=True, error_model="numpy")
 def _unit_clamped(value):
     """u(v) = v / max(|v|, 1), as a product with a reciprocal square root that LLVM vectorises (the
     `abs` of a complex number is a `hypot` call, which it does not)."""
@@ -41,7 +41,7 @@ def _windowed_clamped_edge(edge, weight_y, column_window, target):
         target[x] = _unit_clamped(edge * (weight_y * column_window[x]))
 
 
-@nb.njit(parallel=True, cache=True, fastmath=True)
+@nb.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
 def guarded_field(hologram, row_window, column_window, top, left, out):
     """out [C, P_H, P_W] = u(h[c, clamp(y − top), clamp(x − left)] · w_y · w_x), u(v) = v / max(|v|, 1).
 
@@ -60,7 +60,7 @@ def guarded_field(hologram, row_window, column_window, top, left, out):
                                out[channel, y, left + width:])
 
 
-@nb.njit(parallel=True, cache=True, fastmath=True)
+@nb.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
 def guarded_field_backward(hologram, grad, top, left, out):
     """Gradient [C, H, W] for the content from the padded field's gradient [C, P_H, P_W]: the identity
     where |h| < 1, and where the amplitude saturates its projection onto the phase direction,

@@ -4,15 +4,17 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import pytest
+from scipy import stats
 import torch
 import torch.nn.functional as F
 from pytorch_msssim import ssim as msssim_ssim
 
 from cvqpg.loss_kernels import gaussian_taps, ssim_forward
 from cvqpg.config import FitConfig
-from cvqpg.losses import multiplane_loss, noisy_targets, ssim_per_plane
+from cvqpg.losses import multiplane_loss, noisy_targets, ssim_per_plane, standard_normal
 from cvqpg.targets import build_scene, defocus_targets, gaussian_kernel, plane_masks
 
 
@@ -197,6 +199,28 @@ def test_noisy_targets_by_hand():
         expected = targets[m].double() + 1e-3 * spread * normal[m].double()
         np.testing.assert_allclose(noisy[m].numpy(), expected.numpy(), rtol=0, atol=1e-7)
     assert float(targets[0].max() - targets[0].min()) != pytest.approx(float(targets[1].max() - targets[1].min()))
+
+
+def test_standard_normal_draws_are_normal_and_reproducible():
+    """The targets' noise on the CPU: N(0,1) by moments and Kolmogorov–Smirnov, a pure function of the
+    generator's state (whatever the thread count), advancing it, odd sizes included."""
+    draws = standard_normal((2, 3, 241, 321), torch.Generator().manual_seed(5))
+    values = draws.double().flatten().numpy()
+    assert draws.dtype == torch.float32 and draws.shape == (2, 3, 241, 321)
+    assert abs(values.mean()) < 5 / math.sqrt(values.size) and abs(values.var() - 1) < 5e-3
+    assert stats.kurtosis(values, fisher=False) == pytest.approx(3.0, abs=0.02)
+    assert stats.kstest(values, "norm").pvalue > 1e-3
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        again = standard_normal((2, 3, 241, 321), torch.Generator().manual_seed(5))
+    finally:
+        numba.set_num_threads(threads)
+    assert torch.equal(draws, again)
+    odd = standard_normal((7,), torch.Generator().manual_seed(5))
+    assert torch.equal(odd, standard_normal((8,), torch.Generator().manual_seed(5))[:7])
+    generator = torch.Generator().manual_seed(5)
+    assert not torch.equal(standard_normal((8,), generator), standard_normal((8,), generator))
 
 
 def test_ssim_term_matches_independent_ssim():
