@@ -88,12 +88,27 @@ def clamped_intensity(field, out):
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def clamped_intensity_backward(field, grad, out):
-    """out = 2·u·g where |u|² ≤ 1 (the clamp passes its bound's gradient, as PyTorch's does), else 0."""
+    """out = 2·u·g where |u|² ≤ 1 (the clamp passes its bound's gradient, as PyTorch's does), else 0;
+    in float32 and without a branch, so that the loop vectorises."""
     for row in nb.prange(field.shape[0]):
         for x in range(field.shape[1]):
             u = field[row, x]
-            passes = u.real * u.real + u.imag * u.imag <= 1.0
-            out[row, x] = 2.0 * grad[row, x] * u if passes else 0.0
+            passes = np.float32(u.real * u.real + u.imag * u.imag <= np.float32(1.0))
+            out[row, x] = u * (np.float32(2.0) * grad[row, x] * passes)
+
+
+@nb.njit(parallel=True, cache=True)
+def copy_rows(source, out, conjugate):
+    """out = source, or its complex conjugate, for [R, N] arrays either of which may be a view into a
+    wider array; threads take whole rows."""
+    for r in nb.prange(source.shape[0]):
+        row, target = source[r], out[r]
+        if conjugate:
+            for j in range(row.shape[0]):
+                target[j] = row[j].conjugate()
+        else:
+            for j in range(row.shape[0]):
+                target[j] = row[j]
 
 
 TRANSPOSE_TILE = 16  # a 16×16 tile of complex64 is 2 KiB: source and target tiles stay in L1
