@@ -120,32 +120,61 @@ def pixel_terms(recon, targets, noisy, masks, gradient):
     return rows.reshape(planes, height, 2).sum(axis=1)
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True)
-def _filtered_row(row, taps, count):
-    """The first `count` outputs of the K-tap filter along a row: out[j] = Σ_k taps[k]·row[j + k]."""
-    out = np.zeros(count, row.dtype)
-    for k in range(taps.size):
-        tap = taps[k]
-        for j in range(count):
-            out[j] += tap * row[j + k]
-    return out
+SSIM_TAPS = 11  # the window (px), a constant: the filters' loops over taps unroll, their loops over pixels vectorise
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True)
-def _spread_row(row, taps, length):
-    """The adjoint of `_filtered_row`: out[j + k] += taps[k]·row[j], `length` outputs."""
-    out = np.zeros(length, row.dtype)
-    for k in range(taps.size):
-        tap = taps[k]
-        for j in range(row.size):
-            out[j + k] += tap * row[j]
-    return out
+def _filtered(row, taps, out):
+    """out[j] = Σ_k taps[k]·row[j + k] for every j of out (row holds SSIM_TAPS − 1 values more), each
+    output summed in registers."""
+    for j in range(out.shape[0]):
+        total = taps[0] * row[j]
+        for k in range(1, SSIM_TAPS):
+            total += taps[k] * row[j + k]
+        out[j] = total
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True)
+def _column_moments(x, y, i, taps, s_x, s_y, s_xx, s_yy, s_xy):
+    """Column sums of x, y, x², y² and xy [W] under the window whose top row is i, weighted by taps.
+
+    Across whole rows, which LLVM vectorises, two taps per pass (the last pass's second with weight 0
+    at a clamped row): the sums stay in memory, and pairs halve their loads and stores."""
+    for sums in (s_x, s_y, s_xx, s_yy, s_xy):
+        sums[:] = 0.0
+    last = x.shape[0] - 1
+    for k in range(0, SSIM_TAPS, 2):
+        first_tap = taps[k]
+        second_tap = taps[k + 1] if k + 1 < SSIM_TAPS else first_tap - first_tap
+        x0, y0, x1, y1 = x[i + k], y[i + k], x[min(i + k + 1, last)], y[min(i + k + 1, last)]
+        for j in range(x0.shape[0]):
+            a0, b0, a1, b1 = x0[j], y0[j], x1[j], y1[j]
+            p0, p1, q0, q1 = first_tap * a0, second_tap * a1, first_tap * b0, second_tap * b1
+            s_x[j] += p0 + p1
+            s_y[j] += q0 + q1
+            s_xx[j] += p0 * a0 + p1 * a1
+            s_yy[j] += q0 * b0 + q1 * b1
+            s_xy[j] += p0 * b0 + p1 * b1
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True)
+def _gathered_columns(d_x, d_xx, d_xy, i, taps, c_x, c_xx, c_xy):
+    """The vertical blur's adjoint at input row i: c[j] = Σ_k taps[k]·d[i − k, j] over the output rows
+    i − k that exist, for the three derivative maps [h, w] at once."""
+    for sums in (c_x, c_xx, c_xy):
+        sums[:] = 0.0
+    for k in range(max(0, i - d_x.shape[0] + 1), min(SSIM_TAPS, i + 1)):
+        tap, row_x, row_xx, row_xy = taps[k], d_x[i - k], d_xx[i - k], d_xy[i - k]
+        for j in range(row_x.shape[0]):
+            c_x[j] += tap * row_x[j]
+            c_xx[j] += tap * row_xx[j]
+            c_xy[j] += tap * row_xy[j]
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
 def ssim_forward(x, y, taps, c1, c2, d_mean_x, d_mean_xx, d_mean_xy):
     """Sum of the SSIM map per image ([B], float64) of x against y [B, H, W], over the valid window
-    positions [h, w] = [H − K + 1, W − K + 1] of the K-tap separable blur.
+    positions [h, w] = [H − K + 1, W − K + 1] of the K-tap separable blur (K = SSIM_TAPS).
 
     Each thread owns output rows. For one row it sums the K input rows under the window into one row
     of column sums per moment (x, y, x², y², xy, formed on the fly), filters those along x, and turns
@@ -154,26 +183,21 @@ def ssim_forward(x, y, taps, c1, c2, d_mean_x, d_mean_xx, d_mean_xy):
     with respect to μx, E[x²] and E[xy] into `d_mean_x`, `d_mean_xx`, `d_mean_xy` [B, h, w]; they are
     written without dividing by a1 or a2, which may vanish (b1, b2 ≥ c1, c2 > 0).
     """
+    if taps.size != SSIM_TAPS:
+        raise ValueError("the SSIM kernels take SSIM_TAPS taps")
     images, height, width = x.shape
-    size = taps.size
-    out_height, out_width = height - size + 1, width - size + 1
+    out_height, out_width = height - SSIM_TAPS + 1, width - SSIM_TAPS + 1
     rows = np.zeros(images * out_height)
     for row in nb.prange(images * out_height):
         b, i = row // out_height, row % out_height
-        s_x, s_y, s_xx, s_yy, s_xy = (np.zeros(width, x.dtype), np.zeros(width, x.dtype), np.zeros(width, x.dtype),
-                                      np.zeros(width, x.dtype), np.zeros(width, x.dtype))  # apart: no aliasing
-        for k in range(size):
-            tap, xs, ys = taps[k], x[b, i + k], y[b, i + k]
-            for j in range(width):
-                xv, yv = tap * xs[j], ys[j]
-                s_x[j] += xv
-                s_y[j] += tap * yv
-                s_xx[j] += xv * xs[j]
-                s_yy[j] += tap * yv * yv
-                s_xy[j] += xv * yv
-        m_x, m_y, m_xx = _filtered_row(s_x, taps, out_width), _filtered_row(s_y, taps, out_width), \
-            _filtered_row(s_xx, taps, out_width)
-        m_yy, m_xy = _filtered_row(s_yy, taps, out_width), _filtered_row(s_xy, taps, out_width)
+        s_x, s_y, s_xx, s_yy, s_xy = (np.empty(width, x.dtype), np.empty(width, x.dtype), np.empty(width, x.dtype),
+                                      np.empty(width, x.dtype), np.empty(width, x.dtype))  # apart: no aliasing
+        _column_moments(x[b], y[b], i, taps, s_x, s_y, s_xx, s_yy, s_xy)
+        m_x, m_y, m_xx, m_yy, m_xy = (np.empty(out_width, x.dtype), np.empty(out_width, x.dtype),
+                                      np.empty(out_width, x.dtype), np.empty(out_width, x.dtype),
+                                      np.empty(out_width, x.dtype))
+        for moment, blurred in ((s_x, m_x), (s_y, m_y), (s_xx, m_xx), (s_yy, m_yy), (s_xy, m_xy)):
+            _filtered(moment, taps, blurred)
         total = 0.0
         for j in range(out_width):
             mx, my = np.float64(m_x[j]), np.float64(m_y[j])
@@ -197,22 +221,23 @@ def ssim_backward(d_mean_x, d_mean_xx, d_mean_xy, weights, x, y, taps, out):
     with respect to x, from `ssim_forward`'s derivative maps [B, h, w], B* the adjoint of the blur.
 
     Each thread owns input rows: it gathers the output rows whose windows cover its row into column
-    sums, scatters them back along x, and combines the three maps with x and y in the same pass.
+    sums, spreads them back along x (the filter with reversed taps over the sums padded with zeros),
+    and combines the three maps with x and y in the same pass.
     """
+    if taps.size != SSIM_TAPS:
+        raise ValueError("the SSIM kernels take SSIM_TAPS taps")
     images, height, width = x.shape
-    out_height, out_width = d_mean_x.shape[1], d_mean_x.shape[2]
-    size = taps.size
+    out_width, margin = d_mean_x.shape[2], SSIM_TAPS - 1
+    reversed_taps = taps[::-1].copy()
     for row in nb.prange(images * height):
         b, i = row // height, row % height
-        c_x, c_xx, c_xy = np.zeros(out_width, x.dtype), np.zeros(out_width, x.dtype), np.zeros(out_width, x.dtype)
-        for k in range(max(0, i - out_height + 1), min(size, i + 1)):
-            tap = taps[k]
-            d_x, d_xx, d_xy = d_mean_x[b, i - k], d_mean_xx[b, i - k], d_mean_xy[b, i - k]
-            for j in range(out_width):
-                c_x[j] += tap * d_x[j]
-                c_xx[j] += tap * d_xx[j]
-                c_xy[j] += tap * d_xy[j]
-        g_x, g_xx, g_xy = _spread_row(c_x, taps, width), _spread_row(c_xx, taps, width), _spread_row(c_xy, taps, width)
+        c_x, c_xx, c_xy = (np.zeros(out_width + 2 * margin, x.dtype), np.zeros(out_width + 2 * margin, x.dtype),
+                           np.zeros(out_width + 2 * margin, x.dtype))
+        _gathered_columns(d_mean_x[b], d_mean_xx[b], d_mean_xy[b], i, taps, c_x[margin:margin + out_width],
+                          c_xx[margin:margin + out_width], c_xy[margin:margin + out_width])
+        g_x, g_xx, g_xy = np.empty(width, x.dtype), np.empty(width, x.dtype), np.empty(width, x.dtype)
+        for sums, spread in ((c_x, g_x), (c_xx, g_xx), (c_xy, g_xy)):
+            _filtered(sums, reversed_taps, spread)
         weight, xs, ys, target = weights[b], x[b, i], y[b, i], out[b, i]
         for j in range(width):
             target[j] = weight * (g_x[j] + 2.0 * xs[j] * g_xx[j] + ys[j] * g_xy[j])
