@@ -222,6 +222,14 @@ def _lane_exponentials(magnitudes, cosines, sines, channel):
             _polar(magnitudes, cosines, sines, channel, 4), _polar(magnitudes, cosines, sines, channel, 5))
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _lane_exponents(dx, dy, a, b, c):
+    """The six lane exponentials' exponents, up to their factor, in a quadratic form (a, b, c) at the
+    box's top-left offset (dx, dy): G, its ratio along the row, the ratio's step, H, its step, Q."""
+    return (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy, a * (2.0 * dx + 1.0) + 2.0 * b * dy, 2.0 * a,
+            2.0 * b * dx + c * (2.0 * dy + 1.0), 2.0 * b, 2.0 * c)
+
+
 @nb.njit(cache=True, nogil=True, fastmath=True)
 def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                  amplitude, count, lanes, scratch):
@@ -233,16 +241,17 @@ def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, o
     expressions in (a, b, c); their imaginary parts are k_c χ times them in (α_A, α_B, α_C)."""
     channels = color.shape[1]
     dx, dy = first - x0, low - y0
-    pa, pb, pc = _phase_coefficients(a, b, c, mahalanobis)
-    terms = ((dx * dx, 2.0 * dx * dy, dy * dy), (2.0 * dx + 1.0, 2.0 * dy, 0.0), (2.0, 0.0, 0.0),
-             (0.0, 2.0 * dx, 2.0 * dy + 1.0), (0.0, 2.0, 0.0), (0.0, 0.0, 2.0))  # G, ratio, step, H, step, Q
     angles, cosines, sines, magnitudes = scratch
+    envelope = _lane_exponents(dx, dy, a, b, c)
+    pa, pb, pc = _phase_coefficients(a, b, c, mahalanobis)
+    quadratic = _lane_exponents(dx, dy, pa, pb, pc)
     for j in range(6):
-        u, v, w = terms[j]
-        magnitudes[j] = math.exp(-0.5 * (u * a + v * b + w * c))
-        for ch in range(channels):
-            k_chirp = wavenumbers[ch] * chirp[n, _chirp_slot(ch, chirp)]
-            angles[6 * ch + j] = k_chirp * (u * pa + v * pb + w * pc) + (phase[n, ch] if j == 0 else 0.0)
+        magnitudes[j] = math.exp(-0.5 * envelope[j])
+    for ch in range(channels):
+        k_chirp = wavenumbers[ch] * chirp[n, _chirp_slot(ch, chirp)]
+        for j in range(6):
+            angles[6 * ch + j] = k_chirp * quadratic[j]
+        angles[6 * ch] += phase[n, ch]
     _cosines_and_sines(angles[:6 * channels], cosines, sines)
     g_re, g_im, h_re, h_im, q_re, q_im = lanes
     for ch in range(channels):
