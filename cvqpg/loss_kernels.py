@@ -160,15 +160,20 @@ def _column_moments(x, y, i, taps, s_x, s_y, s_xx, s_yy, s_xy):
 @nb.njit(cache=True, nogil=True, fastmath=True)
 def _gathered_columns(d_x, d_xx, d_xy, i, taps, c_x, c_xx, c_xy):
     """The vertical blur's adjoint at input row i: c[j] = Σ_k taps[k]·d[i − k, j] over the output rows
-    i − k that exist, for the three derivative maps [h, w] at once."""
+    i − k that exist, for the three derivative maps [h, w] at once, two taps per pass as in
+    `_column_moments` (a missing row enters with weight 0 at a clamped index)."""
     for sums in (c_x, c_xx, c_xy):
         sums[:] = 0.0
-    for k in range(max(0, i - d_x.shape[0] + 1), min(SSIM_TAPS, i + 1)):
-        tap, row_x, row_xx, row_xy = taps[k], d_x[i - k], d_xx[i - k], d_xy[i - k]
-        for j in range(row_x.shape[0]):
-            c_x[j] += tap * row_x[j]
-            c_xx[j] += tap * row_xx[j]
-            c_xy[j] += tap * row_xy[j]
+    first, stop = max(0, i - d_x.shape[0] + 1), min(SSIM_TAPS, i + 1)
+    for k in range(first, stop, 2):
+        first_tap = taps[k]
+        second_tap = taps[k + 1] if k + 1 < stop else first_tap - first_tap
+        row, other = i - k, max(i - k - 1, 0)
+        x0, xx0, xy0, x1, xx1, xy1 = d_x[row], d_xx[row], d_xy[row], d_x[other], d_xx[other], d_xy[other]
+        for j in range(x0.shape[0]):
+            c_x[j] += first_tap * x0[j] + second_tap * x1[j]
+            c_xx[j] += first_tap * xx0[j] + second_tap * xx1[j]
+            c_xy[j] += first_tap * xy0[j] + second_tap * xy1[j]
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
