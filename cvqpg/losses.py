@@ -16,10 +16,10 @@ import torch
 from pytorch_msssim import ssim
 from torch import Tensor
 
-from .loss_kernels import gaussian_taps, pixel_terms, ssim_backward, ssim_forward, standard_normals
+from .loss_kernels import SSIM_TAPS, gaussian_taps, pixel_terms, ssim_backward, ssim_forward, standard_normals
 from .rasterization import cpu_array, resolve_backend
 
-SSIM_WINDOW_PX = 11
+SSIM_WINDOW_PX = SSIM_TAPS  # 11, the fused kernels' constant window
 SSIM_SIGMA_PX = 1.5
 SSIM_K1, SSIM_K2 = 0.01, 0.03  # stabilisers, as fractions of the data range (1)
 
