@@ -10,12 +10,14 @@ float32), so each row's span is the 3σ circle cut to the band where D² ≤ 100
 **Lane tables (most primitives).** Down a column the value moves one row by the ratio
 H = exp(2B dx + C(2dy + 1)), which itself changes by the constant Q = exp(2C) per row. The kernels
 keep G and H for every column of the footprint's bounding box and every channel in float32 "lanes"
-(lane = column · C + channel, the layout of the image arrays too), so one row of a primitive is one
-loop over contiguous lanes for all channels: add the masked values, then G ← G·H and H ← H·Q. The
-loop has no recurrence along the row, and LLVM vectorises it (eight lanes per instruction on AVX2).
-The lanes start on the box's first row from six exponentials per channel, walked along the row in
-float64; the channels share their magnitudes, and their angles go through one vectorised cos/sin
-(`_cosines_and_sines`). Lanes hold primitives whose values stay inside float32's range over the box,
+(lane = column · C + channel, the layout of the image arrays too). Eight lanes make one vector
+(`vectors.Float32x8`), and a strip of them walks down the box's rows with G and H in registers: add
+G masked to the row's span, then G ← G·H and H ← H·Q. Per row only the image is read and written
+(loops over lane arrays, the previous form, stored G and H back on every row and cost a sixth
+more). The forward pass walks two vectors at once, so that their chains of complex products
+overlap. The lanes start on the box's first row from six exponentials per channel, walked along
+the row in float64; the channels share their magnitudes, and their angles go through one vectorised
+cos/sin (`_cosines_and_sines`). Lanes hold primitives whose values stay inside float32's range over the box,
 ½D² ≤ `TABLE_EXPONENT_LIMIT` at its top corners: at initialisation all of them, and 98% of a fitted
 model's.
 
@@ -26,8 +28,8 @@ multiplications only. Needles so elongated that a walk down the centre column co
 range (D² > 600 inside the footprint) start each row instead at its own envelope maximum from exact
 values, and walk outwards from there, where values only decrease.
 
-The hologram and its gradient travel as float32 lane images [2, H, (W + LANES)·C] (real and
-imaginary planes; `LANES` zero columns on the right that a row's last block of lanes may run into).
+The hologram and its gradient travel as float32 lane images [2, H, (W + STRIP)·C] (real and
+imaginary planes; `STRIP` zero columns on the right that a row's last strip of lanes may run into).
 The forward pass gives each thread its own slice of primitives and its own image, summed in a fixed
 order, so results do not depend on scheduling; the backward pass gives each thread the same slice,
 and each primitive's gradients are written by that thread alone. Both compile with fast-math.
@@ -41,10 +43,13 @@ import math
 import numba as nb
 import numpy as np
 
+from . import vectors
+
 FLOOR_MAHALANOBIS2 = 100.0  # D² where the envelope exponent −½D² reaches SPEC's floor of −50
 MAX_WALKED_MAHALANOBIS2 = 600.0
 TABLE_EXPONENT_LIMIT = 80.0  # |Re log| of a lane value or ratio on the first row: e^±80 is inside float32
-LANES = 8  # float32 values in one AVX2 register: a row's lanes are processed in whole blocks of them
+LANES = vectors.WIDTH  # float32 values in one AVX2 register
+STRIP = 2 * LANES  # lanes the forward pass walks down the rows together; lane images have STRIP padding columns
 
 OFF_IMAGE, TABULATED, WALKED, WALKED_FROM_RIDGE = 0, 1, 2, 3  # the ways through the kernels
 
@@ -267,49 +272,97 @@ def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, o
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
-def _step_down(lanes, j, gr, gi, hr, hi):
-    """Lane j (holding G = gr + i·gi and H = hr + i·hi) one row down: G ← G·H, H ← H·Q."""
-    g_re, g_im, h_re, h_im, q_re, q_im = lanes[:6]
-    g_re[j] = gr * hr - gi * hi
-    g_im[j] = gr * hi + gi * hr
-    h_re[j] = hr * q_re[j] - hi * q_im[j]
-    h_im[j] = hr * q_im[j] + hi * q_re[j]
+def _lane_spans(lefts, rights, first, channels, rows, spans):
+    """Each row's span [left, right] (columns) as lane positions [low, high) in the box, into
+    spans = (lows, highs) (float32; empty where low ≥ high)."""
+    lows, highs = spans
+    for k in range(rows):
+        lows[k] = (lefts[k] - first) * channels
+        highs[k] = (rights[k] + 1 - first) * channels
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
-def _add_lane_row(lanes, count, left, right, out_re, out_im):
-    """out += G over the lanes left..right − 1 of count (the others masked), then G ← G·H, H ← H·Q."""
-    g_re, g_im, h_re, h_im = lanes[:4]
-    low, high, x = np.float32(left), np.float32(right), np.float32(0.0)
-    for j in range(count):  # zero-based slices, a float mask and a plain count: LLVM vectorises the loop
-        gr, gi, hr, hi = g_re[j], g_im[j], h_re[j], h_im[j]
-        inside = np.float32((x >= low) & (x < high))
-        out_re[j] += gr * inside
-        out_im[j] += gi * inside
-        _step_down(lanes, j, gr, gi, hr, hi)
-        x += np.float32(1.0)
+def _strip_rows(strip, lanes, spans, rows):
+    """How many of the box's rows the `lanes` lanes from `strip` walk: down to the last row whose span
+    meets them (the rows below need nothing from them)."""
+    lows, highs = spans
+    last = rows - 1
+    while last >= 0 and max(lows[last], strip) >= min(highs[last], strip + lanes):
+        last -= 1
+    return last + 1
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
-def _accumulate_lane_row(lanes, count, left, right, dy, grad_re, grad_im):
-    """Per lane, with w = ḡ·G over the lanes left..right − 1 of count (the others masked): Σw, Σw·dy
-    and Σw·dy² (real and imaginary parts) += this row's; then G ← G·H, H ← H·Q."""
-    g_re, g_im, h_re, h_im, s0r, s0i, s1r, s1i, s2r, s2i = lanes[:4] + lanes[6:]
-    low, high, x = np.float32(left), np.float32(right), np.float32(0.0)
-    dy1, dy2 = np.float32(dy), np.float32(dy * dy)
-    for j in range(count):
-        gr, gi, hr, hi = g_re[j], g_im[j], h_re[j], h_im[j]
-        inside = np.float32((x >= low) & (x < high))
-        wr = (grad_re[j] * gr + grad_im[j] * gi) * inside
-        wi = (grad_re[j] * gi - grad_im[j] * gr) * inside
-        s0r[j] += wr
-        s0i[j] += wi
-        s1r[j] += wr * dy1
-        s1i[j] += wi * dy1
-        s2r[j] += wr * dy2
-        s2i[j] += wi * dy2
-        _step_down(lanes, j, gr, gi, hr, hi)
-        x += np.float32(1.0)
+def _strip_state(lanes, strip):
+    """The G, H and Q (real and imaginary vectors) of the eight lanes from `strip`, on the box's first row."""
+    return (vectors.load(lanes[0], strip), vectors.load(lanes[1], strip), vectors.load(lanes[2], strip),
+            vectors.load(lanes[3], strip), vectors.load(lanes[4], strip), vectors.load(lanes[5], strip))
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _stepped_down(gr, gi, hr, hi, qr, qi):
+    """G and H one row down: G·H and H·Q."""
+    return gr * hr - gi * hi, gr * hi + gi * hr, hr * qr - hi * qi, hr * qi + hi * qr
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _add_masked(image, at, position, low, high, value):
+    """image[at:at + 8] += value where low ≤ position < high."""
+    vectors.store(image, at, vectors.load(image, at) + vectors.where_between(position, low, high, value))
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _add_strips(lanes, count, spans, rows, row_length, start, out_re, out_im):
+    """out += G over the box's rows, each row masked to its span. The lanes go down the rows STRIP at a
+    time, as two vectors with G and H in registers (G ← G·H, H ← H·Q): one vector's chain of complex
+    products would leave the multipliers idle for its latency. `out_re`, `out_im` are flat lane
+    images; the box's first lane is at `start`, a row is `row_length` further."""
+    lows, highs = spans
+    for strip in range(0, count, STRIP):
+        second = strip + LANES
+        gr, gi, hr, hi, qr, qi = _strip_state(lanes, strip)
+        gr2, gi2, hr2, hi2, qr2, qi2 = _strip_state(lanes, second)
+        position, position2 = vectors.ramp(strip), vectors.ramp(second)
+        at = start + strip
+        for k in range(_strip_rows(strip, STRIP, spans, rows)):
+            low, high = vectors.splat(lows[k]), vectors.splat(highs[k])
+            _add_masked(out_re, at, position, low, high, gr)
+            _add_masked(out_im, at, position, low, high, gi)
+            _add_masked(out_re, at + LANES, position2, low, high, gr2)
+            _add_masked(out_im, at + LANES, position2, low, high, gi2)
+            gr, gi, hr, hi = _stepped_down(gr, gi, hr, hi, qr, qi)
+            gr2, gi2, hr2, hi2 = _stepped_down(gr2, gi2, hr2, hi2, qr2, qi2)
+            at += row_length
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _accumulate_strips(lanes, count, spans, rows, row_length, start, dy_first, grad_re, grad_im):
+    """Per lane, with w = ḡ·G over each row's span: Σw, Σw·dy and Σw·dy² (real and imaginary parts)
+    into lanes[6:12]. As in `_add_strips`, with eight lanes at a time: the twelve sums live in
+    registers too, which leaves no room for a second vector."""
+    lows, highs = spans
+    for strip in range(0, count, LANES):
+        gr, gi, hr, hi, qr, qi = _strip_state(lanes, strip)
+        position = vectors.ramp(strip)
+        s0r = s0i = s1r = s1i = s2r = s2i = vectors.splat(0.0)
+        at = start + strip
+        for k in range(_strip_rows(strip, LANES, spans, rows)):
+            low, high, dy = vectors.splat(lows[k]), vectors.splat(highs[k]), vectors.splat(dy_first + k)
+            er, ei = vectors.load(grad_re, at), vectors.load(grad_im, at)
+            wr = vectors.where_between(position, low, high, er * gr + ei * gi)
+            wi = vectors.where_between(position, low, high, er * gi - ei * gr)
+            wr_dy, wi_dy = wr * dy, wi * dy
+            s0r, s0i = s0r + wr, s0i + wi
+            s1r, s1i = s1r + wr_dy, s1i + wi_dy
+            s2r, s2i = s2r + wr_dy * dy, s2i + wi_dy * dy
+            gr, gi, hr, hi = _stepped_down(gr, gi, hr, hi, qr, qi)
+            at += row_length
+        vectors.store(lanes[6], strip, s0r)
+        vectors.store(lanes[7], strip, s0i)
+        vectors.store(lanes[8], strip, s1r)
+        vectors.store(lanes[9], strip, s1i)
+        vectors.store(lanes[10], strip, s2r)
+        vectors.store(lanes[11], strip, s2i)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -391,16 +444,16 @@ def _walked_rows(A, B, C, amplitude, way, x0, y0, low, high, lefts, rights, lane
 
 
 @nb.njit(cache=True, nogil=True)
-def _block_lanes(columns, channels):
-    """Lanes of `columns` box columns, rounded up to whole blocks of LANES."""
-    return (columns * channels + LANES - 1) // LANES * LANES
+def _block_lanes(columns, channels, block):
+    """Lanes of `columns` box columns, rounded up to whole blocks of `block` lanes."""
+    return (columns * channels + block - 1) // block * block
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, out_re, out_im,
-               lefts, rights, lanes, scratch):
+               lefts, rights, spans, lanes, scratch):
     channels = color.shape[1]
-    height, width = out_re.shape[0], out_re.shape[1] // channels - LANES
+    height, width = out_re.shape[0], out_re.shape[1] // channels - STRIP
     way, x0, y0, a, b, c, r, low, high, first, last = _way(n, position, conic, reach, height, width, lefts, rights)
     if way == OFF_IMAGE:
         return
@@ -411,15 +464,15 @@ def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumb
             amplitude = opacity[n] * color[n, ch] * cmath.exp(complex(0.0, phase[n, ch]))
             _walked_rows(A, B, C, amplitude, way, x0, y0, low, high, lefts, rights, ch, channels, out_re, out_im)
         return
-    count = _block_lanes(last + 1 - first, channels)
+    count = _block_lanes(last + 1 - first, channels, STRIP)
     box = (lanes[0][:count], lanes[1][:count], lanes[2][:count], lanes[3][:count], lanes[4][:count],
            lanes[5][:count])
     _lane_tables(n, a, b, c, x0, y0, low, first, last + 1 - first, chirp, color, phase, opacity, wavenumbers,
                  mahalanobis, True, count, box, scratch)
-    origin = first * channels
-    for k in range(high + 1 - low):
-        _add_lane_row(box, count, (lefts[k] - first) * channels, (rights[k] + 1 - first) * channels,
-                      out_re[low + k, origin:origin + count], out_im[low + k, origin:origin + count])
+    _lane_spans(lefts, rights, first, channels, high + 1 - low, spans)
+    row_length = out_re.shape[1]
+    _add_strips(box, count, spans, high + 1 - low, row_length, low * row_length + first * channels,
+                out_re.reshape(out_re.size), out_im.reshape(out_im.size))
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True)
@@ -429,20 +482,21 @@ def _splat_share(t, threads, order, position, conic, reach, chirp, color, phase,
     share, a plain loop into which each primitive's work is inlined: a call per primitive cost about a
     tenth of the kernels' time, and Numba 0.68 miscompiles that work inlined into the parallel loop."""
     height, width = out_re.shape[0], out_re.shape[1]
-    lefts, rights = np.empty(height), np.empty(height)
+    lefts, rights, spans = np.empty(height), np.empty(height), (np.empty(height, np.float32),
+                                                                np.empty(height, np.float32))
     lanes = (np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
              np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32))
     scratch = _scratch(color.shape[1])
     for i in range(t, position.shape[0], threads):
         _splat_one(order[i], position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                   out_re, out_im, lefts, rights, lanes, scratch)
+                   out_re, out_im, lefts, rights, spans, lanes, scratch)
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def splat_forward(order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, partial):
     """partial[t] += the sum over primitives order[t], order[t+T], order[t+2T], ... (T = partial.shape[0]).
 
-    `partial` [T, 2, H, (W + LANES)·C] (float32 lane images) starts at zero; `gather_partials` sums it
+    `partial` [T, 2, H, (W + STRIP)·C] (float32 lane images) starts at zero; `gather_partials` sums it
     over t in order.
     """
     threads = partial.shape[0]
@@ -471,7 +525,7 @@ def gather_partials(partial, out):
 
 @nb.njit(parallel=True, cache=True)
 def split_lanes(values, out):
-    """out [2, H, (W + LANES)·C] (float32 lane image) = values [C, H, W] (complex64); the padding
+    """out [2, H, (W + STRIP)·C] (float32 lane image) = values [C, H, W] (complex64); the padding
     columns are left as they are (zero in a zero-initialised array)."""
     channels, height, width = values.shape
     for y in nb.prange(height):
@@ -546,27 +600,24 @@ def _lane_moments(lanes, lane, channels, columns, dx_first):
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                       grad_re, grad_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts, rights,
-                      lanes, scratch):
+                      spans, lanes, scratch):
     channels = color.shape[1]
-    height, width = grad_re.shape[0], grad_re.shape[1] // channels - LANES
+    height, width = grad_re.shape[0], grad_re.shape[1] // channels - STRIP
     way, x0, y0, a, b, c, r, low, high, first, last = _way(n, position, conic, reach, height, width, lefts, rights)
     if way == OFF_IMAGE:
         return
     columns = last + 1 - first
-    count = _block_lanes(columns, channels) if way == TABULATED else 0
+    count = _block_lanes(columns, channels, LANES) if way == TABULATED else 0
     box = (lanes[0][:count], lanes[1][:count], lanes[2][:count], lanes[3][:count], lanes[4][:count],
            lanes[5][:count], lanes[6][:count], lanes[7][:count], lanes[8][:count], lanes[9][:count],
            lanes[10][:count], lanes[11][:count])
     if way == TABULATED:
         _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, opacity, wavenumbers,
                      mahalanobis, False, count, box[:6], scratch)
-        for sums in box[6:]:
-            sums[:] = 0.0
-        origin = first * channels
-        for k in range(high + 1 - low):
-            _accumulate_lane_row(box, count, (lefts[k] - first) * channels, (rights[k] + 1 - first) * channels,
-                                 low + k - y0, grad_re[low + k, origin:origin + count],
-                                 grad_im[low + k, origin:origin + count])
+        _lane_spans(lefts, rights, first, channels, high + 1 - low, spans)
+        row_length = grad_re.shape[1]
+        _accumulate_strips(box, count, spans, high + 1 - low, row_length, low * row_length + first * channels,
+                           low - y0, grad_re.reshape(grad_re.size), grad_im.reshape(grad_im.size))
     alpha = np.float64(opacity[n])
     g_alpha = ga = gb = gc = gx = gy = 0.0
     for ch in range(channels):
@@ -613,7 +664,8 @@ def _gradients_share(t, threads, order, position, conic, reach, chirp, color, ph
     """The gradients of primitives order[t], order[t+T], ... (T = threads): one thread's share, with each
     primitive's work inlined (as in `_splat_share`)."""
     height, width = grad_re.shape[0], grad_re.shape[1]
-    lefts, rights = np.empty(height), np.empty(height)
+    lefts, rights, spans = np.empty(height), np.empty(height), (np.empty(height, np.float32),
+                                                                np.empty(height, np.float32))
     lanes = (np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
              np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
              np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
@@ -622,13 +674,13 @@ def _gradients_share(t, threads, order, position, conic, reach, chirp, color, ph
     for i in range(t, position.shape[0], threads):
         _gradients_of_one(order[i], position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                           grad_re, grad_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts, rights,
-                          lanes, scratch)
+                          spans, lanes, scratch)
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def splat_backward(order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                    grad, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, threads):
-    """Gradients (float64, each row written by its own primitive only) from grad [2, H, (W + LANES)·C]
+    """Gradients (float64, each row written by its own primitive only) from grad [2, H, (W + STRIP)·C]
     (a float32 lane image, zero in the padding columns).
 
     Thread t of `threads` takes primitives order[t], order[t+T], ..., as in the forward pass.

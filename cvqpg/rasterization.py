@@ -145,7 +145,7 @@ class _FusedSplat(torch.autograd.Function):
     """The Numba kernels behind one autograd boundary: the complex hologram [C, H, W].
 
     The kernels take the primitives in `kernels.locality_order` (each thread every T-th of them).
-    They work on float32 lane images [2, H, (W + LANES)·C] (`kernels`); the forward pass sums its
+    They work on float32 lane images [2, H, (W + STRIP)·C] (`kernels`); the forward pass sums its
     threads' images into the complex hologram and clears them in one pass, and the backward pass
     turns the incoming complex gradient into a lane image in one.
     """
@@ -158,7 +158,7 @@ class _FusedSplat(torch.autograd.Function):
         order = kernels.locality_order(arrays[0], height, width)
         k = wavenumbers.detach().to("cpu", torch.float64).numpy()
         channels = color.shape[1]
-        lane_width = (width + kernels.LANES) * channels
+        lane_width = (width + kernels.STRIP) * channels
         threads = max(1, min(numba.get_num_threads(), PARTIAL_BUFFER_BYTES // (height * lane_width * 8)))
         partial = _reused_lanes((threads, 2, height, lane_width), threading.get_ident())
         out = torch.empty(channels, height, width, dtype=torch.complex64)
@@ -177,7 +177,7 @@ class _FusedSplat(torch.autograd.Function):
         position, conic, _, chirp, color, phase, opacity = ctx.arrays
         grads = tuple(np.zeros(a.shape, np.float64) for a in (position, conic, chirp, color, phase, opacity))
         channels, height, width = grad.shape
-        lanes = _reused_lanes((2, height, (width + kernels.LANES) * channels), threading.get_ident())
+        lanes = _reused_lanes((2, height, (width + kernels.STRIP) * channels), threading.get_ident())
         kernels.split_lanes(grad.detach().to("cpu", torch.complex64).contiguous().numpy(), lanes)  # padding stays 0
         kernels.splat_backward(ctx.order, *ctx.arrays, ctx.wavenumbers, ctx.mahalanobis, lanes, *grads,
                                numba.get_num_threads())

@@ -2,11 +2,13 @@
 
 import math
 
+import numba
 import numpy as np
 import pytest
 import torch
+from numba.core.errors import TypingError
 
-from cvqpg import FitConfig, builtin_scene, fit, kernels
+from cvqpg import FitConfig, builtin_scene, fit, kernels, vectors
 from cvqpg.primitives import Gaussians, activate, init_gaussians
 from cvqpg.rasterization import (Splats, rasterize, resolve_backend, splat_fused, splat_reference, splats,
                                  wavenumbers_for)
@@ -195,3 +197,28 @@ def test_fused_kernel_gives_identical_results_on_reused_buffers():
     second = outputs_and_gradients(splat_fused, s, k)
     assert torch.equal(first[0], second[0])
     assert all(torch.equal(a, b) for a, b in zip(first[1], second[1]))
+
+
+@numba.njit
+def _vector_expressions(a, b, low, high, out):
+    """Every `vectors` operation once: out[0:8] = (a·b − a) + b where low ≤ position < high (positions
+    8..15), out[8:16] = the positions, out[16:24] = low."""
+    position = vectors.ramp(8)
+    x, y = vectors.load(a, 0), vectors.load(b, 0)
+    masked = vectors.where_between(position, vectors.splat(low), vectors.splat(high), x * y - x)
+    vectors.store(out, 0, masked + y)
+    vectors.store(out, 8, position)
+    vectors.store(out, 16, vectors.splat(low))
+
+
+def test_eight_lane_vectors_match_numpy():
+    rng = np.random.default_rng(4)
+    a, b = rng.normal(size=8).astype(np.float32), rng.normal(size=8).astype(np.float32)
+    out = np.zeros(24, np.float32)
+    _vector_expressions(a, b, 10, 13.5, out)
+    positions = np.arange(8, 16, dtype=np.float32)
+    inside = (positions >= 10) & (positions < 13.5)
+    np.testing.assert_allclose(out[:8], np.where(inside, a * b - a, 0.0) + b, rtol=1e-6)
+    assert (out[8:16] == positions).all() and (out[16:] == 10).all()
+    with pytest.raises(TypingError, match="1D float32 array"):
+        numba.njit(lambda array: vectors.load(array, 0))(np.zeros(8))
