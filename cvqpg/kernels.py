@@ -338,31 +338,36 @@ def _add_strips(lanes, count, spans, rows, row_length, start, out_re, out_im):
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _accumulate_strips(lanes, count, spans, rows, row_length, start, dy_first, grad_re, grad_im):
     """Per lane, with w = ḡ·G over each row's span: Σw, Σw·dy and Σw·dy² (real and imaginary parts)
-    into lanes[6:12]. As in `_add_strips`, with eight lanes at a time: the twelve sums live in
-    registers too, which leaves no room for a second vector."""
+    into lanes[6:12]. As in `_add_strips`, with eight lanes at a time: the sums live in registers
+    too, which leaves no room for a second vector.
+
+    The rows add w into running sums, T += w, U += T, V += U, additions only (the multipliers are
+    the loop's bottleneck). After K rows, with m = K − k for row k, U = Σw·m and 2V − U = Σw·m², and
+    dy = e − m with e = dy_first + K, so Σw·dy = eT − U and Σw·dy² = e²T − (2e + 1)U + 2V."""
     lows, highs = spans
     for strip in range(0, count, LANES):
         gr, gi, hr, hi, qr, qi = _strip_state(lanes, strip)
         position = vectors.ramp(strip)
-        s0r = s0i = s1r = s1i = s2r = s2i = vectors.splat(0.0)
-        at = start + strip
-        for k in range(_strip_rows(strip, LANES, spans, rows)):
-            low, high, dy = vectors.splat(lows[k]), vectors.splat(highs[k]), vectors.splat(dy_first + k)
+        tr = ti = ur = ui = vr = vi = vectors.splat(0.0)
+        at, walked = start + strip, _strip_rows(strip, LANES, spans, rows)
+        for k in range(walked):
+            low, high = vectors.splat(lows[k]), vectors.splat(highs[k])
             er, ei = vectors.load(grad_re, at), vectors.load(grad_im, at)
-            wr = vectors.where_between(position, low, high, er * gr + ei * gi)
-            wi = vectors.where_between(position, low, high, er * gi - ei * gr)
-            wr_dy, wi_dy = wr * dy, wi * dy
-            s0r, s0i = s0r + wr, s0i + wi
-            s1r, s1i = s1r + wr_dy, s1i + wi_dy
-            s2r, s2i = s2r + wr_dy * dy, s2i + wi_dy * dy
+            tr = tr + vectors.where_between(position, low, high, er * gr + ei * gi)
+            ti = ti + vectors.where_between(position, low, high, er * gi - ei * gr)
+            ur, ui = ur + tr, ui + ti
+            vr, vi = vr + ur, vi + ui
             gr, gi, hr, hi = _stepped_down(gr, gi, hr, hi, qr, qi)
             at += row_length
-        vectors.store(lanes[6], strip, s0r)
-        vectors.store(lanes[7], strip, s0i)
-        vectors.store(lanes[8], strip, s1r)
-        vectors.store(lanes[9], strip, s1i)
-        vectors.store(lanes[10], strip, s2r)
-        vectors.store(lanes[11], strip, s2i)
+        e = dy_first + walked
+        first, second, third = vectors.splat(e), vectors.splat(e * e), vectors.splat(2.0 * e + 1.0)
+        two = vectors.splat(2.0)
+        vectors.store(lanes[6], strip, tr)
+        vectors.store(lanes[7], strip, ti)
+        vectors.store(lanes[8], strip, first * tr - ur)
+        vectors.store(lanes[9], strip, first * ti - ui)
+        vectors.store(lanes[10], strip, second * tr - third * ur + two * vr)
+        vectors.store(lanes[11], strip, second * ti - third * ui + two * vi)
 
 
 @nb.njit(cache=True, nogil=True)
