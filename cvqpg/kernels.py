@@ -208,9 +208,20 @@ def _exponent_coefficients(a, b, c, k_chirp, mahalanobis):
 
 @nb.njit(cache=True, nogil=True)
 def _scratch(channels):
-    """A thread's arrays for `_lane_tables`: angles, their cosines and sines (six per channel) and the
-    six magnitudes."""
-    return np.empty(6 * channels), np.empty(6 * channels), np.empty(6 * channels), np.empty(6)
+    """A thread's arrays for `_lane_tables`: angles, their cosines and sines (six per channel), the
+    six magnitudes, and the per-channel lane patterns (`PATTERNS`)."""
+    return (np.empty(6 * channels), np.empty(6 * channels), np.empty(6 * channels), np.empty(6),
+            np.empty((PATTERNS, LANES * channels), np.float32))
+
+
+PATTERNS = 3  # Q (real and imaginary) and the amplitude αc, per lane of LANES columns
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _pattern_index(strip, channels):
+    """Where the lanes from `strip` start in a pattern of LANES columns: values that depend on the
+    channel only repeat every LANES · C lanes, a whole number of vectors."""
+    return strip % (LANES * channels)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -236,17 +247,18 @@ def _lane_exponents(dx, dy, a, b, c):
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True)
-def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                 amplitude, count, lanes, scratch):
+def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumbers, mahalanobis, count, lanes,
+                 scratch):
     """Every channel's lanes (lane = column · C + channel) on the box's first row, zero past them up to
-    `count` (a whole number of blocks): G = αc·e^{iφ}·exp(E) (or without αc, `amplitude` False: the
-    gradient's moments are per unit αc) walked along the row by its ratio exp(A(2dx + 1) + 2B dy),
-    which changes by exp(2A) per column; H = exp(2B dx + C(2dy + 1)), which changes by exp(2B);
-    Q = exp(2C). Those six exponentials per channel share their real parts, −½ of the same
-    expressions in (a, b, c); their imaginary parts are k_c χ times them in (α_A, α_B, α_C)."""
-    channels = color.shape[1]
+    `count` (a whole number of strips): G = e^{iφ}·exp(E), without the amplitude αc (the forward pass
+    scales each strip by it, the gradient's moments are per unit αc), walked along the row by its
+    ratio exp(A(2dx + 1) + 2B dy), which changes by exp(2A) per column; H = exp(2B dx + C(2dy + 1)),
+    which changes by exp(2B). Q = exp(2C) depends on the channel only: it goes into the scratch's
+    pattern (`_pattern_index`). Those six exponentials per channel share their real parts, −½ of
+    the same expressions in (a, b, c); their imaginary parts are k_c χ times them in (α_A, α_B, α_C)."""
+    channels = phase.shape[1]
     dx, dy = first - x0, low - y0
-    angles, cosines, sines, magnitudes = scratch
+    angles, cosines, sines, magnitudes, patterns = scratch
     envelope = _lane_exponents(dx, dy, a, b, c)
     pa, pb, pc = _phase_coefficients(a, b, c, mahalanobis)
     quadratic = _lane_exponents(dx, dy, pa, pb, pc)
@@ -258,17 +270,25 @@ def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, o
             angles[6 * ch + j] = k_chirp * quadratic[j]
         angles[6 * ch] += phase[n, ch]
     _cosines_and_sines(angles[:6 * channels], cosines, sines)
-    g_re, g_im, h_re, h_im, q_re, q_im = lanes
+    g_re, g_im, h_re, h_im = lanes
     for ch in range(channels):
         g, ratio, step, h, h_step, q = _lane_exponentials(magnitudes, cosines, sines, ch)
-        if amplitude:
-            g *= opacity[n] * color[n, ch]
+        for j in range(ch, LANES * channels, channels):
+            patterns[0, j], patterns[1, j] = q.real, q.imag
         for column in range(columns):
             j = column * channels + ch
-            g_re[j], g_im[j], h_re[j], h_im[j], q_re[j], q_im[j] = g.real, g.imag, h.real, h.imag, q.real, q.imag
+            g_re[j], g_im[j], h_re[j], h_im[j] = g.real, g.imag, h.real, h.imag
             g, ratio, h = g * ratio, ratio * step, h * h_step
-    for lane in lanes:
-        lane[columns * channels:count] = 0.0
+    for j in range(columns * channels, count):
+        g_re[j] = g_im[j] = h_re[j] = h_im[j] = 0.0
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _amplitude_pattern(n, color, opacity, patterns):
+    """The amplitude αc of primitive n's channels into the scratch's pattern (`_pattern_index`)."""
+    channels = color.shape[1]
+    for j in range(LANES * channels):
+        patterns[2, j] = opacity[n] * color[n, j % channels]
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
@@ -293,10 +313,11 @@ def _strip_rows(strip, lanes, spans, rows):
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
-def _strip_state(lanes, strip):
+def _strip_state(lanes, patterns, strip, channels):
     """The G, H and Q (real and imaginary vectors) of the eight lanes from `strip`, on the box's first row."""
+    at = _pattern_index(strip, channels)
     return (vectors.load(lanes[0], strip), vectors.load(lanes[1], strip), vectors.load(lanes[2], strip),
-            vectors.load(lanes[3], strip), vectors.load(lanes[4], strip), vectors.load(lanes[5], strip))
+            vectors.load(lanes[3], strip), vectors.load(patterns[0], at), vectors.load(patterns[1], at))
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
@@ -312,16 +333,19 @@ def _add_masked(image, at, position, low, high, value):
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
-def _add_strips(lanes, count, spans, rows, row_length, start, out_re, out_im):
-    """out += G over the box's rows, each row masked to its span. The lanes go down the rows STRIP at a
-    time, as two vectors with G and H in registers (G ← G·H, H ← H·Q): one vector's chain of complex
-    products would leave the multipliers idle for its latency. `out_re`, `out_im` are flat lane
-    images; the box's first lane is at `start`, a row is `row_length` further."""
+def _add_strips(lanes, patterns, channels, count, spans, rows, row_length, start, out_re, out_im):
+    """out += αc·G over the box's rows, each row masked to its span. The lanes go down the rows STRIP
+    at a time, as two vectors with G and H in registers (G ← G·H, H ← H·Q): one vector's chain of
+    complex products would leave the multipliers idle for its latency. `out_re`, `out_im` are flat
+    lane images; the box's first lane is at `start`, a row is `row_length` further."""
     lows, highs = spans
     for strip in range(0, count, STRIP):
         second = strip + LANES
-        gr, gi, hr, hi, qr, qi = _strip_state(lanes, strip)
-        gr2, gi2, hr2, hi2, qr2, qi2 = _strip_state(lanes, second)
+        gr, gi, hr, hi, qr, qi = _strip_state(lanes, patterns, strip, channels)
+        gr2, gi2, hr2, hi2, qr2, qi2 = _strip_state(lanes, patterns, second, channels)
+        amplitude = vectors.load(patterns[2], _pattern_index(strip, channels))
+        amplitude2 = vectors.load(patterns[2], _pattern_index(second, channels))
+        gr, gi, gr2, gi2 = gr * amplitude, gi * amplitude, gr2 * amplitude2, gi2 * amplitude2
         position, position2 = vectors.ramp(strip), vectors.ramp(second)
         at = start + strip
         for k in range(_strip_rows(strip, STRIP, spans, rows)):
@@ -336,9 +360,10 @@ def _add_strips(lanes, count, spans, rows, row_length, start, out_re, out_im):
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
-def _accumulate_strips(lanes, count, spans, rows, row_length, start, dy_first, grad_re, grad_im):
+def _accumulate_strips(lanes, patterns, channels, count, spans, rows, row_length, start, dy_first, grad_re,
+                       grad_im):
     """Per lane, with w = ḡ·G over each row's span: Σw, Σw·dy and Σw·dy² (real and imaginary parts)
-    into lanes[6:12]. As in `_add_strips`, with eight lanes at a time: the sums live in registers
+    into lanes[4:10]. As in `_add_strips`, with eight lanes at a time: the sums live in registers
     too, which leaves no room for a second vector.
 
     The rows add w into running sums, T += w, U += T, V += U, additions only (the multipliers are
@@ -346,7 +371,7 @@ def _accumulate_strips(lanes, count, spans, rows, row_length, start, dy_first, g
     dy = e − m with e = dy_first + K, so Σw·dy = eT − U and Σw·dy² = e²T − (2e + 1)U + 2V."""
     lows, highs = spans
     for strip in range(0, count, LANES):
-        gr, gi, hr, hi, qr, qi = _strip_state(lanes, strip)
+        gr, gi, hr, hi, qr, qi = _strip_state(lanes, patterns, strip, channels)
         position = vectors.ramp(strip)
         tr = ti = ur = ui = vr = vi = vectors.splat(0.0)
         at, walked = start + strip, _strip_rows(strip, LANES, spans, rows)
@@ -362,12 +387,12 @@ def _accumulate_strips(lanes, count, spans, rows, row_length, start, dy_first, g
         e = dy_first + walked
         first, second, third = vectors.splat(e), vectors.splat(e * e), vectors.splat(2.0 * e + 1.0)
         two = vectors.splat(2.0)
-        vectors.store(lanes[6], strip, tr)
-        vectors.store(lanes[7], strip, ti)
-        vectors.store(lanes[8], strip, first * tr - ur)
-        vectors.store(lanes[9], strip, first * ti - ui)
-        vectors.store(lanes[10], strip, second * tr - third * ur + two * vr)
-        vectors.store(lanes[11], strip, second * ti - third * ui + two * vi)
+        vectors.store(lanes[4], strip, tr)
+        vectors.store(lanes[5], strip, ti)
+        vectors.store(lanes[6], strip, first * tr - ur)
+        vectors.store(lanes[7], strip, first * ti - ui)
+        vectors.store(lanes[8], strip, second * tr - third * ur + two * vr)
+        vectors.store(lanes[9], strip, second * ti - third * ui + two * vi)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -470,13 +495,14 @@ def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumb
             _walked_rows(A, B, C, amplitude, way, x0, y0, low, high, lefts, rights, ch, channels, out_re, out_im)
         return
     count = _block_lanes(last + 1 - first, channels, STRIP)
-    box = (lanes[0][:count], lanes[1][:count], lanes[2][:count], lanes[3][:count], lanes[4][:count],
-           lanes[5][:count])
-    _lane_tables(n, a, b, c, x0, y0, low, first, last + 1 - first, chirp, color, phase, opacity, wavenumbers,
-                 mahalanobis, True, count, box, scratch)
+    box = (lanes[0][:count], lanes[1][:count], lanes[2][:count], lanes[3][:count])
+    patterns = scratch[4]
+    _lane_tables(n, a, b, c, x0, y0, low, first, last + 1 - first, chirp, phase, wavenumbers, mahalanobis, count,
+                 box, scratch)
+    _amplitude_pattern(n, color, opacity, patterns)
     _lane_spans(lefts, rights, first, channels, high + 1 - low, spans)
     row_length = out_re.shape[1]
-    _add_strips(box, count, spans, high + 1 - low, row_length, low * row_length + first * channels,
+    _add_strips(box, patterns, channels, count, spans, high + 1 - low, row_length, low * row_length + first * channels,
                 out_re.reshape(out_re.size), out_im.reshape(out_im.size))
 
 
@@ -490,7 +516,7 @@ def _splat_share(t, threads, order, position, conic, reach, chirp, color, phase,
     lefts, rights, spans = np.empty(height), np.empty(height), (np.empty(height, np.float32),
                                                                 np.empty(height, np.float32))
     lanes = (np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
-             np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32))
+             np.empty(width, np.float32))
     scratch = _scratch(color.shape[1])
     for i in range(t, position.shape[0], threads):
         _splat_one(order[i], position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
@@ -581,7 +607,7 @@ def _walked_moments(grad_re, grad_im, A, B, C, rotation, way, x0, y0, low, high,
 def _lane_moments(lanes, lane, channels, columns, dx_first):
     """One channel's moments of t and u from its lanes' sums Σw, Σw·dy, Σw·dy² (w = t − i·u): each
     column adds them weighted by 1, dx, dx²."""
-    s0r, s0i, s1r, s1i, s2r, s2i = lanes[6:]
+    s0r, s0i, s1r, s1i, s2r, s2i = lanes[4:]
     t00 = t10 = t20 = t01 = t11 = t02 = u00 = u10 = u20 = u01 = u11 = u02 = 0.0
     for i in range(columns):
         j = i * channels + lane
@@ -614,15 +640,15 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
     columns = last + 1 - first
     count = _block_lanes(columns, channels, LANES) if way == TABULATED else 0
     box = (lanes[0][:count], lanes[1][:count], lanes[2][:count], lanes[3][:count], lanes[4][:count],
-           lanes[5][:count], lanes[6][:count], lanes[7][:count], lanes[8][:count], lanes[9][:count],
-           lanes[10][:count], lanes[11][:count])
+           lanes[5][:count], lanes[6][:count], lanes[7][:count], lanes[8][:count], lanes[9][:count])
     if way == TABULATED:
-        _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, opacity, wavenumbers,
-                     mahalanobis, False, count, box[:6], scratch)
+        _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumbers, mahalanobis, count,
+                     box[:4], scratch)
         _lane_spans(lefts, rights, first, channels, high + 1 - low, spans)
         row_length = grad_re.shape[1]
-        _accumulate_strips(box, count, spans, high + 1 - low, row_length, low * row_length + first * channels,
-                           low - y0, grad_re.reshape(grad_re.size), grad_im.reshape(grad_im.size))
+        _accumulate_strips(box, scratch[4], channels, count, spans, high + 1 - low, row_length,
+                           low * row_length + first * channels, low - y0, grad_re.reshape(grad_re.size),
+                           grad_im.reshape(grad_im.size))
     alpha = np.float64(opacity[n])
     g_alpha = ga = gb = gc = gx = gy = 0.0
     for ch in range(channels):
@@ -674,7 +700,7 @@ def _gradients_share(t, threads, order, position, conic, reach, chirp, color, ph
     lanes = (np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
              np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
              np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
-             np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32))
+             np.empty(width, np.float32))
     scratch = _scratch(color.shape[1])
     for i in range(t, position.shape[0], threads):
         _gradients_of_one(order[i], position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
