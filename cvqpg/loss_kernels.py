@@ -121,6 +121,14 @@ def pixel_terms(recon, targets, noisy, masks, gradient):
 
 
 SSIM_TAPS = 11  # the window (px), a constant: the filters' loops over taps unroll, their loops over pixels vectorise
+SSIM_TASKS = 64  # the SSIM kernels' rows go in consecutive runs to this many tasks (a few per thread)
+
+
+@nb.njit(cache=True, nogil=True)
+def _task_rows(task, rows):
+    """The run of rows that task `task` of SSIM_TASKS takes: consecutive rows share their input rows in
+    cache."""
+    return range(task * rows // SSIM_TASKS, (task + 1) * rows // SSIM_TASKS)
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True)
@@ -181,43 +189,55 @@ def ssim_forward(x, y, taps, c1, c2, d_mean_x, d_mean_xx, d_mean_xy):
     """Sum of the SSIM map per image ([B], float64) of x against y [B, H, W], over the valid window
     positions [h, w] = [H − K + 1, W − K + 1] of the K-tap separable blur (K = SSIM_TAPS).
 
-    Each thread owns output rows. For one row it sums the K input rows under the window into one row
-    of column sums per moment (x, y, x², y², xy, formed on the fly), filters those along x, and turns
-    the five blurred moments into the map: SSIM = a1·a2 / (b1·b2) with a1 = 2μxμy + c1,
-    b1 = μx² + μy² + c1, a2 = 2σxy + c2, b2 = σx² + σy² + c2. It writes the map's partial derivatives
-    with respect to μx, E[x²] and E[xy] into `d_mean_x`, `d_mean_xx`, `d_mean_xy` [B, h, w]; they are
-    written without dividing by a1 or a2, which may vanish (b1, b2 ≥ c1, c2 > 0).
+    Each of SSIM_TASKS tasks takes a run of output rows (`_task_rows`), with its row buffers allocated
+    once (per row, the allocations cost about a tenth of the kernel). For one row it sums
+    the K input rows under the window into one row of column sums per moment (x, y, x², y², xy,
+    formed on the fly), filters those along x, and turns the five blurred moments into the map
+    (`_ssim_row`): SSIM = a1·a2 / (b1·b2) with a1 = 2μxμy + c1, b1 = μx² + μy² + c1,
+    a2 = 2σxy + c2, b2 = σx² + σy² + c2. It writes the map's partial derivatives with respect to μx,
+    E[x²] and E[xy] into `d_mean_x`, `d_mean_xx`, `d_mean_xy` [B, h, w]; they are written without
+    dividing by a1 or a2, which may vanish (b1, b2 ≥ c1, c2 > 0).
     """
     if taps.size != SSIM_TAPS:
         raise ValueError("the SSIM kernels take SSIM_TAPS taps")
     images, height, width = x.shape
     out_height, out_width = height - SSIM_TAPS + 1, width - SSIM_TAPS + 1
     rows = np.zeros(images * out_height)
-    for row in nb.prange(images * out_height):
-        b, i = row // out_height, row % out_height
+    for task in nb.prange(SSIM_TASKS):
         s_x, s_y, s_xx, s_yy, s_xy = (np.empty(width, x.dtype), np.empty(width, x.dtype), np.empty(width, x.dtype),
                                       np.empty(width, x.dtype), np.empty(width, x.dtype))  # apart: no aliasing
-        _column_moments(x[b], y[b], i, taps, s_x, s_y, s_xx, s_yy, s_xy)
         m_x, m_y, m_xx, m_yy, m_xy = (np.empty(out_width, x.dtype), np.empty(out_width, x.dtype),
                                       np.empty(out_width, x.dtype), np.empty(out_width, x.dtype),
                                       np.empty(out_width, x.dtype))
-        for moment, blurred in ((s_x, m_x), (s_y, m_y), (s_xx, m_xx), (s_yy, m_yy), (s_xy, m_xy)):
-            _filtered(moment, taps, blurred)
-        total = 0.0
-        for j in range(out_width):
-            mx, my = np.float64(m_x[j]), np.float64(m_y[j])
-            mxy = mx * my
-            a1, b1 = 2.0 * mxy + c1, mx * mx + my * my + c1
-            a2 = 2.0 * (m_xy[j] - mxy) + c2
-            b2 = (m_xx[j] - mx * mx) + (m_yy[j] - my * my) + c2
-            denominator = b1 * b2
-            value = a1 * a2 / denominator
-            total += value
-            d_mean_x[b, i, j] = 2.0 * my * (a2 - a1) / denominator - 2.0 * mx * value * (1.0 / b1 - 1.0 / b2)
-            d_mean_xx[b, i, j] = -value / b2
-            d_mean_xy[b, i, j] = 2.0 * a1 / denominator
-        rows[row] = total
+        for row in _task_rows(task, rows.shape[0]):
+            rows[row] = _ssim_row(x, y, taps, c1, c2, row // out_height, row % out_height, (s_x, s_y, s_xx, s_yy, s_xy),
+                                  (m_x, m_y, m_xx, m_yy, m_xy), d_mean_x, d_mean_xx, d_mean_xy)
     return rows.reshape(images, out_height).sum(axis=1)
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+def _ssim_row(x, y, taps, c1, c2, b, i, sums, blurred, d_mean_x, d_mean_xx, d_mean_xy):
+    """Output row i of image b (`ssim_forward`), through a thread's buffers for the five moments' column
+    sums and blurs: its derivative maps, and the sum of its SSIM map."""
+    s_x, s_y, s_xx, s_yy, s_xy = sums
+    m_x, m_y, m_xx, m_yy, m_xy = blurred
+    _column_moments(x[b], y[b], i, taps, s_x, s_y, s_xx, s_yy, s_xy)
+    for moment, out in zip(sums, blurred):
+        _filtered(moment, taps, out)
+    total = 0.0
+    for j in range(m_x.shape[0]):
+        mx, my = np.float64(m_x[j]), np.float64(m_y[j])
+        mxy = mx * my
+        a1, b1 = 2.0 * mxy + c1, mx * mx + my * my + c1
+        a2 = 2.0 * (m_xy[j] - mxy) + c2
+        b2 = (m_xx[j] - mx * mx) + (m_yy[j] - my * my) + c2
+        denominator = b1 * b2
+        value = a1 * a2 / denominator
+        total += value
+        d_mean_x[b, i, j] = 2.0 * my * (a2 - a1) / denominator - 2.0 * mx * value * (1.0 / b1 - 1.0 / b2)
+        d_mean_xx[b, i, j] = -value / b2
+        d_mean_xy[b, i, j] = 2.0 * a1 / denominator
+    return total
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
@@ -225,24 +245,26 @@ def ssim_backward(d_mean_x, d_mean_xx, d_mean_xy, weights, x, y, taps, out):
     """out [B, H, W] = w_b·(B*(∂μx) + 2x·B*(∂E[x²]) + y·B*(∂E[xy])): the gradient of Σ_b w_b·ΣSSIM_b
     with respect to x, from `ssim_forward`'s derivative maps [B, h, w], B* the adjoint of the blur.
 
-    Each thread owns input rows: it gathers the output rows whose windows cover its row into column
-    sums, spreads them back along x (the filter with reversed taps over the sums padded with zeros),
-    and combines the three maps with x and y in the same pass.
+    Each of SSIM_TASKS tasks takes a run of input rows, with its row buffers allocated once: for a row
+    it gathers the output rows whose windows cover the row into column sums, spreads them back along x (the filter with
+    reversed taps over the sums padded with zeros, whose margins stay zero), and combines the three
+    maps with x and y in the same pass.
     """
     if taps.size != SSIM_TAPS:
         raise ValueError("the SSIM kernels take SSIM_TAPS taps")
     images, height, width = x.shape
     out_width, margin = d_mean_x.shape[2], SSIM_TAPS - 1
     reversed_taps = taps[::-1].copy()
-    for row in nb.prange(images * height):
-        b, i = row // height, row % height
+    for task in nb.prange(SSIM_TASKS):
         c_x, c_xx, c_xy = (np.zeros(out_width + 2 * margin, x.dtype), np.zeros(out_width + 2 * margin, x.dtype),
                            np.zeros(out_width + 2 * margin, x.dtype))
-        _gathered_columns(d_mean_x[b], d_mean_xx[b], d_mean_xy[b], i, taps, c_x[margin:margin + out_width],
-                          c_xx[margin:margin + out_width], c_xy[margin:margin + out_width])
         g_x, g_xx, g_xy = np.empty(width, x.dtype), np.empty(width, x.dtype), np.empty(width, x.dtype)
-        for sums, spread in ((c_x, g_x), (c_xx, g_xx), (c_xy, g_xy)):
-            _filtered(sums, reversed_taps, spread)
-        weight, xs, ys, target = weights[b], x[b, i], y[b, i], out[b, i]
-        for j in range(width):
-            target[j] = weight * (g_x[j] + 2.0 * xs[j] * g_xx[j] + ys[j] * g_xy[j])
+        for row in _task_rows(task, images * height):
+            b, i = row // height, row % height
+            _gathered_columns(d_mean_x[b], d_mean_xx[b], d_mean_xy[b], i, taps, c_x[margin:margin + out_width],
+                              c_xx[margin:margin + out_width], c_xy[margin:margin + out_width])
+            for sums, spread in ((c_x, g_x), (c_xx, g_xx), (c_xy, g_xy)):
+                _filtered(sums, reversed_taps, spread)
+            weight, xs, ys, target = weights[b], x[b, i], y[b, i], out[b, i]
+            for j in range(width):
+                target[j] = weight * (g_x[j] + 2.0 * xs[j] * g_xx[j] + ys[j] * g_xy[j])
