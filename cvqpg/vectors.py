@@ -49,8 +49,9 @@ def _address(context, builder, array_type, array, start):
 
 
 def _check_float32_array(array) -> None:
-    if not (isinstance(array, types.Array) and array.dtype == types.float32 and array.ndim == 1):
-        raise TypingError(f"eight-lane loads and stores take a 1D float32 array, not {array}")
+    if not (isinstance(array, types.Array) and array.dtype == types.float32 and array.ndim == 1
+            and array.layout in "CF"):
+        raise TypingError(f"eight-lane loads and stores take a contiguous 1D float32 array, not {array}")
 
 
 @intrinsic

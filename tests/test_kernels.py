@@ -220,5 +220,8 @@ def test_eight_lane_vectors_match_numpy():
     inside = (positions >= 10) & (positions < 13.5)
     np.testing.assert_allclose(out[:8], np.where(inside, a * b - a, 0.0) + b, rtol=1e-6)
     assert (out[8:16] == positions).all() and (out[16:] == 10).all()
-    with pytest.raises(TypingError, match="1D float32 array"):
-        numba.njit(lambda array: vectors.load(array, 0))(np.zeros(8))
+    load = numba.njit(lambda array: vectors.load(array, 0))
+    with pytest.raises(TypingError, match="contiguous 1D float32 array"):
+        load(np.zeros(8))
+    with pytest.raises(TypingError, match="contiguous 1D float32 array"):
+        load(np.zeros(16, np.float32)[::2])
