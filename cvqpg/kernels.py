@@ -13,13 +13,13 @@ keep G and H for every column of the footprint's bounding box and every channel 
 (lane = column · C + channel, the layout of the image arrays too). Eight lanes make one vector
 (`vectors.Float32x8`), and a strip of them walks down the box's rows with G and H in registers: add
 G masked to the row's span, then G ← G·H and H ← H·Q. Per row only the image is read and written
-(loops over lane arrays, the previous form, stored G and H back on every row and cost a sixth
-more). The forward pass walks two vectors at once, so that their chains of complex products
+(loops over lane arrays, the previous form, stored G and H back on every row and took 13–24% more
+time). The forward pass walks two vectors at once, so that their chains of complex products
 overlap. The lanes start on the box's first row from six exponentials per channel, walked along
 the row in float64; the channels share their magnitudes, and their angles go through one vectorised
-cos/sin (`_cosines_and_sines`). Lanes hold primitives whose values stay inside float32's range over the box,
-½D² ≤ `TABLE_EXPONENT_LIMIT` at its top corners: at initialisation all of them, and 98% of a fitted
-model's.
+cos/sin (`_cosines_and_sines`). Lanes hold primitives whose values stay inside float32's range over
+the box, ½D² ≤ `TABLE_EXPONENT_LIMIT` at its top corners: at initialisation all of them, and 98% of
+a fitted model's.
 
 **Walks (the others: needles).** Along a row each pixel's value is its neighbour's times a ratio
 that itself changes by a constant factor, and the same holds from row to row down the centre
