@@ -318,15 +318,44 @@ def _transpose(values: Tensor, out: Tensor) -> None:
         out.copy_(values.T)
 
 
-def _filtered(spectrum: Tensor, half: Tensor, rows: slice, out: Tensor, accumulate: bool = False) -> Tensor:
-    """out = spectrum · T[rows] (or out += it) for a transfer function T given as the first half of its
-    first axis (`TransferBank.half`); `out` may be `spectrum` itself."""
-    if _uses_cpu_kernels(spectrum):
-        optics_kernels.mirrored_product(spectrum.numpy(), half.numpy(), rows.start, out.numpy(), accumulate)
-        return out
+def _transfer_rows(half: Tensor, rows: slice) -> Tensor:
+    """Rows `rows` of a transfer function given as the first half of its first axis (`TransferBank.half`)."""
     index = torch.arange(rows.start, rows.stop, device=half.device)
-    transfer = half[torch.minimum(index, 2 * half.shape[0] - 1 - index)]
-    return out.addcmul_(spectrum, transfer) if accumulate else torch.mul(spectrum, transfer, out=out)
+    return half[torch.minimum(index, 2 * half.shape[0] - 1 - index)]
+
+
+@functools.lru_cache(maxsize=8)
+def _planes_buffer(planes: int, rows: int, cols: int, dtype: torch.dtype, device: torch.device,
+                   thread: int) -> Tensor:
+    """A reusable array [planes, rows, cols] for one spectrum block's filtered copies (one per thread)."""
+    return torch.empty(planes, rows, cols, dtype=dtype, device=device)
+
+
+def _filtered(spectrum: Tensor, halves: Sequence[Tensor], rows: slice) -> Tensor:
+    """spectrum · T_p[rows] for every plane p [P, R, N] (a reused array: read it before the next call),
+    for transfer functions T_p given as halves (`TransferBank.half`). One pass reads the spectrum for
+    all planes."""
+    out = _planes_buffer(len(halves), *spectrum.shape, spectrum.dtype, spectrum.device, threading.get_ident())
+    if _uses_cpu_kernels(spectrum):
+        optics_kernels.mirrored_products(spectrum.numpy(), tuple(half.numpy() for half in halves), rows.start,
+                                         out.numpy())
+    else:
+        for plane, half in enumerate(halves):
+            torch.mul(spectrum, _transfer_rows(half, rows), out=out[plane])
+    return out
+
+
+def _filtered_sum(spectra: Sequence[Tensor], halves: Sequence[Tensor], rows: slice) -> Tensor:
+    """Σ_p spectra[p] · T_p[rows], written into spectra[0], in one pass over the planes' spectra."""
+    total = spectra[0]
+    if _uses_cpu_kernels(total):
+        optics_kernels.mirrored_sum(tuple(spectrum.numpy() for spectrum in spectra),
+                                    tuple(half.numpy() for half in halves), rows.start)
+        return total
+    total.mul_(_transfer_rows(halves[0], rows))
+    for spectrum, half in zip(spectra[1:], halves[1:]):
+        total.addcmul_(spectrum, _transfer_rows(half, rows))
+    return total
 
 
 SPECTRUM_BLOCK_ROWS = 256  # rows of a transposed spectrum handled at once: 3 MB at 640×480, half per core in L2
@@ -371,11 +400,9 @@ class _ContentPropagation(torch.autograd.Function):
             along_x = torch.fft.fft(_placed(field[channel], 2 * cols, cols // 2))
             for block in _blocks(2 * cols):
                 spectrum = torch.fft.fft(_placed_transposed(along_x[:, block], 2 * rows, rows // 2))
+                filtered = _filtered(spectrum, halves, block)
                 for plane in range(planes):
-                    last = plane == planes - 1  # the last plane may filter the spectrum in place
-                    filtered = _filtered(spectrum, halves[plane], block,
-                                         spectrum if last else torch.empty_like(spectrum))
-                    _transpose(torch.fft.ifft(filtered)[:, top:top + grid.height], along_y[plane, :, block])
+                    _transpose(torch.fft.ifft(filtered[plane])[:, top:top + grid.height], along_y[plane, :, block])
             for plane in range(planes):  # one 2D batch each: MKL runs a 3D batch several times slower
                 _copy(torch.fft.ifft(along_y[plane])[:, left:left + grid.width], content[plane, channel])
         ctx.grid, ctx.bank, ctx.field_shape = grid, bank, field.shape
@@ -394,12 +421,9 @@ class _ContentPropagation(torch.autograd.Function):
             along_x = [torch.fft.ifft(_placed(grad[plane, channel], 2 * cols, left, conjugate=True))
                        for plane in range(planes)]
             for block in _blocks(2 * cols):
-                accumulated = None
-                for plane in range(planes):
-                    spectrum = torch.fft.ifft(_placed_transposed(along_x[plane][:, block], 2 * rows, top))
-                    accumulated = _filtered(spectrum, halves[plane], block,
-                                            spectrum if accumulated is None else accumulated,
-                                            accumulate=accumulated is not None)
+                spectra = [torch.fft.ifft(_placed_transposed(along_x[plane][:, block], 2 * rows, top))
+                           for plane in range(planes)]
+                accumulated = _filtered_sum(spectra, halves, block)
                 _transpose(torch.fft.fft(accumulated)[:, rows // 2:rows // 2 + rows], along_y[:, block])
             _copy(torch.fft.fft(along_y)[:, cols // 2:cols // 2 + cols], grad_field[channel], conjugate=True)
         return grad_field, None, None

@@ -6,8 +6,8 @@ the padded array (gather, content copy, window product, magnitude, clamp, quotie
 intensity |u|² and its gradient in about ten. Each kernel here is one pass, with each thread owning
 whole rows. `optics` holds the PyTorch formulas, which serve CUDA and `--backend torch`; the tests
 hold these kernels against them. The transpose moves the propagation's arrays between row and
-column layout (PyTorch's strided copies take about twice as long), and the product applies a
-transfer function kept as half of its rows.
+column layout (PyTorch's strided copies take about twice as long), and the products apply
+transfer functions kept as half of their rows.
 """
 
 from __future__ import annotations
@@ -133,17 +133,32 @@ def transpose(source, out):
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
-def mirrored_product(spectrum, half, first_row, out, accumulate):
-    """out[r] = spectrum[r] · T[first_row + r] (or out[r] += it) for a transfer function T [2K, N]
-    even about the middle of its first axis (T[k] = T[2K − 1 − k]), given as its first half [K, N].
-    `out` may be `spectrum` itself."""
-    length = 2 * half.shape[0]
+def mirrored_products(spectrum, halves, first_row, out):
+    """out[p, r] = spectrum[r] · T_p[first_row + r] for every plane p, for transfer functions T_p [2K, N]
+    even about the middle of their first axis (T[k] = T[2K − 1 − k]), given as their first halves
+    (a tuple of [K, N]). Each spectrum row is read once for all planes."""
+    length = 2 * halves[0].shape[0]
     for r in nb.prange(spectrum.shape[0]):
         k = first_row + r
-        transfer, source, target = half[min(k, length - 1 - k)], spectrum[r], out[r]
-        if accumulate:
-            for j in range(source.shape[0]):
-                target[j] += source[j] * transfer[j]
-        else:
+        mirrored, source = min(k, length - 1 - k), spectrum[r]
+        for plane in range(len(halves)):
+            transfer, target = halves[plane][mirrored], out[plane, r]
             for j in range(source.shape[0]):
                 target[j] = source[j] * transfer[j]
+
+
+@nb.njit(parallel=True, cache=True, fastmath=True)
+def mirrored_sum(spectra, halves, first_row):
+    """spectra[0][r] = Σ_p spectra[p][r] · T_p[first_row + r], in place, for transfer functions given as
+    in `mirrored_products`; one pass over the planes' rows."""
+    length = 2 * halves[0].shape[0]
+    for r in nb.prange(spectra[0].shape[0]):
+        k = first_row + r
+        mirrored = min(k, length - 1 - k)
+        target, transfer = spectra[0][r], halves[0][mirrored]
+        for j in range(target.shape[0]):
+            target[j] = target[j] * transfer[j]
+        for plane in range(1, len(spectra)):
+            source, transfer = spectra[plane][r], halves[plane][mirrored]
+            for j in range(target.shape[0]):
+                target[j] += source[j] * transfer[j]
