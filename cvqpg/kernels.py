@@ -14,8 +14,8 @@ keep G and H for every column of the footprint's bounding box and every channel 
 (`vectors.Float32x8`), and a strip of them walks down the box's rows with G and H in registers: add
 G masked to the row's span, then G ← G·H and H ← H + H·(Q − 1) (`_stepped_down`). Per row only the
 image is read and written (loops over lane arrays, the previous form, stored G and H back on every
-row and took 13–24% more time). The forward pass walks two vectors at once, so that their chains of complex products
-overlap. The lanes start on the box's first row from six exponentials per channel, walked along
+row and took 13–24% more time). The forward pass walks two vectors at once, so that their chains of
+complex products overlap. The lanes start on the box's first row from six exponentials per channel, walked along
 the row in float64; the channels share their magnitudes, and their angles go through one vectorised
 cos/sin (`_cosines_and_sines`). Lanes hold primitives whose values stay inside float32's range over
 the box, ½D² ≤ `TABLE_EXPONENT_LIMIT` at its top corners: at initialisation all of them, and 98% of
@@ -52,6 +52,18 @@ LANES = vectors.WIDTH  # float32 values in one AVX2 register
 STRIP = 2 * LANES  # lanes the forward pass walks down the rows together; lane images have STRIP padding columns
 
 OFF_IMAGE, TABULATED, WALKED, WALKED_FROM_RIDGE = 0, 1, 2, 3  # the ways through the kernels
+
+
+@nb.njit(cache=True, nogil=True)
+def lane_image_width(width, channels):
+    """Values per row of a lane image for a W×H, C-channel hologram: (W + STRIP)·C."""
+    return (width + STRIP) * channels
+
+
+@nb.njit(cache=True, nogil=True)
+def _image_width(row_length, channels):
+    """W of the hologram whose lane image has rows of `row_length` values (`lane_image_width`)."""
+    return row_length // channels - STRIP
 
 
 @nb.njit(cache=True, nogil=True)
@@ -254,8 +266,9 @@ def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumb
     scales each strip by it, the gradient's moments are per unit αc), walked along the row by its
     ratio exp(A(2dx + 1) + 2B dy), which changes by exp(2A) per column; H = exp(2B dx + C(2dy + 1)),
     which changes by exp(2B). Q = exp(2C) depends on the channel only: Q − 1 goes into the scratch's
-    pattern (`_pattern_index`; see `_stepped_down`). Those six exponentials per channel share their real parts, −½ of
-    the same expressions in (a, b, c); their imaginary parts are k_c χ times them in (α_A, α_B, α_C)."""
+    pattern (`_pattern_index`; see `_stepped_down`). Those six exponentials per channel share their
+    real parts, −½ of the same expressions in (a, b, c); their imaginary parts are k_c χ times them
+    in (α_A, α_B, α_C)."""
     channels = phase.shape[1]
     dx, dy = first - x0, low - y0
     angles, cosines, sines, magnitudes, patterns = scratch
@@ -486,7 +499,7 @@ def _block_lanes(columns, channels, block):
 def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, out_re, out_im,
                lefts, rights, spans, lanes, scratch):
     channels = color.shape[1]
-    height, width = out_re.shape[0], out_re.shape[1] // channels - STRIP
+    height, width = out_re.shape[0], _image_width(out_re.shape[1], channels)
     way, x0, y0, a, b, c, r, low, high, first, last = _way(n, position, conic, reach, height, width, lefts, rights)
     if way == OFF_IMAGE:
         return
@@ -636,7 +649,7 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
                       grad_re, grad_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts, rights,
                       spans, lanes, scratch):
     channels = color.shape[1]
-    height, width = grad_re.shape[0], grad_re.shape[1] // channels - STRIP
+    height, width = grad_re.shape[0], _image_width(grad_re.shape[1], channels)
     way, x0, y0, a, b, c, r, low, high, first, last = _way(n, position, conic, reach, height, width, lefts, rights)
     if way == OFF_IMAGE:
         return

@@ -132,6 +132,13 @@ def transpose(source, out):
                     target_row[i] = tile[i, j]
 
 
+@nb.njit(inline="always")
+def _mirrored_row(row, length):
+    """The row of a first half [length / 2, N] that holds row `row` of a function [length, N] even
+    about the middle of its first axis."""
+    return min(row, length - 1 - row)
+
+
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def mirrored_products(spectrum, halves, first_row, out):
     """out[p, r] = spectrum[r] · T_p[first_row + r] for every plane p, for transfer functions T_p [2K, N]
@@ -139,8 +146,7 @@ def mirrored_products(spectrum, halves, first_row, out):
     (a tuple of [K, N]). Each spectrum row is read once for all planes."""
     length = 2 * halves[0].shape[0]
     for r in nb.prange(spectrum.shape[0]):
-        k = first_row + r
-        mirrored, source = min(k, length - 1 - k), spectrum[r]
+        mirrored, source = _mirrored_row(first_row + r, length), spectrum[r]
         for plane in range(len(halves)):
             transfer, target = halves[plane][mirrored], out[plane, r]
             for j in range(source.shape[0]):
@@ -153,8 +159,7 @@ def mirrored_sum(spectra, halves, first_row):
     in `mirrored_products`; one pass over the planes' rows."""
     length = 2 * halves[0].shape[0]
     for r in nb.prange(spectra[0].shape[0]):
-        k = first_row + r
-        mirrored = min(k, length - 1 - k)
+        mirrored = _mirrored_row(first_row + r, length)
         target, transfer = spectra[0][r], halves[0][mirrored]
         for j in range(target.shape[0]):
             target[j] = target[j] * transfer[j]

@@ -158,7 +158,7 @@ class _FusedSplat(torch.autograd.Function):
         order = kernels.locality_order(arrays[0], height, width)
         k = wavenumbers.detach().to("cpu", torch.float64).numpy()
         channels = color.shape[1]
-        lane_width = (width + kernels.STRIP) * channels
+        lane_width = kernels.lane_image_width(width, channels)
         threads = max(1, min(numba.get_num_threads(), PARTIAL_BUFFER_BYTES // (height * lane_width * 8)))
         partial = _reused_lanes((threads, 2, height, lane_width), threading.get_ident())
         out = torch.empty(channels, height, width, dtype=torch.complex64)
@@ -177,7 +177,7 @@ class _FusedSplat(torch.autograd.Function):
         position, conic, _, chirp, color, phase, opacity = ctx.arrays
         grads = tuple(np.zeros(a.shape, np.float64) for a in (position, conic, chirp, color, phase, opacity))
         channels, height, width = grad.shape
-        lanes = _reused_lanes((2, height, (width + kernels.STRIP) * channels), threading.get_ident())
+        lanes = _reused_lanes((2, height, kernels.lane_image_width(width, channels)), threading.get_ident())
         kernels.split_lanes(grad.detach().to("cpu", torch.complex64).contiguous().numpy(), lanes)  # padding stays 0
         kernels.splat_backward(ctx.order, *ctx.arrays, ctx.wavenumbers, ctx.mahalanobis, lanes, *grads,
                                numba.get_num_threads())
