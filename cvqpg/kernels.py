@@ -21,6 +21,12 @@ cos/sin (`_cosines_and_sines`). Lanes hold primitives whose values stay inside f
 the box, ½D² ≤ `TABLE_EXPONENT_LIMIT` at its top corners: at initialisation all of them, and 98% of
 a fitted model's.
 
+**Real lanes (primitives without curvature).** Where χ = 0 in every channel (the flat baseline, and
+CVQPG during its warm-up) exp(E) is the real envelope, the same in every channel: the lanes hold it
+and its real ratios, walked along the first row once for all channels, and the phase e^{iφ} moves
+out of the rows, into the amplitude the forward pass scales by and into one rotation of each
+strip's sums in the backward pass. A row then costs half the multiplications.
+
 **Walks (the others: needles).** Along a row each pixel's value is its neighbour's times a ratio
 that itself changes by a constant factor, and the same holds from row to row down the centre
 column; such primitives are walked outwards from that column in float64 with complex
@@ -220,13 +226,15 @@ def _exponent_coefficients(a, b, c, k_chirp, mahalanobis):
 
 @nb.njit(cache=True, nogil=True)
 def _scratch(channels):
-    """A thread's arrays for `_lane_tables`: angles, their cosines and sines (six per channel), the
+    """A thread's arrays for the lane tables: angles, their cosines and sines (six per channel), the
     six magnitudes, and the per-channel lane patterns (`PATTERNS`)."""
     return (np.empty(6 * channels), np.empty(6 * channels), np.empty(6 * channels), np.empty(6),
             np.empty((PATTERNS, LANES * channels), np.float32))
 
 
-PATTERNS = 3  # Q − 1 (real and imaginary) and the amplitude αc, per lane of LANES columns
+# Per lane of LANES columns: Q − 1 (real and imaginary parts); the amplitude αc, or for real lanes e^{iφ} (times αc
+# in the forward pass; real and imaginary parts).
+PATTERNS = 4
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
@@ -272,11 +280,9 @@ def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumb
     channels = phase.shape[1]
     dx, dy = first - x0, low - y0
     angles, cosines, sines, magnitudes, patterns = scratch
-    envelope = _lane_exponents(dx, dy, a, b, c)
+    _lane_magnitudes(dx, dy, a, b, c, magnitudes)
     pa, pb, pc = _phase_coefficients(a, b, c, mahalanobis)
     quadratic = _lane_exponents(dx, dy, pa, pb, pc)
-    for j in range(6):
-        magnitudes[j] = math.exp(-0.5 * envelope[j])
     for ch in range(channels):
         k_chirp = wavenumbers[ch] * chirp[n, _chirp_slot(ch, chirp)]
         for j in range(6):
@@ -297,11 +303,66 @@ def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumb
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
+def _lane_magnitudes(dx, dy, a, b, c, magnitudes):
+    """The six lane exponentials' magnitudes (`_lane_exponents`), exp(−½·) of the envelope's exponents,
+    which every channel shares."""
+    envelope = _lane_exponents(dx, dy, a, b, c)
+    for j in range(6):
+        magnitudes[j] = math.exp(-0.5 * envelope[j])
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True)
+def _real_lane_tables(a, b, c, x0, y0, low, first, columns, channels, count, lanes, magnitudes, patterns):
+    """`_lane_tables` for a primitive without quadratic phase (χ = 0 in every channel): exp(E) is then
+    the real envelope, the same in every channel, and its lanes hold it without the phase e^{iφ}
+    (G and H into lanes[0] and lanes[2]; Q − 1 into the pattern). The walk along the row is a chain
+    of real products, shared by the channels."""
+    _lane_magnitudes(first - x0, low - y0, a, b, c, magnitudes)
+    g, ratio, step, h, h_step, q = magnitudes[0], magnitudes[1], magnitudes[2], magnitudes[3], magnitudes[4], \
+        magnitudes[5]
+    for j in range(LANES * channels):
+        patterns[0, j] = q - 1.0
+    g_lanes, h_lanes = lanes[0], lanes[2]
+    for column in range(columns):
+        for j in range(column * channels, (column + 1) * channels):
+            g_lanes[j], h_lanes[j] = g, h
+        g, ratio, h = g * ratio, ratio * step, h * h_step
+    for j in range(columns * channels, count):
+        g_lanes[j] = h_lanes[j] = 0.0
+
+
+@nb.njit(cache=True, nogil=True)
+def _is_real(n, chirp):
+    """Whether primitive n has no quadratic phase in any channel (χ = 0): its exp(E) is real."""
+    for slot in range(chirp.shape[1]):
+        if chirp[n, slot] != 0.0:
+            return False
+    return True
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
 def _amplitude_pattern(n, color, opacity, patterns):
     """The amplitude αc of primitive n's channels into the scratch's pattern (`_pattern_index`)."""
     channels = color.shape[1]
-    for j in range(LANES * channels):
-        patterns[2, j] = opacity[n] * color[n, j % channels]
+    for ch in range(channels):
+        amplitude = opacity[n] * color[n, ch]
+        for j in range(ch, LANES * channels, channels):
+            patterns[2, j] = amplitude
+
+
+@nb.njit(cache=True, nogil=True)
+def _rotation_pattern(n, phase, color, opacity, with_amplitude, scratch):
+    """e^{iφ} of primitive n's channels, times the amplitude αc if `with_amplitude`, into the scratch's
+    pattern (real and imaginary parts, `_pattern_index`): what real lanes are multiplied by."""
+    channels = phase.shape[1]
+    angles, cosines, sines, _, patterns = scratch
+    for ch in range(channels):
+        angles[ch] = phase[n, ch]
+    _cosines_and_sines(angles[:channels], cosines, sines)
+    for ch in range(channels):
+        scale = opacity[n] * color[n, ch] if with_amplitude else 1.0
+        for j in range(ch, LANES * channels, channels):
+            patterns[2, j], patterns[3, j] = scale * cosines[ch], scale * sines[ch]
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
@@ -376,6 +437,32 @@ def _add_strips(lanes, patterns, channels, count, spans, rows, row_length, start
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _add_real_strips(lanes, patterns, channels, count, spans, rows, row_length, start, out_re, out_im):
+    """`_add_strips` for real lanes (`_real_lane_tables`): out += αc·e^{iφ}·G, with G and H real, so a row
+    costs a product and a multiply-add per vector for G and H, and one multiply-add per image plane."""
+    lows, highs = spans
+    for strip in range(0, count, STRIP):
+        second = strip + LANES
+        at, at2 = _pattern_index(strip, channels), _pattern_index(second, channels)
+        g, h, q = vectors.load(lanes[0], strip), vectors.load(lanes[2], strip), vectors.load(patterns[0], at)
+        g2, h2, q2 = vectors.load(lanes[0], second), vectors.load(lanes[2], second), vectors.load(patterns[0], at2)
+        ar, ai = vectors.load(patterns[2], at), vectors.load(patterns[3], at)
+        ar2, ai2 = vectors.load(patterns[2], at2), vectors.load(patterns[3], at2)
+        position, position2 = vectors.ramp(strip), vectors.ramp(second)
+        at = start + strip
+        for k in range(_strip_rows(strip, STRIP, spans, rows)):
+            low, high = vectors.splat(lows[k]), vectors.splat(highs[k])
+            inside, inside2 = (vectors.where_between(position, low, high, g),
+                               vectors.where_between(position2, low, high, g2))
+            vectors.store(out_re, at, vectors.load(out_re, at) + ar * inside)
+            vectors.store(out_im, at, vectors.load(out_im, at) + ai * inside)
+            vectors.store(out_re, at + LANES, vectors.load(out_re, at + LANES) + ar2 * inside2)
+            vectors.store(out_im, at + LANES, vectors.load(out_im, at + LANES) + ai2 * inside2)
+            g, h, g2, h2 = g * h, h + h * q, g2 * h2, h2 + h2 * q2
+            at += row_length
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _accumulate_strips(lanes, patterns, channels, count, spans, rows, row_length, start, dy_first, grad_re,
                        grad_im):
     """Per lane, with w = ḡ·G over each row's span: Σw, Σw·dy and Σw·dy² (real and imaginary parts)
@@ -400,15 +487,47 @@ def _accumulate_strips(lanes, patterns, channels, count, spans, rows, row_length
             vr, vi = vr + ur, vi + ui
             gr, gi, hr, hi = _stepped_down(gr, gi, hr, hi, qr, qi)
             at += row_length
-        e = dy_first + walked
-        first, second, third = vectors.splat(e), vectors.splat(e * e), vectors.splat(2.0 * e + 1.0)
-        two = vectors.splat(2.0)
-        vectors.store(lanes[4], strip, tr)
-        vectors.store(lanes[5], strip, ti)
-        vectors.store(lanes[6], strip, first * tr - ur)
-        vectors.store(lanes[7], strip, first * ti - ui)
-        vectors.store(lanes[8], strip, second * tr - third * ur + two * vr)
-        vectors.store(lanes[9], strip, second * ti - third * ui + two * vi)
+        _store_moments(lanes, strip, dy_first + walked, tr, ti, ur, ui, vr, vi)
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _store_moments(lanes, strip, e, tr, ti, ur, ui, vr, vi):
+    """Σw, Σw·dy and Σw·dy² of the lanes from `strip` into lanes[4:10] from their running sums T, U, V
+    (`_accumulate_strips`), e being dy one row past the strip's last."""
+    first, second, third = vectors.splat(e), vectors.splat(e * e), vectors.splat(2.0 * e + 1.0)
+    two = vectors.splat(2.0)
+    vectors.store(lanes[4], strip, tr)
+    vectors.store(lanes[5], strip, ti)
+    vectors.store(lanes[6], strip, first * tr - ur)
+    vectors.store(lanes[7], strip, first * ti - ui)
+    vectors.store(lanes[8], strip, second * tr - third * ur + two * vr)
+    vectors.store(lanes[9], strip, second * ti - third * ui + two * vi)
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _accumulate_real_strips(lanes, patterns, channels, count, spans, rows, row_length, start, dy_first, grad_re,
+                            grad_im):
+    """`_accumulate_strips` for real lanes (`_real_lane_tables`): the rows sum ḡ·G with G real, and the
+    sums are rotated by the pattern's e^{iφ} once at the strip's end (w = e^{iφ}·ḡ·G)."""
+    lows, highs = spans
+    for strip in range(0, count, LANES):
+        at = _pattern_index(strip, channels)
+        g, h, q = vectors.load(lanes[0], strip), vectors.load(lanes[2], strip), vectors.load(patterns[0], at)
+        cosine, sine = vectors.load(patterns[2], at), vectors.load(patterns[3], at)
+        position = vectors.ramp(strip)
+        tr = ti = ur = ui = vr = vi = vectors.splat(0.0)
+        at, walked = start + strip, _strip_rows(strip, LANES, spans, rows)
+        for k in range(walked):
+            inside = vectors.where_between(position, vectors.splat(lows[k]), vectors.splat(highs[k]), g)
+            tr = tr + vectors.load(grad_re, at) * inside
+            ti = ti + vectors.load(grad_im, at) * inside
+            ur, ui = ur + tr, ui + ti
+            vr, vi = vr + ur, vi + ui
+            g, h = g * h, h + h * q
+            at += row_length
+        _store_moments(lanes, strip, dy_first + walked, cosine * tr + sine * ti, sine * tr - cosine * ti,
+                       cosine * ur + sine * ui, sine * ur - cosine * ui, cosine * vr + sine * vi,
+                       sine * vr - cosine * vi)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -510,16 +629,22 @@ def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumb
             amplitude = opacity[n] * color[n, ch] * cmath.exp(complex(0.0, phase[n, ch]))
             _walked_rows(A, B, C, amplitude, way, x0, y0, low, high, lefts, rights, ch, channels, out_re, out_im)
         return
-    count = _block_lanes(last + 1 - first, channels, STRIP)
+    columns, count = last + 1 - first, _block_lanes(last + 1 - first, channels, STRIP)
     box = (lanes[0][:count], lanes[1][:count], lanes[2][:count], lanes[3][:count])
     patterns = scratch[4]
-    _lane_tables(n, a, b, c, x0, y0, low, first, last + 1 - first, chirp, phase, wavenumbers, mahalanobis, count,
-                 box, scratch)
-    _amplitude_pattern(n, color, opacity, patterns)
     _lane_spans(lefts, rights, first, channels, high + 1 - low, spans)
     row_length = out_re.shape[1]
-    _add_strips(box, patterns, channels, count, spans, high + 1 - low, row_length, low * row_length + first * channels,
-                out_re.reshape(out_re.size), out_im.reshape(out_im.size))
+    start, image_re, image_im = low * row_length + first * channels, out_re.reshape(out_re.size), \
+        out_im.reshape(out_im.size)
+    if _is_real(n, chirp):
+        _real_lane_tables(a, b, c, x0, y0, low, first, columns, channels, count, box, scratch[3], patterns)
+        _rotation_pattern(n, phase, color, opacity, True, scratch)
+        _add_real_strips(box, patterns, channels, count, spans, high + 1 - low, row_length, start, image_re, image_im)
+    else:
+        _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumbers, mahalanobis, count, box,
+                     scratch)
+        _amplitude_pattern(n, color, opacity, patterns)
+        _add_strips(box, patterns, channels, count, spans, high + 1 - low, row_length, start, image_re, image_im)
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True)
@@ -658,13 +783,20 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
     box = (lanes[0][:count], lanes[1][:count], lanes[2][:count], lanes[3][:count], lanes[4][:count],
            lanes[5][:count], lanes[6][:count], lanes[7][:count], lanes[8][:count], lanes[9][:count])
     if way == TABULATED:
-        _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumbers, mahalanobis, count,
-                     box[:4], scratch)
         _lane_spans(lefts, rights, first, channels, high + 1 - low, spans)
-        row_length = grad_re.shape[1]
-        _accumulate_strips(box, scratch[4], channels, count, spans, high + 1 - low, row_length,
-                           low * row_length + first * channels, low - y0, grad_re.reshape(grad_re.size),
-                           grad_im.reshape(grad_im.size))
+        row_length, patterns = grad_re.shape[1], scratch[4]
+        start, image_re, image_im = low * row_length + first * channels, grad_re.reshape(grad_re.size), \
+            grad_im.reshape(grad_im.size)
+        if _is_real(n, chirp):
+            _real_lane_tables(a, b, c, x0, y0, low, first, columns, channels, count, box, scratch[3], patterns)
+            _rotation_pattern(n, phase, color, opacity, False, scratch)
+            _accumulate_real_strips(box, patterns, channels, count, spans, high + 1 - low, row_length, start, low - y0,
+                                    image_re, image_im)
+        else:
+            _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumbers, mahalanobis, count,
+                         box[:4], scratch)
+            _accumulate_strips(box, patterns, channels, count, spans, high + 1 - low, row_length, start, low - y0,
+                               image_re, image_im)
     alpha = np.float64(opacity[n])
     g_alpha = ga = gb = gc = gx = gy = 0.0
     for ch in range(channels):

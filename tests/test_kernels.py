@@ -76,16 +76,17 @@ def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primiti
         assert relative(got, want) < 1e-4, name
 
 
-def test_large_primitives_keep_the_agreement_down_hundreds_of_rows():
-    """Primitives of 20 to 90 px, curved, on a 240×180 image: the lanes step down up to 180 rows in
-    float32. Stepping H by Q directly let float32(Q)'s rounding compound (1.3–1.7e-4 here); H + H·(Q − 1)
-    keeps it to 3e-5."""
+@pytest.mark.parametrize("curved", [True, False], ids=["complex lanes", "real lanes"])
+def test_large_primitives_keep_the_agreement_down_hundreds_of_rows(curved):
+    """Primitives of 20 to 90 px on a 240×180 image: the lanes step down up to 180 rows in float32.
+    Stepping H by Q directly let float32(Q)'s rounding compound (1.3–1.7e-4 here, curved); H + H·(Q − 1)
+    keeps it to 3e-5. Without curvature the lanes are real (`kernels._real_lane_tables`)."""
     width, height, count = 240, 180, 40
     config = FitConfig(width=width, height=height)
     g = init_gaussians(count, 3, width, height, seed=3)
     gen = torch.Generator().manual_seed(3)
     g.scale = torch.log(torch.empty(count, 2).uniform_(20.0, 90.0, generator=gen))
-    g.curvature = 3.0 * torch.rand(count, generator=gen) - 1.5
+    g.curvature = (3.0 * torch.rand(count, generator=gen) - 1.5) * curved
     g.phase = 3.0 * torch.randn(count, 3, generator=gen)
     g.opacity = torch.zeros(count)
     s = splats(activate(Gaussians.from_tensors({k: v.double() for k, v in g.tensors().items()}), config),
@@ -137,10 +138,14 @@ def test_parameter_gradients_through_activations_match(curvature):
         assert relative(got, want) < 1e-4, name
 
 
-@pytest.mark.parametrize("curvature", ["shared", "per-channel"])
+@pytest.mark.parametrize("curvature", ["shared", "per-channel", "zero"])
 def test_fused_gradient_matches_finite_differences(curvature):
-    config = FitConfig(width=WIDTH, height=HEIGHT, curvature=curvature)
+    """Including the curvature's gradient at zero, where the kernels take real lanes: what CVQPG's
+    curvature starts from when the warm-up ends."""
+    config = FitConfig(width=WIDTH, height=HEIGHT, curvature="shared" if curvature == "zero" else curvature)
     raw = random_gaussians(40, 3, seed=2, per_channel=curvature == "per-channel")
+    if curvature == "zero":
+        raw.curvature = torch.zeros_like(raw.curvature)
     s = splats(activate(raw, config), config.pixel_pitch, "mahalanobis")
     k = wavenumbers_for(config.wavelengths)
     _, grads = outputs_and_gradients(splat_fused, s, k)
