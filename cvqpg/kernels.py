@@ -15,11 +15,12 @@ keep G and H for every column of the footprint's bounding box and every channel 
 G masked to the row's span, then G ← G·H and H ← H + H·(Q − 1) (`_stepped_down`). Per row only the
 image is read and written (loops over lane arrays, the previous form, stored G and H back on every
 row and took 13–24% more time). The forward pass walks two vectors at once, so that their chains of
-complex products overlap. The lanes start on the box's first row from six exponentials per channel, walked along
-the row in float64; the channels share their magnitudes, and their angles go through one vectorised
-cos/sin (`_cosines_and_sines`). Lanes hold primitives whose values stay inside float32's range over
-the box, ½D² ≤ `TABLE_EXPONENT_LIMIT` at its top corners: at initialisation all of them, and 98% of
-a fitted model's.
+complex products overlap. The lanes start on the box's first row from six exponentials per channel,
+walked along the row in float64, four channels at a time as vectors (`_walk_along_row`); the channels
+share their magnitudes, and their angles go through one vectorised cos/sin (`_cosines_and_sines`).
+Lanes hold primitives whose values stay inside float32's range over the box, ½D² ≤
+`TABLE_EXPONENT_LIMIT` at its top corners: at initialisation all of them, and 98% of a fitted
+model's.
 
 **Real lanes (primitives without curvature).** Where χ = 0 in every channel (the flat baseline, and
 CVQPG during its warm-up) exp(E) is the real envelope, the same in every channel: the lanes hold it
@@ -227,9 +228,14 @@ def _exponent_coefficients(a, b, c, k_chirp, mahalanobis):
 @nb.njit(cache=True, nogil=True)
 def _scratch(channels):
     """A thread's arrays for the lane tables: angles, their cosines and sines (six per channel), the
-    six magnitudes, and the per-channel lane patterns (`PATTERNS`)."""
+    six magnitudes, the per-channel lane patterns (`PATTERNS`), and the walks' start values
+    (`_walk_along_row`; zero for the channels past the last, which must stay finite)."""
+    groups = (channels + WALKED_CHANNELS - 1) // WALKED_CHANNELS
     return (np.empty(6 * channels), np.empty(6 * channels), np.empty(6 * channels), np.empty(6),
-            np.empty((PATTERNS, LANES * channels), np.float32))
+            np.empty((PATTERNS, LANES * channels), np.float32), np.zeros((10, WALKED_CHANNELS * groups)))
+
+
+WALKED_CHANNELS = vectors.WIDTH_FLOAT64  # channels walked along a box's first row together
 
 
 # Per lane of LANES columns: Q − 1 (real and imaginary parts); the amplitude αc, or for real lanes e^{iφ} (times αc
@@ -279,7 +285,7 @@ def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumb
     in (α_A, α_B, α_C)."""
     channels = phase.shape[1]
     dx, dy = first - x0, low - y0
-    angles, cosines, sines, magnitudes, patterns = scratch
+    angles, cosines, sines, magnitudes, patterns, starts = scratch
     _lane_magnitudes(dx, dy, a, b, c, magnitudes)
     pa, pb, pc = _phase_coefficients(a, b, c, mahalanobis)
     quadratic = _lane_exponents(dx, dy, pa, pb, pc)
@@ -289,17 +295,46 @@ def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumb
             angles[6 * ch + j] = k_chirp * quadratic[j]
         angles[6 * ch] += phase[n, ch]
     _cosines_and_sines(angles[:6 * channels], cosines, sines)
-    g_re, g_im, h_re, h_im = lanes
     for ch in range(channels):
         g, ratio, step, h, h_step, q = _lane_exponentials(magnitudes, cosines, sines, ch)
         for j in range(ch, LANES * channels, channels):
             patterns[0, j], patterns[1, j] = q.real - 1.0, q.imag
-        for column in range(columns):
-            j = column * channels + ch
-            g_re[j], g_im[j], h_re[j], h_im[j] = g.real, g.imag, h.real, h.imag
-            g, ratio, h = g * ratio, ratio * step, h * h_step
+        starts[0, ch], starts[1, ch], starts[2, ch], starts[3, ch] = g.real, g.imag, ratio.real, ratio.imag
+        starts[4, ch], starts[5, ch], starts[6, ch], starts[7, ch] = step.real, step.imag, h.real, h.imag
+        starts[8, ch], starts[9, ch] = h_step.real, h_step.imag
+    _walk_along_row(starts, channels, columns, lanes)
+    g_re, g_im, h_re, h_im = lanes
     for j in range(columns * channels, count):
         g_re[j] = g_im[j] = h_re[j] = h_im[j] = 0.0
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True)
+def _walk_along_row(starts, channels, columns, lanes):
+    """G and H of every column and channel into the lanes (G ← G·ratio, ratio ← ratio·step,
+    H ← H·step_H per column), from `starts` [10, ·] (G, ratio, step, H, step_H, real and imaginary
+    parts, one column per channel). The channels go WALKED_CHANNELS at a time as float64 vectors
+    (`vectors.Float64x4`), whose chains of complex products are the row's critical path: one chain for
+    three channels instead of three one after the other. Each column stores four lanes at once. Past
+    a group's last channel those stores overwrite the lanes of the next column's first channels, so
+    the groups go from the last: the first group, walked last, leaves every lane right. The last
+    column's stores reach up to three lanes past the box's lanes, which the lane arrays, as long as
+    an image row, always have."""
+    g_re, g_im, h_re, h_im = lanes
+    for group in range((channels - 1) // WALKED_CHANNELS, -1, -1):
+        at = group * WALKED_CHANNELS
+        gr, gi, rr, ri = (vectors.load(starts[0], at), vectors.load(starts[1], at), vectors.load(starts[2], at),
+                          vectors.load(starts[3], at))
+        sr, si, hr, hi = (vectors.load(starts[4], at), vectors.load(starts[5], at), vectors.load(starts[6], at),
+                          vectors.load(starts[7], at))
+        hsr, hsi = vectors.load(starts[8], at), vectors.load(starts[9], at)
+        for column in range(columns):
+            j = column * channels + at
+            vectors.store_float32(g_re, j, gr)
+            vectors.store_float32(g_im, j, gi)
+            vectors.store_float32(h_re, j, hr)
+            vectors.store_float32(h_im, j, hi)
+            gr, gi, rr, ri = gr * rr - gi * ri, gr * ri + gi * rr, rr * sr - ri * si, rr * si + ri * sr
+            hr, hi = hr * hsr - hi * hsi, hr * hsi + hi * hsr
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -355,7 +390,7 @@ def _rotation_pattern(n, phase, color, opacity, with_amplitude, scratch):
     """e^{iφ} of primitive n's channels, times the amplitude αc if `with_amplitude`, into the scratch's
     pattern (real and imaginary parts, `_pattern_index`): what real lanes are multiplied by."""
     channels = phase.shape[1]
-    angles, cosines, sines, _, patterns = scratch
+    angles, cosines, sines, _, patterns, _ = scratch
     for ch in range(channels):
         angles[ch] = phase[n, ch]
     _cosines_and_sines(angles[:channels], cosines, sines)

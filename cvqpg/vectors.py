@@ -1,14 +1,16 @@
-"""Eight float32 lanes as one value in Numba code: `Float32x8`, an LLVM vector that stays in a register.
+"""Explicit SIMD values in Numba code: `Float32x8` and `Float64x4`, LLVM vectors that stay in a register.
 
 The rasterizer's kernels walk a strip of eight lanes down every row of a primitive's box, carrying
-the strip's values from row to row. Written over arrays, LLVM must keep such state in memory (it
-cannot prove that the arrays do not overlap the image being written); as values of this type it
-lives in registers, and each operation below is one vector instruction (on AVX2). Arithmetic
-carries LLVM's fast-math flags, as the kernels that use it compile with fast-math.
+the strip's values from row to row, and walk a primitive's channels along its first row four at a
+time. Written over arrays, LLVM must keep such state in memory (it cannot prove that the arrays do
+not overlap the image being written); as values of these types it lives in registers, and each
+operation below is one vector instruction (on AVX2). Arithmetic carries LLVM's fast-math flags, as
+the kernels that use it compile with fast-math.
 
-Supported: `load`/`store` of eight consecutive float32 of a 1D array, `splat` (one value in every
-lane), `ramp` (start, start + 1, ..., start + 7), `+`, `-` and `*` between vectors, and `where_between`
-(a mask on lane positions).
+Supported: `load`/`store` of consecutive values of a contiguous 1D array (eight float32 or four
+float64, by the array's type), `store_float32` (four float64 rounded into four float32), `splat`
+(one value in all eight float32 lanes), `ramp` (start, start + 1, ..., start + 7, float32), `+`, `-`
+and `*` between vectors of one type, and `where_between` (a mask on float32 lane positions).
 """
 
 from __future__ import annotations
@@ -20,72 +22,98 @@ from numba import types
 from numba.core.errors import TypingError
 from numba.extending import intrinsic, models, overload, register_model
 
-WIDTH = 8
-_VECTOR = ir.VectorType(ir.FloatType(), WIDTH)
+WIDTH = 8  # float32 lanes of a Float32x8
+WIDTH_FLOAT64 = 4  # float64 lanes of a Float64x4
 _INDEX = ir.IntType(32)
 _FAST = ("fast",)
 
 
-class Float32x8(types.Type):
-    """Numba type of eight float32 lanes (an LLVM <8 x float>)."""
+class Vector(types.Type):
+    """Numba type of `width` lanes of `dtype` (an LLVM vector)."""
 
-    def __init__(self):
-        super().__init__(name="Float32x8")
-
-
-float32x8 = Float32x8()
+    def __init__(self, name: str, dtype: types.Float, width: int, element: ir.Type):
+        self.dtype, self.width, self.ir_type = dtype, width, ir.VectorType(element, width)
+        super().__init__(name=name)
 
 
-@register_model(Float32x8)
-class _Float32x8Model(models.PrimitiveModel):
+float32x8 = Vector("Float32x8", types.float32, WIDTH, ir.FloatType())
+float64x4 = Vector("Float64x4", types.float64, WIDTH_FLOAT64, ir.DoubleType())
+_BY_DTYPE = {types.float32: float32x8, types.float64: float64x4}
+
+
+@register_model(Vector)
+class _VectorModel(models.PrimitiveModel):
     def __init__(self, dmm, fe_type):
-        super().__init__(dmm, fe_type, _VECTOR)
+        super().__init__(dmm, fe_type, fe_type.ir_type)
 
 
-def _address(context, builder, array_type, array, start):
-    """Pointer to array[start] as a pointer to eight float32 lanes."""
+def _address(context, builder, array_type, array, start, vector: Vector):
+    """Pointer to array[start] as a pointer to a vector."""
     data = context.make_array(array_type)(context, builder, array).data
-    return builder.bitcast(builder.gep(data, [start]), _VECTOR.as_pointer())
+    return builder.bitcast(builder.gep(data, [start]), vector.ir_type.as_pointer())
 
 
-def _check_float32_array(array) -> None:
-    if not (isinstance(array, types.Array) and array.dtype == types.float32 and array.ndim == 1
+def _vector_of(array) -> Vector:
+    """The vector type that loads from and stores to `array` (a contiguous 1D float32 or float64 array)."""
+    if not (isinstance(array, types.Array) and array.dtype in _BY_DTYPE and array.ndim == 1
             and array.layout in "CF"):
-        raise TypingError(f"eight-lane loads and stores take a contiguous 1D float32 array, not {array}")
+        raise TypingError(f"vector loads and stores take a contiguous 1D float32 or float64 array, not {array}")
+    return _BY_DTYPE[array.dtype]
 
 
 @intrinsic
 def load(typingctx, array, start):
-    """array[start:start + 8] as one vector (no bounds check)."""
-    _check_float32_array(array)
+    """array[start:start + 8] (float32) or array[start:start + 4] (float64) as one vector (no bounds check)."""
+    vector = _vector_of(array)
 
     def codegen(context, builder, signature, args):
-        return builder.load(_address(context, builder, signature.args[0], args[0], args[1]), align=4)
+        return builder.load(_address(context, builder, signature.args[0], args[0], args[1], vector),
+                            align=vector.dtype.bitwidth // 8)
 
-    return float32x8(array, types.intp), codegen
+    return vector(array, types.intp), codegen
 
 
 @intrinsic
 def store(typingctx, array, start, value):
-    """array[start:start + 8] = value (no bounds check)."""
-    _check_float32_array(array)
+    """array[start:start + width] = value (no bounds check), `value` of the array's vector type."""
+    vector = _vector_of(array)
+    if value is not vector:
+        raise TypingError(f"a {vector} stores into {array}, not a {value}")
 
     def codegen(context, builder, signature, args):
-        builder.store(args[2], _address(context, builder, signature.args[0], args[0], args[1]), align=4)
+        builder.store(args[2], _address(context, builder, signature.args[0], args[0], args[1], vector),
+                      align=vector.dtype.bitwidth // 8)
         return context.get_dummy_value()
 
-    return types.none(array, types.intp, float32x8), codegen
+    return types.none(array, types.intp, value), codegen
+
+
+@intrinsic
+def store_float32(typingctx, array, start, value):
+    """array[start:start + 4] = value rounded to float32 (no bounds check), for a Float64x4 `value` and
+    a float32 `array`."""
+    if _vector_of(array) is not float32x8 or value is not float64x4:
+        raise TypingError(f"store_float32 rounds a Float64x4 into a float32 array, not a {value} into {array}")
+    narrow = ir.VectorType(ir.FloatType(), WIDTH_FLOAT64)
+
+    def codegen(context, builder, signature, args):
+        data = context.make_array(signature.args[0])(context, builder, args[0]).data
+        pointer = builder.bitcast(builder.gep(data, [args[1]]), narrow.as_pointer())
+        builder.store(builder.fptrunc(args[2], narrow), pointer, align=4)
+        return context.get_dummy_value()
+
+    return types.none(array, types.intp, float64x4), codegen
 
 
 def _broadcast(context, builder, value, value_type):
     scalar = context.cast(builder, value, value_type, types.float32)
-    single = builder.insert_element(ir.Constant(_VECTOR, ir.Undefined), scalar, ir.Constant(_INDEX, 0))
+    single = builder.insert_element(ir.Constant(float32x8.ir_type, ir.Undefined), scalar, ir.Constant(_INDEX, 0))
     return builder.shuffle_vector(single, single, ir.Constant(ir.VectorType(_INDEX, WIDTH), [0] * WIDTH))
 
 
 @intrinsic
 def splat(typingctx, value):
-    """The number `value` (converted to float32) in every lane."""
+    """The number `value` (converted to float32) in all eight lanes."""
     if not isinstance(value, (types.Float, types.Integer)):
         raise TypingError(f"splat takes a number, not {value}")
 
@@ -103,18 +131,18 @@ def ramp(typingctx, start):
 
     def codegen(context, builder, signature, args):
         first = _broadcast(context, builder, args[0], signature.args[0])
-        return builder.fadd(first, ir.Constant(_VECTOR, [float(i) for i in range(WIDTH)]), flags=_FAST)
+        return builder.fadd(first, ir.Constant(float32x8.ir_type, [float(i) for i in range(WIDTH)]), flags=_FAST)
 
     return float32x8(start), codegen
 
 
 @intrinsic
 def where_between(typingctx, position, low, high, value):
-    """value in the lanes where low ≤ position < high, 0 in the others."""
+    """value in the lanes where low ≤ position < high, 0 in the others (Float32x8)."""
     def codegen(context, builder, signature, args):
         position, low, high, value = args
         inside = builder.and_(builder.fcmp_ordered(">=", position, low), builder.fcmp_ordered("<", position, high))
-        return builder.select(inside, value, ir.Constant(_VECTOR, [0.0] * WIDTH))
+        return builder.select(inside, value, ir.Constant(float32x8.ir_type, [0.0] * WIDTH))
 
     return float32x8(float32x8, float32x8, float32x8, float32x8), codegen
 
@@ -125,10 +153,10 @@ def _lanewise(instruction: str):
         def codegen(context, builder, signature, args):
             return getattr(builder, instruction)(args[0], args[1], flags=_FAST)
 
-        return float32x8(float32x8, float32x8), codegen
+        return left(left, right), codegen
 
     def implementation(left, right):
-        if left is float32x8 and right is float32x8:
+        if isinstance(left, Vector) and left is right:
             return lambda left, right: operation(left, right)
 
     return implementation

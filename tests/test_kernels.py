@@ -76,6 +76,23 @@ def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primiti
         assert relative(got, want) < 1e-4, name
 
 
+def test_any_number_of_channels_matches_reference():
+    """Six channels: the lane tables walk the channels four at a time, in two groups."""
+    config = FitConfig(width=WIDTH, height=HEIGHT)
+    raw = random_gaussians(120, 3, seed=6)
+    raw.curvature[::4] = 0.0
+    s = splats(activate(raw, config), config.pixel_pitch, "mahalanobis")
+    six = Splats(s.position_px, s.conic, s.reach_px, s.chirp, torch.cat([s.amplitude, 0.5 * s.amplitude], dim=1),
+                 torch.cat([s.phase_rad, s.phase_rad.flip(1)], dim=1), s.opacity, True)
+    k = wavenumbers_for(config.wavelengths + (600e-9, 560e-9, 500e-9))
+    expected, expected_grads = outputs_and_gradients(splat_reference, six, k)
+    actual, actual_grads = outputs_and_gradients(splat_fused, six, k)
+    assert relative(actual, expected) < 1e-4
+    for name, got, want in zip(["position", "conic", "chirp", "amplitude", "phase", "opacity"], actual_grads,
+                               expected_grads):
+        assert relative(got, want) < 1e-4, name
+
+
 @pytest.mark.parametrize("curved", [True, False], ids=["complex lanes", "real lanes"])
 def test_large_primitives_keep_the_agreement_down_hundreds_of_rows(curved):
     """Primitives of 20 to 90 px on a 240×180 image: the lanes step down up to 180 rows in float32.
@@ -250,7 +267,28 @@ def test_eight_lane_vectors_match_numpy():
     np.testing.assert_allclose(out[:8], np.where(inside, a * b - a, 0.0) + b, rtol=1e-6)
     assert (out[8:16] == positions).all() and (out[16:] == 10).all()
     load = numba.njit(lambda array: vectors.load(array, 0))
-    with pytest.raises(TypingError, match="contiguous 1D float32 array"):
-        load(np.zeros(8))
-    with pytest.raises(TypingError, match="contiguous 1D float32 array"):
+    with pytest.raises(TypingError, match="contiguous 1D float32 or float64 array"):
+        load(np.zeros(8, np.int64))
+    with pytest.raises(TypingError, match="contiguous 1D float32 or float64 array"):
         load(np.zeros(16, np.float32)[::2])
+
+
+@numba.njit
+def _float64_expressions(a, b, out, narrow):
+    """out[0:4] = a·b − a + b in float64, narrow[1:5] = the same rounded to float32."""
+    x, y = vectors.load(a, 0), vectors.load(b, 0)
+    vectors.store(out, 0, x * y - x + y)
+    vectors.store_float32(narrow, 1, x * y - x + y)
+
+
+def test_four_lane_float64_vectors_match_numpy():
+    rng = np.random.default_rng(5)
+    a, b = rng.normal(size=4), rng.normal(size=4)
+    out, narrow = np.zeros(4), np.zeros(6, np.float32)
+    _float64_expressions(a, b, out, narrow)
+    np.testing.assert_allclose(out, a * b - a + b, rtol=1e-15)
+    assert (narrow[1:5] == (a * b - a + b).astype(np.float32)).all() and narrow[0] == narrow[5] == 0
+    with pytest.raises(TypingError, match="a Float32x8 stores into .*, not a Float64x4"):
+        _float64_expressions(a, b, np.zeros(8, np.float32), narrow)
+    with pytest.raises(TypingError, match="store_float32 rounds a Float64x4 into a float32 array"):
+        _float64_expressions(a, b, out, np.zeros(6))
