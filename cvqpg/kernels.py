@@ -230,12 +230,18 @@ def _scratch(channels):
     """A thread's arrays for the lane tables: angles, their cosines and sines (six per channel), the
     six magnitudes, the per-channel lane patterns (`PATTERNS`), and the walks' start values
     (`_walk_along_row`; zero for the channels past the last, which must stay finite)."""
-    groups = (channels + WALKED_CHANNELS - 1) // WALKED_CHANNELS
     return (np.empty(6 * channels), np.empty(6 * channels), np.empty(6 * channels), np.empty(6),
-            np.empty((PATTERNS, LANES * channels), np.float32), np.zeros((10, WALKED_CHANNELS * groups)))
+            np.empty((PATTERNS, LANES * channels), np.float32), np.zeros((10, _vector_channels(channels))))
 
 
-WALKED_CHANNELS = vectors.WIDTH_FLOAT64  # channels walked along a box's first row together
+WALKED_CHANNELS = vectors.WIDTH_FLOAT64  # channels that the first-row walk and the moments take together
+
+
+@nb.njit(cache=True, nogil=True)
+def _vector_channels(channels):
+    """`channels` rounded up to whole vectors of WALKED_CHANNELS: the columns of arrays that hold one
+    value per channel for them."""
+    return (channels + WALKED_CHANNELS - 1) // WALKED_CHANNELS * WALKED_CHANNELS
 
 
 # Per lane of LANES columns: Q − 1 (real and imaginary parts); the amplitude αc, or for real lanes e^{iφ} (times αc
@@ -780,34 +786,35 @@ def _walked_moments(grad_re, grad_im, A, B, C, rotation, way, x0, y0, low, high,
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True)
-def _lane_moments(lanes, lane, channels, columns, dx_first):
-    """One channel's moments of t and u from its lanes' sums Σw, Σw·dy, Σw·dy² (w = t − i·u): each
-    column adds them weighted by 1, dx, dx²."""
+def _lane_moments(lanes, channels, columns, dx_first, moments):
+    """Every channel's moments of t and u from its lanes' sums Σw, Σw·dy, Σw·dy² (w = t − i·u): each
+    column adds them weighted by 1, dx, dx². Into moments [12, ·], one column per channel: t00, t10,
+    t20, t01, t11, t02, then u00 to u02. The channels go WALKED_CHANNELS at a time as float64 vectors
+    (their lanes are consecutive); past a group's last channel the vectors' lanes read the next
+    column's first channels, or up to three lanes past the box's, and are discarded."""
     s0r, s0i, s1r, s1i, s2r, s2i = lanes[4:]
-    t00 = t10 = t20 = t01 = t11 = t02 = u00 = u10 = u20 = u01 = u11 = u02 = 0.0
-    for i in range(columns):
-        j = i * channels + lane
-        dx = dx_first + i
-        t0, t1, u0, u1 = np.float64(s0r[j]), np.float64(s1r[j]), -np.float64(s0i[j]), -np.float64(s1i[j])
-        t00 += t0
-        t10 += t0 * dx
-        t20 += t0 * dx * dx
-        t01 += t1
-        t11 += t1 * dx
-        t02 += np.float64(s2r[j])
-        u00 += u0
-        u10 += u0 * dx
-        u20 += u0 * dx * dx
-        u01 += u1
-        u11 += u1 * dx
-        u02 -= np.float64(s2i[j])
-    return (t00, t10, t20, t01, t11, t02), (u00, u10, u20, u01, u11, u02)
+    zero = vectors.splat_float64(0.0)
+    for at in range(0, channels, WALKED_CHANNELS):
+        t00 = t10 = t20 = t01 = t11 = t02 = u00 = u10 = u20 = u01 = u11 = u02 = zero
+        for i in range(columns):
+            j = i * channels + at
+            dx = vectors.splat_float64(dx_first + i)
+            t0, t1, u0, u1 = (vectors.load_float64(s0r, j), vectors.load_float64(s1r, j), vectors.load_float64(s0i, j),
+                              vectors.load_float64(s1i, j))
+            t0x, u0x = t0 * dx, u0 * dx
+            t00, t10, t20, t01, t11 = t00 + t0, t10 + t0x, t20 + t0x * dx, t01 + t1, t11 + t1 * dx
+            u00, u10, u20, u01, u11 = u00 + u0, u10 + u0x, u20 + u0x * dx, u01 + u1, u11 + u1 * dx
+            t02, u02 = t02 + vectors.load_float64(s2r, j), u02 + vectors.load_float64(s2i, j)
+        for row, value in enumerate((t00, t10, t20, t01, t11, t02)):
+            vectors.store(moments[row], at, value)
+        for row, value in enumerate((u00, u10, u20, u01, u11, u02)):
+            vectors.store(moments[6 + row], at, zero - value)  # u = −Im(w)
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                       grad_re, grad_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts, rights,
-                      spans, lanes, scratch):
+                      spans, lanes, scratch, moments):
     channels = color.shape[1]
     height, width = grad_re.shape[0], _image_width(grad_re.shape[1], channels)
     way, x0, y0, a, b, c, r, low, high, first, last = _way(n, position, conic, reach, height, width, lefts, rights)
@@ -832,6 +839,7 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
                          box[:4], scratch)
             _accumulate_strips(box, patterns, channels, count, spans, high + 1 - low, row_length, start, low - y0,
                                image_re, image_im)
+        _lane_moments(box, channels, columns, first - x0, moments)
     alpha = np.float64(opacity[n])
     g_alpha = ga = gb = gc = gx = gy = 0.0
     for ch in range(channels):
@@ -839,7 +847,8 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
         slot = _chirp_slot(ch, chirp)
         k_chirp = k * np.float64(chirp[n, slot])
         if way == TABULATED:
-            t_moments, u_moments = _lane_moments(box, ch, channels, columns, first - x0)
+            t_moments = moments[0, ch], moments[1, ch], moments[2, ch], moments[3, ch], moments[4, ch], moments[5, ch]
+            u_moments = moments[6, ch], moments[7, ch], moments[8, ch], moments[9, ch], moments[10, ch], moments[11, ch]
         else:
             A, B, C = _exponent_coefficients(a, b, c, k_chirp, mahalanobis)
             t_moments, u_moments = _walked_moments(grad_re, grad_im, A, B, C, cmath.exp(complex(0.0, phase[n, ch])),
@@ -884,11 +893,11 @@ def _gradients_share(t, threads, order, position, conic, reach, chirp, color, ph
              np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
              np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
              np.empty(width, np.float32))
-    scratch = _scratch(color.shape[1])
+    scratch, moments = _scratch(color.shape[1]), np.empty((12, _vector_channels(color.shape[1])))
     for i in range(t, position.shape[0], threads):
         _gradients_of_one(order[i], position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                           grad_re, grad_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts, rights,
-                          spans, lanes, scratch)
+                          spans, lanes, scratch, moments)
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)

@@ -8,9 +8,10 @@ operation below is one vector instruction (on AVX2). Arithmetic carries LLVM's f
 the kernels that use it compile with fast-math.
 
 Supported: `load`/`store` of consecutive values of a contiguous 1D array (eight float32 or four
-float64, by the array's type), `store_float32` (four float64 rounded into four float32), `splat`
-(one value in all eight float32 lanes), `ramp` (start, start + 1, ..., start + 7, float32), `+`, `-`
-and `*` between vectors of one type, and `where_between` (a mask on float32 lane positions).
+float64, by the array's type), `load_float64` and `store_float32` (four float32 of an array widened
+to a Float64x4, and back, rounded), `splat` and `splat_float64` (one value in every lane), `ramp`
+(start, start + 1, ..., start + 7, float32), `+`, `-` and `*` between vectors of one type, and
+`where_between` (a mask on float32 lane positions).
 """
 
 from __future__ import annotations
@@ -47,10 +48,13 @@ class _VectorModel(models.PrimitiveModel):
         super().__init__(dmm, fe_type, fe_type.ir_type)
 
 
-def _address(context, builder, array_type, array, start, vector: Vector):
-    """Pointer to array[start] as a pointer to a vector."""
+_FLOAT32X4 = ir.VectorType(ir.FloatType(), WIDTH_FLOAT64)  # what a Float64x4 is stored as in float32
+
+
+def _address(context, builder, array_type, array, start, vector_type: ir.VectorType):
+    """Pointer to array[start] as a pointer to an LLVM vector."""
     data = context.make_array(array_type)(context, builder, array).data
-    return builder.bitcast(builder.gep(data, [start]), vector.ir_type.as_pointer())
+    return builder.bitcast(builder.gep(data, [start]), vector_type.as_pointer())
 
 
 def _vector_of(array) -> Vector:
@@ -67,7 +71,7 @@ def load(typingctx, array, start):
     vector = _vector_of(array)
 
     def codegen(context, builder, signature, args):
-        return builder.load(_address(context, builder, signature.args[0], args[0], args[1], vector),
+        return builder.load(_address(context, builder, signature.args[0], args[0], args[1], vector.ir_type),
                             align=vector.dtype.bitwidth // 8)
 
     return vector(array, types.intp), codegen
@@ -81,7 +85,7 @@ def store(typingctx, array, start, value):
         raise TypingError(f"a {vector} stores into {array}, not a {value}")
 
     def codegen(context, builder, signature, args):
-        builder.store(args[2], _address(context, builder, signature.args[0], args[0], args[1], vector),
+        builder.store(args[2], _address(context, builder, signature.args[0], args[0], args[1], vector.ir_type),
                       align=vector.dtype.bitwidth // 8)
         return context.get_dummy_value()
 
@@ -94,40 +98,65 @@ def store_float32(typingctx, array, start, value):
     a float32 `array`."""
     if _vector_of(array) is not float32x8 or value is not float64x4:
         raise TypingError(f"store_float32 rounds a Float64x4 into a float32 array, not a {value} into {array}")
-    narrow = ir.VectorType(ir.FloatType(), WIDTH_FLOAT64)
 
     def codegen(context, builder, signature, args):
-        data = context.make_array(signature.args[0])(context, builder, args[0]).data
-        pointer = builder.bitcast(builder.gep(data, [args[1]]), narrow.as_pointer())
-        builder.store(builder.fptrunc(args[2], narrow), pointer, align=4)
+        pointer = _address(context, builder, signature.args[0], args[0], args[1], _FLOAT32X4)
+        builder.store(builder.fptrunc(args[2], _FLOAT32X4), pointer, align=4)
         return context.get_dummy_value()
 
     return types.none(array, types.intp, float64x4), codegen
 
 
-def _broadcast(context, builder, value, value_type):
-    scalar = context.cast(builder, value, value_type, types.float32)
-    single = builder.insert_element(ir.Constant(float32x8.ir_type, ir.Undefined), scalar, ir.Constant(_INDEX, 0))
-    return builder.shuffle_vector(single, single, ir.Constant(ir.VectorType(_INDEX, WIDTH), [0] * WIDTH))
+@intrinsic
+def load_float64(typingctx, array, start):
+    """array[start:start + 4] of a float32 `array`, widened to a Float64x4 (no bounds check)."""
+    if _vector_of(array) is not float32x8:
+        raise TypingError(f"load_float64 widens four values of a float32 array, not of {array}")
+
+    def codegen(context, builder, signature, args):
+        pointer = _address(context, builder, signature.args[0], args[0], args[1], _FLOAT32X4)
+        return builder.fpext(builder.load(pointer, align=4), float64x4.ir_type)
+
+    return float64x4(array, types.intp), codegen
+
+
+def _broadcast(context, builder, value, value_type, vector: Vector = float32x8):
+    scalar = context.cast(builder, value, value_type, vector.dtype)
+    single = builder.insert_element(ir.Constant(vector.ir_type, ir.Undefined), scalar, ir.Constant(_INDEX, 0))
+    every = ir.Constant(ir.VectorType(_INDEX, vector.width), [0] * vector.width)
+    return builder.shuffle_vector(single, single, every)
+
+
+def _check_number(name: str, value) -> None:
+    if not isinstance(value, (types.Float, types.Integer)):
+        raise TypingError(f"{name} takes a number, not {value}")
+
+
+def _splat_codegen(vector: Vector):
+    def codegen(context, builder, signature, args):
+        return _broadcast(context, builder, args[0], signature.args[0], vector)
+
+    return codegen
 
 
 @intrinsic
 def splat(typingctx, value):
     """The number `value` (converted to float32) in all eight lanes."""
-    if not isinstance(value, (types.Float, types.Integer)):
-        raise TypingError(f"splat takes a number, not {value}")
+    _check_number("splat", value)
+    return float32x8(value), _splat_codegen(float32x8)
 
-    def codegen(context, builder, signature, args):
-        return _broadcast(context, builder, args[0], signature.args[0])
 
-    return float32x8(value), codegen
+@intrinsic
+def splat_float64(typingctx, value):
+    """The number `value` (as float64) in all four lanes of a Float64x4."""
+    _check_number("splat_float64", value)
+    return float64x4(value), _splat_codegen(float64x4)
 
 
 @intrinsic
 def ramp(typingctx, start):
     """(start, start + 1, ..., start + 7) in float32: the lanes' positions."""
-    if not isinstance(start, (types.Float, types.Integer)):
-        raise TypingError(f"ramp takes a number, not {start}")
+    _check_number("ramp", start)
 
     def codegen(context, builder, signature, args):
         first = _broadcast(context, builder, args[0], signature.args[0])

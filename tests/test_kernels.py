@@ -274,21 +274,26 @@ def test_eight_lane_vectors_match_numpy():
 
 
 @numba.njit
-def _float64_expressions(a, b, out, narrow):
-    """out[0:4] = a·b − a + b in float64, narrow[1:5] = the same rounded to float32."""
+def _float64_expressions(a, b, c, out, narrow):
+    """out[0:4] = a·b − a + b in float64, out[4:8] = c[1:5] widened, times 2.5; narrow[1:5] = out[0:4]
+    rounded to float32."""
     x, y = vectors.load(a, 0), vectors.load(b, 0)
     vectors.store(out, 0, x * y - x + y)
+    vectors.store(out, 4, vectors.load_float64(c, 1) * vectors.splat_float64(2.5))
     vectors.store_float32(narrow, 1, x * y - x + y)
 
 
 def test_four_lane_float64_vectors_match_numpy():
     rng = np.random.default_rng(5)
-    a, b = rng.normal(size=4), rng.normal(size=4)
-    out, narrow = np.zeros(4), np.zeros(6, np.float32)
-    _float64_expressions(a, b, out, narrow)
-    np.testing.assert_allclose(out, a * b - a + b, rtol=1e-15)
+    a, b, c = rng.normal(size=4), rng.normal(size=4), rng.normal(size=6).astype(np.float32)
+    out, narrow = np.zeros(8), np.zeros(6, np.float32)
+    _float64_expressions(a, b, c, out, narrow)
+    np.testing.assert_allclose(out[:4], a * b - a + b, rtol=1e-15)
+    assert (out[4:] == c[1:5].astype(np.float64) * 2.5).all()
     assert (narrow[1:5] == (a * b - a + b).astype(np.float32)).all() and narrow[0] == narrow[5] == 0
     with pytest.raises(TypingError, match="a Float32x8 stores into .*, not a Float64x4"):
-        _float64_expressions(a, b, np.zeros(8, np.float32), narrow)
+        _float64_expressions(a, b, c, np.zeros(8, np.float32), narrow)
     with pytest.raises(TypingError, match="store_float32 rounds a Float64x4 into a float32 array"):
-        _float64_expressions(a, b, out, np.zeros(6))
+        _float64_expressions(a, b, c, out, np.zeros(6))
+    with pytest.raises(TypingError, match="load_float64 widens four values of a float32 array"):
+        _float64_expressions(a, b, c.astype(np.float64), out, narrow)
