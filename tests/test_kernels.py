@@ -48,6 +48,16 @@ def relative(a, b):
     return float((a - b).abs().norm() / b.abs().norm().clamp(min=1e-30))
 
 
+def assert_fused_matches_reference(s: Splats, wavenumbers, width: int = WIDTH, height: int = HEIGHT):
+    """The fused kernels' hologram and every parameter's gradient against the reference's, to 1e-4 relative."""
+    expected, expected_grads = outputs_and_gradients(splat_reference, s, wavenumbers, width, height)
+    actual, actual_grads = outputs_and_gradients(splat_fused, s, wavenumbers, width, height)
+    assert relative(actual, expected) < 1e-4
+    for name, got, want in zip(["position", "conic", "chirp", "amplitude", "phase", "opacity"], actual_grads,
+                               expected_grads):
+        assert relative(got, want) < 1e-4, name
+
+
 @pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
 @pytest.mark.parametrize("color", ["rgb", "gray"])
 @pytest.mark.parametrize("primitive", ["flat", "cvqpg", "per-channel"])
@@ -67,13 +77,7 @@ def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primiti
     s = splats(prims, config.pixel_pitch, qpf)
     taken = set(ways(s).tolist())  # every way the kernels have: lane tables, the centre-column walk, row maxima
     assert {kernels.OFF_IMAGE, kernels.TABULATED, kernels.WALKED, kernels.WALKED_FROM_RIDGE} <= taken, taken
-    k = wavenumbers_for(config.wavelengths)
-    expected, expected_grads = outputs_and_gradients(splat_reference, s, k)
-    actual, actual_grads = outputs_and_gradients(splat_fused, s, k)
-    assert relative(actual, expected) < 1e-4
-    names = ["position", "conic", "chirp", "amplitude", "phase", "opacity"]
-    for name, got, want in zip(names, actual_grads, expected_grads):
-        assert relative(got, want) < 1e-4, name
+    assert_fused_matches_reference(s, wavenumbers_for(config.wavelengths))
 
 
 def test_any_number_of_channels_matches_reference():
@@ -84,13 +88,7 @@ def test_any_number_of_channels_matches_reference():
     s = splats(activate(raw, config), config.pixel_pitch, "mahalanobis")
     six = Splats(s.position_px, s.conic, s.reach_px, s.chirp, torch.cat([s.amplitude, 0.5 * s.amplitude], dim=1),
                  torch.cat([s.phase_rad, s.phase_rad.flip(1)], dim=1), s.opacity, True)
-    k = wavenumbers_for(config.wavelengths + (600e-9, 560e-9, 500e-9))
-    expected, expected_grads = outputs_and_gradients(splat_reference, six, k)
-    actual, actual_grads = outputs_and_gradients(splat_fused, six, k)
-    assert relative(actual, expected) < 1e-4
-    for name, got, want in zip(["position", "conic", "chirp", "amplitude", "phase", "opacity"], actual_grads,
-                               expected_grads):
-        assert relative(got, want) < 1e-4, name
+    assert_fused_matches_reference(six, wavenumbers_for(config.wavelengths + (600e-9, 560e-9, 500e-9)))
 
 
 @pytest.mark.parametrize("curved", [True, False], ids=["complex lanes", "real lanes"])
@@ -109,13 +107,7 @@ def test_large_primitives_keep_the_agreement_down_hundreds_of_rows(curved):
     s = splats(activate(Gaussians.from_tensors({k: v.double() for k, v in g.tensors().items()}), config),
                config.pixel_pitch, "mahalanobis")
     assert (ways(s, width, height) == kernels.TABULATED).all()
-    k = wavenumbers_for(config.wavelengths)
-    expected, expected_grads = outputs_and_gradients(splat_reference, s, k, width, height)
-    actual, actual_grads = outputs_and_gradients(splat_fused, s, k, width, height)
-    assert relative(actual, expected) < 1e-4
-    for name, got, want in zip(["position", "conic", "chirp", "amplitude", "phase", "opacity"], actual_grads,
-                               expected_grads):
-        assert relative(got, want) < 1e-4, name
+    assert_fused_matches_reference(s, wavenumbers_for(config.wavelengths), width, height)
 
 
 @pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
@@ -131,13 +123,7 @@ def test_needles_walked_from_each_rows_maximum_match_reference(qpf):
     s = splats(activate(raw, config), config.pixel_pitch, qpf)
     taken = ways(s)  # axis-aligned needles fit the lane tables (the D² ≤ 100 band keeps their box narrow)
     assert (taken != kernels.WALKED).all() and (taken == kernels.WALKED_FROM_RIDGE).sum() >= 18, taken
-    k = wavenumbers_for(config.wavelengths)
-    expected, expected_grads = outputs_and_gradients(splat_reference, s, k)
-    actual, actual_grads = outputs_and_gradients(splat_fused, s, k)
-    assert relative(actual, expected) < 1e-4
-    for name, got, want in zip(["position", "conic", "chirp", "amplitude", "phase", "opacity"], actual_grads,
-                               expected_grads):
-        assert relative(got, want) < 1e-4, name
+    assert_fused_matches_reference(s, wavenumbers_for(config.wavelengths))
 
 
 @pytest.mark.parametrize("curvature", ["shared", "per-channel", "channel-bound"])
