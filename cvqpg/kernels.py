@@ -357,7 +357,9 @@ def _real_lane_tables(a, b, c, x0, y0, low, first, columns, channels, count, lan
     """`_lane_tables` for a primitive without quadratic phase (χ = 0 in every channel): exp(E) is then
     the real envelope, the same in every channel, and its lanes hold it without the phase e^{iφ}
     (G and H into lanes[0] and lanes[2]; Q − 1 into the pattern). The walk along the row is a chain
-    of real products, shared by the channels."""
+    of real products, shared by the channels; each column's value goes into its lanes four at a time,
+    past the column's last channel into lanes that the next column overwrites, or up to three lanes
+    past the box's (as in `_walk_along_row`)."""
     _lane_magnitudes(first - x0, low - y0, a, b, c, magnitudes)
     g, ratio, step, h, h_step, q = magnitudes[0], magnitudes[1], magnitudes[2], magnitudes[3], magnitudes[4], \
         magnitudes[5]
@@ -365,8 +367,10 @@ def _real_lane_tables(a, b, c, x0, y0, low, first, columns, channels, count, lan
         patterns[0, j] = q - 1.0
     g_lanes, h_lanes = lanes[0], lanes[2]
     for column in range(columns):
-        for j in range(column * channels, (column + 1) * channels):
-            g_lanes[j], h_lanes[j] = g, h
+        gv, hv = vectors.splat_float64(g), vectors.splat_float64(h)
+        for j in range(column * channels, (column + 1) * channels, WALKED_CHANNELS):
+            vectors.store_float32(g_lanes, j, gv)
+            vectors.store_float32(h_lanes, j, hv)
         g, ratio, h = g * ratio, ratio * step, h * h_step
     for j in range(columns * channels, count):
         g_lanes[j] = h_lanes[j] = 0.0
