@@ -171,8 +171,7 @@ def inverse_covariance(scale_px: Tensor, rotation_rad: Tensor) -> tuple[Tensor, 
     return syy / det, -sxy / det, sxx / det
 
 
-def major_sigma_px(scale_px: Tensor, rotation_rad: Tensor) -> Tensor:
-    """σ_major (px): square root of Σ's largest eigenvalue."""
-    sxx, sxy, syy = covariance(scale_px, rotation_rad)
-    half_trace = (sxx + syy) / 2
-    return torch.sqrt(half_trace + torch.sqrt(((sxx - syy) / 2) ** 2 + sxy**2))
+def major_sigma_px(scale_px: Tensor) -> Tensor:
+    """σ_major (px): square root of Σ's largest eigenvalue. Σ = R (S² + 0.1·I) Rᵀ has the eigenvalues
+    s_x² + 0.1 and s_y² + 0.1 whatever the rotation, so no matrix needs building."""
+    return torch.sqrt(scale_px.max(dim=1).values ** 2 + COVARIANCE_REGULARISER_PX2)

@@ -59,7 +59,7 @@ def splats(prims: Primitives, pixel_pitch: float, qpf: Qpf) -> Splats:
     """Per-primitive quantities of SPEC §2 (differentiable, except the footprint radius)."""
     a, b, c = inverse_covariance(prims.scale_px, prims.rotation_rad)
     with torch.no_grad():
-        reach = FOOTPRINT_SIGMAS * major_sigma_px(prims.scale_px, prims.rotation_rad)
+        reach = FOOTPRINT_SIGMAS * major_sigma_px(prims.scale_px)
     curvature = prims.curvature_per_m
     half_curvature = 0.5 * pixel_pitch**2 * (curvature if curvature.dim() == 2 else curvature[:, None])
     mahalanobis = qpf == "mahalanobis"

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from cvqpg.config import FitConfig
-from cvqpg.primitives import Gaussians, Primitives, activate, curvature_bound, init_gaussians
+from cvqpg.primitives import Gaussians, Primitives, activate, curvature_bound, init_gaussians, major_sigma_px
 from cvqpg.fitting import render_hologram
 from cvqpg.rasterization import rasterize as _rasterize
 
@@ -206,6 +206,15 @@ def test_exponent_clamp_and_footprint_cutoff():
     assert torch.all(ours[0, torch.from_numpy(~outside)].abs() >= clamped * (1 - 1e-12))
     scale = reference.abs().max().item()
     assert max_abs(ours, reference) <= 1e-12 * scale
+
+
+def test_major_sigma_is_the_root_of_the_largest_eigenvalue():
+    """The footprint's σ_major from the scales alone against the eigenvalues of the built Σ, for
+    round, elongated and needle-like primitives at every rotation."""
+    gen = torch.Generator().manual_seed(8)
+    scale = torch.exp(torch.empty(200, 2, dtype=torch.float64).uniform_(-2.5, 6.0, generator=gen))
+    rotation = torch.empty(200, dtype=torch.float64).uniform_(-math.pi, math.pi, generator=gen)
+    torch.testing.assert_close(major_sigma_px(scale), sigma_major_reference(scale, rotation), rtol=1e-10, atol=0)
 
 
 def test_degenerate_covariance_uses_clamped_determinant():
