@@ -410,6 +410,24 @@ def _rotation_pattern(n, phase, color, opacity, with_amplitude, patterns):
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _tabulate(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, opacity, wavenumbers, mahalanobis,
+              count, lanes, scratch, with_amplitude):
+    """The box's lane tables and the scratch's patterns, the amplitude αc among them if `with_amplitude`
+    (the forward pass): real lanes (`_real_lane_tables`) for a primitive without curvature, else
+    complex ones (`_lane_tables`). Returns whether the lanes are real."""
+    patterns = scratch[4]
+    if _is_real(n, chirp):
+        _real_lane_tables(a, b, c, x0, y0, low, first, columns, phase.shape[1], count, lanes, scratch[3], patterns)
+        _rotation_pattern(n, phase, color, opacity, with_amplitude, patterns)
+        return True
+    _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumbers, mahalanobis, count, lanes,
+                 scratch)
+    if with_amplitude:
+        _amplitude_pattern(n, color, opacity, patterns)
+    return False
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _lane_spans(lefts, rights, first, channels, rows, spans):
     """Each row's span [left, right] (columns) as lane positions [low, high) in the box, into
     spans = (lows, highs) (float32; empty where low ≥ high)."""
@@ -675,19 +693,14 @@ def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumb
         return
     columns, count = last + 1 - first, _block_lanes(last + 1 - first, channels, STRIP)
     box = (lanes[0][:count], lanes[1][:count], lanes[2][:count], lanes[3][:count])
-    patterns = scratch[4]
     _lane_spans(lefts, rights, first, channels, high + 1 - low, spans)
-    row_length = out_re.shape[1]
+    row_length, patterns = out_re.shape[1], scratch[4]
     start, image_re, image_im = low * row_length + first * channels, out_re.reshape(out_re.size), \
         out_im.reshape(out_im.size)
-    if _is_real(n, chirp):
-        _real_lane_tables(a, b, c, x0, y0, low, first, columns, channels, count, box, scratch[3], patterns)
-        _rotation_pattern(n, phase, color, opacity, True, patterns)
+    if _tabulate(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, opacity, wavenumbers, mahalanobis,
+                 count, box, scratch, True):
         _add_real_strips(box, patterns, channels, count, spans, high + 1 - low, row_length, start, image_re, image_im)
     else:
-        _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumbers, mahalanobis, count, box,
-                     scratch)
-        _amplitude_pattern(n, color, opacity, patterns)
         _add_strips(box, patterns, channels, count, spans, high + 1 - low, row_length, start, image_re, image_im)
 
 
@@ -832,14 +845,11 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
         row_length, patterns = grad_re.shape[1], scratch[4]
         start, image_re, image_im = low * row_length + first * channels, grad_re.reshape(grad_re.size), \
             grad_im.reshape(grad_im.size)
-        if _is_real(n, chirp):
-            _real_lane_tables(a, b, c, x0, y0, low, first, columns, channels, count, box, scratch[3], patterns)
-            _rotation_pattern(n, phase, color, opacity, False, patterns)
+        if _tabulate(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, opacity, wavenumbers,
+                     mahalanobis, count, box[:4], scratch, False):
             _accumulate_real_strips(box, patterns, channels, count, spans, high + 1 - low, row_length, start, low - y0,
                                     image_re, image_im)
         else:
-            _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumbers, mahalanobis, count,
-                         box[:4], scratch)
             _accumulate_strips(box, patterns, channels, count, spans, high + 1 - low, row_length, start, low - y0,
                                image_re, image_im)
         _lane_moments(box, channels, columns, first - x0, moments)
