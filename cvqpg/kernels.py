@@ -178,6 +178,58 @@ def locality_order(position, height, width):
     return order
 
 
+GEOMETRY_CHUNK = 4096  # primitives per task of the geometry's parallel loop
+
+
+@nb.njit(parallel=True, cache=True, fastmath=True)
+def splat_geometry(scale, rotation, curvature, regulariser, half_pitch2, mahalanobis, terms, conic, chirp):
+    """Σ⁻¹ (a, b, c) in 1/px² into conic [N, 3] and the chirp χ into chirp [N, S] (S = curvature's columns)
+    from the scales s (px), rotations θ (rad) and curvatures γ (1/m): `rasterization.splats`, the
+    reference's reduction, once per primitive. Σ⁻¹ = R diag(i) Rᵀ with i = 1/(s² + r) (r the covariance
+    regulariser, px²); χ = ½Δx²·γ (half_pitch2 = ½Δx²), times s_x·s_y for the Mahalanobis QPF.
+    terms [4, N] (float64) receives cos θ, sin θ, i_x and i_y, which `geometry_gradients` takes."""
+    count = scale.shape[0]
+    for task in nb.prange((count + GEOMETRY_CHUNK - 1) // GEOMETRY_CHUNK):
+        low, high = task * GEOMETRY_CHUNK, min(count, (task + 1) * GEOMETRY_CHUNK)
+        cosines, sines = terms[0, low:high], terms[1, low:high]
+        _cosines_and_sines(rotation[low:high], cosines, sines)
+        for n in range(low, high):
+            sx, sy = np.float64(scale[n, 0]), np.float64(scale[n, 1])
+            along, across = 1.0 / (sx * sx + regulariser), 1.0 / (sy * sy + regulariser)
+            cos, sin = terms[0, n], terms[1, n]
+            terms[2, n], terms[3, n] = along, across
+            conic[n, 0] = cos * cos * along + sin * sin * across
+            conic[n, 1] = cos * sin * (along - across)
+            conic[n, 2] = sin * sin * along + cos * cos * across
+            factor = half_pitch2 * (sx * sy if mahalanobis else 1.0)
+            for slot in range(chirp.shape[1]):
+                chirp[n, slot] = factor * curvature[n, slot]
+
+
+@nb.njit(parallel=True, cache=True, fastmath=True)
+def geometry_gradients(scale, curvature, half_pitch2, mahalanobis, terms, g_conic, g_chirp, g_scale, g_rotation,
+                       g_curvature):
+    """The gradients of the scales, rotations and curvatures (float64) from those of Σ⁻¹'s (a, b, c) and
+    of the chirps, through `splat_geometry` (whose `terms` it takes): with C, S = cos θ, sin θ,
+    a = C²iₓ + S²i_y, b = CS(iₓ − i_y), c = S²iₓ + C²i_y, and ∂i/∂s = −2s·i²."""
+    for n in nb.prange(scale.shape[0]):
+        cos, sin, along, across = terms[0, n], terms[1, n], terms[2, n], terms[3, n]
+        ga, gb, gc = g_conic[n, 0], g_conic[n, 1], g_conic[n, 2]
+        cos2, sin2, both = cos * cos, sin * sin, cos * sin
+        g_rotation[n] = (along - across) * ((cos2 - sin2) * gb - 2.0 * both * (ga - gc))
+        sx, sy = np.float64(scale[n, 0]), np.float64(scale[n, 1])
+        g_sx = -2.0 * sx * along * along * (cos2 * ga + both * gb + sin2 * gc)
+        g_sy = -2.0 * sy * across * across * (sin2 * ga - both * gb + cos2 * gc)
+        factor = half_pitch2 * (sx * sy if mahalanobis else 1.0)
+        for slot in range(g_chirp.shape[1]):
+            g_curvature[n, slot] = factor * g_chirp[n, slot]
+            if mahalanobis:  # χ carries s_x·s_y
+                g_product = half_pitch2 * curvature[n, slot] * g_chirp[n, slot]
+                g_sx += g_product * sy
+                g_sy += g_product * sx
+        g_scale[n, 0], g_scale[n, 1] = g_sx, g_sy
+
+
 # π/2 in three parts (the first two with trailing zero bits), and the Taylor-minimax coefficients of
 # sin and cos on [−π/4, π/4] that fdlibm uses.
 HALF_PI_PARTS = (1.57079632673412561417e+00, 6.07710050630396597660e-11, 2.02226624879595063154e-21)

@@ -13,7 +13,6 @@ from .config import FitConfig
 COVARIANCE_REGULARISER_PX2 = 0.1
 MIN_SCALE_PX = 0.1
 MAX_LOG_SCALE = math.log(1e4)
-DET_FLOOR = 1e-10
 POSITION_CLAMP = 0.999
 INIT_SCALE_RANGE_PX = (1.5, 5.0)
 INIT_OPACITY_RAW = -0.5
@@ -148,27 +147,19 @@ def activate(raw: Gaussians, config: FitConfig) -> Primitives:
     )
 
 
-def covariance(scale_px: Tensor, rotation_rad: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Entries (Σxx, Σxy, Σyy) of `Σ = R S Sᵀ Rᵀ + 0.1·I` in px²."""
-    cos, sin = torch.cos(rotation_rad), torch.sin(rotation_rad)
-    sx2, sy2 = scale_px[:, 0] ** 2, scale_px[:, 1] ** 2
-    sxx = cos * cos * sx2 + sin * sin * sy2 + COVARIANCE_REGULARISER_PX2
-    syy = sin * sin * sx2 + cos * cos * sy2 + COVARIANCE_REGULARISER_PX2
-    sxy = cos * sin * (sx2 - sy2)
-    return sxx, sxy, syy
-
-
 def inverse_covariance(scale_px: Tensor, rotation_rad: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Entries (a, b, c) of Σ⁻¹ = [[a, b], [b, c]] in 1/px², determinant clamped at 1e-10.
+    """Entries (a, b, c) of Σ⁻¹ = [[a, b], [b, c]] in 1/px², for Σ = R S Sᵀ Rᵀ + 0.1·I.
 
-    The determinant is taken as the product of Σ's eigenvalues, (s_x² + 0.1)(s_y² + 0.1): the same
-    number as Σxx·Σyy − Σxy², without the float32 cancellation that makes the latter zero or
-    negative for elongated primitives (one scale of 8000 px, the other of 1 px).
+    Σ = R diag(e) Rᵀ with the eigenvalues e = s² + 0.1, so Σ⁻¹ = R diag(1/e) Rᵀ: sums of positive
+    terms for a and c, without the float32 cancellation of Σxx·Σyy − Σxy² that makes the determinant
+    zero or negative for elongated primitives (one scale of 8000 px, the other of 1 px). SPEC's clamp
+    of the determinant at 1e-10 never applies: det Σ = e_x·e_y ≥ 0.01.
     """
-    sxx, sxy, syy = covariance(scale_px, rotation_rad)
-    eigenvalues = scale_px**2 + COVARIANCE_REGULARISER_PX2
-    det = torch.clamp(eigenvalues[:, 0] * eigenvalues[:, 1], min=DET_FLOOR)
-    return syy / det, -sxy / det, sxx / det
+    inverse = 1.0 / (scale_px * scale_px + COVARIANCE_REGULARISER_PX2)
+    cos, sin = torch.cos(rotation_rad), torch.sin(rotation_rad)
+    cos2, sin2 = cos * cos, sin * sin
+    along, across = inverse[:, 0], inverse[:, 1]
+    return cos2 * along + sin2 * across, cos * sin * (along - across), sin2 * along + cos2 * across
 
 
 def major_sigma_px(scale_px: Tensor) -> Tensor:

@@ -1,11 +1,13 @@
 """Rasterization: the complex hologram `H_c(p) = Σ_n G_{n,c}(p)` on the W×H SLM grid (SPEC §2).
 
-`rasterize` is the one entry point. It reduces the activated primitives to `Splats` (centre,
-inverse covariance, footprint, chirp) with plain differentiable PyTorch, then hands them to a
-backend that sums them into the hologram. The reference backend is plain PyTorch: each primitive
-is evaluated on a square patch covering its 3σ_major footprint (primitives grouped by patch
-size), and chunks are recomputed in the backward pass instead of stored, so memory stays bounded
-by the chunk size whatever N is.
+`rasterize` is the one entry point; it hands the activated primitives to a backend that sums them
+into the hologram. Both backends reduce each primitive to the same `Splats` quantities (centre,
+inverse covariance, footprint, chirp). The reference backend does it with plain differentiable
+PyTorch (`splats`), then evaluates each primitive on a square patch covering its 3σ_major footprint
+(primitives grouped by patch size), recomputing chunks in the backward pass instead of storing them,
+so memory stays bounded by the chunk size whatever N is. The fused CPU backend does the reduction
+and its chain rule inside its kernels (`kernels.splat_geometry`), where it costs a fraction of the
+autograd graph's time.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
 from . import kernels
-from .primitives import Primitives, inverse_covariance, major_sigma_px
+from .primitives import COVARIANCE_REGULARISER_PX2, Primitives, inverse_covariance, major_sigma_px
 
 Qpf = Literal["mahalanobis", "standard"]
 
@@ -55,11 +57,16 @@ class Splats:
         return Splats(*(t[index] for t in self.tensors()), self.mahalanobis)
 
 
+def reach_px(scale_px: Tensor) -> Tensor:
+    """Footprint radius 3σ_major (px) of each primitive, without gradient (the cutoff is a step)."""
+    with torch.no_grad():
+        return FOOTPRINT_SIGMAS * major_sigma_px(scale_px)
+
+
 def splats(prims: Primitives, pixel_pitch: float, qpf: Qpf) -> Splats:
     """Per-primitive quantities of SPEC §2 (differentiable, except the footprint radius)."""
     a, b, c = inverse_covariance(prims.scale_px, prims.rotation_rad)
-    with torch.no_grad():
-        reach = FOOTPRINT_SIGMAS * major_sigma_px(prims.scale_px)
+    reach = reach_px(prims.scale_px)
     curvature = prims.curvature_per_m
     half_curvature = 0.5 * pixel_pitch**2 * (curvature if curvature.dim() == 2 else curvature[:, None])
     mahalanobis = qpf == "mahalanobis"
@@ -105,8 +112,8 @@ def _pixel_sets(centers: Tensor, radius: int, width: int, height: int
     return px, py, valid
 
 
-def splat_reference(s: Splats, width: int, height: int, wavenumbers: Tensor) -> Tensor:
-    """Pure-PyTorch backend: complex hologram [C, H, W] (dtype follows the splats)."""
+def sum_patches(s: Splats, width: int, height: int, wavenumbers: Tensor) -> Tensor:
+    """The splats summed on patches in plain PyTorch: complex hologram [C, H, W] (dtype follows the splats)."""
     channels = s.amplitude.shape[1]
     real_dtype = s.position_px.dtype
     wavenumbers = wavenumbers.to(device=s.position_px.device, dtype=real_dtype)
@@ -133,6 +140,12 @@ def splat_reference(s: Splats, width: int, height: int, wavenumbers: Tensor) -> 
     return torch.complex(accumulated[0], accumulated[1]).reshape(channels, height, width)
 
 
+def splat_reference(prims: Primitives, width: int, height: int, wavenumbers: Tensor, pixel_pitch: float,
+                    qpf: Qpf) -> Tensor:
+    """Pure-PyTorch backend: complex hologram [C, H, W] (dtype follows the primitives), pitch in m."""
+    return sum_patches(splats(prims, pixel_pitch, qpf), width, height, wavenumbers)
+
+
 @functools.lru_cache(maxsize=8)
 def _reused_lanes(shape: tuple[int, ...], thread: int) -> np.ndarray:
     """A zero-initialised float32 array kept between calls (one per calling thread): allocating and
@@ -141,9 +154,16 @@ def _reused_lanes(shape: tuple[int, ...], thread: int) -> np.ndarray:
     return np.zeros(shape, np.float32)
 
 
-class _FusedSplat(torch.autograd.Function):
-    """The Numba kernels behind one autograd boundary: the complex hologram [C, H, W].
+def _float32_arrays(*tensors: Tensor) -> tuple[np.ndarray, ...]:
+    """Contiguous float32 copies of the tensors on the CPU, which the kernels read (and keep for the backward pass)."""
+    return tuple(t.detach().to("cpu", torch.float32, copy=True).contiguous().numpy() for t in tensors)
 
+
+class _FusedSplat(torch.autograd.Function):
+    """The Numba kernels behind one autograd boundary: the complex hologram [C, H, W] of the primitives.
+
+    `kernels.splat_geometry` reduces the primitives to Σ⁻¹ and chirps (`splats`' reduction), and
+    `kernels.geometry_gradients` carries their gradients back to scales, rotations and curvatures.
     The kernels take the primitives in `kernels.locality_order` (each thread every T-th of them).
     They work on float32 lane images [2, H, (W + STRIP)·C] (`kernels`); the forward pass sums its
     threads' images into the complex hologram and clears them in one pass, and the backward pass
@@ -151,11 +171,18 @@ class _FusedSplat(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
+    def forward(ctx, position, scale, rotation, curvature, color, phase, opacity, wavenumbers, pixel_pitch, mahalanobis,
                 width, height):
-        arrays = tuple(t.detach().to("cpu", torch.float32, copy=True).contiguous().numpy()  # kept for backward
-                       for t in (position, conic, reach, chirp, color, phase, opacity))
-        order = kernels.locality_order(arrays[0], height, width)
+        position_a, scale_a, rotation_a, color_a, phase_a, opacity_a, reach = _float32_arrays(
+            position, scale, rotation, color, phase, opacity, reach_px(scale))
+        curvature_a, = _float32_arrays(curvature.reshape(curvature.shape[0], -1))
+        terms, conic = np.empty((4, scale_a.shape[0])), np.empty((scale_a.shape[0], 3), np.float32)
+        chirp = np.empty(curvature_a.shape, np.float32)
+        half_pitch2 = 0.5 * pixel_pitch**2
+        kernels.splat_geometry(scale_a, rotation_a, curvature_a, COVARIANCE_REGULARISER_PX2, half_pitch2, mahalanobis,
+                               terms, conic, chirp)
+        arrays = (position_a, conic, reach, chirp, color_a, phase_a, opacity_a)
+        order = kernels.locality_order(position_a, height, width)
         k = wavenumbers.detach().to("cpu", torch.float64).numpy()
         channels = color.shape[1]
         lane_width = kernels.lane_image_width(width, channels)
@@ -169,6 +196,8 @@ class _FusedSplat(torch.autograd.Function):
             partial.fill(0.0)
             raise
         ctx.arrays, ctx.order, ctx.wavenumbers, ctx.mahalanobis = arrays, order, k, mahalanobis
+        ctx.geometry = scale_a, curvature_a, half_pitch2, terms
+        ctx.shapes = rotation_a.shape, curvature.shape
         ctx.dtype, ctx.device = position.dtype, position.device
         return out.to(device=position.device, dtype=torch.promote_types(position.dtype, torch.complex64))
 
@@ -181,17 +210,26 @@ class _FusedSplat(torch.autograd.Function):
         kernels.split_lanes(grad.detach().to("cpu", torch.complex64).contiguous().numpy(), lanes)  # padding stays 0
         kernels.splat_backward(ctx.order, *ctx.arrays, ctx.wavenumbers, ctx.mahalanobis, lanes, *grads,
                                numba.get_num_threads())
-        g_position, g_conic, g_chirp, g_color, g_phase, g_opacity = (
-            torch.from_numpy(g).to(device=ctx.device, dtype=ctx.dtype) for g in grads)
-        return (g_position, g_conic, None, g_chirp, g_color, g_phase, g_opacity, None, None, None, None)
+        g_position, g_conic, g_chirp, g_color, g_phase, g_opacity = grads
+        scale, curvature, half_pitch2, terms = ctx.geometry
+        rotation_shape, curvature_shape = ctx.shapes
+        g_scale, g_rotation, g_curvature = np.empty(scale.shape), np.empty(rotation_shape), np.empty(curvature.shape)
+        kernels.geometry_gradients(scale, curvature, half_pitch2, ctx.mahalanobis, terms, g_conic, g_chirp, g_scale,
+                                   g_rotation, g_curvature)
+        results = (g_position, g_scale, g_rotation, g_curvature.reshape(curvature_shape), g_color, g_phase, g_opacity)
+        return (*(torch.from_numpy(g).to(device=ctx.device, dtype=ctx.dtype) for g in results),
+                None, None, None, None, None)
 
 
-def splat_fused(s: Splats, width: int, height: int, wavenumbers: Tensor) -> Tensor:
-    """Fused CPU backend (Numba): complex hologram [C, H, W], float32 inside."""
-    return _FusedSplat.apply(*s.tensors(), wavenumbers, s.mahalanobis, width, height)
+def splat_fused(prims: Primitives, width: int, height: int, wavenumbers: Tensor, pixel_pitch: float,
+                qpf: Qpf) -> Tensor:
+    """Fused CPU backend (Numba): complex hologram [C, H, W], float32 inside, pitch in m."""
+    return _FusedSplat.apply(prims.position_px, prims.scale_px, prims.rotation_rad, prims.curvature_per_m,
+                             prims.amplitude, prims.phase_rad, prims.opacity, wavenumbers, pixel_pitch,
+                             qpf == "mahalanobis", width, height)
 
 
-Backend = Callable[[Splats, int, int, Tensor], Tensor]
+Backend = Callable[[Primitives, int, int, Tensor, float, Qpf], Tensor]
 BACKENDS: dict[str, Backend] = {"torch": splat_reference, "numba": splat_fused}
 
 
@@ -221,5 +259,4 @@ def rasterize(prims: Primitives, width: int, height: int, wavelengths_m: Sequenc
               pixel_pitch: float, qpf: Qpf = "mahalanobis", backend: str = "auto") -> Tensor:
     """Complex hologram [C, H, W] of the activated primitives on the W×H grid (px), pitch in m."""
     backend = resolve_backend(backend, prims.position_px.device)
-    return BACKENDS[backend](splats(prims, pixel_pitch, qpf), width, height,
-                             wavenumbers_for(wavelengths_m))
+    return BACKENDS[backend](prims, width, height, wavenumbers_for(wavelengths_m), pixel_pitch, qpf)

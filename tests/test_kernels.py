@@ -9,11 +9,11 @@ import torch
 from numba.core.errors import TypingError
 
 from cvqpg import FitConfig, builtin_scene, fit, kernels, vectors
-from cvqpg.primitives import Gaussians, activate, init_gaussians
-from cvqpg.rasterization import (Splats, rasterize, resolve_backend, splat_fused, splat_reference, splats,
-                                 wavenumbers_for)
+from cvqpg.primitives import COVARIANCE_REGULARISER_PX2, Gaussians, Primitives, activate, init_gaussians
+from cvqpg.rasterization import rasterize, resolve_backend, splat_fused, splat_reference, splats, wavenumbers_for
 
 WIDTH, HEIGHT = 56, 40
+PITCH = FitConfig().pixel_pitch
 
 
 def random_gaussians(count: int, channels: int, seed: int, per_channel: bool = False) -> Gaussians:
@@ -29,17 +29,23 @@ def random_gaussians(count: int, channels: int, seed: int, per_channel: bool = F
     return Gaussians.from_tensors({k: v.double() for k, v in g.tensors().items()})
 
 
-def outputs_and_gradients(backend, s: Splats, wavenumbers, width: int = WIDTH, height: int = HEIGHT):
-    leaves = [t.clone().requires_grad_() for t in s.tensors()]
-    hologram = backend(Splats(*leaves, s.mahalanobis), width, height, wavenumbers)
+def weighted_sum(hologram: torch.Tensor) -> torch.Tensor:
+    """A real loss of the hologram with random complex weights: its gradient reaches every parameter."""
     weights = torch.randn(hologram.shape, generator=torch.Generator().manual_seed(9), dtype=torch.complex128)
-    loss = (hologram.to(torch.complex128) * weights.conj()).real.sum()
-    differentiable = [leaves[i] for i in (0, 1, 3, 4, 5, 6)]
-    return hologram.detach().to(torch.complex128), torch.autograd.grad(loss, differentiable)
+    return (hologram.to(torch.complex128) * weights.conj()).real.sum()
 
 
-def ways(s: Splats, width: int = WIDTH, height: int = HEIGHT) -> torch.Tensor:
+def outputs_and_gradients(backend, prims: Primitives, wavenumbers, qpf: str = "mahalanobis", width: int = WIDTH,
+                          height: int = HEIGHT):
+    """A backend's hologram and the gradients of `weighted_sum` for every field of the primitives."""
+    leaves = {name: t.clone().requires_grad_() for name, t in prims.tensors().items()}
+    hologram = backend(Primitives.from_tensors(leaves), width, height, wavenumbers, PITCH, qpf)
+    return hologram.detach().to(torch.complex128), torch.autograd.grad(weighted_sum(hologram), list(leaves.values()))
+
+
+def ways(prims: Primitives, qpf: str = "mahalanobis", width: int = WIDTH, height: int = HEIGHT) -> torch.Tensor:
     """How each primitive goes through the kernels (kernels.TABULATED, WALKED, ...)."""
+    s = splats(prims, PITCH, qpf)
     arrays = (t.detach().float().contiguous().numpy() for t in (s.position_px, s.conic, s.reach_px))
     return torch.from_numpy(kernels.ways(*arrays, height, width))
 
@@ -48,13 +54,13 @@ def relative(a, b):
     return float((a - b).abs().norm() / b.abs().norm().clamp(min=1e-30))
 
 
-def assert_fused_matches_reference(s: Splats, wavenumbers, width: int = WIDTH, height: int = HEIGHT):
+def assert_fused_matches_reference(prims: Primitives, wavenumbers, qpf: str = "mahalanobis", width: int = WIDTH,
+                                   height: int = HEIGHT):
     """The fused kernels' hologram and every parameter's gradient against the reference's, to 1e-4 relative."""
-    expected, expected_grads = outputs_and_gradients(splat_reference, s, wavenumbers, width, height)
-    actual, actual_grads = outputs_and_gradients(splat_fused, s, wavenumbers, width, height)
+    expected, expected_grads = outputs_and_gradients(splat_reference, prims, wavenumbers, qpf, width, height)
+    actual, actual_grads = outputs_and_gradients(splat_fused, prims, wavenumbers, qpf, width, height)
     assert relative(actual, expected) < 1e-4
-    for name, got, want in zip(["position", "conic", "chirp", "amplitude", "phase", "opacity"], actual_grads,
-                               expected_grads):
+    for name, got, want in zip(prims.tensors(), actual_grads, expected_grads):
         assert relative(got, want) < 1e-4, name
 
 
@@ -74,10 +80,9 @@ def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primiti
     offsets = torch.tensor([[-9.0, 3.0], [WIDTH + 4.0, 0.0], [0.0, -HEIGHT - 1.0], [0.0, 30.0]])
     prims.position_px = torch.cat([prims.position_px[:5], prims.position_px[5:9] + offsets,
                                    prims.position_px[9:]])  # partly and fully off the image
-    s = splats(prims, config.pixel_pitch, qpf)
-    taken = set(ways(s).tolist())  # every way the kernels have: lane tables, the centre-column walk, row maxima
+    taken = set(ways(prims, qpf).tolist())  # every way the kernels have: lane tables, the centre-column walk, row maxima
     assert {kernels.OFF_IMAGE, kernels.TABULATED, kernels.WALKED, kernels.WALKED_FROM_RIDGE} <= taken, taken
-    assert_fused_matches_reference(s, wavenumbers_for(config.wavelengths))
+    assert_fused_matches_reference(prims, wavenumbers_for(config.wavelengths), qpf)
 
 
 def test_any_number_of_channels_matches_reference():
@@ -85,9 +90,9 @@ def test_any_number_of_channels_matches_reference():
     config = FitConfig(width=WIDTH, height=HEIGHT)
     raw = random_gaussians(120, 3, seed=6)
     raw.curvature[::4] = 0.0
-    s = splats(activate(raw, config), config.pixel_pitch, "mahalanobis")
-    six = Splats(s.position_px, s.conic, s.reach_px, s.chirp, torch.cat([s.amplitude, 0.5 * s.amplitude], dim=1),
-                 torch.cat([s.phase_rad, s.phase_rad.flip(1)], dim=1), s.opacity, True)
+    six = activate(raw, config)
+    six.amplitude = torch.cat([six.amplitude, 0.5 * six.amplitude], dim=1)
+    six.phase_rad = torch.cat([six.phase_rad, six.phase_rad.flip(1)], dim=1)
     assert_fused_matches_reference(six, wavenumbers_for(config.wavelengths + (600e-9, 560e-9, 500e-9)))
 
 
@@ -104,10 +109,9 @@ def test_large_primitives_keep_the_agreement_down_hundreds_of_rows(curved):
     g.curvature = (3.0 * torch.rand(count, generator=gen) - 1.5) * curved
     g.phase = 3.0 * torch.randn(count, 3, generator=gen)
     g.opacity = torch.zeros(count)
-    s = splats(activate(Gaussians.from_tensors({k: v.double() for k, v in g.tensors().items()}), config),
-               config.pixel_pitch, "mahalanobis")
-    assert (ways(s, width, height) == kernels.TABULATED).all()
-    assert_fused_matches_reference(s, wavenumbers_for(config.wavelengths), width, height)
+    prims = activate(Gaussians.from_tensors({k: v.double() for k, v in g.tensors().items()}), config)
+    assert (ways(prims, width=width, height=height) == kernels.TABULATED).all()
+    assert_fused_matches_reference(prims, wavenumbers_for(config.wavelengths), width=width, height=height)
 
 
 @pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
@@ -120,10 +124,10 @@ def test_needles_walked_from_each_rows_maximum_match_reference(qpf):
     aspect = torch.linspace(math.log(10.0), math.log(60.0), 24, dtype=torch.float64)
     raw.scale = torch.stack([torch.full_like(aspect, 2.5), 2.5 - aspect], dim=1)
     raw.rotation = torch.linspace(0.0, math.pi, 24, dtype=torch.float64)
-    s = splats(activate(raw, config), config.pixel_pitch, qpf)
-    taken = ways(s)  # axis-aligned needles fit the lane tables (the D² ≤ 100 band keeps their box narrow)
+    prims = activate(raw, config)
+    taken = ways(prims, qpf)  # axis-aligned needles fit the lane tables (the D² ≤ 100 band keeps their box narrow)
     assert (taken != kernels.WALKED).all() and (taken == kernels.WALKED_FROM_RIDGE).sum() >= 18, taken
-    assert_fused_matches_reference(s, wavenumbers_for(config.wavelengths))
+    assert_fused_matches_reference(prims, wavenumbers_for(config.wavelengths), qpf)
 
 
 @pytest.mark.parametrize("curvature", ["shared", "per-channel", "channel-bound"])
@@ -141,33 +145,57 @@ def test_parameter_gradients_through_activations_match(curvature):
         assert relative(got, want) < 1e-4, name
 
 
+@pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
 @pytest.mark.parametrize("curvature", ["shared", "per-channel", "zero"])
-def test_fused_gradient_matches_finite_differences(curvature):
-    """Including the curvature's gradient at zero, where the kernels take real lanes: what CVQPG's
-    curvature starts from when the warm-up ends."""
+def test_fused_gradient_matches_finite_differences(curvature, qpf):
+    """Every field of the primitives, including the curvature's gradient at zero, where the kernels take
+    real lanes: what CVQPG's curvature starts from when the warm-up ends."""
     config = FitConfig(width=WIDTH, height=HEIGHT, curvature="shared" if curvature == "zero" else curvature)
     raw = random_gaussians(40, 3, seed=2, per_channel=curvature == "per-channel")
     if curvature == "zero":
         raw.curvature = torch.zeros_like(raw.curvature)
-    s = splats(activate(raw, config), config.pixel_pitch, "mahalanobis")
+    prims = activate(raw, config)
     k = wavenumbers_for(config.wavelengths)
-    _, grads = outputs_and_gradients(splat_fused, s, k)
-    weights = torch.randn(3, HEIGHT, WIDTH, generator=torch.Generator().manual_seed(9), dtype=torch.complex128)
+    _, grads = outputs_and_gradients(splat_fused, prims, k, qpf)
 
-    def loss(tensors):
-        hologram = splat_reference(Splats(*tensors, True), WIDTH, HEIGHT, k)
-        return float((hologram * weights.conj()).real.sum())
+    def loss(tensors: dict[str, torch.Tensor]) -> float:
+        return float(weighted_sum(splat_reference(Primitives.from_tensors(tensors), WIDTH, HEIGHT, k, PITCH, qpf)))
 
-    base = list(s.tensors())
-    chirp_index = (7, 1) if curvature == "per-channel" else (7, 0)
-    for slot, grad_slot, index, eps in ((0, 0, (7, 0), 1e-6), (1, 1, (7, 1), 1e-6), (3, 2, chirp_index, 1e-12),
-                                        (4, 3, (7, 2), 1e-6), (5, 4, (7, 0), 1e-6), (6, 5, (7,), 1e-6)):
-        plus = [t.clone() for t in base]
-        minus = [t.clone() for t in base]
-        plus[slot][index] += eps
-        minus[slot][index] -= eps
+    base = prims.tensors()
+    curvature_index = (7, 1) if curvature == "per-channel" else (7,)
+    for (name, index), grad in zip((("position_px", (7, 0)), ("scale_px", (7, 1)), ("rotation_rad", (7,)),
+                                    ("amplitude", (7, 2)), ("phase_rad", (7, 0)), ("opacity", (7,)),
+                                    ("curvature_per_m", curvature_index)), grads):
+        eps = 1e-6 * max(1.0, abs(float(base[name][index])))
+        plus, minus = ({n: t.clone() for n, t in base.items()} for _ in range(2))
+        plus[name][index] += eps
+        minus[name][index] -= eps
         numeric = (loss(plus) - loss(minus)) / (2 * eps)
-        assert math.isclose(float(grads[grad_slot][index]), numeric, rel_tol=1e-3, abs_tol=1e-6)
+        assert math.isclose(float(grad[index]), numeric, rel_tol=1e-3, abs_tol=1e-6), name
+
+
+def test_geometry_kernel_matches_the_reference_reduction():
+    """`kernels.splat_geometry` against `splats` (Σ⁻¹ and chirps), and its gradients against autograd's."""
+    config = FitConfig(width=WIDTH, height=HEIGHT, curvature="per-channel")
+    prims = activate(random_gaussians(200, 3, seed=12, per_channel=True), config)
+    for qpf in ("mahalanobis", "standard"):
+        leaves = {name: t.clone().requires_grad_() for name, t in prims.tensors().items()}
+        s = splats(Primitives.from_tensors(leaves), PITCH, qpf)
+        g_conic, g_chirp = torch.randn_like(s.conic), torch.randn_like(s.chirp)
+        expected = torch.autograd.grad((s.conic * g_conic).sum() + (s.chirp * g_chirp).sum(),
+                                       [leaves["scale_px"], leaves["rotation_rad"], leaves["curvature_per_m"]])
+        scale, rotation, curvature = (t.detach().float().numpy() for t in (prims.scale_px, prims.rotation_rad,
+                                                                            prims.curvature_per_m))
+        terms, conic, chirp = np.empty((4, 200)), np.empty((200, 3), np.float32), np.empty((200, 3), np.float32)
+        kernels.splat_geometry(scale, rotation, curvature, COVARIANCE_REGULARISER_PX2, 0.5 * PITCH**2,
+                               qpf == "mahalanobis", terms, conic, chirp)
+        assert relative(torch.from_numpy(conic).double(), s.conic.detach()) < 1e-6
+        assert relative(torch.from_numpy(chirp).double(), s.chirp.detach()) < 1e-6
+        actual = np.empty((200, 2)), np.empty(200), np.empty((200, 3))
+        kernels.geometry_gradients(scale, curvature, 0.5 * PITCH**2, qpf == "mahalanobis", terms,
+                                   g_conic.numpy(), g_chirp.numpy(), *actual)
+        for got, want in zip(actual, expected):
+            assert relative(torch.from_numpy(got), want) < 1e-6
 
 
 def test_fused_kernel_handles_empty_and_fully_offscreen_sets():
@@ -221,12 +249,12 @@ def test_fused_kernel_gives_identical_results_on_reused_buffers():
     """The forward pass reuses its lane images between calls (cleared as they are gathered), the
     backward pass its gradient image: repeated and interleaved calls at two sizes agree bit for bit."""
     config = FitConfig(width=WIDTH, height=HEIGHT)
-    s = splats(activate(random_gaussians(120, 3, seed=6), config), config.pixel_pitch, "mahalanobis")
-    small = splats(activate(random_gaussians(40, 3, seed=7), config), config.pixel_pitch, "mahalanobis")
+    prims = activate(random_gaussians(120, 3, seed=6), config)
+    small = activate(random_gaussians(40, 3, seed=7), config)
     k = wavenumbers_for(config.wavelengths)
-    first = outputs_and_gradients(splat_fused, s, k)
-    splat_fused(small, WIDTH // 2, HEIGHT // 2, k)
-    second = outputs_and_gradients(splat_fused, s, k)
+    first = outputs_and_gradients(splat_fused, prims, k)
+    splat_fused(small, WIDTH // 2, HEIGHT // 2, k, PITCH, "mahalanobis")
+    second = outputs_and_gradients(splat_fused, prims, k)
     assert torch.equal(first[0], second[0])
     assert all(torch.equal(a, b) for a, b in zip(first[1], second[1]))
 
