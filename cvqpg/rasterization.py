@@ -196,8 +196,7 @@ class _FusedSplat(torch.autograd.Function):
             partial.fill(0.0)
             raise
         ctx.arrays, ctx.order, ctx.wavenumbers, ctx.mahalanobis = arrays, order, k, mahalanobis
-        ctx.geometry = scale_a, curvature_a, half_pitch2, terms
-        ctx.shapes = rotation_a.shape, curvature.shape
+        ctx.geometry = scale_a, curvature_a, half_pitch2, terms, curvature.shape
         ctx.dtype, ctx.device = position.dtype, position.device
         return out.to(device=position.device, dtype=torch.promote_types(position.dtype, torch.complex64))
 
@@ -211,9 +210,8 @@ class _FusedSplat(torch.autograd.Function):
         kernels.splat_backward(ctx.order, *ctx.arrays, ctx.wavenumbers, ctx.mahalanobis, lanes, *grads,
                                numba.get_num_threads())
         g_position, g_conic, g_chirp, g_color, g_phase, g_opacity = grads
-        scale, curvature, half_pitch2, terms = ctx.geometry
-        rotation_shape, curvature_shape = ctx.shapes
-        g_scale, g_rotation, g_curvature = np.empty(scale.shape), np.empty(rotation_shape), np.empty(curvature.shape)
+        scale, curvature, half_pitch2, terms, curvature_shape = ctx.geometry
+        g_scale, g_rotation, g_curvature = np.empty(scale.shape), np.empty(scale.shape[0]), np.empty(curvature.shape)
         kernels.geometry_gradients(scale, curvature, half_pitch2, ctx.mahalanobis, terms, g_conic, g_chirp, g_scale,
                                    g_rotation, g_curvature)
         results = (g_position, g_scale, g_rotation, g_curvature.reshape(curvature_shape), g_color, g_phase, g_opacity)

@@ -80,7 +80,7 @@ def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primiti
     offsets = torch.tensor([[-9.0, 3.0], [WIDTH + 4.0, 0.0], [0.0, -HEIGHT - 1.0], [0.0, 30.0]])
     prims.position_px = torch.cat([prims.position_px[:5], prims.position_px[5:9] + offsets,
                                    prims.position_px[9:]])  # partly and fully off the image
-    taken = set(ways(prims, qpf).tolist())  # every way the kernels have: lane tables, the centre-column walk, row maxima
+    taken = set(ways(prims, qpf).tolist())  # every way through the kernels: lane tables, centre-column walk, row maxima
     assert {kernels.OFF_IMAGE, kernels.TABULATED, kernels.WALKED, kernels.WALKED_FROM_RIDGE} <= taken, taken
     assert_fused_matches_reference(prims, wavenumbers_for(config.wavelengths), qpf)
 
