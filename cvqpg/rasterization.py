@@ -63,12 +63,16 @@ def reach_px(scale_px: Tensor) -> Tensor:
         return FOOTPRINT_SIGMAS * major_sigma_px(scale_px)
 
 
+def curvature_columns(curvature_per_m: Tensor) -> Tensor:
+    """Curvatures (1/m) as [N, S]: one shared column (S = 1) or one per channel (S = C)."""
+    return curvature_per_m if curvature_per_m.dim() == 2 else curvature_per_m[:, None]
+
+
 def splats(prims: Primitives, pixel_pitch: float, qpf: Qpf) -> Splats:
     """Per-primitive quantities of SPEC §2 (differentiable, except the footprint radius)."""
     a, b, c = inverse_covariance(prims.scale_px, prims.rotation_rad)
     reach = reach_px(prims.scale_px)
-    curvature = prims.curvature_per_m
-    half_curvature = 0.5 * pixel_pitch**2 * (curvature if curvature.dim() == 2 else curvature[:, None])
+    half_curvature = 0.5 * pixel_pitch**2 * curvature_columns(prims.curvature_per_m)
     mahalanobis = qpf == "mahalanobis"
     chirp = half_curvature * prims.scale_px.prod(dim=1, keepdim=True) if mahalanobis else half_curvature
     return Splats(prims.position_px, torch.stack([a, b, c], dim=1), reach, chirp, prims.amplitude,
@@ -175,7 +179,7 @@ class _FusedSplat(torch.autograd.Function):
                 width, height):
         position_a, scale_a, rotation_a, color_a, phase_a, opacity_a, reach = _float32_arrays(
             position, scale, rotation, color, phase, opacity, reach_px(scale))
-        curvature_a, = _float32_arrays(curvature.reshape(curvature.shape[0], -1))
+        curvature_a, = _float32_arrays(curvature_columns(curvature))
         terms, conic = np.empty((4, scale_a.shape[0])), np.empty((scale_a.shape[0], 3), np.float32)
         chirp = np.empty(curvature_a.shape, np.float32)
         half_pitch2 = 0.5 * pixel_pitch**2

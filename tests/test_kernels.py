@@ -204,6 +204,13 @@ def test_fused_kernel_handles_empty_and_fully_offscreen_sets():
     prims.position_px = prims.position_px + 500.0
     hologram = rasterize(prims, WIDTH, HEIGHT, config.wavelengths, config.pixel_pitch, backend="numba")
     assert hologram.shape == (3, HEIGHT, WIDTH) and torch.count_nonzero(hologram) == 0
+    for curvature in (torch.zeros(0), torch.zeros(0, 3)):  # no primitives, shared or per-channel curvature
+        empty = Primitives.from_tensors({name: t[:0].clone().requires_grad_() for name, t in prims.tensors().items()})
+        empty.curvature_per_m = curvature.requires_grad_()
+        hologram = rasterize(empty, WIDTH, HEIGHT, config.wavelengths, config.pixel_pitch, backend="numba")
+        assert hologram.shape == (3, HEIGHT, WIDTH) and torch.count_nonzero(hologram) == 0
+        gradients = torch.autograd.grad(weighted_sum(hologram), list(empty.tensors().values()))
+        assert [g.shape for g in gradients] == [t.shape for t in empty.tensors().values()]
 
 
 def test_auto_backend_picks_fused_kernels_on_cpu():
