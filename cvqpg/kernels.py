@@ -1,5 +1,8 @@
 """Fused CPU kernels (Numba) for the splatting sum and its gradient.
 
+The primitives come in as centres, scales, rotations and curvatures: `splat_geometry` turns them
+into Σ⁻¹ and chirps, and `geometry_gradients` takes the gradients of those back.
+
 Both passes visit only the pixels inside each primitive's 3σ_major circle and store nothing of size
 N × pixels. Per channel a primitive is `G = α c e^{iφ} exp(E)` with a complex exponent E that is
 quadratic in the pixel offset (dx, dy) from its centre, E = A dx² + 2B dx dy + C dy² (the envelope
