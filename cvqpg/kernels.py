@@ -1,7 +1,7 @@
 """Fused CPU kernels (Numba) for the splatting sum and its gradient.
 
 The primitives come in as centres, scales, rotations and curvatures: `splat_geometry` turns them
-into Σ⁻¹ and chirps, and `geometry_gradients` takes the gradients of those back.
+into Σ⁻¹, footprint radii and chirps, and `geometry_gradients` takes the gradients of those back.
 
 Both passes visit only the pixels inside each primitive's 3σ_major circle and store nothing of size
 N × pixels. Per channel a primitive is `G = α c e^{iφ} exp(E)` with a complex exponent E that is
@@ -185,11 +185,13 @@ GEOMETRY_CHUNK = 4096  # primitives per task of the geometry's parallel loop
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
-def splat_geometry(scale, rotation, curvature, regulariser, half_pitch2, mahalanobis, terms, conic, chirp):
-    """Σ⁻¹ (a, b, c) in 1/px² into conic [N, 3] and the chirp χ into chirp [N, S] (S = curvature's columns)
-    from the scales s (px), rotations θ (rad) and curvatures γ (1/m): `rasterization.splats`, the
-    reference's reduction, once per primitive. Σ⁻¹ = R diag(i) Rᵀ with i = 1/(s² + r) (r the covariance
-    regulariser, px²); χ = ½Δx²·γ (half_pitch2 = ½Δx²), times s_x·s_y for the Mahalanobis QPF.
+def splat_geometry(scale, rotation, curvature, regulariser, sigmas, half_pitch2, mahalanobis, terms, conic, reach,
+                   chirp):
+    """Σ⁻¹ (a, b, c) in 1/px² into conic [N, 3], the footprint radius into reach [N] (px) and the chirp χ
+    into chirp [N, S] (S = curvature's columns) from the scales s (px), rotations θ (rad) and curvatures γ
+    (1/m): `rasterization.splats`, the reference's reduction, once per primitive. Σ⁻¹ = R diag(i) Rᵀ with
+    i = 1/(s² + r) (r the covariance regulariser, px²); the reach is `sigmas`·σ_major, the root of Σ's
+    largest eigenvalue max(s)² + r; χ = ½Δx²·γ (half_pitch2 = ½Δx²), times s_x·s_y for the Mahalanobis QPF.
     terms [4, N] (float64) receives cos θ, sin θ, i_x and i_y, which `geometry_gradients` takes."""
     count = scale.shape[0]
     for task in nb.prange((count + GEOMETRY_CHUNK - 1) // GEOMETRY_CHUNK):
@@ -204,6 +206,7 @@ def splat_geometry(scale, rotation, curvature, regulariser, half_pitch2, mahalan
             conic[n, 0] = cos * cos * along + sin * sin * across
             conic[n, 1] = cos * sin * (along - across)
             conic[n, 2] = sin * sin * along + cos * cos * across
+            reach[n] = sigmas * math.sqrt(max(sx * sx, sy * sy) + regulariser)
             factor = half_pitch2 * (sx * sy if mahalanobis else 1.0)
             for slot in range(chirp.shape[1]):
                 chirp[n, slot] = factor * curvature[n, slot]

@@ -57,12 +57,6 @@ class Splats:
         return Splats(*(t[index] for t in self.tensors()), self.mahalanobis)
 
 
-def reach_px(scale_px: Tensor) -> Tensor:
-    """Footprint radius 3σ_major (px) of each primitive, without gradient (the cutoff is a step)."""
-    with torch.no_grad():
-        return FOOTPRINT_SIGMAS * major_sigma_px(scale_px)
-
-
 def curvature_columns(curvature_per_m: Tensor) -> Tensor:
     """Curvatures (1/m) as [N, S]: one shared column (S = 1) or one per channel (S = C)."""
     return curvature_per_m if curvature_per_m.dim() == 2 else curvature_per_m[:, None]
@@ -71,7 +65,8 @@ def curvature_columns(curvature_per_m: Tensor) -> Tensor:
 def splats(prims: Primitives, pixel_pitch: float, qpf: Qpf) -> Splats:
     """Per-primitive quantities of SPEC §2 (differentiable, except the footprint radius)."""
     a, b, c = inverse_covariance(prims.scale_px, prims.rotation_rad)
-    reach = reach_px(prims.scale_px)
+    with torch.no_grad():
+        reach = FOOTPRINT_SIGMAS * major_sigma_px(prims.scale_px)
     half_curvature = 0.5 * pixel_pitch**2 * curvature_columns(prims.curvature_per_m)
     mahalanobis = qpf == "mahalanobis"
     chirp = half_curvature * prims.scale_px.prod(dim=1, keepdim=True) if mahalanobis else half_curvature
@@ -166,7 +161,7 @@ def _float32_arrays(*tensors: Tensor) -> tuple[np.ndarray, ...]:
 class _FusedSplat(torch.autograd.Function):
     """The Numba kernels behind one autograd boundary: the complex hologram [C, H, W] of the primitives.
 
-    `kernels.splat_geometry` reduces the primitives to Σ⁻¹ and chirps (`splats`' reduction), and
+    `kernels.splat_geometry` reduces the primitives to Σ⁻¹, footprints and chirps (`splats`' reduction), and
     `kernels.geometry_gradients` carries their gradients back to scales, rotations and curvatures.
     The kernels take the primitives in `kernels.locality_order` (each thread every T-th of them).
     They work on float32 lane images [2, H, (W + STRIP)·C] (`kernels`); the forward pass sums its
@@ -177,14 +172,14 @@ class _FusedSplat(torch.autograd.Function):
     @staticmethod
     def forward(ctx, position, scale, rotation, curvature, color, phase, opacity, wavenumbers, pixel_pitch, mahalanobis,
                 width, height):
-        position_a, scale_a, rotation_a, color_a, phase_a, opacity_a, reach = _float32_arrays(
-            position, scale, rotation, color, phase, opacity, reach_px(scale))
-        curvature_a, = _float32_arrays(curvature_columns(curvature))
-        terms, conic = np.empty((4, scale_a.shape[0])), np.empty((scale_a.shape[0], 3), np.float32)
+        position_a, scale_a, rotation_a, curvature_a, color_a, phase_a, opacity_a = _float32_arrays(
+            position, scale, rotation, curvature_columns(curvature), color, phase, opacity)
+        count = scale_a.shape[0]
+        terms, conic, reach = np.empty((4, count)), np.empty((count, 3), np.float32), np.empty(count, np.float32)
         chirp = np.empty(curvature_a.shape, np.float32)
         half_pitch2 = 0.5 * pixel_pitch**2
-        kernels.splat_geometry(scale_a, rotation_a, curvature_a, COVARIANCE_REGULARISER_PX2, half_pitch2, mahalanobis,
-                               terms, conic, chirp)
+        kernels.splat_geometry(scale_a, rotation_a, curvature_a, COVARIANCE_REGULARISER_PX2, FOOTPRINT_SIGMAS,
+                               half_pitch2, mahalanobis, terms, conic, reach, chirp)
         arrays = (position_a, conic, reach, chirp, color_a, phase_a, opacity_a)
         order = kernels.locality_order(position_a, height, width)
         k = wavenumbers.detach().to("cpu", torch.float64).numpy()

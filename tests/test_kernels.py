@@ -10,7 +10,8 @@ from numba.core.errors import TypingError
 
 from cvqpg import FitConfig, builtin_scene, fit, kernels, vectors
 from cvqpg.primitives import COVARIANCE_REGULARISER_PX2, Gaussians, Primitives, activate, init_gaussians
-from cvqpg.rasterization import rasterize, resolve_backend, splat_fused, splat_reference, splats, wavenumbers_for
+from cvqpg.rasterization import (FOOTPRINT_SIGMAS, rasterize, resolve_backend, splat_fused, splat_reference, splats,
+                                 wavenumbers_for)
 
 WIDTH, HEIGHT = 56, 40
 PITCH = FitConfig().pixel_pitch
@@ -175,7 +176,8 @@ def test_fused_gradient_matches_finite_differences(curvature, qpf):
 
 
 def test_geometry_kernel_matches_the_reference_reduction():
-    """`kernels.splat_geometry` against `splats` (Σ⁻¹ and chirps), and its gradients against autograd's."""
+    """`kernels.splat_geometry` against `splats` (Σ⁻¹, footprint radii, chirps), and its gradients against
+    autograd's."""
     config = FitConfig(width=WIDTH, height=HEIGHT, curvature="per-channel")
     prims = activate(random_gaussians(200, 3, seed=12, per_channel=True), config)
     for qpf in ("mahalanobis", "standard"):
@@ -186,10 +188,12 @@ def test_geometry_kernel_matches_the_reference_reduction():
                                        [leaves["scale_px"], leaves["rotation_rad"], leaves["curvature_per_m"]])
         scale, rotation, curvature = (t.detach().float().numpy() for t in (prims.scale_px, prims.rotation_rad,
                                                                             prims.curvature_per_m))
-        terms, conic, chirp = np.empty((4, 200)), np.empty((200, 3), np.float32), np.empty((200, 3), np.float32)
-        kernels.splat_geometry(scale, rotation, curvature, COVARIANCE_REGULARISER_PX2, 0.5 * PITCH**2,
-                               qpf == "mahalanobis", terms, conic, chirp)
+        terms, conic, reach = np.empty((4, 200)), np.empty((200, 3), np.float32), np.empty(200, np.float32)
+        chirp = np.empty((200, 3), np.float32)
+        kernels.splat_geometry(scale, rotation, curvature, COVARIANCE_REGULARISER_PX2, FOOTPRINT_SIGMAS,
+                               0.5 * PITCH**2, qpf == "mahalanobis", terms, conic, reach, chirp)
         assert relative(torch.from_numpy(conic).double(), s.conic.detach()) < 1e-6
+        assert relative(torch.from_numpy(reach).double(), s.reach_px) < 1e-6
         assert relative(torch.from_numpy(chirp).double(), s.chirp.detach()) < 1e-6
         actual = np.empty((200, 2)), np.empty(200), np.empty((200, 3))
         kernels.geometry_gradients(scale, curvature, 0.5 * PITCH**2, qpf == "mahalanobis", terms,
