@@ -766,14 +766,29 @@ def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumb
 def _splat_share(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                  out_re, out_im):
     """out += the sum over primitives order[t], order[t+T], order[t+2T], ... (T = threads): one thread's
-    share, a plain loop into which each primitive's work is inlined: a call per primitive cost about a
-    tenth of the kernels' time, and Numba 0.68 miscompiles that work inlined into the parallel loop."""
+    share. Its work arrays are made here, for `_splat_loop`, which cannot allocate."""
     height, width = out_re.shape[0], out_re.shape[1]
     lefts, rights, spans = np.empty(height), np.empty(height), (np.empty(height, np.float32),
                                                                 np.empty(height, np.float32))
     lanes = (np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
              np.empty(width, np.float32))
-    scratch = _scratch(color.shape[1])
+    _splat_loop(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
+                out_re, out_im, lefts, rights, spans, lanes, _scratch(color.shape[1]))
+
+
+# Numba's runtime counts the references to every array that enters an inlined function, with an
+# atomic increment and decrement per array and call: about 50 per primitive, which cost 15–20% of
+# either kernel's time. The loops over the primitives compile without it (Numba 0.68's `_nrt` option),
+# which leaves those counts out; such a function cannot allocate, so its caller passes in its arrays.
+WITHOUT_REFERENCE_COUNTS = {"_nrt": False}
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True, **WITHOUT_REFERENCE_COUNTS)
+def _splat_loop(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
+                out_re, out_im, lefts, rights, spans, lanes, scratch):
+    """`_splat_share`'s loop: a plain loop into which each primitive's work is inlined (a call per
+    primitive cost about a tenth of the kernels' time, and Numba 0.68 miscompiles that work inlined
+    into the parallel loop)."""
     for i in range(t, position.shape[0], threads):
         _splat_one(order[i], position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                    out_re, out_im, lefts, rights, spans, lanes, scratch)
@@ -955,8 +970,8 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
 @nb.njit(cache=True, nogil=True, fastmath=True)
 def _gradients_share(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers,
                      mahalanobis, grad_re, grad_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity):
-    """The gradients of primitives order[t], order[t+T], ... (T = threads): one thread's share, with each
-    primitive's work inlined (as in `_splat_share`)."""
+    """The gradients of primitives order[t], order[t+T], ... (T = threads): one thread's share, with its
+    work arrays for `_gradients_loop` (as in `_splat_share`)."""
     height, width = grad_re.shape[0], grad_re.shape[1]
     lefts, rights, spans = np.empty(height), np.empty(height), (np.empty(height, np.float32),
                                                                 np.empty(height, np.float32))
@@ -964,7 +979,16 @@ def _gradients_share(t, threads, order, position, conic, reach, chirp, color, ph
              np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
              np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
              np.empty(width, np.float32))
-    scratch, moments = _scratch(color.shape[1]), np.empty((12, _vector_channels(color.shape[1])))
+    _gradients_loop(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
+                    grad_re, grad_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts, rights,
+                    spans, lanes, _scratch(color.shape[1]), np.empty((12, _vector_channels(color.shape[1]))))
+
+
+@nb.njit(cache=True, nogil=True, fastmath=True, **WITHOUT_REFERENCE_COUNTS)
+def _gradients_loop(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers,
+                    mahalanobis, grad_re, grad_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts,
+                    rights, spans, lanes, scratch, moments):
+    """`_gradients_share`'s loop, with each primitive's work inlined (as in `_splat_loop`)."""
     for i in range(t, position.shape[0], threads):
         _gradients_of_one(order[i], position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                           grad_re, grad_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts, rights,
