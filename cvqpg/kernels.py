@@ -42,7 +42,8 @@ The hologram and its gradient travel as float32 lane images [2, H, (W + STRIP)·
 imaginary planes; `STRIP` zero columns on the right that a row's last strip of lanes may run into).
 The forward pass gives each thread its own slice of primitives and its own image, summed in a fixed
 order, so results do not depend on scheduling; the backward pass gives each thread the same slice,
-and each primitive's gradients are written by that thread alone. Both compile with fast-math.
+and each primitive's gradients are written by that thread alone. Both compile with fast-math, and
+their loops over the primitives without Numba's reference counting (`WITHOUT_REFERENCE_COUNTS`).
 """
 
 from __future__ import annotations
@@ -736,7 +737,7 @@ def _block_lanes(columns, channels, block):
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, out_re, out_im,
-               lefts, rights, spans, lanes, scratch):
+               image_re, image_im, lefts, rights, spans, lanes, scratch):
     channels = color.shape[1]
     height, width = out_re.shape[0], _image_width(out_re.shape[1], channels)
     way, x0, y0, a, b, c, r, low, high, first, last = _way(n, position, conic, reach, height, width, lefts, rights)
@@ -753,8 +754,7 @@ def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumb
     box = (lanes[0][:count], lanes[1][:count], lanes[2][:count], lanes[3][:count])
     _lane_spans(lefts, rights, first, channels, high + 1 - low, spans)
     row_length, patterns = out_re.shape[1], scratch[4]
-    start, image_re, image_im = low * row_length + first * channels, out_re.reshape(out_re.size), \
-        out_im.reshape(out_im.size)
+    start = low * row_length + first * channels
     if _tabulate(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                  count, box, scratch, True):
         _add_real_strips(box, patterns, channels, count, spans, high + 1 - low, row_length, start, image_re, image_im)
@@ -773,7 +773,8 @@ def _splat_share(t, threads, order, position, conic, reach, chirp, color, phase,
     lanes = (np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
              np.empty(width, np.float32))
     _splat_loop(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                out_re, out_im, lefts, rights, spans, lanes, _scratch(color.shape[1]))
+                out_re, out_im, out_re.reshape(out_re.size), out_im.reshape(out_im.size), lefts, rights, spans, lanes,
+                _scratch(color.shape[1]))
 
 
 # Numba's runtime counts the references to every array that enters an inlined function, with an
@@ -785,13 +786,14 @@ WITHOUT_REFERENCE_COUNTS = {"_nrt": False}
 
 @nb.njit(cache=True, nogil=True, fastmath=True, **WITHOUT_REFERENCE_COUNTS)
 def _splat_loop(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                out_re, out_im, lefts, rights, spans, lanes, scratch):
+                out_re, out_im, image_re, image_im, lefts, rights, spans, lanes, scratch):
     """`_splat_share`'s loop: a plain loop into which each primitive's work is inlined (a call per
     primitive cost about a tenth of the kernels' time, and Numba 0.68 miscompiles that work inlined
-    into the parallel loop)."""
+    into the parallel loop). `image_re`, `image_im` are `out_re`, `out_im` as flat arrays, which the
+    strips index: reshaped once here, not per primitive (a call into Numba's helper library each)."""
     for i in range(t, position.shape[0], threads):
         _splat_one(order[i], position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                   out_re, out_im, lefts, rights, spans, lanes, scratch)
+                   out_re, out_im, image_re, image_im, lefts, rights, spans, lanes, scratch)
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
@@ -902,8 +904,8 @@ def _lane_moments(lanes, channels, columns, dx_first, moments):
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                      grad_re, grad_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts, rights,
-                      spans, lanes, scratch, moments):
+                      grad_re, grad_im, image_re, image_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity,
+                      lefts, rights, spans, lanes, scratch, moments):
     channels = color.shape[1]
     height, width = grad_re.shape[0], _image_width(grad_re.shape[1], channels)
     way, x0, y0, a, b, c, r, low, high, first, last = _way(n, position, conic, reach, height, width, lefts, rights)
@@ -916,8 +918,7 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
     if way == TABULATED:
         _lane_spans(lefts, rights, first, channels, high + 1 - low, spans)
         row_length, patterns = grad_re.shape[1], scratch[4]
-        start, image_re, image_im = low * row_length + first * channels, grad_re.reshape(grad_re.size), \
-            grad_im.reshape(grad_im.size)
+        start = low * row_length + first * channels
         if _tabulate(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, opacity, wavenumbers,
                      mahalanobis, count, box[:4], scratch, False):
             _accumulate_real_strips(box, patterns, channels, count, spans, high + 1 - low, row_length, start, low - y0,
@@ -980,19 +981,21 @@ def _gradients_share(t, threads, order, position, conic, reach, chirp, color, ph
              np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
              np.empty(width, np.float32))
     _gradients_loop(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                    grad_re, grad_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts, rights,
-                    spans, lanes, _scratch(color.shape[1]), np.empty((12, _vector_channels(color.shape[1]))))
+                    grad_re, grad_im, grad_re.reshape(grad_re.size), grad_im.reshape(grad_im.size), g_position,
+                    g_conic, g_chirp, g_color, g_phase, g_opacity, lefts, rights, spans, lanes,
+                    _scratch(color.shape[1]), np.empty((12, _vector_channels(color.shape[1]))))
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, **WITHOUT_REFERENCE_COUNTS)
 def _gradients_loop(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers,
-                    mahalanobis, grad_re, grad_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts,
-                    rights, spans, lanes, scratch, moments):
-    """`_gradients_share`'s loop, with each primitive's work inlined (as in `_splat_loop`)."""
+                    mahalanobis, grad_re, grad_im, image_re, image_im, g_position, g_conic, g_chirp, g_color, g_phase,
+                    g_opacity, lefts, rights, spans, lanes, scratch, moments):
+    """`_gradients_share`'s loop, with each primitive's work inlined and the gradient images also as
+    flat arrays (as in `_splat_loop`)."""
     for i in range(t, position.shape[0], threads):
         _gradients_of_one(order[i], position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                          grad_re, grad_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, lefts, rights,
-                          spans, lanes, scratch, moments)
+                          grad_re, grad_im, image_re, image_im, g_position, g_conic, g_chirp, g_color, g_phase,
+                          g_opacity, lefts, rights, spans, lanes, scratch, moments)
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
