@@ -44,6 +44,9 @@ The forward pass gives each thread its own slice of primitives and its own image
 order, so results do not depend on scheduling; the backward pass gives each thread the same slice,
 and each primitive's gradients are written by that thread alone. Both compile with fast-math, and
 their loops over the primitives without Numba's reference counting (`WITHOUT_REFERENCE_COUNTS`).
+The small helpers that run once per primitive are inlined into those loops (`inline="always"`): a
+call hands over every array argument field by field, through memory. The table builders and the
+walks stay calls: inlining them too doubled the kernels' first compilation.
 """
 
 from __future__ import annotations
@@ -71,13 +74,13 @@ def lane_image_width(width, channels):
     return (width + STRIP) * channels
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _image_width(row_length, channels):
     """W of the hologram whose lane image has rows of `row_length` values (`lane_image_width`)."""
     return row_length // channels - STRIP
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _row_span(center_y, reach, a, b, c, height):
     """Rows of the footprint: the 3σ circle's, within the band |dy| ≤ 10·√Σ_yy where D² ≤ 100 can hold."""
     determinant = a * c - b * b
@@ -85,14 +88,14 @@ def _row_span(center_y, reach, a, b, c, height):
     return max(0, math.ceil(center_y - half)), min(height - 1, math.floor(center_y + half))
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _walkable(a, b, c, reach):
     """Whether every exponent in the footprint circle stays in the range the walk down the centre
     column needs: reach² · λ_max(Σ⁻¹), a bound on D² there, is at most 600."""
     return reach * reach * (0.5 * (a + c) + math.sqrt(0.25 * (a - c) ** 2 + b * b)) <= MAX_WALKED_MAHALANOBIS2
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True)
+@nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _footprint(n, position, conic, reach, height, width, lefts, rights):
     """Primitive n's geometry: centre (px), Σ⁻¹ (a, b, c), reach (px), its rows, each row's columns
     into lefts/rights [row − low] (float64 column indices; empty rows have left > right), and the
@@ -120,7 +123,7 @@ def _footprint(n, position, conic, reach, height, width, lefts, rights):
     return x0, y0, a, b, c, r, low, high, first, last
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _fits_lanes(x0, y0, a, b, c, low, first, last):
     """Whether float32 lanes hold the primitive: its envelope exponent ½D² and its vertical ratio's
     |Re log H| = |b dx + c(dy + ½)| stay within TABLE_EXPONENT_LIMIT at the box's top corners. Both
@@ -133,7 +136,7 @@ def _fits_lanes(x0, y0, a, b, c, low, first, last):
     return worst <= TABLE_EXPONENT_LIMIT
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _way(n, position, conic, reach, height, width, lefts, rights):
     """How primitive n goes through the kernels (OFF_IMAGE, TABULATED, WALKED or WALKED_FROM_RIDGE),
     with its geometry (`_footprint`)."""
@@ -269,14 +272,14 @@ def _cosines_and_sines(angles, cosines, sines):
         cosines[i] = ((1.0 - odd) * cosine + odd * sine) * (1.0 - 2.0 * np.floor(0.5 * after))
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _phase_coefficients(a, b, c, mahalanobis):
     """(α_A, α_B, α_C) of the quadratic form the phase follows: D² (Σ⁻¹'s a, b, c) for the
     Mahalanobis QPF, |p − x|² (1, 0, 1) for the standard one."""
     return (a, b, c) if mahalanobis else (1.0, 0.0, 1.0)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _exponent_coefficients(a, b, c, k_chirp, mahalanobis):
     """(A, B, C) of the complex exponent E = A dx² + 2B dx dy + C dy² (without the constant iφ): the
     envelope −½D² as real parts, k·χ times the phase's quadratic form as imaginary parts."""
@@ -296,7 +299,7 @@ def _scratch(channels):
 WALKED_CHANNELS = vectors.WIDTH_FLOAT64  # channels that the first-row walk and the moments take together
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _vector_channels(channels):
     """`channels` rounded up to whole vectors of WALKED_CHANNELS: the columns of arrays that hold one
     value per channel for them."""
@@ -435,7 +438,7 @@ def _real_lane_tables(a, b, c, x0, y0, low, first, columns, channels, count, lan
         g_lanes[j] = h_lanes[j] = 0.0
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _is_real(n, chirp):
     """Whether primitive n has no quadratic phase in any channel (χ = 0): its exp(E) is real."""
     for slot in range(chirp.shape[1]):
@@ -701,7 +704,7 @@ def _with_row(moments, m0, m1, m2, dy):
     return s00 + m0, s10 + m1, s20 + m2, s01 + m0 * dy, s11 + m1 * dy, s02 + m0 * dy * dy
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _chirp_slot(channel, chirp):
     """Column of `chirp` [N, 1 or C] that channel uses: one shared curvature, or its own."""
     return min(channel, chirp.shape[1] - 1)
@@ -729,7 +732,7 @@ def _walked_rows(A, B, C, amplitude, way, x0, y0, low, high, lefts, rights, lane
         z_row, v, s_right, s_left = _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _block_lanes(columns, channels, block):
     """Lanes of `columns` box columns, rounded up to whole blocks of `block` lanes."""
     return (columns * channels + block - 1) // block * block
@@ -876,7 +879,7 @@ def _walked_moments(grad_re, grad_im, A, B, C, rotation, way, x0, y0, low, high,
     return t_moments, u_moments
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True)
+@nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _lane_moments(lanes, channels, columns, dx_first, moments):
     """Every channel's moments of t and u from its lanes' sums Σw, Σw·dy, Σw·dy² (w = t − i·u): each
     column adds them weighted by 1, dx, dx². Into moments [12, ·], one column per channel: t00, t10,
