@@ -46,7 +46,7 @@ and each primitive's gradients are written by that thread alone. Both compile wi
 their loops over the primitives without Numba's reference counting (`WITHOUT_REFERENCE_COUNTS`).
 The small helpers that run once per primitive are inlined into those loops (`inline="always"`): a
 call hands over every array argument field by field, through memory. The table builders and the
-walks stay calls: inlining them too doubled the kernels' first compilation.
+walks stay calls: inlining them too took the kernels' first compilation from 39 s to 52–59 s here.
 """
 
 from __future__ import annotations
