@@ -32,8 +32,8 @@ from .allocator import keep_freed_memory
 from .config import FitConfig, default_warmup
 from .fitting import CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes, fit_scene, state_from_payload
 from .metrics import radial_error_spectrum
-from .runs import (CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, read_run, scene_from_source, start_run, write_json,
-                   write_run)
+from .runs import (CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, read_run, scene_from_source, start_run, write_atomic,
+                   write_json, write_run)
 from .scenes import SCENES
 from .storage import ModelFileError, load_checkpoint, save_checkpoint
 from .targets import check_depth_geometry, load_picture
@@ -49,6 +49,9 @@ POLL_SECONDS = 0.5
 COLORS = ("rgb", "gray")
 
 DONE, SKIPPED, INTERRUPTED, NOT_STARTED, FAILED = "done", "skipped", "interrupted", "not started", "failed"
+REUSED = "reused"
+# What a finished cell keeps in git (results/): enough to rebuild every table; metrics.json last (the done mark).
+RECORD_FILES = (CONFIG_FILE, SPECTRUM_FILE, METRICS_FILE)
 STARTED, MISSING = "started", "missing"
 
 
@@ -192,7 +195,7 @@ class BenchOutcome:
 
     def describe(self) -> str:
         """E.g. `3 done, 1 skipped, 0 interrupted, 0 not started, 0 failed`."""
-        return ", ".join(f"{self.count(s)} {s}" for s in (DONE, SKIPPED, INTERRUPTED, NOT_STARTED, FAILED))
+        return ", ".join(f"{self.count(s)} {s}" for s in (DONE, SKIPPED, REUSED, INTERRUPTED, NOT_STARTED, FAILED))
 
 
 def setting_key(color: str, ratio: float) -> str:
@@ -268,9 +271,11 @@ def make_plan(preset: str, folder: str | Path | None = None, overrides: Override
     elif spec.builtin_scenes:
         available = {name: BenchScene(name, {"scene": name}, SCENES[name].planes) for name in SCENES}
     else:
-        raise BenchError(f"preset {preset!r} needs --scenes DIR (a folder of <name>/image.* and <name>/depth.png, "
-                         "e.g. ../shared/scenes)")
-    default_names = spec.builtin_scenes if overrides.scenes_dir is None else tuple(available)
+        available = recorded_scenes(default_folder(preset, folder))
+        if not available:
+            raise BenchError(f"preset {preset!r} needs --scenes DIR (a folder of <name>/image.* and <name>/depth.png, "
+                             "e.g. ../shared/scenes), or an --out folder whose cells record their scenes")
+    default_names = spec.builtin_scenes if overrides.scenes_dir is None and spec.builtin_scenes else tuple(available)
     names = _choose("scene-names", overrides.scene_names, default_names, tuple(available))
     colors = _choose("colors", overrides.colors, spec.colors, COLORS)
     methods = _choose("methods", overrides.methods, spec.methods, tuple(METHODS))
@@ -288,8 +293,27 @@ def make_plan(preset: str, folder: str | Path | None = None, overrides: Override
     cells = tuple(Cell(scene, method, cell_config(base, scene, color, ratio, method, seed))
                   for scene in scenes for color in colors for ratio in ratios for method in methods
                   for seed in seeds)
-    return BenchPlan(preset, Path(folder) if folder else Path("runs") / f"bench-{preset}", scenes, methods,
-                     seeds, cells)
+    return BenchPlan(preset, default_folder(preset, folder), scenes, methods, seeds, cells)
+
+
+def default_folder(preset: str, folder: str | Path | None) -> Path:
+    return Path(folder) if folder else Path("runs") / f"bench-{preset}"
+
+
+def recorded_scenes(folder: Path) -> dict[str, BenchScene]:
+    """The file scenes that the cells of a bench folder were fitted on, by name, read from their
+    `config.json`: the tables of a recorded folder (`results/`) rebuild without the scene files."""
+    cells = folder / CELLS_DIR
+    if not cells.is_dir():
+        return {}
+    scenes = {}
+    for config_file in sorted(cells.glob(f"*/{CONFIG_FILE}")):
+        recorded = json.loads(config_file.read_text())
+        source = recorded.get("source", {})
+        if "image" in source:
+            name = Path(source["image"]).parent.name
+            scenes[name] = BenchScene(name, source, recorded["num_planes"])
+    return dict(sorted(scenes.items()))
 
 
 def cell_status(folder: Path) -> str:
@@ -328,8 +352,10 @@ def peak_bytes(cells: tuple[Cell, ...], jobs: int) -> int:
 
 
 def check_inputs(plan: BenchPlan, cells: tuple[Cell, ...]) -> None:
-    """Before any fit: every scene file decodes, and no finished cell was fitted with other settings."""
-    for scene in {c.scene.name: c.scene for c in cells}.values():
+    """Before any fit: every scene file of a cell still to fit decodes, and no finished cell was fitted
+    with other settings."""
+    todo = [c for c in cells if cell_status(plan.cell_dir(c)) != DONE]
+    for scene in {c.scene.name: c.scene for c in todo}.values():
         if "image" in scene.source:
             check_depth_geometry(load_picture(scene.source["image"]),
                                  load_picture(scene.source["depth"], "depth map"), resize_depth=False)
@@ -356,6 +382,27 @@ def spectrum_record(recon: torch.Tensor, targets: torch.Tensor, bins: int = SPEC
         record["channel_power"] = [_json_power(radial_error_spectrum(recon[:, c], targets[:, c], bins)[1])
                                    for c in range(recon.shape[1])]
     return record
+
+
+def adopt_finished(plan: BenchPlan, cells: tuple[Cell, ...], others: Sequence[Path]) -> list[Cell]:
+    """Copy into the plan's folder the records (`RECORD_FILES`) of cells that another bench folder has
+    finished with the same settings, so that grids sharing cells (the chromatic and ablation grids
+    share their baseline and CVQPG cells with Table 1) fit them once. Returns the cells adopted."""
+    adopted = []
+    for cell in cells:
+        folder = plan.cell_dir(cell)
+        if cell_status(folder) == DONE:
+            continue
+        for other in others:
+            source = Path(other) / CELLS_DIR / cell.name
+            if cell_status(source) == DONE and not config_differences(source, cell.config):
+                folder.mkdir(parents=True, exist_ok=True)
+                for name in RECORD_FILES:
+                    if (source / name).is_file():
+                        write_atomic(folder / name, (source / name).read_bytes())
+                adopted.append(cell)
+                break
+    return adopted
 
 
 def _resume_state(folder: Path, cell: Cell) -> FitState | None:
@@ -435,8 +482,9 @@ def available_cores() -> int:
 
 
 def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int = 1, progress: bool = True,
-             stop_requested: Callable[[], bool] | None = None) -> BenchOutcome:
-    """Fit every cell of `cells` (default: the whole plan) that is not done, `jobs` at a time.
+             stop_requested: Callable[[], bool] | None = None, reuse: Sequence[Path] = ()) -> BenchOutcome:
+    """Fit every cell of `cells` (default: the whole plan) that is not done, `jobs` at a time; cells
+    that a bench folder in `reuse` has finished with the same settings are copied, not fitted.
 
     With jobs > 1 a spawn-context process pool runs the cells, each worker on cores // jobs threads.
     When `stop_requested()` turns true, running fits save a checkpoint and stop, and no new cell starts.
@@ -444,10 +492,14 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
     cells = plan.cells if cells is None else cells
     if jobs < 1:
         raise BenchError(f"--jobs {jobs}: need at least 1")
-    check_inputs(plan, cells)
     outcome = BenchOutcome()
+    for cell in adopt_finished(plan, cells, reuse):
+        outcome.statuses[cell.name] = REUSED
+    check_inputs(plan, cells)
     todo = []
     for cell in cells:
+        if cell.name in outcome.statuses:
+            continue
         if cell_status(plan.cell_dir(cell)) == DONE:
             outcome.statuses[cell.name] = SKIPPED
         else:

@@ -162,6 +162,9 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
                    "e.g. ${SLURM_ARRAY_TASK_ID}/${SLURM_ARRAY_TASK_COUNT} in a job array")
     p.add_argument("--jobs", type=int, default=1, metavar="K", help="cells fitted at once, each on cores/K "
                    "threads [default: 1]")
+    p.add_argument("--reuse", nargs="+", default=[], metavar="DIR", help="other bench folders whose finished "
+                   "cells with the same settings are copied instead of fitted (e.g. the chromatic grid reuses "
+                   "results/paper's baseline and CVQPG cells)")
     p.add_argument("--summary-only", action="store_true", help="fit nothing; rebuild the tables, figures "
                    "and report from the finished cells")
     p.add_argument("--dry-run", action="store_true", help="list the cells (of the shard) and their status")
@@ -411,7 +414,8 @@ def run_bench(args: argparse.Namespace) -> int:
             raise UsageError(f"--jobs {args.jobs} needs about {needed / 2**30:.1f} GiB but {available / 2**30:.1f} "
                              "GiB are available; lower --jobs or --size")
         with StopRequest() as stop_requested:
-            outcome = run_plan(plan, cells, args.jobs, progress=not args.quiet, stop_requested=stop_requested)
+            outcome = run_plan(plan, cells, args.jobs, progress=not args.quiet, stop_requested=stop_requested,
+                               reuse=[Path(d) for d in args.reuse])
         print(f"cvqpg bench: {outcome.describe()}")
         for name, error in outcome.failures.items():
             print(f"  {name}: {error}", file=sys.stderr)

@@ -6,7 +6,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import torch
 from PIL import Image
@@ -19,6 +19,7 @@ from .losses import multiplane_loss, noisy_targets, standard_normal
 from .metrics import MetricReport, evaluate
 from .optics import reconstruct
 from .primitives import Gaussians, Primitives, activate, init_gaussians
+from .provenance import peak_memory, reset_peak_memory
 from .rasterization import rasterize
 from .targets import Scene, load_scene
 
@@ -38,6 +39,7 @@ class FitResult:
     seconds: float = 0.0
     skipped_steps: int = 0
     sanitised_steps: int = 0
+    peak_memory: dict[str, Any] = field(default_factory=dict)  # provenance.peak_memory of the fit
 
     @property
     def primitives(self) -> Primitives:
@@ -101,13 +103,19 @@ class FitState:
     seconds: float = 0.0
     skipped_steps: int = 0
     sanitised_steps: int = 0
+    peak_memory: dict[str, Any] = field(default_factory=dict)  # the largest peak of the segments run so far
+
+    def note_peak_memory(self, device: torch.device) -> None:
+        """Keep the larger of the recorded peak and this segment's (a resumed fit runs in several)."""
+        self.peak_memory = max(self.peak_memory, peak_memory(device), key=lambda p: p.get("peak_memory_bytes", -1))
 
     def to_payload(self) -> dict:
         """Plain tensors and numbers, for `torch.save`."""
         return {"gaussians": {k: v.detach().cpu() for k, v in self.gaussians.tensors().items()},
                 "optimizer": self.optimizer.state_dict(), "generator": self.generator.get_state(),
                 "step": self.step, "history": self.history, "seconds": self.seconds,
-                "skipped_steps": self.skipped_steps, "sanitised_steps": self.sanitised_steps}
+                "skipped_steps": self.skipped_steps, "sanitised_steps": self.sanitised_steps,
+                "peak_memory": self.peak_memory}
 
 
 def initial_state(config: FitConfig) -> FitState:
@@ -132,6 +140,7 @@ def state_from_payload(payload: dict, config: FitConfig) -> FitState:
     state.generator.set_state(payload["generator"])
     state.step, state.history, state.seconds = payload["step"], payload["history"], payload["seconds"]
     state.skipped_steps, state.sanitised_steps = payload["skipped_steps"], payload["sanitised_steps"]
+    state.peak_memory = payload.get("peak_memory", {})
     return state
 
 
@@ -238,12 +247,14 @@ def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = Tr
     device = torch.device(config.device)
     scene = Scene(*(t.to(device) for t in (scene.image, scene.masks, scene.targets)))
     state = state or initial_state(config)
+    reset_peak_memory(device)
     last_save, clock = time.perf_counter(), time.perf_counter()
     bar = tqdm(range(state.step, config.steps + 1), initial=state.step, total=config.steps + 1,
                disable=not progress, desc=f"fit {config.primitive}", unit="step", dynamic_ncols=True)
     for step in bar:
         if stop_requested is not None and stop_requested():
             if checkpoint is not None:
+                state.note_peak_memory(device)
                 checkpoint.save(state)
             raise FitInterrupted(step)
         loss, psnr = optimisation_step(state, scene, config)
@@ -257,9 +268,12 @@ def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = Tr
         if on_step is not None:
             on_step(step, loss, psnr)
         if checkpoint is not None and state.step <= config.steps and checkpoint.due(state.step, now - last_save):
+            state.note_peak_memory(device)
             checkpoint.save(state)
             last_save = time.perf_counter()
     fitted = state.gaussians.detached()
     hologram, recon = render(activate(fitted, config), config)
-    return FitResult(fitted, config, evaluate(recon, scene.targets), hologram, recon, state.history, state.seconds,
-                     state.skipped_steps, state.sanitised_steps)
+    metrics = evaluate(recon, scene.targets)
+    state.note_peak_memory(device)
+    return FitResult(fitted, config, metrics, hologram, recon, state.history, state.seconds,
+                     state.skipped_steps, state.sanitised_steps, state.peak_memory)

@@ -431,7 +431,8 @@ def draw_figures(plan: BenchPlan, results: list[CellResult], curves: list[Freque
         for setting in plan.settings:
             runs = {METHODS[m].label: done[key] for m in compared
                     if (key := (scene.name, setting, m, plan.seeds[0])) in done}
-            if len(runs) < 2:
+            if len(runs) < 2 or not all((plan.cell_dir(r.cell) / "target_plane0.png").is_file()
+                                        for r in runs.values()):  # a recorded cell keeps no images
                 continue
             config = next(iter(runs.values())).cell.config
             name = Path("figures") / f"compare_{scene.name}_{setting}.png"

@@ -22,6 +22,7 @@ from .fitting import FitResult, hologram, render
 from .metrics import MetricReport, evaluate, mean_psnr
 from .optics import reconstruct, slm_field
 from .primitives import Primitives
+from .provenance import run_record
 from .scenes import builtin_scene
 from .storage import load_model, save_model
 from .targets import Scene, load_scene
@@ -132,7 +133,8 @@ def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[
     write_json(folder / METRICS_FILE, metrics_record(
         result.metrics, config, result.seconds,
         {"updates": len(history), "initial_psnr": history[0] if history else None,
-         "skipped_steps": result.skipped_steps, "sanitised_steps": result.sanitised_steps}))
+         "skipped_steps": result.skipped_steps, "sanitised_steps": result.sanitised_steps,
+         "run": run_record(torch.device(config.device), result.seconds, result.peak_memory)}))
     (folder / CHECKPOINT_FILE).unlink(missing_ok=True)
     return folder
 

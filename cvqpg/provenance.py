@@ -1,0 +1,95 @@
+"""Where and how a fit ran: code commit, date, machine, threads and peak memory.
+
+A results table is only read correctly beside these facts: times depend on the CPU and its
+load, and the numbers on the code that produced them.
+"""
+
+from __future__ import annotations
+
+import datetime
+import functools
+import platform
+import resource
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import numba
+import torch
+
+PACKAGE_ROOT = Path(__file__).resolve().parent
+PEAK_RESET_FILE = Path("/proc/self/clear_refs")
+STATUS_FILE = Path("/proc/self/status")
+
+
+@functools.cache
+def code_commit() -> str | None:
+    """The git commit of the package's checkout, with `+dirty` when tracked files under the package
+    differ from it; None outside a git checkout (an installed wheel)."""
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(["git", "-C", str(PACKAGE_ROOT), *args], capture_output=True, text=True, timeout=10)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    commit = git("rev-parse", "HEAD")
+    if not commit:
+        return None
+    changed = git("status", "--porcelain", "--untracked-files=no", "--", str(PACKAGE_ROOT))
+    return f"{commit}+dirty" if changed else commit
+
+
+@functools.cache
+def cpu_model() -> str:
+    """The CPU's model name as the kernel reports it (Linux), else what `platform` knows."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def reset_peak_memory(device: torch.device) -> None:
+    """Start a new peak: the process's resident set (Linux) or the GPU's allocated bytes."""
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+        return
+    try:
+        PEAK_RESET_FILE.write_text("5")  # resets VmHWM to the current RSS (Linux ≥ 4.0)
+    except OSError:
+        pass
+
+
+def peak_memory(device: torch.device) -> dict[str, Any]:
+    """Peak bytes since `reset_peak_memory`, and what they measure: `rss` since the reset (Linux),
+    `rss-process` (the whole process's life, where the peak cannot be reset) or `cuda-allocated`."""
+    if device.type == "cuda":
+        return {"peak_memory_bytes": int(torch.cuda.max_memory_allocated(device)), "peak_memory_kind": "cuda-allocated"}
+    try:
+        for line in STATUS_FILE.read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return {"peak_memory_bytes": int(line.split()[1]) * 1024, "peak_memory_kind": "rss"}
+    except OSError:
+        pass
+    return {"peak_memory_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+            "peak_memory_kind": "rss-process"}
+
+
+def device_name(device: torch.device) -> str:
+    """`cpu: <model>` or `cuda: <GPU name>`."""
+    if device.type == "cuda":
+        return f"cuda: {torch.cuda.get_device_name(device)}"
+    return f"cpu: {cpu_model()}"
+
+
+def run_record(device: torch.device, loop_seconds: float, peak: dict[str, Any]) -> dict[str, Any]:
+    """What a results table needs beside a fit's numbers (`metrics.json`'s `run`); `peak` is what
+    `peak_memory` returned."""
+    return {"commit": code_commit(), "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "device": device_name(device), "torch": torch.__version__,
+            "torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
+            "loop_seconds": loop_seconds, "peak_memory_bytes": peak.get("peak_memory_bytes"),
+            "peak_memory_kind": peak.get("peak_memory_kind")}
