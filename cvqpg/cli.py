@@ -20,9 +20,10 @@ from .config import CURVATURES, ConfigError, FitConfig, default_warmup
 from .fitting import CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes, fit_scene, state_from_payload
 from .export import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
 from .report import write_summary
+from .results import RecordError, document
 from .runs import (CHECKPOINT_FILE, CONFIG_FILE, EXPORT_FOLDER, METRICS_FILE, MODEL_FILE, RENDER_FOLDER, evaluate_run,
                    export_run, half_precision_model, model_info, read_run, render_model, scene_from_source, start_run,
-                   write_run)
+                   write_atomic, write_run)
 from .scenes import SCENES
 from .storage import ModelFileError, load_checkpoint, save_checkpoint
 from .targets import InputError, Scene, check_file
@@ -178,6 +179,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     _fit_parser(sub)
     _bench_parser(sub)
+    p = sub.add_parser("results", help="write docs/results.md from the cell records in results/",
+                       description="Tabulate the recorded cells of results/ (Table 1, per scene, ablation, "
+                       "chromatic, frequency, runtime) beside the paper's numbers, with one line per claim.")
+    p.add_argument("--root", default="results", metavar="DIR", help="the recorded bench folders [default: results]")
+    p.add_argument("--out", default="docs/results.md", metavar="FILE", help="[default: docs/results.md]")
     e = sub.add_parser("eval", help="recompute the metrics of a saved run",
                        description="Recompute PSNR/SSIM/FLIP/LPIPS/CVVDP of RUN_DIR's model against "
                        "its targets and rewrite RUN_DIR/metrics.json.")
@@ -424,6 +430,17 @@ def run_bench(args: argparse.Namespace) -> int:
     return code
 
 
+def run_results(args: argparse.Namespace) -> int:
+    try:
+        text = document(Path(args.root))
+    except RecordError as error:
+        raise UsageError(str(error)) from error
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(Path(args.out), text)
+    print(f"cvqpg results: {args.out}")
+    return 0
+
+
 class _NoteHandler(logging.Handler):
     """Prints the library's notes (resized depth, dropped alpha, ...) to the current stderr."""
 
@@ -444,7 +461,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     keep_freed_memory()
     try:
         return {"fit": run_fit, "eval": run_eval, "export": run_export, "info": run_info,
-                "render": run_render, "bench": run_bench}[args.command](args)
+                "render": run_render, "bench": run_bench, "results": run_results}[args.command](args)
     except USER_ERRORS as error:
         print(f"cvqpg {args.command}: error: {error}", file=sys.stderr)
         return 2

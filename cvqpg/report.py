@@ -109,7 +109,7 @@ def scene_values(results: list[CellResult], setting: str, method: str) -> dict[s
     return {scene: {m: _mean([v.get(m) for v in values]) for m in TABLE_METRICS} for scene, values in by_scene.items()}
 
 
-def _over_scenes(values: dict[str, Metrics], scenes: list[str]) -> Metrics | None:
+def over_scenes(values: dict[str, Metrics], scenes: list[str]) -> Metrics | None:
     """Mean over `scenes`; None (shown as –, not n/a) when no scene has finished."""
     return {m: _mean([values[s][m] for s in scenes]) for m in TABLE_METRICS} if scenes else None
 
@@ -154,8 +154,14 @@ def _bold_best(table: Table, first_row: int, values: list[Metrics | None], first
         table.bold |= {(first_row + i, first_column + k) for i, v in available if v == best}
 
 
-def _n(plan: BenchPlan, setting: str, method: str) -> int:
+def primitive_count(plan: BenchPlan, setting: str, method: str) -> int:
     return next(c.config.primitive_count for c in plan.cells if c.setting == setting and c.method == method)
+
+
+def setting_methods(plan: BenchPlan, setting: str) -> list[str]:
+    """The plan's methods that have cells in `setting` (a grid need not fit every method everywhere)."""
+    present = {c.method for c in plan.cells if c.setting == setting}
+    return [m for m in plan.methods if m in present]
 
 
 def main_table(plan: BenchPlan, results: list[CellResult]) -> tuple[Table, list[dict[str, Any]]]:
@@ -167,19 +173,20 @@ def main_table(plan: BenchPlan, results: list[CellResult]) -> tuple[Table, list[
     for setting in plan.settings:
         comparable = paper_setup(plan, setting)
         block = []
-        for method in plan.methods:
+        for method in setting_methods(plan, setting):
             per_scene = scene_values(results, setting, method)
-            ours = _over_scenes(per_scene, list(per_scene))
+            ours = over_scenes(per_scene, list(per_scene))
             paper = paper_scene_mean(list(per_scene), setting, method) if comparable else None
             block.append(ours)
-            table.rows.append([setting_label(setting), METHODS[method].label, f"{_n(plan, setting, method):,}",
-                               f"{len(per_scene)}/{len(plan.scenes)}",
+            table.rows.append([setting_label(setting), METHODS[method].label,
+                               f"{primitive_count(plan, setting, method):,}", f"{len(per_scene)}/{len(plan.scenes)}",
                                *(_with_paper(ours, paper, m) for m in TABLE_METRICS)])
-            rows.append(_csv_row(setting, method, _n(plan, setting, method), len(per_scene), ours, paper))
+            rows.append(_csv_row(setting, method, primitive_count(plan, setting, method), len(per_scene), ours, paper))
         _bold_best(table, len(table.rows) - len(block), block, 4)
         if {"baseline", "cvqpg"} <= set(plan.methods):
             delta, paper_delta, scenes = paired_delta(results, setting, "cvqpg", comparable)
-            table.rows.append([setting_label(setting), "Δ (CVQPG − Baseline)", "", f"{len(scenes)}/{len(plan.scenes)}",
+            table.rows.append([setting_label(setting), "Δ (CVQPG − Baseline)", "",
+                               f"{len(scenes)}/{len(plan.scenes)}",
                                *(_with_paper(delta, paper_delta, m, signed=True) for m in TABLE_METRICS)])
             rows.append(_csv_row(setting, "delta cvqpg-baseline", None, len(scenes), delta, paper_delta))
     return table, rows
@@ -190,7 +197,7 @@ def paired_delta(results: list[CellResult], setting: str, method: str, comparabl
     """Mean over the scenes finished for both of (method − baseline), ours and the paper's, and those scenes."""
     ours, base = scene_values(results, setting, method), scene_values(results, setting, "baseline")
     scenes = sorted(set(ours) & set(base))
-    delta = _over_scenes({s: _difference(ours[s], base[s]) for s in scenes}, scenes)
+    delta = over_scenes({s: _difference(ours[s], base[s]) for s in scenes}, scenes)
     paper_method, paper_base = (paper_scene_mean(scenes, setting, m) for m in (method, "baseline"))
     paper = _difference(paper_method, paper_base) if comparable and paper_method and paper_base else None
     return delta, paper, scenes
@@ -244,9 +251,9 @@ def variant_tables(plan: BenchPlan, results: list[CellResult]) -> list[Table]:
         if comparable and set(ABLATION_VARIANTS) & set(plan.methods):
             table.note = "In parentheses: the paper's ablation, five-scene means."
         block = []
-        for method in plan.methods:
+        for method in setting_methods(plan, setting):
             per_scene = scene_values(results, setting, method)
-            ours = _over_scenes(per_scene, list(per_scene))
+            ours = over_scenes(per_scene, list(per_scene))
             paper = ablation["methods"].get(method) if comparable else None
             delta_text = MISSING
             if method != "baseline" and "baseline" in plan.methods:
@@ -255,7 +262,7 @@ def variant_tables(plan: BenchPlan, results: list[CellResult]) -> list[Table]:
                     "psnr": paper["psnr"] - ablation["methods"]["baseline"]["psnr"]}
                 delta_text = _with_paper(delta, paper_delta, "psnr", signed=True)
             block.append(ours)
-            table.rows.append([METHODS[method].label, f"{_n(plan, setting, method):,}", delta_text,
+            table.rows.append([METHODS[method].label, f"{primitive_count(plan, setting, method):,}", delta_text,
                                f"{len(per_scene)}/{len(plan.scenes)}",
                                *(_with_paper(ours, paper, m) for m in TABLE_METRICS)])
         _bold_best(table, 0, block, 4)
@@ -271,7 +278,7 @@ def seed_tables(plan: BenchPlan, results: list[CellResult]) -> list[Table]:
     table = Table("Seed spread: PSNR mean over scenes per seed", header)
     for setting in plan.settings:
         per_seed = {seed: [r for r in results if r.cell.config.seed == seed] for seed in plan.seeds}
-        rows = {METHODS[m].label: [_over_scenes(v, list(v)) for v in
+        rows = {METHODS[m].label: [over_scenes(v, list(v)) for v in
                                    (scene_values(per_seed[seed], setting, m) for seed in plan.seeds)]
                 for m in plan.methods}
         if {"baseline", "cvqpg"} <= set(plan.methods):

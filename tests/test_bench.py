@@ -271,3 +271,67 @@ def test_scene_folder_without_depth_is_refused(scenes_dir, capsys, tmp_path):
     assert main(["bench", "--preset", "paper", "--scenes", str(scenes_dir), "--dry-run"]) == 2
     error = capsys.readouterr().err
     assert "scene tiger" in error and "depth.png is missing" in error and error.count("\n") == 1
+
+
+TINY_PAPER = {"size": (48, 36), "steps": 2, "warmup": 1, "colors": ["gray"], "ratios": [0.1],
+              "scene_names": ["sushi", "tiger"]}
+
+
+def test_every_cell_records_commit_machine_threads_time_and_peak_memory(tmp_path):
+    plan = make_plan("star", tmp_path / "bench", Overrides(**TINY_STAR))
+    run_plan(plan, progress=False)
+    metrics = json.loads((plan.cell_dir(plan.cells[0]) / "metrics.json").read_text())
+    run = metrics["run"]
+    assert run["commit"] is None or re.fullmatch(r"[0-9a-f]{40}(\+dirty)?", run["commit"])
+    assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\+00:00", run["date"])
+    assert run["device"].startswith("cpu: ") and len(run["device"]) > 5
+    assert run["torch_threads"] >= 1 and run["numba_threads"] >= 1 and run["torch"] == torch.__version__
+    assert run["loop_seconds"] == metrics["seconds"] > 0
+    # a process that imported torch and ran a fit holds well over 50 MB resident
+    assert run["peak_memory_bytes"] > 50 * 2**20 and run["peak_memory_kind"] in ("rss", "rss-process")
+
+
+def test_a_recorded_folder_rebuilds_its_tables_without_run_folders_or_scene_files(scenes_dir, tmp_path, capsys):
+    fitted = tmp_path / "fitted"
+    arguments = ["--preset", "paper", "--methods", "baseline", "cvqpg", "--size", "48", "36", "--steps", "2",
+                 "--warmup", "1", "--colors", "gray", "--ratios", "0.1", "--scene-names", "sushi", "tiger", "--quiet"]
+    assert main(["bench", "--scenes", str(scenes_dir), "--out", str(fitted), *arguments]) == 0
+    recorded = tmp_path / "results" / "paper"
+    for metrics in fitted.glob("cells/*/metrics.json"):
+        cell = recorded / "cells" / metrics.parent.name
+        cell.mkdir(parents=True)
+        for name in ("config.json", "spectrum.json", "metrics.json"):
+            (cell / name).write_bytes((metrics.parent / name).read_bytes())
+    for scene in scenes_dir.iterdir():
+        for file in scene.iterdir():
+            file.unlink()
+    capsys.readouterr()
+    assert main(["bench", "--out", str(recorded), *arguments]) == 0
+    assert "0 done, 4 skipped" in capsys.readouterr().out
+    assert main(["bench", "--out", str(recorded), "--summary-only", *arguments]) == 0
+    for table in ("summary.csv", "cells.csv", "frequency.csv"):
+        assert (recorded / table).read_text() == (fitted / table).read_text(), table
+    # the same summary, less the comparison figures that need the run folders' images
+    without_images = [line for line in (fitted / "summary.md").read_text().splitlines() if "compare_" not in line]
+    assert (recorded / "summary.md").read_text().splitlines() == without_images
+    assert "compare_" not in (recorded / "report.html").read_text()
+
+
+def test_cells_finished_in_another_grid_are_reused_not_refitted(scenes_dir, tmp_path, capsys):
+    table1, ablation = tmp_path / "paper", tmp_path / "ablation"
+    common = ["--scenes", str(scenes_dir), "--size", "48", "36", "--steps", "2", "--warmup", "1", "--ratios", "0.1",
+              "--colors", "rgb", "--scene-names", "tiger", "--quiet"]
+    assert main(["bench", "--preset", "paper", "--out", str(table1), "--methods", "baseline", "cvqpg", *common]) == 0
+    capsys.readouterr()
+    assert main(["bench", "--preset", "ablation", "--out", str(ablation), "--methods", "baseline", "cvqpg", "vanilla",
+                 "--reuse", str(table1), *common]) == 0
+    assert "1 done, 0 skipped, 2 reused" in capsys.readouterr().out
+    for method in ("baseline", "cvqpg"):
+        name = f"tiger_rgb-10_{method}_s100"
+        assert (ablation / "cells" / name / "metrics.json").read_bytes() == \
+            (table1 / "cells" / name / "metrics.json").read_bytes()
+        assert not (ablation / "cells" / name / "model.safetensors").exists()
+    other_steps = [a if a != "2" else "3" for a in common]
+    assert main(["bench", "--preset", "ablation", "--out", str(tmp_path / "longer"), "--methods", "baseline",
+                 "--reuse", str(table1), *other_steps]) == 0
+    assert "1 done, 0 skipped, 0 reused" in capsys.readouterr().out
