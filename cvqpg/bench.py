@@ -14,7 +14,6 @@ import json
 import logging
 import math
 import multiprocessing
-import os
 import signal
 import traceback
 from collections.abc import Callable, Sequence
@@ -32,6 +31,7 @@ from .allocator import keep_freed_memory
 from .config import FitConfig, default_warmup
 from .fitting import CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes, fit_scene, state_from_payload
 from .metrics import radial_error_spectrum
+from .provenance import available_cores
 from .runs import (CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, read_run, scene_from_source, start_run, write_atomic,
                    write_json, write_run)
 from .scenes import SCENES
@@ -474,11 +474,6 @@ def _init_worker(threads: int, stop_event: Any) -> None:
 
 def _attempt_in_worker(cell: Cell, folder: Path) -> tuple[str, str | None]:
     return _attempt(cell, folder, _worker_stop.is_set)
-
-
-def available_cores() -> int:
-    """Cores this process may use (a Slurm allocation, not the whole node)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int = 1, progress: bool = True,

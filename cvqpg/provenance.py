@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import datetime
 import functools
+import os
 import platform
 import resource
 import subprocess
@@ -22,8 +23,7 @@ PEAK_RESET_FILE = Path("/proc/self/clear_refs")
 STATUS_FILE = Path("/proc/self/status")
 
 
-@functools.cache
-def code_commit() -> str | None:
+def checkout_commit() -> str | None:
     """The git commit of the package's checkout, with `+dirty` when tracked files under the package
     differ from it; None outside a git checkout (an installed wheel)."""
     def git(*args: str) -> str | None:
@@ -38,6 +38,10 @@ def code_commit() -> str | None:
         return None
     changed = git("status", "--porcelain", "--untracked-files=no", "--", str(PACKAGE_ROOT))
     return f"{commit}+dirty" if changed else commit
+
+
+# Taken at import: the code a process runs is the code it imported, whatever is committed later.
+IMPORTED_COMMIT = checkout_commit()
 
 
 @functools.cache
@@ -85,11 +89,26 @@ def device_name(device: torch.device) -> str:
     return f"cpu: {cpu_model()}"
 
 
+def _load_average() -> float | None:
+    """The machine's 15-minute load average at the fit's end: beside its core count, how busy the
+    machine was (a fit sharing the cores with other work takes longer)."""
+    try:
+        return round(os.getloadavg()[2], 2)
+    except OSError:
+        return None
+
+
+def available_cores() -> int:
+    """Cores this process may use (a Slurm allocation or `taskset`, not the whole node)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
 def run_record(device: torch.device, loop_seconds: float, peak: dict[str, Any]) -> dict[str, Any]:
     """What a results table needs beside a fit's numbers (`metrics.json`'s `run`); `peak` is what
     `peak_memory` returned."""
-    return {"commit": code_commit(), "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "device": device_name(device), "torch": torch.__version__,
-            "torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
-            "loop_seconds": loop_seconds, "peak_memory_bytes": peak.get("peak_memory_bytes"),
+    now = datetime.datetime.now(datetime.timezone.utc)
+    return {"commit": IMPORTED_COMMIT, "date": now.isoformat(timespec="seconds"), "device": device_name(device),
+            "torch": torch.__version__, "torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
+            "loop_seconds": loop_seconds, "load_average": _load_average(), "machine_cores": os.cpu_count(),
+            "peak_memory_bytes": peak.get("peak_memory_bytes"),
             "peak_memory_kind": peak.get("peak_memory_kind")}
