@@ -145,7 +145,7 @@ def machine_lines(grids: list[GridResults]) -> list[str]:
         lines.append(f"{len(runs) - len(known)} cells carry no run record.")
     machines = Counter(f"{run['device']}, {run['torch_threads']} torch / {run['numba_threads']} Numba threads"
                        for run in known)
-    lines += [f"{count} cells on {machine}" for machine, count in sorted(machines.items())]
+    lines += [f"{count} cell{'s' * (count != 1)} on {machine}" for machine, count in sorted(machines.items())]
     commits = Counter((run["commit"] or "unknown")[:7] + ("+dirty" if str(run["commit"]).endswith("+dirty") else "")
                       for run in known)
     if commits:
@@ -344,8 +344,10 @@ def runtime_table(paper: GridResults) -> Table:
     runtime = paper_numbers()["runtime"]
     table = Table(f"Time and peak memory per fit (ours: the fit loop and the process's peak RSS; paper: "
                   f"{runtime['device']}, peak GPU memory); Δ against the Baseline",
-                  ["Setting", "Method", "N", "cells", "minutes", "Δ time", "GiB", "Δ memory", "paper minutes",
+                  ["Setting", "Method", "N", "cells", "minutes", "Δ time", "GiB", "Δ memory", "load", "paper minutes",
                    "paper Δ time", "paper GiB", "paper Δ memory"])
+    table.note = ("load: the machine's mean 15-minute load average at the cells' ends, over its core count (where "
+                  "recorded); above 1 the fits shared the cores with other work and took longer.")
     for setting in SETTINGS:
         base = _runtime(paper, setting, "baseline")
         for method in TABLE1_METHODS:
@@ -355,7 +357,7 @@ def runtime_table(paper: GridResults) -> Table:
                 "0" if ours is None else str(ours["cells"]),
                 "–" if ours is None else f"{ours['minutes']:.1f}", _relative(ours, base, "minutes"),
                 "–" if ours is None else f"{ours['gib']:.2f}", _relative(ours, base, "gib"),
-                f"{theirs['minutes']:.1f}", f"{theirs['delta_time_pct']:+.1f}%",
+                "–" if ours is None or ours["load"] is None else f"{ours['load']:.1f}", f"{theirs['minutes']:.1f}", f"{theirs['delta_time_pct']:+.1f}%",
                 f"{theirs['memory_gib']:.1f}", f"{theirs['delta_memory_pct']:+.1f}%"])
     return table
 
@@ -383,8 +385,10 @@ def _runtime(grid: GridResults, setting: str, method: str) -> dict[str, float] |
             and r.metrics.get("run")]
     if not runs:
         return None
+    loads = [run["load_average"] / run["machine_cores"] for run in runs if run.get("load_average") is not None]
     return {"cells": len(runs), "minutes": float(np.mean([run["loop_seconds"] for run in runs])) / 60,
-            "gib": float(np.mean([run["peak_memory_bytes"] for run in runs])) / GIB}
+            "gib": float(np.mean([run["peak_memory_bytes"] for run in runs])) / GIB,
+            "load": float(np.mean(loads)) if loads else None}
 
 
 def document(root: Path) -> str:
