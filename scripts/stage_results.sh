@@ -1,0 +1,13 @@
+#!/usr/bin/env bash
+# Rewrites docs/results.md from results/ and stages it with the records of every finished cell
+# (a cell is finished once its metrics.json exists; unfinished cells are refitted, never committed).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+.venv/bin/cvqpg results
+for cell in results/*/cells/*/; do
+    if [ -f "$cell/metrics.json" ]; then
+        git add "$cell"
+    fi
+done
+git add docs/results.md
+git status --short -- results docs/results.md
