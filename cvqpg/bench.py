@@ -29,7 +29,8 @@ from tqdm.auto import tqdm
 
 from .allocator import keep_freed_memory
 from .config import FitConfig, default_warmup
-from .fitting import CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes, fit_scene, state_from_payload
+from .fitting import (CheckpointDeviceError, CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes,
+                      fit_scene, state_from_payload)
 from .metrics import radial_error_spectrum
 from .provenance import available_cores
 from .runs import (CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, read_run, scene_from_source, start_run, write_atomic,
@@ -411,7 +412,7 @@ def _resume_state(folder: Path, cell: Cell) -> FitState | None:
     if checkpoint.is_file() and (folder / CONFIG_FILE).is_file() and not config_differences(folder, cell.config):
         try:
             return state_from_payload(load_checkpoint(checkpoint), cell.config)
-        except ModelFileError as error:
+        except (ModelFileError, CheckpointDeviceError) as error:
             log.warning(f"{error}; cell {cell.name} restarts from step 0")
     start_run(folder, cell.config, cell.scene.source)
     return None

@@ -17,7 +17,8 @@ from . import __version__
 from .allocator import keep_freed_memory
 from .bench import METHODS, PRESETS, BenchError, Overrides, describe_cells, make_plan, parse_shard, peak_bytes, run_plan
 from .config import CURVATURES, ConfigError, FitConfig, default_warmup
-from .fitting import CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes, fit_scene, state_from_payload
+from .fitting import (CheckpointDeviceError, CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes,
+                      fit_scene, state_from_payload)
 from .export import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
 from .report import write_summary
 from .results import RecordError, document
@@ -36,7 +37,7 @@ class UsageError(Exception):
     """Bad input: printed as one line, exit code 2."""
 
 
-USER_ERRORS = (UsageError, ConfigError, InputError, ModelFileError, BenchError)
+USER_ERRORS = (UsageError, ConfigError, InputError, ModelFileError, BenchError, CheckpointDeviceError)
 
 
 def _fit_parser(sub: argparse._SubParsersAction) -> None:
@@ -211,8 +212,6 @@ def _config_and_source(args: argparse.Namespace) -> tuple[FitConfig, dict]:
         has_depth = args.depth is not None
     if planes > 1 and not has_depth:
         raise UsageError(f"--planes {planes} needs a depth map (--depth PATH), or use --planes 1")
-    if args.device == "cuda" and not torch.cuda.is_available():
-        raise UsageError("--device cuda: no CUDA GPU is visible to PyTorch; use --device cpu")
     if args.resize_depth:
         source["resize_depth"] = True
     config = FitConfig(width=width, height=height, color=color, primitive=args.primitive,
@@ -281,17 +280,25 @@ class StopRequest:
             signal.signal(signum, handler)
 
 
+def check_device(device: str) -> None:
+    """A CUDA device needs a GPU that PyTorch sees; checked before anything is written."""
+    if torch.device(device).type == "cuda" and not torch.cuda.is_available():
+        raise UsageError(f"device {device}: no CUDA GPU is visible to PyTorch; use --device cpu")
+
+
 def _prepare(args: argparse.Namespace) -> tuple[Path, FitConfig, dict, Scene, FitState | None]:
     if args.resume:
         folder = Path(args.resume)
         if not (folder / CONFIG_FILE).is_file():
             raise UsageError(f"--resume {folder}: not a run folder (no {CONFIG_FILE})")
         config, source = read_run(folder)
+        check_device(config.device)
         scene = scene_from_source(source, config)
         checkpoint = folder / CHECKPOINT_FILE
         state = state_from_payload(load_checkpoint(checkpoint), config) if checkpoint.is_file() else None
         return folder, config, source, scene, state
     config, source = _config_and_source(args)
+    check_device(config.device)
     folder = Path(args.out) if args.out else _default_out(source, config)
     if (folder / CONFIG_FILE).exists() and not args.overwrite:
         raise UsageError(f"{folder} already holds a run; choose another --out, pass --overwrite, or "

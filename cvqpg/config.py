@@ -150,6 +150,9 @@ class FitConfig:
                               f"for colour mode {self.color!r}")
         if self.curvature not in CURVATURES:
             raise ConfigError(f"curvature {self.curvature!r}: choose one of {', '.join(CURVATURES)}")
+        if self.backend == "numba" and self.device != "cpu":
+            raise ConfigError(f"backend 'numba' runs on the CPU only, not on {self.device}; use --backend auto "
+                              "(or torch) with --device cuda")
         if self.warmup < 0 or self.warmup > self.steps:
             raise ConfigError(f"warmup {self.warmup} must lie in 0..steps ({self.steps})")
         count, pixels = self.primitive_count, self.width * self.height

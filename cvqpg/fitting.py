@@ -115,7 +115,7 @@ class FitState:
                 "optimizer": self.optimizer.state_dict(), "generator": self.generator.get_state(),
                 "step": self.step, "history": self.history, "seconds": self.seconds,
                 "skipped_steps": self.skipped_steps, "sanitised_steps": self.sanitised_steps,
-                "peak_memory": self.peak_memory}
+                "peak_memory": self.peak_memory, "device": self.generator.device.type}
 
 
 def initial_state(config: FitConfig) -> FitState:
@@ -131,7 +131,13 @@ def initial_state(config: FitConfig) -> FitState:
 
 
 def state_from_payload(payload: dict, config: FitConfig) -> FitState:
-    """Inverse of `FitState.to_payload` on `config.device`."""
+    """Inverse of `FitState.to_payload` on `config.device`. A checkpoint from another device type is
+    refused (`CheckpointDeviceError`): CPU and CUDA noise generators have different states."""
+    written_on = payload.get("device", "cpu")
+    if written_on != torch.device(config.device).type:
+        raise CheckpointDeviceError(f"the checkpoint was written on {written_on}, this run is on {config.device}: "
+                                    f"resume it with --device {written_on}, or delete checkpoint.pt to restart "
+                                    "from step 0")
     state = initial_state(config)
     with torch.no_grad():
         for name, tensor in state.gaussians.tensors().items():
@@ -215,6 +221,10 @@ class CheckpointPolicy:
         if self.every_steps is not None:
             return steps_done % self.every_steps == 0
         return self.every_seconds is not None and seconds_since_save >= self.every_seconds
+
+
+class CheckpointDeviceError(ValueError):
+    """A checkpoint whose loop state belongs to another device type."""
 
 
 class FitInterrupted(Exception):

@@ -17,7 +17,7 @@ from cvqpg.cli import main
 from cvqpg.metrics import radial_error_spectrum
 from cvqpg.report import CellResult, main_table, paper_numbers, seed_tables
 from cvqpg.runs import start_run
-from cvqpg.storage import load_checkpoint
+from cvqpg.storage import load_checkpoint, save_checkpoint
 
 TINY_STAR = {"size": (48, 36), "steps": 3, "methods": ["baseline"]}
 
@@ -180,6 +180,20 @@ def test_interrupted_cell_resumes_from_its_checkpoint_to_the_same_result(tmp_pat
     assert run_plan(reference, progress=False).statuses == {cell.name: DONE}
     resumed, fresh = (json.loads((p.cell_dir(cell) / "metrics.json").read_text()) for p in (plan, reference))
     assert resumed["mean"] == fresh["mean"] and resumed["updates"] == 9
+
+
+def test_a_cell_checkpointed_on_another_device_restarts_from_step_0(tmp_path, caplog):
+    plan = make_plan("star", tmp_path / "bench", Overrides(**TINY_STAR))
+    cell = plan.cells[0]
+    folder = plan.cell_dir(cell)
+    checks = iter(range(100))
+    assert run_cell(cell, folder, lambda: next(checks) > 2) == INTERRUPTED
+    payload = load_checkpoint(folder / "checkpoint.pt")
+    payload["device"], payload["generator"] = "cuda", torch.zeros(16, dtype=torch.uint8)
+    save_checkpoint(folder / "checkpoint.pt", payload)
+    with caplog.at_level("WARNING", logger="cvqpg"):
+        assert run_plan(plan, progress=False).statuses == {cell.name: DONE}
+    assert "written on cuda" in caplog.text and "restarts from step 0" in caplog.text
 
 
 def test_jobs_run_cells_in_worker_processes(tmp_path):

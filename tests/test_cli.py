@@ -4,9 +4,13 @@ import json
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 from cvqpg.cli import main
+from cvqpg.fitting import initial_state
+from cvqpg.runs import read_run
+from cvqpg.storage import load_checkpoint, save_checkpoint
 
 SMALL = ["--size", "48", "36", "--steps", "3", "--warmup", "1", "--quiet"]
 RUN_FILES = {"config.json", "metrics.json", "model.safetensors", "target_plane0.png", "target_plane1.png",
@@ -91,6 +95,7 @@ def test_star_scene_runs_single_plane_grayscale(tmp_path):
     (["missing.png"], "no such file"),
     (["--scene", "demo", "--depth", "x.png"], "--depth applies to an IMAGE"),
     (["--device", "cuda"], "no CUDA GPU"),
+    (["--device", "cuda", "--backend", "numba"], "backend 'numba' runs on the CPU only"),
 ])
 def test_bad_input_is_one_line_and_exit_code_2(arguments, message, capsys, tmp_path, monkeypatch):
     monkeypatch.setattr("torch.cuda.is_available", lambda: False)
@@ -119,3 +124,31 @@ def test_help_explains_options_with_units_and_defaults(capsys):
     text = capsys.readouterr().out
     for expected in ("--primitive", "--bound", "--qpf", "px", "default: 2000", "1 mm", "--warmup"):
         assert expected in text, expected
+
+
+def test_resume_checks_the_recorded_device_before_writing(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "run"
+    assert main(["fit", *SMALL, "--checkpoint-every", "1", "--out", str(out)]) == 0
+    config = json.loads((out / "config.json").read_text())
+    (out / "metrics.json").unlink()
+    (out / "config.json").write_text(json.dumps({**config, "device": "cuda"}))
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    monkeypatch.setattr("torch.cuda.is_available", lambda: False)
+    assert main(["fit", "--resume", str(out)]) == 2
+    error = capsys.readouterr().err
+    assert "no CUDA GPU" in error and error.count("\n") == 1
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
+
+
+def test_a_checkpoint_from_another_device_is_refused_with_its_device_named(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["fit", *SMALL, "--out", str(out)]) == 0
+    (out / "metrics.json").unlink()
+    payload = initial_state(read_run(out)[0]).to_payload()
+    assert payload["device"] == "cpu"
+    payload["device"], payload["generator"] = "cuda", torch.zeros(16, dtype=torch.uint8)  # a CUDA generator's state
+    save_checkpoint(out / "checkpoint.pt", payload)
+    assert main(["fit", "--resume", str(out)]) == 2
+    error = capsys.readouterr().err
+    assert "written on cuda" in error and "--device cuda" in error and error.count("\n") == 1
+    assert load_checkpoint(out / "checkpoint.pt")["device"] == "cuda"
