@@ -68,8 +68,9 @@ def test_the_document_compares_gains_per_scene_and_states_each_claim(tmp_path):
     text = document(tmp_path)
     gain, paper_gain = values["cvqpg"] - values["baseline"], supplement["cvqpg"]["psnr"] - supplement["baseline"]["psnr"]
     assert f"| tiger | RGB 10% | {values['baseline']:.3f} | {supplement['baseline']['psnr']:.3f} | +0.020 |" in text
-    assert f"ours {gain:+.3f} dB on 1 scenes, paper {paper_gain:+.3f} on the same scenes" in text
-    assert f"not reproduced (Δ {gain - paper_gain:+.3f}" in text  # 0.23 dB apart: outside 0.1 dB
+    assert f"ours {gain:+.3f} dB on 1 scene, paper {paper_gain:+.3f} on the same scenes" in text
+    assert f"outside the tolerance so far (Δ {gain - paper_gain:+.3f}" in text  # 0.23 dB apart: outside 0.1 dB
+    assert "Time of CVQPG against the Baseline, RGB 10%: paper +0.0%; ours not comparable yet" in text  # load 1.5
     assert "Per-scene PSNR within 0.3 dB of the supplementary table: 3 of 3 recorded values" in text
     assert "| Table 1 | `results/paper` | 3 | 72 | 69 |" in text
     assert "3 cells on cpu: test CPU, 2 torch / 2 Numba threads" in text
