@@ -16,11 +16,12 @@ keep G and H for every column of the footprint's bounding box and every channel 
 (lane = column · C + channel, the layout of the image arrays too). Eight lanes make one vector
 (`vectors.Float32x8`), and a strip of them walks down the box's rows with G and H in registers: add
 G masked to the row's span, then G ← G·H and H ← H + H·(Q − 1) (`_stepped_down`). Per row only the
-image is read and written (loops over lane arrays, the previous form, stored G and H back on every
-row and took 13–24% more time). The forward pass walks two vectors at once, so that their chains of
-complex products overlap. The lanes start on the box's first row from six exponentials per channel,
-walked along the row in float64, four channels at a time as vectors (`_walk_along_row`); the channels
-share their magnitudes, and their angles go through one vectorised cos/sin (`_cosines_and_sines`).
+image is read and written (in loops over lane arrays LLVM cannot prove that G and H do not
+overlap the image, stores them back on every row and takes 13–24% more time). The forward pass
+walks two vectors at once, so that their chains of complex products overlap. The lanes start on
+the box's first row from six exponentials per channel, walked along the row in float64, four
+channels at a time as vectors (`_walk_along_row`); the channels share their magnitudes, and their
+angles go through one vectorised cos/sin (`_cosines_and_sines`).
 Lanes hold primitives whose values stay inside float32's range over the box, ½D² ≤
 `TABLE_EXPONENT_LIMIT` at its top corners: at initialisation all of them, and 98% of a fitted
 model's.
@@ -46,7 +47,8 @@ and each primitive's gradients are written by that thread alone. Both compile wi
 their loops over the primitives without Numba's reference counting (`WITHOUT_REFERENCE_COUNTS`).
 The small helpers that run once per primitive are inlined into those loops (`inline="always"`): a
 call hands over every array argument field by field, through memory. The table builders and the
-walks stay calls: inlining them too took the kernels' first compilation from 39 s to 52–59 s here.
+walks stay calls: inlining them too takes the kernels' first compilation from 39 s to 52–59 s here,
+more than a first fit would save.
 """
 
 from __future__ import annotations
