@@ -1,4 +1,4 @@
-"""Command line: `cvqpg fit`, `eval`, `export`, `info` and `render`, thin wrappers over the library API."""
+"""Command line: `cvqpg fit`, `eval`, `export`, `info`, `render`, `bench` and `warmup`, thin wrappers over the library API."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ import torch
 from . import __version__
 from .allocator import keep_freed_memory
 from .bench import METHODS, PRESETS, BenchError, Overrides, describe_cells, make_plan, parse_shard, peak_bytes, run_plan
+from .compilation import warmup
 from .config import CURVATURES, ConfigError, FitConfig, default_warmup
 from .fitting import CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes, fit_scene, state_from_payload
 from .export import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
@@ -183,6 +184,9 @@ def build_parser() -> argparse.ArgumentParser:
                        "its targets and rewrite RUN_DIR/metrics.json.")
     e.add_argument("run_dir", metavar="RUN_DIR", help="folder written by `cvqpg fit`")
     _display_parsers(sub)
+    sub.add_parser("warmup", help="compile the CPU kernels ahead of the first fit (for clusters and images)",
+                   description="Compile every Numba CPU kernel that a fit calls into Numba's on-disk cache "
+                   "(next to the package, or NUMBA_CACHE_DIR), so that the first fit starts at once.")
     return parser
 
 
@@ -397,6 +401,12 @@ def run_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_warmup(_args: argparse.Namespace) -> int:
+    seconds = warmup()
+    print(f"cvqpg warmup: CPU kernels compiled and cached in {seconds:.0f} s")
+    return 0
+
+
 def run_bench(args: argparse.Namespace) -> int:
     seeds = [args.seed] if args.seed is not None else args.seeds
     overrides = Overrides(scenes_dir=args.scenes, scene_names=args.scene_names, colors=args.colors,
@@ -444,7 +454,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     keep_freed_memory()
     try:
         return {"fit": run_fit, "eval": run_eval, "export": run_export, "info": run_info,
-                "render": run_render, "bench": run_bench}[args.command](args)
+                "render": run_render, "bench": run_bench, "warmup": run_warmup}[args.command](args)
     except USER_ERRORS as error:
         print(f"cvqpg {args.command}: error: {error}", file=sys.stderr)
         return 2

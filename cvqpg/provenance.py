@@ -85,11 +85,12 @@ def device_name(device: torch.device) -> str:
     return f"cpu: {cpu_model()}"
 
 
-def run_record(device: torch.device, loop_seconds: float, peak: dict[str, Any]) -> dict[str, Any]:
+def run_record(device: torch.device, loop_seconds: float, compile_seconds: float, peak: dict[str, Any]) -> dict[str, Any]:
     """What a results table needs beside a fit's numbers (`metrics.json`'s `run`); `peak` is what
-    `peak_memory` returned."""
+    `peak_memory` returned; `compile_seconds` compiled or loaded the CPU kernels before the loop,
+    whose `loop_seconds` exclude them."""
     return {"commit": code_commit(), "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "device": device_name(device), "torch": torch.__version__,
             "torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
-            "loop_seconds": loop_seconds, "peak_memory_bytes": peak.get("peak_memory_bytes"),
+            "loop_seconds": loop_seconds, "compile_seconds": compile_seconds, "peak_memory_bytes": peak.get("peak_memory_bytes"),
             "peak_memory_kind": peak.get("peak_memory_kind")}

@@ -126,7 +126,8 @@ def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[
         result.metrics, config, result.seconds,
         {"updates": len(history), "initial_psnr": history[0] if history else None,
          "skipped_steps": result.skipped_steps, "sanitised_steps": result.sanitised_steps,
-         "run": run_record(torch.device(config.device), result.seconds, result.peak_memory)}))
+         "run": run_record(torch.device(config.device), result.seconds, result.compile_seconds,
+                           result.peak_memory)}))
     (folder / CHECKPOINT_FILE).unlink(missing_ok=True)
     return folder
 

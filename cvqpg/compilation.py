@@ -1,0 +1,120 @@
+"""First-run compilation of the Numba CPU kernels, kept out of the fit's progress bar and timings.
+
+Numba compiles a kernel on its first call and caches the machine code on disk (`cache=True`), so
+only the first fit after installing (or after the kernels' source changed) pays for it. A fit on
+the CPU therefore starts with one optimisation step of a tiny scene with the same settings
+(`compile_kernels`): it compiles, or loads from the cache, exactly the kernel specialisations that
+the fit calls, before the progress bar and the fit's clock start. When that takes longer than a
+cache load, a status line says so and counts the seconds. `warmup` does the same ahead of time for
+every kind of fit (`cvqpg warmup`, run by `scripts/install.sh`).
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from typing import TextIO
+
+import torch
+
+from .config import FitConfig
+
+COMPILE_ESTIMATE_SECONDS = 60  # a fit's cold compile on the 2-core development machine, idle (README)
+STATUS_DELAY_SECONDS = 1.0  # loading every kernel from the cache takes less: no status line then
+PROBE_SIZE_PX = (32, 24)  # above the SSIM window (11 px), so that every loss kernel runs
+PROBE_PRIMITIVES = 24
+
+# Fits whose kernels differ in their argument types: the plane count (the propagation takes one
+# array per plane) and per-channel curvature (one column per channel). One probe each covers the
+# built-in scenes, the bench presets and every default; another --planes compiles on its first run.
+WARMUP_KINDS = tuple(FitConfig(num_planes=planes, curvature=curvature)
+                     for planes in (1, 2) for curvature in ("shared", "per-channel"))
+
+
+def uses_cpu_kernels(config: FitConfig) -> bool:
+    """Whether a fit of `config` runs Numba kernels (the optics and noise ones run on the CPU with any backend)."""
+    return torch.device(config.device).type == "cpu"
+
+
+def probe_config(config: FitConfig) -> FitConfig:
+    """A tiny fit with `config`'s kind (colour, planes, primitive, curvature, QPF, backend): the same
+    kernel specialisations, a few milliseconds per step once compiled."""
+    width, height = PROBE_SIZE_PX
+    return config.replace(width=width, height=height, num_gaussians=PROBE_PRIMITIVES, steps=1,
+                          warmup=0, guard_band_px=8, device="cpu").validate()
+
+
+def compile_kernels(config: FitConfig) -> None:
+    """Compile (or load from Numba's cache) every kernel that a CPU fit of `config` calls, by running
+    one optimisation step and one render of a tiny scene of the same kind."""
+    from .fitting import initial_state, optimisation_step, render
+    from .primitives import activate
+    from .scenes import builtin_scene
+    from .targets import load_scene
+
+    probe = probe_config(config)
+    demo = builtin_scene("demo", probe.width, probe.height)
+    scene = load_scene(demo.image, demo.depth if probe.num_planes > 1 else None, probe)
+    state = initial_state(probe)
+    optimisation_step(state, scene, probe)
+    render(activate(state.gaussians.detached(), probe), probe)
+
+
+class CompileStatus:
+    """A status line on `stream`, shown once the block has run for `STATUS_DELAY_SECONDS`: what is
+    compiling, the usual time and the seconds so far; it ends with the total."""
+
+    def __init__(self, stream: TextIO | None = None, enabled: bool = True) -> None:
+        self.stream = stream or sys.stderr
+        self.enabled = enabled
+        self.seconds = 0.0
+        self._done = threading.Event()
+        self._shown = False
+
+    def _line(self, elapsed: float) -> str:
+        return (f"\rcompiling CPU kernels (first run only, about {COMPILE_ESTIMATE_SECONDS} s on 2 cores): "
+                f"{elapsed:.0f} s")
+
+    def _show(self, start: float) -> None:
+        if self._done.wait(STATUS_DELAY_SECONDS):
+            return
+        self._shown = True
+        while not self._done.wait(1.0 - (time.perf_counter() - start) % 1.0):
+            self.stream.write(self._line(time.perf_counter() - start))
+            self.stream.flush()
+
+    def __enter__(self) -> "CompileStatus":
+        self._start = time.perf_counter()
+        self._thread = threading.Thread(target=self._show, args=(self._start,), daemon=True) if self.enabled else None
+        if self._thread is not None:
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.seconds = time.perf_counter() - self._start
+        self._done.set()
+        if self._thread is not None:
+            self._thread.join()
+        if self._shown:
+            self.stream.write(f"{self._line(self.seconds)}, done\n")
+            self.stream.flush()
+
+
+def prepare_kernels(config: FitConfig, show_status: bool = True) -> float:
+    """Compile or load the kernels a fit of `config` calls, with a status line when it compiles;
+    returns the seconds it took (0 where the fit runs no Numba kernel)."""
+    if not uses_cpu_kernels(config):
+        return 0.0
+    with CompileStatus(enabled=show_status) as status:
+        compile_kernels(config)
+    return status.seconds
+
+
+def warmup(show_status: bool = True) -> float:
+    """Compile every kernel specialisation any CPU fit calls (`WARMUP_KINDS`) into Numba's cache,
+    ahead of the first fit; returns the seconds it took."""
+    with CompileStatus(enabled=show_status) as status:
+        for kind in WARMUP_KINDS:
+            compile_kernels(kind)
+    return status.seconds

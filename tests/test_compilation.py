@@ -1,0 +1,74 @@
+"""First-run compilation: the probe covers every kernel a fit calls, its time is reported apart from
+the fit's, and a compile that takes a while shows a status line."""
+
+import io
+import json
+import time
+
+import pytest
+from numba.core import event
+
+from cvqpg import compilation
+from cvqpg.cli import main
+from cvqpg.compilation import CompileStatus, compile_kernels
+from cvqpg.config import FitConfig
+from cvqpg.fitting import fit_scene
+from cvqpg.scenes import builtin_scene
+from cvqpg.targets import load_scene
+
+
+class CompileCounter(event.Listener):
+    """Counts Numba compilations (loads from the on-disk cache are not compilations)."""
+
+    def __init__(self):
+        self.compiled = []
+
+    def on_start(self, ev):
+        pass
+
+    def on_end(self, ev):
+        self.compiled.append(ev.data["dispatcher"].py_func.__name__)
+
+
+@pytest.mark.parametrize("config", [FitConfig(width=48, height=36, steps=2, warmup=1),
+                                    FitConfig(width=40, height=30, steps=2, warmup=1, color="gray", num_planes=1,
+                                              primitive="flat", qpf="standard"),
+                                    FitConfig(width=48, height=36, steps=2, warmup=1, curvature="per-channel")],
+                         ids=["demo", "gray-flat-one-plane", "per-channel"])
+def test_after_the_probe_a_fit_compiles_nothing(config):
+    compile_kernels(config)
+    demo = builtin_scene("demo", config.width, config.height)
+    scene = load_scene(demo.image, demo.depth if config.num_planes > 1 else None, config)
+    with event.install_listener("numba:compile", CompileCounter()) as counter:
+        fit_scene(scene, config, progress=False)
+    assert counter.compiled == []
+
+
+def test_compile_time_is_reported_apart_from_the_fit(tmp_path, monkeypatch):
+    monkeypatch.setattr(compilation, "compile_kernels", lambda config: time.sleep(3.0))
+    out = tmp_path / "run"
+    assert main(["fit", "--size", "48", "36", "--steps", "1", "--quiet", "--out", str(out)]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["run"]["compile_seconds"] >= 3.0
+    assert metrics["seconds"] == metrics["run"]["loop_seconds"] < 3.0
+
+
+def test_a_slow_compile_shows_a_status_line_with_the_seconds():
+    stream = io.StringIO()
+    with CompileStatus(stream) as status:
+        time.sleep(compilation.STATUS_DELAY_SECONDS + 1.5)
+    shown = stream.getvalue()
+    assert "compiling CPU kernels (first run only, about" in shown and shown.endswith(", done\n")
+    assert f"{status.seconds:.0f} s, done" in shown
+
+
+def test_a_cache_load_shows_nothing():
+    stream = io.StringIO()
+    with CompileStatus(stream):
+        pass
+    assert stream.getvalue() == ""
+
+
+def test_warmup_command_compiles_every_kind(capsys):
+    assert main(["warmup"]) == 0
+    assert "CPU kernels compiled and cached" in capsys.readouterr().out
