@@ -18,6 +18,7 @@ from .allocator import keep_freed_memory
 from .bench import METHODS, PRESETS, BenchError, Overrides, describe_cells, make_plan, parse_shard, peak_bytes, run_plan
 from .compilation import warmup
 from .config import CURVATURES, ConfigError, FitConfig, default_warmup
+from .depth import DEPTH_FILE, DEPTH_MODEL, estimate_depth, load_depth_model
 from .fitting import CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes, fit_scene, state_from_payload
 from .export import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
 from .report import write_summary
@@ -26,7 +27,7 @@ from .runs import (CHECKPOINT_FILE, CONFIG_FILE, EXPORT_FOLDER, METRICS_FILE, MO
                    write_run)
 from .scenes import SCENES
 from .storage import ModelFileError, load_checkpoint, save_checkpoint
-from .targets import InputError, Scene, check_file
+from .targets import InputError, Scene, check_file, load_scene
 
 DEFAULTS = FitConfig()
 CHECKPOINT_SECONDS = 180.0
@@ -46,7 +47,9 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("image", nargs="?", help="input image file (any format Pillow reads); "
                    "without it the built-in --scene is used")
-    p.add_argument("--depth", metavar="PATH", help="depth map (0 = near); needed for --planes > 1")
+    p.add_argument("--depth", metavar="PATH|auto", help="depth map (0 = near); needed for --planes > 1. 'auto' "
+                   f"estimates it with Depth Anything V2 ({DEPTH_MODEL}; needs the depth extra, fetches the weights "
+                   f"on first use) and saves it as {DEPTH_FILE} in the run folder")
     p.add_argument("--scene", choices=sorted(SCENES), help="built-in scene, generated at --size: "
                    "'demo' (RGB, 2 planes; the default without IMAGE) or 'star' (grayscale Siemens "
                    "star, single plane)")
@@ -204,11 +207,14 @@ def _config_and_source(args: argparse.Namespace) -> tuple[FitConfig, dict]:
     else:
         color, planes = args.color or "rgb", args.planes or 2
         source = {"image": str(check_file(args.image, "image").resolve())}
-        if args.depth is not None:
+        if args.depth == "auto":
+            source["depth_model"] = DEPTH_MODEL
+        elif args.depth is not None:
             source["depth"] = str(check_file(args.depth, "depth map").resolve())
         has_depth = args.depth is not None
     if planes > 1 and not has_depth:
-        raise UsageError(f"--planes {planes} needs a depth map (--depth PATH), or use --planes 1")
+        raise UsageError(f"--planes {planes} needs a depth map (--depth PATH, or --depth auto to estimate one), "
+                         "or use --planes 1")
     if args.device == "cuda" and not torch.cuda.is_available():
         raise UsageError("--device cuda: no CUDA GPU is visible to PyTorch; use --device cpu")
     if args.resize_depth:
@@ -295,8 +301,17 @@ def _prepare(args: argparse.Namespace) -> tuple[Path, FitConfig, dict, Scene, Fi
         raise UsageError(f"{folder} already holds a run; choose another --out, pass --overwrite, or "
                          f"--resume {folder}")
     check_memory(config)
-    scene = scene_from_source(source, config)
+    if "depth_model" not in source:
+        scene = scene_from_source(source, config)
+        start_run(folder, config, source)
+        return folder, config, source, scene, None
+    depth = estimate_depth(source["image"], load_depth_model(source["depth_model"]))
+    source["depth"] = str((folder / DEPTH_FILE).resolve())
+    scene = load_scene(source["image"], depth, config)
     start_run(folder, config, source)
+    depth.save(folder / DEPTH_FILE)
+    if not args.quiet:
+        print(f"{folder / DEPTH_FILE}: depth estimated by {source['depth_model']} (0 = near)")
     return folder, config, source, scene, None
 
 
