@@ -4,8 +4,8 @@ Numba compiles a kernel on its first call and caches the machine code on disk (`
 only the first fit after installing (or after the kernels' source changed) pays for it. A fit on
 the CPU therefore starts with one optimisation step of a tiny scene with the same settings
 (`compile_kernels`): it compiles, or loads from the cache, exactly the kernel specialisations that
-the fit calls, before the progress bar and the fit's clock start. When that takes longer than a
-cache load, a status line says so and counts the seconds. `warmup` does the same ahead of time for
+the fit calls, before the progress bar and the fit's clock start. When Numba compiles (rather
+than loads from its cache), a status line says so and counts the seconds. `warmup` does the same ahead of time for
 every kind of fit (`cvqpg warmup`, run by `scripts/install.sh`).
 """
 
@@ -17,11 +17,11 @@ import time
 from typing import TextIO
 
 import torch
+from numba.core import event
 
 from .config import FitConfig
 
 COMPILE_ESTIMATE_SECONDS = 60  # a fit's cold compile on the 2-core development machine, idle (README)
-STATUS_DELAY_SECONDS = 1.0  # loading every kernel from the cache takes less: no status line then
 PROBE_SIZE_PX = (32, 24)  # above the SSIM window (11 px), so that every loss kernel runs
 PROBE_PRIMITIVES = 24
 
@@ -61,33 +61,39 @@ def compile_kernels(config: FitConfig) -> None:
     render(activate(state.gaussians.detached(), probe), probe)
 
 
-class CompileStatus:
-    """A status line on `stream`, shown once the block has run for `STATUS_DELAY_SECONDS`: what is
-    compiling, the usual time and the seconds so far; it ends with the total."""
+class CompileStatus(event.Listener):
+    """A status line on `stream` while the block compiles kernels (Numba's compile events; loads from
+    the cache raise none): what is compiling, the usual time and the seconds so far, then the total."""
 
     def __init__(self, stream: TextIO | None = None, enabled: bool = True) -> None:
         self.stream = stream or sys.stderr
         self.enabled = enabled
         self.seconds = 0.0
+        self._compiling = threading.Event()
         self._done = threading.Event()
-        self._shown = False
+
+    def on_start(self, ev: event.Event) -> None:
+        self._compiling.set()
+
+    def on_end(self, ev: event.Event) -> None:
+        pass
 
     def _line(self, elapsed: float) -> str:
         return (f"\rcompiling CPU kernels (first run only, about {COMPILE_ESTIMATE_SECONDS} s on 2 cores): "
                 f"{elapsed:.0f} s")
 
-    def _show(self, start: float) -> None:
-        if self._done.wait(STATUS_DELAY_SECONDS):
-            return
-        self._shown = True
-        while not self._done.wait(1.0 - (time.perf_counter() - start) % 1.0):
-            self.stream.write(self._line(time.perf_counter() - start))
-            self.stream.flush()
+    def _show(self) -> None:
+        while not self._done.is_set():
+            if self._compiling.wait(0.1):
+                self.stream.write(self._line(time.perf_counter() - self._start))
+                self.stream.flush()
+                self._done.wait(1.0)
 
     def __enter__(self) -> "CompileStatus":
         self._start = time.perf_counter()
-        self._thread = threading.Thread(target=self._show, args=(self._start,), daemon=True) if self.enabled else None
+        self._thread = threading.Thread(target=self._show, daemon=True) if self.enabled else None
         if self._thread is not None:
+            event.register("numba:compile", self)
             self._thread.start()
         return self
 
@@ -96,7 +102,8 @@ class CompileStatus:
         self._done.set()
         if self._thread is not None:
             self._thread.join()
-        if self._shown:
+            event.unregister("numba:compile", self)
+        if self._compiling.is_set() and self.enabled:
             self.stream.write(f"{self._line(self.seconds)}, done\n")
             self.stream.flush()
 

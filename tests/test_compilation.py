@@ -45,27 +45,36 @@ def test_after_the_probe_a_fit_compiles_nothing(config):
 
 
 def test_compile_time_is_reported_apart_from_the_fit(tmp_path, monkeypatch):
-    monkeypatch.setattr(compilation, "compile_kernels", lambda config: time.sleep(3.0))
+    compiled_at = []
+
+    def slow_compile(config):
+        compile_kernels(config)
+        time.sleep(2.0)
+        compiled_at.append(time.perf_counter())
+
+    monkeypatch.setattr(compilation, "compile_kernels", slow_compile)
     out = tmp_path / "run"
     assert main(["fit", "--size", "48", "36", "--steps", "1", "--quiet", "--out", str(out)]) == 0
+    after_fit = time.perf_counter()
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["run"]["compile_seconds"] >= 3.0
-    assert metrics["seconds"] == metrics["run"]["loop_seconds"] < 3.0
+    assert metrics["run"]["compile_seconds"] >= 2.0
+    assert metrics["seconds"] == metrics["run"]["loop_seconds"] <= after_fit - compiled_at[0]
 
 
-def test_a_slow_compile_shows_a_status_line_with_the_seconds():
+def test_a_compile_shows_a_status_line_with_the_seconds():
     stream = io.StringIO()
     with CompileStatus(stream) as status:
-        time.sleep(compilation.STATUS_DELAY_SECONDS + 1.5)
+        with event.trigger_event("numba:compile", data={}):
+            time.sleep(1.5)
     shown = stream.getvalue()
-    assert "compiling CPU kernels (first run only, about" in shown and shown.endswith(", done\n")
+    assert shown.startswith("\rcompiling CPU kernels (first run only, about") and shown.endswith(", done\n")
     assert f"{status.seconds:.0f} s, done" in shown
 
 
-def test_a_cache_load_shows_nothing():
+def test_a_slow_cache_load_shows_nothing():
     stream = io.StringIO()
     with CompileStatus(stream):
-        pass
+        time.sleep(1.5)
     assert stream.getvalue() == ""
 
 
