@@ -188,8 +188,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("run_dir", metavar="RUN_DIR", help="folder written by `cvqpg fit`")
     _display_parsers(sub)
     sub.add_parser("warmup", help="compile the CPU kernels ahead of the first fit (for clusters and images)",
-                   description="Compile every Numba CPU kernel that a fit calls into Numba's on-disk cache "
-                   "(next to the package, or NUMBA_CACHE_DIR), so that the first fit starts at once.")
+                   description="Compile the Numba CPU kernels that fits call (with 1 or 2 planes, the defaults) into "
+                   "Numba's on-disk cache (next to the package, or NUMBA_CACHE_DIR), so that the first fit "
+                   "starts at once.")
     return parser
 
 

@@ -25,11 +25,11 @@ COMPILE_ESTIMATE_SECONDS = 60  # a fit's cold compile on the 2-core development 
 PROBE_SIZE_PX = (32, 24)  # above the SSIM window (11 px), so that every loss kernel runs
 PROBE_PRIMITIVES = 24
 
-# Fits whose kernels differ in their argument types: the plane count (the propagation takes one
-# array per plane) and per-channel curvature (one column per channel). One probe each covers the
-# built-in scenes, the bench presets and every default; another --planes compiles on its first run.
-WARMUP_KINDS = tuple(FitConfig(num_planes=planes, curvature=curvature)
-                     for planes in (1, 2) for curvature in ("shared", "per-channel"))
+# Fits whose kernels differ in their argument types differ in their plane count only (the
+# propagation takes one array per plane; colour, primitive, curvature and QPF change values, not
+# types). One probe each covers the built-in scenes, the bench presets and every default; another
+# --planes compiles its few propagation kernels on its first run.
+WARMUP_KINDS = tuple(FitConfig(num_planes=planes) for planes in (1, 2))
 
 
 def uses_cpu_kernels(config: FitConfig) -> bool:
@@ -119,7 +119,7 @@ def prepare_kernels(config: FitConfig, show_status: bool = True) -> float:
 
 
 def warmup(show_status: bool = True) -> float:
-    """Compile every kernel specialisation any CPU fit calls (`WARMUP_KINDS`) into Numba's cache,
+    """Compile the kernel specialisations of every default fit (`WARMUP_KINDS`) into Numba's cache,
     ahead of the first fit; returns the seconds it took."""
     with CompileStatus(enabled=show_status) as status:
         for kind in WARMUP_KINDS:
