@@ -21,7 +21,7 @@ from numba.core import event
 
 from .config import FitConfig
 
-COMPILE_ESTIMATE_SECONDS = 60  # a fit's cold compile on the 2-core development machine, idle (README)
+COMPILE_ESTIMATE_SECONDS = 60  # a fit's cold compile on the shared 2-core development machine (README)
 PROBE_SIZE_PX = (32, 24)  # above the SSIM window (11 px), so that every loss kernel runs
 PROBE_PRIMITIVES = 24
 
