@@ -16,8 +16,10 @@ import threading
 import time
 from typing import TextIO
 
+import numpy as np
 import torch
 from numba.core import event
+from PIL import Image
 
 from .config import FitConfig
 
@@ -55,7 +57,10 @@ def compile_kernels(config: FitConfig) -> None:
 
     probe = probe_config(config)
     demo = builtin_scene("demo", probe.width, probe.height)
-    scene = load_scene(demo.image, demo.depth if probe.num_planes > 1 else None, probe)
+    # A depth ramp over all pixels puts some on every plane, however many --planes asks for.
+    ramp = Image.fromarray(np.linspace(0.0, 1.0, probe.width * probe.height, dtype=np.float32)
+                           .reshape(probe.height, probe.width), "F")
+    scene = load_scene(demo.image, ramp if probe.num_planes > 1 else None, probe)
     state = initial_state(probe)
     optimisation_step(state, scene, probe)
     render(activate(state.gaussians.detached(), probe), probe)

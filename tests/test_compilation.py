@@ -44,6 +44,10 @@ def test_after_the_probe_a_fit_compiles_nothing(config):
     assert counter.compiled == []
 
 
+def test_the_probe_serves_more_planes_than_the_demo_depth_separates():
+    compile_kernels(FitConfig(num_planes=5, color="gray"))  # the demo's depth at the probe's size separates 3
+
+
 def test_compile_time_is_reported_apart_from_the_fit(tmp_path, monkeypatch):
     compiled_at = []
 
