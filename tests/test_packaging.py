@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 import cvqpg
+from cvqpg.cli import main
 
 tomllib = pytest.importorskip("tomllib")  # Python ≥ 3.11
 
@@ -46,3 +47,11 @@ def test_installing_beside_another_supported_torch_keeps_that_torch(tmp_path):
     # The former pin, by contrast, replaces it (or fails where no torch 2.13.0 is at hand without an index).
     pinned = resolve(python, ["torch==2.13.0"])
     assert pinned.returncode != 0 or [item["metadata"]["name"] for item in json.loads(pinned.stdout)["install"]] == ["torch"]
+
+
+def test_version_is_the_package_version(capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0 and capsys.readouterr().out == f"cvqpg {cvqpg.__version__}\n"
+    assert tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["dynamic"]["version"] == {
+        "attr": "cvqpg.__version__"}
