@@ -84,15 +84,21 @@ class CompileStatus(event.Listener):
         pass
 
     def _line(self, elapsed: float) -> str:
-        return (f"\rcompiling CPU kernels (first run only, about {COMPILE_ESTIMATE_SECONDS} s on 2 cores): "
-                f"{elapsed:.0f} s")
+        return f"compiling CPU kernels (first run only, about {COMPILE_ESTIMATE_SECONDS} s on 2 cores): {elapsed:.0f} s"
 
     def _show(self) -> None:
+        """On a terminal the line is redrawn every second; in a log file it is written once."""
+        while not self._compiling.wait(0.1):
+            if self._done.is_set():
+                return
+        if not self.stream.isatty():
+            self.stream.write(self._line(time.perf_counter() - self._start) + "\n")
+            self.stream.flush()
+            return
         while not self._done.is_set():
-            if self._compiling.wait(0.1):
-                self.stream.write(self._line(time.perf_counter() - self._start))
-                self.stream.flush()
-                self._done.wait(1.0)
+            self.stream.write("\r" + self._line(time.perf_counter() - self._start))
+            self.stream.flush()
+            self._done.wait(1.0)
 
     def __enter__(self) -> "CompileStatus":
         self._start = time.perf_counter()
@@ -109,7 +115,7 @@ class CompileStatus(event.Listener):
             self._thread.join()
             event.unregister("numba:compile", self)
         if self._compiling.is_set() and self.enabled:
-            self.stream.write(f"{self._line(self.seconds)}, done\n")
+            self.stream.write(("\r" if self.stream.isatty() else "") + f"{self._line(self.seconds)}, done\n")
             self.stream.flush()
 
 

@@ -65,14 +65,30 @@ def test_compile_time_is_reported_apart_from_the_fit(tmp_path, monkeypatch):
     assert metrics["seconds"] == metrics["run"]["loop_seconds"] <= after_fit - compiled_at[0]
 
 
-def test_a_compile_shows_a_status_line_with_the_seconds():
-    stream = io.StringIO()
+class Terminal(io.StringIO):
+    def isatty(self):
+        return True
+
+
+def compile_for(seconds, stream):
     with CompileStatus(stream) as status:
         with event.trigger_event("numba:compile", data={}):
-            time.sleep(1.5)
-    shown = stream.getvalue()
-    assert shown.startswith("\rcompiling CPU kernels (first run only, about") and shown.endswith(", done\n")
-    assert f"{status.seconds:.0f} s, done" in shown
+            time.sleep(seconds)
+    return status, stream.getvalue()
+
+
+def test_a_compile_shows_a_status_line_counting_the_seconds_on_a_terminal():
+    status, shown = compile_for(2.5, Terminal())
+    redrawn = shown.split("\r")[1:]
+    assert len(redrawn) >= 3 and all(line.startswith("compiling CPU kernels (first run only, about") for line in redrawn)
+    assert shown.endswith(f"{status.seconds:.0f} s, done\n")
+
+
+def test_a_log_file_gets_the_status_once_and_the_total():
+    status, shown = compile_for(2.5, io.StringIO())
+    first, last = shown.splitlines()
+    assert first.startswith("compiling CPU kernels (first run only, about") and first.endswith(": 0 s")
+    assert last.endswith(f"{status.seconds:.0f} s, done") and "\r" not in shown
 
 
 def test_a_slow_cache_load_shows_nothing():
