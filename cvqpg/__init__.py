@@ -3,6 +3,7 @@
 __version__ = "0.1.0"
 
 from .config import FitConfig, LearningRates
+from .depth import estimate_depth, load_depth_model
 from .fitting import FitResult, fit, fit_scene, render, render_hologram
 from .metrics import MetricReport, evaluate
 from .optics import Grid, propagate, reconstruct, transfer_function
@@ -18,5 +19,5 @@ __all__ = [
     "MetricReport", "evaluate", "Grid", "propagate", "reconstruct", "transfer_function",
     "Gaussians", "Primitives", "activate", "init_gaussians", "rasterize", "builtin_scene",
     "Scene", "build_scene", "load_scene", "evaluate_run", "write_run", "load_model", "save_model",
-    "__version__",
+    "estimate_depth", "load_depth_model", "__version__",
 ]

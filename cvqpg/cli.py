@@ -1,4 +1,5 @@
-"""Command line: `cvqpg fit`, `eval`, `export`, `info` and `render`, thin wrappers over the library API."""
+"""Command line: `cvqpg fit`, `eval`, `export`, `info`, `render`, `bench`, `results` and `warmup`, thin
+wrappers over the library API."""
 
 from __future__ import annotations
 
@@ -16,7 +17,9 @@ import torch
 from . import __version__
 from .allocator import keep_freed_memory
 from .bench import METHODS, PRESETS, BenchError, Overrides, describe_cells, make_plan, parse_shard, peak_bytes, run_plan
+from .compilation import warmup
 from .config import CURVATURES, ConfigError, FitConfig, default_warmup
+from .depth import DEPTH_FILE, DEPTH_MODEL, estimate_depth, load_depth_model
 from .fitting import (CheckpointDeviceError, CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes,
                       fit_scene, state_from_payload)
 from .export import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
@@ -27,7 +30,7 @@ from .runs import (CHECKPOINT_FILE, CONFIG_FILE, EXPORT_FOLDER, METRICS_FILE, MO
                    write_atomic, write_run)
 from .scenes import SCENES
 from .storage import ModelFileError, load_checkpoint, save_checkpoint
-from .targets import InputError, Scene, check_file
+from .targets import InputError, Scene, check_file, load_scene
 
 DEFAULTS = FitConfig()
 CHECKPOINT_SECONDS = 180.0
@@ -47,7 +50,9 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("image", nargs="?", help="input image file (any format Pillow reads); "
                    "without it the built-in --scene is used")
-    p.add_argument("--depth", metavar="PATH", help="depth map (0 = near); needed for --planes > 1")
+    p.add_argument("--depth", metavar="PATH|auto", help="depth map (0 = near); needed for --planes > 1. 'auto' "
+                   f"estimates it with Depth Anything V2 ({DEPTH_MODEL}; needs the depth extra, fetches the weights "
+                   f"on first use) and saves it as {DEPTH_FILE} in the run folder")
     p.add_argument("--scene", choices=sorted(SCENES), help="built-in scene, generated at --size: "
                    "'demo' (RGB, 2 planes; the default without IMAGE) or 'star' (grayscale Siemens "
                    "star, single plane)")
@@ -190,6 +195,10 @@ def build_parser() -> argparse.ArgumentParser:
                        "its targets and rewrite RUN_DIR/metrics.json.")
     e.add_argument("run_dir", metavar="RUN_DIR", help="folder written by `cvqpg fit`")
     _display_parsers(sub)
+    sub.add_parser("warmup", help="compile the CPU kernels ahead of the first fit (for clusters and images)",
+                   description="Compile the Numba CPU kernels that fits call (with 1 or 2 planes, the defaults) into "
+                   "Numba's on-disk cache (next to the package, or NUMBA_CACHE_DIR), so that the first fit "
+                   "starts at once.")
     return parser
 
 
@@ -207,11 +216,14 @@ def _config_and_source(args: argparse.Namespace) -> tuple[FitConfig, dict]:
     else:
         color, planes = args.color or "rgb", args.planes or 2
         source = {"image": str(check_file(args.image, "image").resolve())}
-        if args.depth is not None:
+        if args.depth == "auto":
+            source["depth_model"] = DEPTH_MODEL
+        elif args.depth is not None:
             source["depth"] = str(check_file(args.depth, "depth map").resolve())
         has_depth = args.depth is not None
     if planes > 1 and not has_depth:
-        raise UsageError(f"--planes {planes} needs a depth map (--depth PATH), or use --planes 1")
+        raise UsageError(f"--planes {planes} needs a depth map (--depth PATH, or --depth auto to estimate one), "
+                         "or use --planes 1")
     if args.resize_depth:
         source["resize_depth"] = True
     config = FitConfig(width=width, height=height, color=color, primitive=args.primitive,
@@ -304,8 +316,17 @@ def _prepare(args: argparse.Namespace) -> tuple[Path, FitConfig, dict, Scene, Fi
         raise UsageError(f"{folder} already holds a run; choose another --out, pass --overwrite, or "
                          f"--resume {folder}")
     check_memory(config)
-    scene = scene_from_source(source, config)
+    if "depth_model" not in source:
+        scene = scene_from_source(source, config)
+        start_run(folder, config, source)
+        return folder, config, source, scene, None
+    depth = estimate_depth(source["image"], load_depth_model(source["depth_model"]))
+    source["depth"] = str((folder / DEPTH_FILE).resolve())
+    scene = load_scene(source["image"], depth, config)
     start_run(folder, config, source)
+    depth.save(folder / DEPTH_FILE)
+    if not args.quiet:
+        print(f"{folder / DEPTH_FILE}: depth estimated by {source['depth_model']} (0 = near)")
     return folder, config, source, scene, None
 
 
@@ -410,6 +431,12 @@ def run_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_warmup(_args: argparse.Namespace) -> int:
+    seconds = warmup()
+    print(f"cvqpg warmup: CPU kernels compiled and cached in {seconds:.0f} s")
+    return 0
+
+
 def run_bench(args: argparse.Namespace) -> int:
     seeds = [args.seed] if args.seed is not None else args.seeds
     overrides = Overrides(scenes_dir=args.scenes, scene_names=args.scene_names, colors=args.colors,
@@ -468,7 +495,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     keep_freed_memory()
     try:
         return {"fit": run_fit, "eval": run_eval, "export": run_export, "info": run_info,
-                "render": run_render, "bench": run_bench, "results": run_results}[args.command](args)
+                "render": run_render, "bench": run_bench, "results": run_results,
+                "warmup": run_warmup}[args.command](args)
     except USER_ERRORS as error:
         print(f"cvqpg {args.command}: error: {error}", file=sys.stderr)
         return 2

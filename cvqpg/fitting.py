@@ -14,6 +14,7 @@ from pytorch_optimizer import Adan
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from .compilation import prepare_kernels
 from .config import FitConfig
 from .losses import multiplane_loss, noisy_targets, standard_normal
 from .metrics import MetricReport, evaluate
@@ -40,6 +41,7 @@ class FitResult:
     skipped_steps: int = 0
     sanitised_steps: int = 0
     peak_memory: dict[str, Any] = field(default_factory=dict)  # provenance.peak_memory of the fit
+    compile_seconds: float = 0.0  # compiling or loading the CPU kernels before the first step (not in `seconds`)
 
     @property
     def primitives(self) -> Primitives:
@@ -104,6 +106,7 @@ class FitState:
     skipped_steps: int = 0
     sanitised_steps: int = 0
     peak_memory: dict[str, Any] = field(default_factory=dict)  # the largest peak of the segments run so far
+    compile_seconds: float = 0.0  # kernel compilation before the segments' first steps, outside `seconds`
 
     def note_peak_memory(self, device: torch.device) -> None:
         """Keep the larger of the recorded peak and this segment's (a resumed fit runs in several)."""
@@ -115,7 +118,8 @@ class FitState:
                 "optimizer": self.optimizer.state_dict(), "generator": self.generator.get_state(),
                 "step": self.step, "history": self.history, "seconds": self.seconds,
                 "skipped_steps": self.skipped_steps, "sanitised_steps": self.sanitised_steps,
-                "peak_memory": self.peak_memory, "device": self.generator.device.type}
+                "peak_memory": self.peak_memory, "compile_seconds": self.compile_seconds,
+                "device": self.generator.device.type}
 
 
 def initial_state(config: FitConfig) -> FitState:
@@ -147,6 +151,7 @@ def state_from_payload(payload: dict, config: FitConfig) -> FitState:
     state.step, state.history, state.seconds = payload["step"], payload["history"], payload["seconds"]
     state.skipped_steps, state.sanitised_steps = payload["skipped_steps"], payload["sanitised_steps"]
     state.peak_memory = payload.get("peak_memory", {})
+    state.compile_seconds = payload.get("compile_seconds", 0.0)
     return state
 
 
@@ -251,12 +256,15 @@ def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = Tr
     Runs the reference loop's `config.steps + 1` updates (indices 0..steps); curvature is frozen at
     γ = 0 for the first `config.warmup` of them. Pass a `state` (from a checkpoint) to continue a
     run: the result is bit-identical to an uninterrupted one on CPU. When `stop_requested()` turns
-    true the loop saves a checkpoint between two steps and raises `FitInterrupted`.
+    true the loop saves a checkpoint between two steps and raises `FitInterrupted`. The CPU kernels
+    are compiled (first run) or loaded before the first step, with a status line when `progress`;
+    that time is `compile_seconds`, outside the fit's `seconds`.
     """
     config.validate()
     device = torch.device(config.device)
     scene = Scene(*(t.to(device) for t in (scene.image, scene.masks, scene.targets)))
     state = state or initial_state(config)
+    state.compile_seconds += prepare_kernels(config, show_status=progress)
     reset_peak_memory(device)
     last_save, clock = time.perf_counter(), time.perf_counter()
     bar = tqdm(range(state.step, config.steps + 1), initial=state.step, total=config.steps + 1,
@@ -286,4 +294,4 @@ def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = Tr
     metrics = evaluate(recon, scene.targets)
     state.note_peak_memory(device)
     return FitResult(fitted, config, metrics, hologram, recon, state.history, state.seconds,
-                     state.skipped_steps, state.sanitised_steps, state.peak_memory)
+                     state.skipped_steps, state.sanitised_steps, state.peak_memory, state.compile_seconds)

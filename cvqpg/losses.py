@@ -8,8 +8,9 @@ out; the tests hold them against the reference in value and gradient.
 
 from __future__ import annotations
 
+import inspect
 import math
-from typing import Sequence
+from typing import ContextManager, Sequence
 
 import numpy as np
 import torch
@@ -80,6 +81,14 @@ class _FusedSsim(torch.autograd.Function):
         return torch.from_numpy(gradient).view(recon.shape).to(recon.device), None
 
 
+def _without_onednn() -> ContextManager:
+    """oneDNN off inside the block. Where the flags take `allow_tf32` (newer torch), None leaves it
+    as it is: setting it warns on CPUs. torch 2.4 has only `enabled`."""
+    if "allow_tf32" in inspect.signature(torch.backends.mkldnn.flags).parameters:
+        return torch.backends.mkldnn.flags(enabled=False, allow_tf32=None)
+    return torch.backends.mkldnn.flags(enabled=False)
+
+
 def ssim_per_plane(recon: Tensor, targets: Tensor, backend: str = "auto") -> Tensor:
     """SSIM [M] of [M, C, H, W] images, Gaussian window 11 px, σ 1.5 px, data range 1.
 
@@ -89,7 +98,7 @@ def ssim_per_plane(recon: Tensor, targets: Tensor, backend: str = "auto") -> Ten
     """
     if resolve_backend(backend, recon.device) == "torch" or min(recon.shape[-2:]) < SSIM_WINDOW_PX:
         # oneDNN's depthwise 1×11 convolutions cost 3× PyTorch's own on one channel.
-        with torch.backends.mkldnn.flags(enabled=False, allow_tf32=None):
+        with _without_onednn():
             return ssim(recon, targets, data_range=1.0, size_average=False,
                         win_size=SSIM_WINDOW_PX, win_sigma=SSIM_SIGMA_PX)
     return _FusedSsim.apply(recon, targets)

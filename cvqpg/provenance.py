@@ -103,12 +103,15 @@ def available_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
-def run_record(device: torch.device, loop_seconds: float, peak: dict[str, Any]) -> dict[str, Any]:
+def run_record(device: torch.device, loop_seconds: float, compile_seconds: float, peak: dict[str, Any]
+               ) -> dict[str, Any]:
     """What a results table needs beside a fit's numbers (`metrics.json`'s `run`); `peak` is what
-    `peak_memory` returned."""
+    `peak_memory` returned; `compile_seconds` compiled or loaded the CPU kernels before the loop,
+    whose `loop_seconds` exclude them."""
     now = datetime.datetime.now(datetime.timezone.utc)
     return {"commit": IMPORTED_COMMIT, "date": now.isoformat(timespec="seconds"), "device": device_name(device),
-            "torch": torch.__version__, "torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
-            "loop_seconds": loop_seconds, "load_average": _load_average(), "machine_cores": os.cpu_count(),
+            "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
+            "numba_threads": numba.get_num_threads(), "loop_seconds": loop_seconds,
+            "compile_seconds": compile_seconds, "load_average": _load_average(), "machine_cores": os.cpu_count(),
             "peak_memory_bytes": peak.get("peak_memory_bytes"),
             "peak_memory_kind": peak.get("peak_memory_kind")}

@@ -368,7 +368,8 @@ def runtime_table(paper: GridResults) -> Table:
                 "0" if ours is None else str(ours["cells"]),
                 "–" if ours is None else f"{ours['minutes']:.1f}", _relative(ours, base, "minutes"),
                 "–" if ours is None else f"{ours['gib']:.2f}", _relative(ours, base, "gib"),
-                "–" if ours is None or ours["load"] is None else f"{ours['load']:.1f}", f"{theirs['minutes']:.1f}", f"{theirs['delta_time_pct']:+.1f}%",
+                "–" if ours is None or ours["load"] is None else f"{ours['load']:.1f}",
+                f"{theirs['minutes']:.1f}", f"{theirs['delta_time_pct']:+.1f}%",
                 f"{theirs['memory_gib']:.1f}", f"{theirs['delta_memory_pct']:+.1f}%"])
     return table
 

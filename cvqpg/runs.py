@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -16,6 +15,7 @@ from torch import Tensor
 
 from . import __version__
 from .config import ConfigError, FitConfig
+from .files import write_atomic
 from .export import (DEFAULT_APERTURE, DEFAULT_LEVELS, Display, Encoding, PhasePattern, phase_pattern, place_on_canvas,
                      simulate_display)
 from .fitting import FitResult, hologram, render
@@ -32,14 +32,6 @@ METRICS_FILE = "metrics.json"
 MODEL_FILE = "model.safetensors"
 CHECKPOINT_FILE = "checkpoint.pt"
 PLANE_IMAGES = ("target_plane*.png", "recon_plane*.png")
-
-
-def write_atomic(path: Path, data: bytes | str) -> None:
-    """Write a file so that no reader sees it half-written, even when several processes (the shards
-    of a job array) write it at once."""
-    partial = path.with_name(f"{path.name}.{os.getpid()}.partial")
-    partial.write_bytes(data.encode() if isinstance(data, str) else data)
-    os.replace(partial, path)
 
 
 def write_json(path: Path, data: Any) -> None:
@@ -134,7 +126,8 @@ def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[
         result.metrics, config, result.seconds,
         {"updates": len(history), "initial_psnr": history[0] if history else None,
          "skipped_steps": result.skipped_steps, "sanitised_steps": result.sanitised_steps,
-         "run": run_record(torch.device(config.device), result.seconds, result.peak_memory)}))
+         "run": run_record(torch.device(config.device), result.seconds, result.compile_seconds,
+                           result.peak_memory)}))
     (folder / CHECKPOINT_FILE).unlink(missing_ok=True)
     return folder
 

@@ -4,14 +4,14 @@ units, with the configuration and optics as metadata; checkpoints hold the loop 
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import torch
 from safetensors import SafetensorError, safe_open
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file, save
 
 from .config import FitConfig
+from .files import atomic_file, write_atomic
 from .primitives import Primitives
 
 MODEL_FORMAT = "cvqpg-model"
@@ -45,12 +45,9 @@ def save_model(path: str | Path, primitives: Primitives, config: FitConfig, dtyp
     """
     if dtype not in STORED_DTYPES:
         raise ModelFileError(f"cannot store a model as {dtype!r}; choose one of {', '.join(STORED_DTYPES)}")
-    path = Path(path)
     tensors = {name: t.detach().to("cpu", torch.float32 if name == "position_px" else STORED_DTYPES[dtype])
                .contiguous() for name, t in primitives.tensors().items()}
-    partial = path.with_name(path.name + ".partial")
-    save_file(tensors, str(partial), metadata=model_metadata(primitives, config, dtype))
-    partial.replace(path)
+    write_atomic(path, save(tensors, metadata=model_metadata(primitives, config, dtype)))
 
 
 def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Primitives, FitConfig]:
@@ -85,13 +82,8 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Pr
 
 def save_checkpoint(path: str | Path, payload: dict) -> None:
     """Write a loop state atomically: the previous checkpoint stays intact until the new one is whole."""
-    path = Path(path)
-    partial = path.with_name(path.name + ".partial")
-    with open(partial, "wb") as handle:
+    with atomic_file(path) as handle:
         torch.save(payload, handle)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(partial, path)
 
 
 def load_checkpoint(path: str | Path) -> dict:

@@ -1,12 +1,14 @@
 #!/usr/bin/env bash
-# Creates .venv and installs cvqpg with its test tools. torch comes first and pinned: an open
-# range would pull a multi-GB CUDA build. odak (test-only cross-check) is installed without its
-# GUI/plotting dependencies.
+# Creates .venv (or reuses it, with the torch build already in it) and installs cvqpg in editable
+# mode with its test tools, at the exact versions of constraints.txt. Then compiles the CPU
+# kernels (`cvqpg warmup`), so that the first fit starts at once.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python3 -m venv .venv
 . .venv/bin/activate
 python -m pip install --quiet --upgrade pip
-python -m pip install --quiet torch==2.13.0
-python -m pip install --quiet -e ".[test]"
-python -m pip install --quiet --no-deps odak==0.2.7
+python -m pip install --quiet -c constraints.txt -e ".[test]"
+# odak imports cv2; the headless build of OpenCV imports without the system's libGL (GUI) libraries.
+python -m pip uninstall --quiet --yes opencv-python
+python -m pip install --quiet --force-reinstall --no-deps -c constraints.txt opencv-python-headless
+cvqpg warmup

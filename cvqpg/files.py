@@ -1,0 +1,40 @@
+"""Atomic file writes: a reader never sees a half-written file, and the file's mode follows the umask.
+
+Each write goes to a temporary sibling that replaces the target once it is whole and on disk. The
+temporary file is created with `open`, so it gets the mode every other file of a run gets
+(0666 less the umask); a file from `mkstemp`, or from a library that creates its files 0600 (the
+safetensors writer does), would keep that mode through the rename.
+"""
+
+from __future__ import annotations
+
+import os
+from contextlib import contextmanager
+from pathlib import Path
+from typing import BinaryIO, Iterator
+
+
+@contextmanager
+def atomic_file(path: str | Path) -> Iterator[BinaryIO]:
+    """A binary handle whose content replaces `path` when the block ends without an error.
+
+    The temporary name carries the process id, so that several processes (the shards of a job
+    array) may write the same file at once; the last whole one wins. On an error `path` is left
+    as it was and the temporary file is removed.
+    """
+    path = Path(path)
+    partial = path.with_name(f"{path.name}.{os.getpid()}.partial")
+    try:
+        with open(partial, "wb") as handle:
+            yield handle
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(partial, path)
+    finally:
+        partial.unlink(missing_ok=True)
+
+
+def write_atomic(path: str | Path, data: bytes | str) -> None:
+    """Write `data` (text as UTF-8) to `path` atomically (see `atomic_file`)."""
+    with atomic_file(path) as handle:
+        handle.write(data.encode() if isinstance(data, str) else data)

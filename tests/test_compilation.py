@@ -1,0 +1,103 @@
+"""First-run compilation: the probe covers every kernel a fit calls, its time is reported apart from
+the fit's, and a compile that takes a while shows a status line."""
+
+import io
+import json
+import time
+
+import pytest
+from numba.core import event
+
+from cvqpg import compilation
+from cvqpg.cli import main
+from cvqpg.compilation import CompileStatus, compile_kernels
+from cvqpg.config import FitConfig
+from cvqpg.fitting import fit_scene
+from cvqpg.scenes import builtin_scene
+from cvqpg.targets import load_scene
+
+
+class CompileCounter(event.Listener):
+    """Counts Numba compilations (loads from the on-disk cache are not compilations)."""
+
+    def __init__(self):
+        self.compiled = []
+
+    def on_start(self, ev):
+        pass
+
+    def on_end(self, ev):
+        self.compiled.append(ev.data["dispatcher"].py_func.__name__)
+
+
+@pytest.mark.parametrize("config", [FitConfig(width=48, height=36, steps=2, warmup=1),
+                                    FitConfig(width=40, height=30, steps=2, warmup=1, color="gray", num_planes=1,
+                                              primitive="flat", qpf="standard"),
+                                    FitConfig(width=48, height=36, steps=2, warmup=1, curvature="per-channel")],
+                         ids=["demo", "gray-flat-one-plane", "per-channel"])
+def test_after_the_probe_a_fit_compiles_nothing(config):
+    compile_kernels(config)
+    demo = builtin_scene("demo", config.width, config.height)
+    scene = load_scene(demo.image, demo.depth if config.num_planes > 1 else None, config)
+    with event.install_listener("numba:compile", CompileCounter()) as counter:
+        fit_scene(scene, config, progress=False)
+    assert counter.compiled == []
+
+
+def test_the_probe_serves_more_planes_than_the_demo_depth_separates():
+    compile_kernels(FitConfig(num_planes=5, color="gray"))  # the demo's depth at the probe's size separates 3
+
+
+def test_compile_time_is_reported_apart_from_the_fit(tmp_path, monkeypatch):
+    compiled_at = []
+
+    def slow_compile(config):
+        compile_kernels(config)
+        time.sleep(2.0)
+        compiled_at.append(time.perf_counter())
+
+    monkeypatch.setattr(compilation, "compile_kernels", slow_compile)
+    out = tmp_path / "run"
+    assert main(["fit", "--size", "48", "36", "--steps", "1", "--quiet", "--out", str(out)]) == 0
+    after_fit = time.perf_counter()
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["run"]["compile_seconds"] >= 2.0
+    assert metrics["seconds"] == metrics["run"]["loop_seconds"] <= after_fit - compiled_at[0]
+
+
+class Terminal(io.StringIO):
+    def isatty(self):
+        return True
+
+
+def compile_for(seconds, stream):
+    with CompileStatus(stream) as status:
+        with event.trigger_event("numba:compile", data={}):
+            time.sleep(seconds)
+    return status, stream.getvalue()
+
+
+def test_a_compile_shows_a_status_line_counting_the_seconds_on_a_terminal():
+    status, shown = compile_for(2.5, Terminal())
+    redrawn = shown.split("\r")[1:]
+    assert len(redrawn) >= 3 and all(line.startswith("compiling CPU kernels (first run only, about") for line in redrawn)
+    assert shown.endswith(f"{status.seconds:.0f} s, done\n")
+
+
+def test_a_log_file_gets_the_status_once_and_the_total():
+    status, shown = compile_for(2.5, io.StringIO())
+    first, last = shown.splitlines()
+    assert first.startswith("compiling CPU kernels (first run only, about") and first.endswith(": 0 s")
+    assert last.endswith(f"{status.seconds:.0f} s, done") and "\r" not in shown
+
+
+def test_a_slow_cache_load_shows_nothing():
+    stream = io.StringIO()
+    with CompileStatus(stream):
+        time.sleep(1.5)
+    assert stream.getvalue() == ""
+
+
+def test_warmup_command_compiles_every_kind(capsys):
+    assert main(["warmup"]) == 0
+    assert "CPU kernels compiled and cached" in capsys.readouterr().out
