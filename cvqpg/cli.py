@@ -1,5 +1,5 @@
-"""Command line: `cvqpg fit`, `eval`, `export`, `info`, `render`, `bench`, `results` and `warmup`, thin
-wrappers over the library API."""
+"""Command line: `cvqpg fit`, `eval`, `export`, `info`, `render`, `view`, `bench`, `results` and `warmup`,
+thin wrappers over the library API."""
 
 from __future__ import annotations
 
@@ -31,6 +31,7 @@ from .runs import (CHECKPOINT_FILE, CONFIG_FILE, EXPORT_FOLDER, METRICS_FILE, MO
 from .scenes import SCENES
 from .storage import ModelFileError, load_checkpoint, save_checkpoint
 from .targets import InputError, Scene, check_file, load_scene
+from .view import DEFAULT_SWEEP, VIEW_FILE, ViewError, ViewRecord, write_view
 
 DEFAULTS = FitConfig()
 CHECKPOINT_SECONDS = 180.0
@@ -40,7 +41,7 @@ class UsageError(Exception):
     """Bad input: printed as one line, exit code 2."""
 
 
-USER_ERRORS = (UsageError, ConfigError, InputError, ModelFileError, BenchError, CheckpointDeviceError)
+USER_ERRORS = (UsageError, ConfigError, InputError, ModelFileError, BenchError, CheckpointDeviceError, ViewError)
 
 
 def _fit_parser(sub: argparse._SubParsersAction) -> None:
@@ -103,6 +104,8 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
                    "checkpoint with its own settings (other options are ignored)")
     p.add_argument("--checkpoint-every", type=int, metavar="K", help="save a checkpoint every K steps "
                    "(0: only when interrupted) [default: every 3 minutes of work]")
+    p.add_argument("--view", action="store_true", help=f"at the end, also write the run's view page "
+                   f"(RUN_DIR/{VIEW_FILE}, see `cvqpg view`)")
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
 
@@ -137,6 +140,23 @@ def _display_parsers(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--distance", type=float, nargs="+", metavar="M", help="reconstruction distances in m "
                    "(e.g. 0.001 0.002 0.003 to refocus) [default: the model's planes]")
     r.add_argument("--out", metavar="DIR", help="output folder [default: RUN_DIR/render, or next to MODEL]")
+
+
+def _view_parser(sub: argparse._SubParsersAction) -> None:
+    start, stop, count = DEFAULT_SWEEP
+    v = sub.add_parser("view", help="one HTML page to refocus a run's hologram and compare it with another run",
+                       description="Write one self-contained HTML page (no server, no network): a focal sweep of "
+                       "RUN_DIR's reconstructions with a slider, side by side with RUN_DIR_2's and a linked zoom, "
+                       "PSNR at the training planes, the hologram's amplitude and phase, the phase-only display "
+                       "of `cvqpg export`, and the runs' settings and metrics.")
+    v.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="one or two folders written by `cvqpg fit` "
+                   "(of the same size and optics)")
+    v.add_argument("--distances", type=float, nargs=3, default=DEFAULT_SWEEP, metavar=("START", "STOP", "COUNT"),
+                   help=f"sweep COUNT distances from START to STOP in m, plus the training planes [default: "
+                   f"{start:g} {stop:g} {count}]")
+    v.add_argument("--out", metavar="PAGE", help=f"the page [default: RUN_DIR/{VIEW_FILE}, or "
+                   "RUN_DIR/view_vs_<RUN_DIR_2>.html for two runs]")
+    v.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def _bench_parser(sub: argparse._SubParsersAction) -> None:
@@ -195,6 +215,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "its targets and rewrite RUN_DIR/metrics.json.")
     e.add_argument("run_dir", metavar="RUN_DIR", help="folder written by `cvqpg fit`")
     _display_parsers(sub)
+    _view_parser(sub)
     sub.add_parser("warmup", help="compile the CPU kernels ahead of the first fit (for clusters and images)",
                    description="Compile the Numba CPU kernels that fits call (with 1 or 2 planes, the defaults) into "
                    "Numba's on-disk cache (next to the package, or NUMBA_CACHE_DIR), so that the first fit "
@@ -353,6 +374,10 @@ def run_fit(args: argparse.Namespace) -> int:
     if not args.quiet:
         record = json.loads((folder / METRICS_FILE).read_text())
         print(f"{folder}: {_summary(record)}")
+    if args.view:
+        view = write_view([folder], folder / VIEW_FILE, progress=not args.quiet)
+        if not args.quiet:
+            _print_view(view)
     return 0
 
 
@@ -419,6 +444,22 @@ def run_render(args: argparse.Namespace) -> int:
     width, height = record["hologram_px"]
     print(f"{out}: {width}×{height} px at {record['pixel_pitch_m'] * 1e6:.3f} µm, planes at "
           + ", ".join(f"{d * 1e3:g} mm" for d in record["distances_m"]))
+    return 0
+
+
+def _print_view(record: ViewRecord) -> None:
+    print(f"{record.path}: {record.frames} distances, {record.bytes / 2**20:.1f} MiB, {record.seconds:.0f} s; "
+          "open it in a browser")
+
+
+def run_view(args: argparse.Namespace) -> int:
+    if len(args.run_dirs) > 2:
+        raise UsageError(f"{len(args.run_dirs)} run folders: give one or two")
+    folders = [finished_run(Path(folder)) for folder in args.run_dirs]
+    start, stop, count = args.distances
+    if not float(count).is_integer():
+        raise UsageError(f"--distances {start:g} {stop:g} {count:g}: COUNT is a whole number of distances")
+    _print_view(write_view(folders, args.out, (start, stop, int(count)), progress=not args.quiet))
     return 0
 
 
@@ -496,7 +537,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return {"fit": run_fit, "eval": run_eval, "export": run_export, "info": run_info,
                 "render": run_render, "bench": run_bench, "results": run_results,
-                "warmup": run_warmup}[args.command](args)
+                "warmup": run_warmup, "view": run_view}[args.command](args)
     except USER_ERRORS as error:
         print(f"cvqpg {args.command}: error: {error}", file=sys.stderr)
         return 2

@@ -161,15 +161,13 @@ def clamped_intensity(field: Tensor, backend: str = "auto") -> Tensor:
     return torch.clamp(field.abs() ** 2, 0.0, 1.0)
 
 
-def transfer_function(rows: int, cols: int, pixel_pitch: float, wavelength: float, distance: float,
-                      device: torch.device, centred: bool = True) -> Tensor:
-    """BLASM transfer function [rows, cols] (complex64), exactly as odak 0.2.7 builds it.
+SpectralTerms = tuple[Tensor, Tensor, Tensor]
 
-    Computed in float32 like odak, whose numbers the paper reports. As in odak, the band limit of
-    each axis' frequency is taken with the other axis' length (identical on square grids).
-    `centred=False` gives it ifftshift-ed (zero frequency first, FFT order): the shift is applied to
-    the 1D frequency axes, so no second full-size array is ever made.
-    """
+
+def spectral_terms(rows: int, cols: int, pixel_pitch: float, wavelength: float, device: torch.device,
+                   centred: bool = True) -> SpectralTerms:
+    """The distance-independent parts of `transfer_function`, most of its time: 2π·sqrt(1/λ² − f²)
+    [rows, cols] (rad/m), and |f| along the rows [rows, 1] and the columns [1, cols] (1/m)."""
     length_rows, length_cols = pixel_pitch * rows, pixel_pitch * cols
     f_rows = torch.linspace(-1 / (2 * pixel_pitch) + 0.5 / (2 * length_rows),
                             1 / (2 * pixel_pitch) - 0.5 / (2 * length_rows), rows,
@@ -180,11 +178,30 @@ def transfer_function(rows: int, cols: int, pixel_pitch: float, wavelength: floa
     if not centred:
         f_rows, f_cols = torch.fft.ifftshift(f_rows), torch.fft.ifftshift(f_cols)
     fr, fc = torch.meshgrid(f_rows, f_cols, indexing="ij")
+    return 2 * math.pi * torch.sqrt(1 / wavelength**2 - (fc**2 + fr**2)), f_rows.abs()[:, None], f_cols.abs()[None, :]
+
+
+def transfer_function(rows: int, cols: int, pixel_pitch: float, wavelength: float, distance: float,
+                      device: torch.device, centred: bool = True,
+                      part: tuple[slice, slice] = (slice(None), slice(None)),
+                      terms: SpectralTerms | None = None) -> Tensor:
+    """BLASM transfer function [rows, cols] (complex64), exactly as odak 0.2.7 builds it.
+
+    Computed in float32 like odak, whose numbers the paper reports. As in odak, the band limit of
+    each axis' frequency is taken with the other axis' length (identical on square grids).
+    `centred=False` gives it ifftshift-ed (zero frequency first, FFT order): the shift is applied to
+    the 1D frequency axes, so no second full-size array is ever made. `part` (rows, columns) computes
+    only that block of it; `terms`, this grid's and wavelength's `spectral_terms`, are shared by every distance.
+    """
+    length_rows, length_cols = pixel_pitch * rows, pixel_pitch * cols
+    terms = terms or spectral_terms(rows, cols, pixel_pitch, wavelength, device, centred)
+    wavenumbers, abs_rows, abs_cols = terms
+    wavenumbers, abs_rows, abs_cols = wavenumbers[part], abs_rows[part[0]], abs_cols[:, part[1]]
     z = torch.tensor([distance], dtype=torch.float32, device=device)
-    phase = 2 * math.pi * torch.sqrt(1 / wavelength**2 - (fc**2 + fr**2)) * z
+    phase = wavenumbers * z
     limit_cols = 1 / torch.sqrt((2 * z * (1 / length_rows)) ** 2 + 1) / wavelength
     limit_rows = 1 / torch.sqrt((2 * z * (1 / length_cols)) ** 2 + 1) / wavelength
-    passband = (fc.abs() < limit_cols) & (fr.abs() < limit_rows)
+    passband = (abs_cols < limit_cols) & (abs_rows < limit_rows)
     return torch.polar(passband.float(), phase)
 
 
@@ -220,7 +237,7 @@ class TransferBank:
         """First half (along the first axis) of the complex64 transfer function to `distances[plane]`
         at `wavelengths[channel]`; row k of the whole function is row min(k, length − 1 − k) of it."""
         if self.nbytes <= TRANSFER_CACHE_BYTES:
-            return _transfer_halves(self)[plane, channel]
+            return _transfer_halves(self)[plane][channel]
         return self.build_half(plane, channel)
 
     def __call__(self, plane: int, channel: int) -> Tensor:
@@ -228,17 +245,33 @@ class TransferBank:
         half = self.half(plane, channel)
         return torch.cat([half, half.flip(0)])
 
-    def build_half(self, plane: int, channel: int) -> Tensor:
+    def spectral_terms(self, channel: int) -> SpectralTerms:
+        return spectral_terms(self.rows, self.cols, self.pixel_pitch, self.wavelengths[channel], self.device,
+                              centred=False)
+
+    def build_half(self, plane: int, channel: int, terms: SpectralTerms | None = None) -> Tensor:
+        part = (slice(None), slice(self.cols // 2)) if self.transposed else (slice(self.rows // 2), slice(None))
         transfer = transfer_function(self.rows, self.cols, self.pixel_pitch, self.wavelengths[channel],
-                                     self.distances[plane], self.device, centred=False)
-        transfer = transfer.T if self.transposed else transfer
-        return transfer[:transfer.shape[0] // 2].contiguous()
+                                     self.distances[plane], self.device, centred=False, part=part,
+                                     terms=terms or self.spectral_terms(channel))
+        return transfer.T.contiguous() if self.transposed else transfer
 
 
 @functools.lru_cache(maxsize=4)
-def _transfer_halves(bank: TransferBank) -> Tensor:
-    return torch.stack([torch.stack([bank.build_half(plane, channel) for channel in range(len(bank.wavelengths))])
-                        for plane in range(len(bank.distances))])
+def _transfer_halves(bank: TransferBank) -> tuple[tuple[Tensor, ...], ...]:
+    """Every half, by plane then channel (not stacked: a copy of all of them would cost as much as a sweep's
+    propagation). Each channel's spectral terms serve all its planes."""
+    by_channel = []
+    for channel in range(len(bank.wavelengths)):
+        terms = bank.spectral_terms(channel)
+        by_channel.append([bank.build_half(plane, channel, terms) for plane in range(len(bank.distances))])
+    return tuple(zip(*by_channel))
+
+
+def release_transfer_functions() -> None:
+    """Free the kept transfer functions; for callers that propagate to many distances once each (a focal
+    sweep), whose banks would otherwise stay in memory."""
+    _transfer_halves.cache_clear()
 
 
 def transfer_bank(field: Tensor, distances_m: Sequence[float], wavelengths_m: Sequence[float],

@@ -22,9 +22,10 @@ from typing import Any
 import numpy as np
 
 from . import figures
-from .bench import (DONE, METHODS, METRICS_FILE, SPECTRUM_FILE, BenchPlan, Cell, cell_status, read_json,
+from .bench import (CELLS_DIR, DONE, METHODS, METRICS_FILE, SPECTRUM_FILE, BenchPlan, Cell, cell_status, read_json,
                     setting_label)
 from .runs import write_atomic
+from .view import VIEW_FILE
 
 TABLE_METRICS = ("psnr", "ssim", "lpips", "flip", "cvvdp")
 HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "lpips": False, "flip": False, "cvvdp": True}
@@ -51,16 +52,22 @@ class CellResult:
 
 @dataclass
 class Table:
-    """A table rendered alike as Markdown and HTML; `bold` holds (row, column) positions."""
+    """A table rendered alike as Markdown and HTML; `bold` holds (row, column) positions, `links` their
+    targets (paths relative to the bench folder)."""
 
     title: str
     header: list[str]
     rows: list[list[str]] = field(default_factory=list)
     bold: set[tuple[int, int]] = field(default_factory=set)
+    links: dict[tuple[int, int], str] = field(default_factory=dict)
     note: str = ""
 
     def _cell(self, row: int, column: int, text: str, strong: str) -> str:
-        return f"{strong}{text}{strong.replace('<', '</')}" if (row, column) in self.bold else text
+        text = f"{strong}{text}{strong.replace('<', '</')}" if (row, column) in self.bold else text
+        link = self.links.get((row, column))
+        if link is None:
+            return text
+        return f"<a href='{html.escape(link)}'>{text}</a>" if strong.startswith("<") else f"[{text}]({link})"
 
     def markdown(self) -> str:
         lines = [f"### {self.title}", "", "| " + " | ".join(self.header) + " |",
@@ -295,7 +302,8 @@ def seed_tables(plan: BenchPlan, results: list[CellResult]) -> list[Table]:
 
 
 def cells_table(plan: BenchPlan, results: list[CellResult]) -> tuple[Table, list[dict[str, Any]]]:
-    """Every cell: status, N, steps, updates, seconds and PSNR."""
+    """Every cell: status, N, steps, updates, seconds and PSNR; a finished cell's name links to its view page
+    (`cvqpg view`) where it has one."""
     table = Table("Cells", ["Cell", "Status", "N", "Steps", "Updates", "Seconds", "PSNR"])
     rows = []
     for r in results:
@@ -306,6 +314,8 @@ def cells_table(plan: BenchPlan, results: list[CellResult]) -> tuple[Table, list
                "seconds": "" if "seconds" not in m else round(m["seconds"], 1),
                **{k: "" if not m else NA if m["mean"][k] is None else m["mean"][k] for k in TABLE_METRICS}}
         rows.append(row)
+        if r.status == DONE and (plan.cell_dir(r.cell) / VIEW_FILE).is_file():
+            table.links[(len(table.rows), 0)] = f"{CELLS_DIR}/{r.cell.name}/{VIEW_FILE}"
         table.rows.append([row["cell"], r.status, f"{row['n']:,}", str(row["steps"]), str(row["updates"]),
                            str(row["seconds"]), fmt(m["mean"]["psnr"], "psnr") if m else MISSING])
     return table, rows

@@ -55,12 +55,19 @@ def colormapped(values: np.ndarray, cmap: str, low: float, high: float) -> Image
     return Image.fromarray((rgba[..., :3] * 255).astype(np.uint8), "RGB")
 
 
-def save_hologram_images(hologram: Tensor, folder: Path) -> None:
-    """`amplitude.png` (viridis, 0..max) and `phase.png` (twilight, 0..2π), one panel per channel."""
+def hologram_images(hologram: Tensor) -> dict[str, Image.Image]:
+    """`amplitude` (viridis, 0..max) and `phase` (twilight, 0..2π) of a hologram [C, H, W], one panel
+    per channel."""
     amplitude = hologram.abs().cpu().numpy()
     phase = np.mod(hologram.angle().cpu().numpy(), 2 * math.pi)
-    colormapped(amplitude, "viridis", 0.0, max(float(amplitude.max()), 1e-12)).save(folder / "amplitude.png")
-    colormapped(phase, "twilight", 0.0, 2 * math.pi).save(folder / "phase.png")
+    return {"amplitude": colormapped(amplitude, "viridis", 0.0, max(float(amplitude.max()), 1e-12)),
+            "phase": colormapped(phase, "twilight", 0.0, 2 * math.pi)}
+
+
+def save_hologram_images(hologram: Tensor, folder: Path) -> None:
+    """`amplitude.png` and `phase.png` (see `hologram_images`)."""
+    for name, image in hologram_images(hologram).items():
+        image.save(folder / f"{name}.png")
 
 
 def save_curve(history: dict[str, list[float]], path: Path) -> None:

@@ -87,6 +87,18 @@ def test_finished_cells_with_other_settings_are_refused(quick_bench, capsys):
     assert "fitted with other settings" in error and "steps=60" in error and error.count("\n") == 1
 
 
+def test_report_links_cells_that_have_a_view_page(quick_bench):
+    plan = make_plan("quick", quick_bench)
+    viewed, *others = plan.cells
+    assert main(["view", str(plan.cell_dir(viewed)), "--distances", "0.001", "0.005", "2", "--quiet"]) == 0
+    assert main(["bench", "--preset", "quick", "--out", str(quick_bench), "--summary-only"]) == 0
+    link = f"cells/{viewed.name}/view.html"
+    assert f"<a href='{link}'>{viewed.name}</a>" in (quick_bench / "report.html").read_text()
+    assert f"[{viewed.name}]({link})" in (quick_bench / "summary.md").read_text()
+    assert re.findall(r"href='([^']+)'", (quick_bench / "report.html").read_text()) == [link]
+    assert all(not (plan.cell_dir(cell) / "view.html").exists() for cell in others)
+
+
 def test_shards_partition_the_grid(scenes_dir, tmp_path):
     plan = make_plan("paper", tmp_path / "bench", Overrides(scenes_dir=scenes_dir))
     names = [c.name for c in plan.cells]
