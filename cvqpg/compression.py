@@ -100,9 +100,18 @@ class Encoded:
     ranges: dict[str, list[float]]
 
 
-def _f32(value: float) -> float:
-    """A float that survives a float32 round trip, so the header's JSON holds it exactly."""
-    return float(np.float32(value))
+def _short(value: float, digits: int = 4) -> float:
+    """`value` to a few significant digits: the header stores it in few bytes, and encoder and
+    decoder both use the stored value."""
+    return float(f"{value:.{digits}g}")
+
+
+def _outward(low: float, high: float) -> list[float]:
+    """[low, high] widened to short values (see `_short`) that still contain it: a margin of 1e-3 of
+    the larger magnitude outweighs `_short`'s rounding error of at most 5e-4."""
+    margin = 1e-3 * max(abs(low), abs(high), 1e-12)
+    return [_short(low) if _short(low) <= low else _short(low - margin),
+            _short(high) if _short(high) >= high else _short(high + margin)]
 
 
 def _interleave(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -156,11 +165,11 @@ def quantise(primitives: Primitives, config: FitConfig, bits: BitDepths) -> Enco
     streams: dict[str, np.ndarray] = {"position": np.diff(morton, prepend=np.uint64(0)).astype(np.int64)}
     ranges: dict[str, list[float]] = {}
     log_scale = np.log(p["scale_px"])
-    ranges["scale"] = [_f32(log_scale.min()), _f32(log_scale.max())]
+    ranges["scale"] = _outward(float(log_scale.min()), float(log_scale.max()))
     streams["scale"] = _uniform(log_scale, *ranges["scale"], bits.scale)
     streams["rotation"] = _periodic(p["rotation_rad"], math.pi, bits.rotation)
     weight = p["amplitude"] * p["opacity"][:, None]
-    ranges["amplitude"] = [0.0, _f32(np.abs(weight).max(initial=0.0))]
+    ranges["amplitude"] = [0.0, _outward(0.0, float(np.abs(weight).max(initial=0.0)))[1]]
     streams["amplitude"] = _uniform(np.abs(weight), *ranges["amplitude"], bits.amplitude)
     streams["phase"] = _periodic(p["phase_rad"] + np.where(weight < 0, math.pi, 0.0), 2 * math.pi, bits.phase)
     if config.primitive == "cvqpg":
@@ -240,11 +249,15 @@ def encode_stream(values: np.ndarray, codings: tuple[str, ...] = (RAW, LAPLACE, 
     if flat.size and top > 0 and top < 2**20:
         mean, spread = float(shifted.mean()), float(shifted.std())
         if LAPLACE in codings:
-            params = [_f32(np.median(shifted)), _f32(max(np.abs(shifted - np.median(shifted)).mean(), 0.1))]
-            candidates.append(({"coding": LAPLACE, "params": params},
-                               _ans(shifted, _model(LAPLACE, 0, top, params))))
+            # Centred on the median, or at 0 with the mean as scale: a geometric law, as gaps between
+            # consecutive Morton codes roughly follow.
+            median = float(np.median(shifted))
+            for params in ([_short(median), _short(max(np.abs(shifted - median).mean(), 0.1))],
+                           [0.0, _short(max(mean, 0.1))]):
+                candidates.append(({"coding": LAPLACE, "params": params},
+                                   _ans(shifted, _model(LAPLACE, 0, top, params))))
         if GAUSSIAN in codings:
-            params = [_f32(mean), _f32(max(spread, 0.1))]
+            params = [_short(mean), _short(max(spread, 0.1))]
             candidates.append(({"coding": GAUSSIAN, "params": params},
                                _ans(shifted, _model(GAUSSIAN, 0, top, params))))
         if CATEGORICAL in codings and top < 2**12:

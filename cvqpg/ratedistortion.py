@@ -26,8 +26,8 @@ from .optics import reconstruct
 from .primitives import Primitives
 from .storage import load_model, save_model
 
-JPEG2K_RATIOS = (400, 200, 100, 50, 25, 12)  # compression ratios of the 16-bit planes
-JPEGXL_DISTANCES = (8.0, 4.0, 2.0, 1.0, 0.5, 0.25)  # butteraugli distances, smaller is finer
+JPEG2K_PSNRS = (35, 40, 45, 50, 55, 60, 70)  # OpenJPEG's quality layer, the planes' own PSNR in dB
+JPEGXL_DISTANCES = (8.0, 4.0, 2.0, 1.5, 1.0, 0.7, 0.5, 0.25)  # butteraugli distances, smaller is finer
 RANGE_BYTES = 8  # float32 low and high per plane
 
 
@@ -108,11 +108,11 @@ def anchor_points(primitives: Primitives, config: FitConfig, targets: Tensor,
     import imagecodecs
 
     codecs: dict[str, tuple[Callable[[np.ndarray, Any], bytes], Callable[[bytes], np.ndarray]]] = {
-        "JPEG 2000": (lambda plane, ratio: imagecodecs.jpeg2k_encode(plane, level=ratio, codecformat="j2k"),
+        "JPEG 2000": (lambda plane, psnr: imagecodecs.jpeg2k_encode(plane, level=psnr, codecformat="j2k"),
                       imagecodecs.jpeg2k_decode),
         "JPEG XL": (lambda plane, distance: imagecodecs.jpegxl_encode(plane, distance=distance),
                     imagecodecs.jpegxl_decode)}
-    settings = settings or {"JPEG 2000": JPEG2K_RATIOS, "JPEG XL": JPEGXL_DISTANCES}
+    settings = settings or {"JPEG 2000": JPEG2K_PSNRS, "JPEG XL": JPEGXL_DISTANCES}
     with torch.no_grad():
         planes = _planes(hologram(primitives, config))
     ranges = [(plane.min(), plane.max()) for plane in planes]

@@ -102,6 +102,7 @@ def test_finetune_is_kept_only_if_it_pays(fitted_run, tmp_path):
 def test_eval_info_and_export_read_the_compressed_file(fitted_run, capsys):
     assert main(["compress", str(fitted_run), "--bits", "8"]) == 0
     packed = fitted_run / "model.cvq"
+    assert "8.000" not in capsys.readouterr().out
     assert main(["info", str(packed), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["dtype"] == "compressed" and info["bits"]["phase"] == 8
@@ -167,3 +168,21 @@ def test_periodic_attributes_wrap():
     values["phase_rad"] = values["phase_rad"] + 2 * math.pi
     shifted = type(primitives).from_tensors(values)
     assert encode(shifted, config, BitDepths()) == encode(primitives, config, BitDepths())
+
+
+def test_rate_distortion_points_and_bd_rate():
+    pytest.importorskip("imagecodecs")
+    from cvqpg.ratedistortion import anchor_points, bd_rate, rd_points
+
+    config = FitConfig(width=48, height=32, color="gray", ratio=0.3, guard_band_px=32)
+    primitives = random_primitives(config)
+    targets = render(primitives, config)[1].clamp(0.05, 0.95)
+    points = rd_points(primitives, config, targets, ladder=[BitDepths(), BitDepths().shifted(2)], anchors=False)
+    assert [p["codec"] for p in points] == ["model float32", "model float16", "cvqpg", "cvqpg"]
+    assert all(p["bpp"] == pytest.approx(8 * p["bytes"] / (48 * 32)) for p in points)
+    assert points[3]["bytes"] > points[2]["bytes"] and points[0]["bytes"] > points[2]["bytes"]
+    anchors = anchor_points(primitives, config, targets, {"JPEG 2000": [50], "JPEG XL": [1.0]})
+    assert [p["codec"] for p in anchors] == ["JPEG 2000", "JPEG XL"] and all(p["psnr"] > 20 for p in anchors)
+    anchor = [{"bpp": 2 * b, "psnr": q} for b, q in ((1, 30), (2, 33), (3, 35), (4, 36))]
+    test = [{"bpp": b, "psnr": q} for b, q in ((1, 30), (2, 33), (3, 35), (4, 36))]
+    assert bd_rate(anchor, test, top_psnr=35) == pytest.approx(-50, abs=0.5)
