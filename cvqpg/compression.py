@@ -513,10 +513,14 @@ def compress_model(target: str | Path, out: str | Path | None = None, bits: BitD
     if finetune_steps:
         from .finetune import finetune
 
-        candidate = trial(finetune(primitives, config, scene, choice.bits, finetune_steps), config, choice.bits,
-                          reference)
+        # Tuned models hold coarser budgets: first try one bit below the choice everywhere, then the choice.
+        for bits_tried in ((choice.bits,) if max_drop is None else (choice.bits.shifted(-1), choice.bits)):
+            candidate = trial(finetune(primitives, config, scene, bits_tried, finetune_steps), config, bits_tried,
+                              reference)
+            if max_drop is None or candidate.drop <= max_drop:
+                break
         if max_drop is not None and candidate.drop <= max_drop:
-            candidate = choose_bits(candidate.decoded, config, reference, max_drop, ladder=(choice.bits,))
+            candidate = choose_bits(candidate.decoded, config, reference, max_drop, ladder=(candidate.bits,))
         # Kept only where it pays: smaller within the drop, or a smaller drop at a fixed budget.
         tuned = (len(candidate.data) <= len(choice.data) and candidate.drop <= max(max_drop, choice.drop)
                  if max_drop is not None else candidate.drop < choice.drop)

@@ -289,9 +289,9 @@ def render_model(target: str | Path, out: str | Path, size: tuple[int, int] | No
                  distances_m: Sequence[float] | None = None) -> dict[str, Any]:
     """Render a saved model without fitting: hologram images and the reconstruction at each plane
     (the model's own, or `distances_m`), optionally resampled to `size` (W, H) px."""
+    primitives, config = load_model(model_path(target))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    primitives, config = load_model(model_path(target))
     if size is not None:
         primitives, config = rescaled(primitives, config, *size)
     distances = config.plane_distances if distances_m is None else tuple(distances_m)

@@ -58,9 +58,9 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Pr
     path = Path(path)
     if not path.is_file():
         raise ModelFileError(f"{path}: no such model file")
-    from .compression import is_compressed, read_compressed  # compression imports this module
+    from .compression import SUFFIX, is_compressed, read_compressed  # compression imports this module
 
-    if is_compressed(path):
+    if is_compressed(path) or path.suffix == SUFFIX:
         compressed = read_compressed(path)
         return compressed.primitives.to(device), compressed.config
     try:

@@ -182,7 +182,7 @@ def test_rate_distortion_points_and_bd_rate():
     assert all(p["bpp"] == pytest.approx(8 * p["bytes"] / (48 * 32)) for p in points)
     assert points[3]["bytes"] > points[2]["bytes"] and points[0]["bytes"] > points[2]["bytes"]
     anchors = anchor_points(primitives, config, targets, {"JPEG 2000": [50], "JPEG XL": [1.0]})
-    assert [p["codec"] for p in anchors] == ["JPEG 2000", "JPEG XL"] and all(p["psnr"] > 20 for p in anchors)
+    assert [p.codec for p in anchors] == ["JPEG 2000", "JPEG XL"] and all(p.psnr > 20 for p in anchors)
     anchor = [{"bpp": 2 * b, "psnr": q} for b, q in ((1, 30), (2, 33), (3, 35), (4, 36))]
     test = [{"bpp": b, "psnr": q} for b, q in ((1, 30), (2, 33), (3, 35), (4, 36))]
     assert bd_rate(anchor, test, top_psnr=35) == pytest.approx(-50, abs=0.5)
