@@ -447,10 +447,11 @@ def run_compress(args: argparse.Namespace) -> int:
         raise UsageError(f"--max-drop {args.max_drop}: give a drop in dB ≥ 0")
     bits = BitDepths.parse(args.bits) if args.bits else None
     r = compress_model(Path(args.target), args.out, bits, args.max_drop, args.finetune)
-    scored = "" if r["psnr_float"] is None else f", float {r['psnr_float']:.3f} dB"
+    scored = (f", float {r['psnr_float']:.3f} dB" if r["psnr_float"] is not None
+              else f" (drop estimated for a fit at {ASSUMED_FIT_PSNR_DB:g} dB)")
     print(f"{r['file']}: {r['bytes'] / 2**10:.1f} KiB, {r['bits_per_pixel']:.3f} bpp, {r['ratio']:.1f}× smaller than "
           f"{Path(r['model']).name}; PSNR {r['psnr']:.3f} dB against {r['reference']}{scored}, drop "
-          f"{r['drop']:.3f} dB{f' (estimated for a fit at {ASSUMED_FIT_PSNR_DB:g} dB)' if r['psnr_float'] is None else ''}; bits "
+          f"{r['drop']:.3f} dB; bits "
           + " ".join(f"{k}={v}" for k, v in r["bits"].items())
           + (f"; fine-tuned {r['finetune_steps']} steps ({'kept' if r['finetune_kept'] else 'did not pay, dropped'})"
              if r["finetune_steps"] else ""))

@@ -13,17 +13,22 @@ from __future__ import annotations
 import json
 import math
 import struct
+import time
 import zlib
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
+import constriction
 import numpy as np
 import torch
 
 from .config import FitConfig
+from .fitting import render
+from .metrics import mean_psnr
 from .primitives import Primitives, curvature_bound
-from .storage import ModelFileError
+from .runs import CONFIG_FILE, model_path, read_run, scene_from_source, write_atomic
+from .storage import ModelFileError, load_model, save_model
 
 MAGIC = b"\x89CVQ\r\n\x1a\n"
 FORMAT_VERSION = 1
@@ -204,8 +209,6 @@ def dequantise(encoded: Encoded, config: FitConfig, bits: BitDepths) -> Primitiv
 
 
 def _model(coding: str, low: int, high: int, params: list[float]):
-    import constriction
-
     model = constriction.stream.model
     if coding == LAPLACE:
         return model.QuantizedLaplace(low, high, *params)
@@ -215,8 +218,6 @@ def _model(coding: str, low: int, high: int, params: list[float]):
 
 
 def _ans(symbols: np.ndarray, model) -> bytes:
-    import constriction
-
     coder = constriction.stream.stack.AnsCoder()
     coder.encode_reverse(symbols.astype(np.int32), model)
     return coder.get_compressed().astype("<u4").tobytes()
@@ -233,12 +234,11 @@ def _from_raw_bits(data: bytes, count: int, width: int) -> np.ndarray:
     return (bits.reshape(count, width).astype(np.uint64) * weights).sum(axis=1, dtype=np.uint64).astype(np.int64)
 
 
-def encode_stream(values: np.ndarray, codings: tuple[str, ...] = (RAW, LAPLACE, GAUSSIAN, CATEGORICAL)
-                  ) -> tuple[dict[str, Any], bytes]:
-    """The smallest of `codings` for one stream of integers: its descriptor (JSON) and bytes.
+def encode_stream(values: np.ndarray) -> tuple[dict[str, Any], bytes]:
+    """The smallest coding for one stream of integers: its descriptor (JSON) and bytes.
 
     Symbols are offset by their minimum. `raw` packs fixed-width bits; the parametric models carry
-    two float32 parameters; `categorical` carries the histogram, which pays only for skewed streams.
+    two short parameters; `categorical` carries the histogram, which pays only for skewed streams.
     """
     flat = values.ravel()
     low = int(flat.min(initial=0))
@@ -247,20 +247,14 @@ def encode_stream(values: np.ndarray, codings: tuple[str, ...] = (RAW, LAPLACE, 
     width = max(top.bit_length(), 1)
     candidates = [({"coding": RAW, "width": width}, _raw_bits(shifted, width))]
     if flat.size and top > 0 and top < 2**20:
-        mean, spread = float(shifted.mean()), float(shifted.std())
-        if LAPLACE in codings:
-            # Centred on the median, or at 0 with the mean as scale: a geometric law, as gaps between
-            # consecutive Morton codes roughly follow.
-            median = float(np.median(shifted))
-            for params in ([_short(median), _short(max(np.abs(shifted - median).mean(), 0.1))],
-                           [0.0, _short(max(mean, 0.1))]):
-                candidates.append(({"coding": LAPLACE, "params": params},
-                                   _ans(shifted, _model(LAPLACE, 0, top, params))))
-        if GAUSSIAN in codings:
-            params = [_short(mean), _short(max(spread, 0.1))]
-            candidates.append(({"coding": GAUSSIAN, "params": params},
-                               _ans(shifted, _model(GAUSSIAN, 0, top, params))))
-        if CATEGORICAL in codings and top < 2**12:
+        mean, spread, median = float(shifted.mean()), float(shifted.std()), float(np.median(shifted))
+        # Laplace centred on the median, or at 0 with the mean as scale: a geometric law, as gaps
+        # between consecutive Morton codes roughly follow.
+        for coding, params in ((LAPLACE, [_short(median), _short(max(np.abs(shifted - median).mean(), 0.1))]),
+                               (LAPLACE, [0.0, _short(max(mean, 0.1))]),
+                               (GAUSSIAN, [_short(mean), _short(max(spread, 0.1))])):
+            candidates.append(({"coding": coding, "params": params}, _ans(shifted, _model(coding, 0, top, params))))
+        if top < 2**12:
             counts = np.bincount(shifted, minlength=top + 1)
             histogram = zlib.compress(_varints(counts), 9)
             candidates.append(({"coding": CATEGORICAL, "histogram_bytes": len(histogram)},
@@ -294,8 +288,6 @@ def _from_varints(data: bytes, count: int) -> list[int]:
 
 def decode_stream(descriptor: dict[str, Any], data: bytes) -> np.ndarray:
     """Inverse of `encode_stream`."""
-    import constriction
-
     shape, low, top = descriptor["shape"], descriptor["min"], descriptor["max"] - descriptor["min"]
     count = int(np.prod(shape))
     coding = descriptor["coding"]
@@ -413,9 +405,6 @@ class Reference:
 
 def reference_for(primitives: Primitives, config: FitConfig, scene_targets: torch.Tensor | None) -> Reference:
     """The run's targets with the float model's PSNR on them, or the float model's reconstruction."""
-    from .fitting import render
-    from .metrics import mean_psnr
-
     recon = render(primitives, config)[1]
     if scene_targets is not None:
         return Reference(scene_targets, "the run's targets", mean_psnr(recon, scene_targets))
@@ -429,9 +418,6 @@ def psnr_drop(primitives: Primitives, config: FitConfig, reference: Reference) -
     `ASSUMED_FIT_PSNR_DB` whose error adds to the quantisation error:
     10·log10(1 + 10^((P_fit − Q)/10)), Q the PSNR against the float reconstruction.
     """
-    from .fitting import render
-    from .metrics import mean_psnr
-
     value = mean_psnr(render(primitives, config)[1], reference.images)
     if reference.fit_psnr is not None:
         return value, reference.fit_psnr - value
@@ -488,11 +474,6 @@ def compress_model(target: str | Path, out: str | Path | None = None, bits: BitD
     model inside a run folder is scored against the run's targets, a bare model file against its own
     reconstruction. `finetune_steps` > 0 first tunes the model at the budget (needs the run folder).
     """
-    import time
-
-    from .runs import CONFIG_FILE, model_path, read_run, scene_from_source, write_atomic
-    from .storage import load_model
-
     model_file = model_path(target)
     if not model_file.is_file():
         raise ModelFileError(f"{target}: no such run folder or model file")
@@ -532,13 +513,12 @@ def compress_model(target: str | Path, out: str | Path | None = None, bits: BitD
             "bits_per_pixel": 8 * len(choice.data) / pixels, "model_bytes": model_file.stat().st_size,
             "ratio": model_file.stat().st_size / len(choice.data), "bits": asdict(choice.bits),
             "reference": reference.label, "psnr_float": reference.fit_psnr, "psnr": choice.psnr,
-            "drop": choice.drop, "max_drop": max_drop, "finetune_steps": finetune_steps, "finetune_kept": tuned, "seconds": seconds}
+            "drop": choice.drop, "max_drop": max_drop, "finetune_steps": finetune_steps, "finetune_kept": tuned,
+            "seconds": seconds}
 
 
 def decompress_file(path: str | Path, out: str | Path | None = None) -> Path:
     """Decode a `.cvq` file into a float32 `model.safetensors`-format file (atomically)."""
-    from .storage import save_model
-
     path = Path(path)
     if not path.is_file():
         raise ModelFileError(f"{path}: no such file")

@@ -78,10 +78,10 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
             params["curvature"].clamp_(-1.0, 1.0)
     with torch.no_grad():
         scale_px = torch.exp(params["scale"])
-        return Primitives(position_px=params["position"].detach().clone(), scale_px=scale_px,
-                          rotation_rad=params["rotation"].detach().clone(), amplitude=params["amplitude"].detach().clone(),
-                          phase_rad=params["phase"].detach().clone(), opacity=torch.ones_like(p["opacity"]),
-                          curvature_per_m=params["curvature"] * curvature_bound(scale_px, config)).to("cpu")
+        return Primitives(position_px=params["position"].clone(), scale_px=scale_px,
+                          rotation_rad=params["rotation"].clone(), amplitude=params["amplitude"].clone(),
+                          phase_rad=params["phase"].clone(), opacity=torch.ones_like(p["opacity"]),
+                          curvature_per_m=params["curvature"] * curvature_bound(scale_px, config)).detached().to("cpu")
 
 
 def _quantised(params: dict[str, Tensor], steps_of: dict[str, float], scale_range: tuple[float, float],

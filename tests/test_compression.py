@@ -186,3 +186,12 @@ def test_rate_distortion_points_and_bd_rate():
     anchor = [{"bpp": 2 * b, "psnr": q} for b, q in ((1, 30), (2, 33), (3, 35), (4, 36))]
     test = [{"bpp": b, "psnr": q} for b, q in ((1, 30), (2, 33), (3, 35), (4, 36))]
     assert bd_rate(anchor, test, top_psnr=35) == pytest.approx(-50, abs=0.5)
+
+
+def test_a_bare_model_file_is_scored_against_its_own_reconstruction(fitted_run, tmp_path, capsys):
+    bare = tmp_path / "bare.safetensors"
+    bare.write_bytes((fitted_run / "model.safetensors").read_bytes())
+    assert main(["compress", str(bare), "--max-drop", "0.5"]) == 0
+    shown = capsys.readouterr().out
+    assert "against the float model's own reconstruction" in shown and "estimated for a fit at 30 dB" in shown
+    assert (tmp_path / "bare.cvq").is_file()
