@@ -38,6 +38,11 @@ CHECKSUM = struct.Struct("<I")
 MAX_POSITION_BITS = 8
 MAX_BITS = 16
 
+
+def _limits(name: str) -> tuple[int, int]:
+    """Valid bit depths of an attribute: positions from whole pixels (0) to 1/256 px; the others 2..16."""
+    return (0, MAX_POSITION_BITS) if name == "position" else (2, MAX_BITS)
+
 # Stream codings; each stream takes the smallest that applies, so a coding that does not pay is never used.
 RAW, LAPLACE, GAUSSIAN, CATEGORICAL = "raw", "laplace", "gaussian", "categorical"
 
@@ -57,16 +62,14 @@ class BitDepths:
 
     def validate(self) -> "BitDepths":
         for name, value in asdict(self).items():
-            top = MAX_POSITION_BITS if name == "position" else MAX_BITS
-            low = 0 if name == "position" else 2
+            low, top = _limits(name)
             if not low <= value <= top:
                 raise ModelFileError(f"--bits {name}={value}: give {low}..{top} bits")
         return self
 
     def shifted(self, delta: int) -> "BitDepths":
         """Every attribute `delta` bits finer (coarser when negative), kept within the valid ranges."""
-        return BitDepths(**{name: min(max(value + delta, 0 if name == "position" else 2),
-                                      MAX_POSITION_BITS if name == "position" else MAX_BITS)
+        return BitDepths(**{name: min(max(value + delta, _limits(name)[0]), _limits(name)[1])
                             for name, value in asdict(self).items()})
 
     def names(self) -> list[str]:
@@ -75,7 +78,7 @@ class BitDepths:
     def shifted_one(self, name: str) -> "BitDepths | None":
         """One bit coarser in attribute `name`, or None at its lowest depth."""
         value = getattr(self, name) - 1
-        return replace(self, **{name: value}) if value >= (0 if name == "position" else 2) else None
+        return replace(self, **{name: value}) if value >= _limits(name)[0] else None
 
     @classmethod
     def parse(cls, items: list[str]) -> "BitDepths":
