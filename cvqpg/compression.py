@@ -114,7 +114,7 @@ def _short(value: float, digits: int = 4) -> float:
     return float(f"{value:.{digits}g}")
 
 
-def _outward(low: float, high: float) -> list[float]:
+def outward_range(low: float, high: float) -> list[float]:
     """[low, high] widened to short values (see `_short`) that still contain it: a margin of 1e-3 of
     the larger magnitude outweighs `_short`'s rounding error of at most 5e-4."""
     margin = 1e-3 * max(abs(low), abs(high), 1e-12)
@@ -173,11 +173,11 @@ def quantise(primitives: Primitives, config: FitConfig, bits: BitDepths) -> Enco
     streams: dict[str, np.ndarray] = {"position": np.diff(morton, prepend=np.uint64(0)).astype(np.int64)}
     ranges: dict[str, list[float]] = {}
     log_scale = np.log(p["scale_px"])
-    ranges["scale"] = _outward(float(log_scale.min()), float(log_scale.max()))
+    ranges["scale"] = outward_range(float(log_scale.min()), float(log_scale.max()))
     streams["scale"] = _uniform(log_scale, *ranges["scale"], bits.scale)
     streams["rotation"] = _periodic(p["rotation_rad"], math.pi, bits.rotation)
     weight = p["amplitude"] * p["opacity"][:, None]
-    ranges["amplitude"] = [0.0, _outward(0.0, float(np.abs(weight).max(initial=0.0)))[1]]
+    ranges["amplitude"] = [0.0, outward_range(0.0, float(np.abs(weight).max(initial=0.0)))[1]]
     streams["amplitude"] = _uniform(np.abs(weight), *ranges["amplitude"], bits.amplitude)
     streams["phase"] = _periodic(p["phase_rad"] + np.where(weight < 0, math.pi, 0.0), 2 * math.pi, bits.phase)
     if config.primitive == "cvqpg":

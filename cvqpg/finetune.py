@@ -9,7 +9,7 @@ import math
 import torch
 from torch import Tensor
 
-from .compression import BitDepths
+from .compression import BitDepths, outward_range
 from .config import FitConfig
 from .fitting import hologram
 from .losses import multiplane_loss, noisy_targets, standard_normal
@@ -40,8 +40,8 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
     p = {name: t.detach().to(config.device, torch.float32) for name, t in primitives.tensors().items()}
     weight = p["amplitude"] * p["opacity"][:, None]
     log_scale = torch.log(p["scale_px"])
-    scale_range = (float(log_scale.min()), float(log_scale.max()))
-    amplitude_max = float(weight.abs().max())
+    scale_range = tuple(outward_range(float(log_scale.min()), float(log_scale.max())))
+    amplitude_max = outward_range(0.0, float(weight.abs().max()))[1]
     bound = curvature_bound(p["scale_px"], config)
     share = p["curvature_per_m"] / torch.where(bound > 0, bound, torch.ones_like(bound))
     half = 2 ** (bits.curvature - 1) - 1
