@@ -1,5 +1,5 @@
-"""Command line: `cvqpg fit`, `eval`, `export`, `info`, `render`, `view`, `bench`, `results` and `warmup`,
-thin wrappers over the library API."""
+"""Command line: `cvqpg fit`, `eval`, `export`, `info`, `render`, `view`, `compress`, `decompress`,
+`bench`, `results` and `warmup`, thin wrappers over the library API."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from . import __version__
 from .allocator import keep_freed_memory
 from .bench import METHODS, PRESETS, BenchError, Overrides, describe_cells, make_plan, parse_shard, peak_bytes, run_plan
 from .compilation import warmup
+from .compression import ASSUMED_FIT_PSNR_DB, SUFFIX, BitDepths, compress_model, decompress_file
 from .config import CURVATURES, ConfigError, FitConfig, default_warmup
 from .depth import DEPTH_FILE, DEPTH_MODEL, estimate_depth, load_depth_model
 from .fitting import (CheckpointDeviceError, CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes,
@@ -115,7 +116,8 @@ def _display_parsers(sub: argparse._SubParsersAction) -> None:
                        "channel (PNG gray levels, g ↔ 2πg/LEVELS, and the unquantised phase in rad as .npy), "
                        "then simulate showing them through a 4f system and compare with the complex field.",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    x.add_argument("run_dir", metavar="RUN_DIR", help="folder written by `cvqpg fit`")
+    x.add_argument("run_dir", metavar="RUN_DIR|MODEL", help="folder written by `cvqpg fit`, or a model file "
+                   f"(.safetensors or {SUFFIX}) inside one")
     x.add_argument("--encoding", choices=ENCODINGS, default="dpac", help="double-phase amplitude coding, "
                    "or the bare phase of the field (drops the amplitude; for comparison)")
     x.add_argument("--levels", type=int, default=DEFAULT_LEVELS, help="phase levels of the SLM")
@@ -124,9 +126,9 @@ def _display_parsers(sub: argparse._SubParsersAction) -> None:
     x.add_argument("--aperture", type=float, default=DEFAULT_APERTURE, help="radius of the 4f filter's "
                    "circular Fourier aperture as a fraction of the Nyquist frequency (0 disables the filter)")
     x.add_argument("--out", metavar="DIR", help="output folder [default: RUN_DIR/export]")
-    i = sub.add_parser("info", help="size of a saved model and its compression against the complex field",
-                       description="Print N, parameters, file size, bits per hologram pixel and the "
-                       "compression ratio against the complex64 field of a model.")
+    i = sub.add_parser("info", help="size of a saved model: bits per pixel, and bits per attribute if compressed",
+                       description="Print N, parameters, file size and bits per hologram pixel of a model file "
+                       f"(.safetensors or {SUFFIX}); for a compressed file also the bits of each attribute.")
     i.add_argument("target", metavar="RUN_DIR|MODEL", help="run folder or model file")
     i.add_argument("--half", action="store_true", help="also store the model in float16 "
                    "(RUN_DIR/model.f16.safetensors) and report the PSNR change (needs a run folder)")
@@ -157,6 +159,27 @@ def _view_parser(sub: argparse._SubParsersAction) -> None:
     v.add_argument("--out", metavar="PAGE", help=f"the page [default: RUN_DIR/{VIEW_FILE}, or "
                    "RUN_DIR/view_vs_<RUN_DIR_2>.html for two runs]")
     v.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _compression_parsers(sub: argparse._SubParsersAction) -> None:
+    c = sub.add_parser("compress", help=f"compress a model into a {SUFFIX} file",
+                       description=f"Quantise and entropy-code a model into one {SUFFIX} file (docs/format.md, "
+                       "docs/compression.md). A model in a run folder is scored against the run's targets; a bare "
+                       "model file against its own reconstruction.")
+    c.add_argument("target", metavar="RUN_DIR|MODEL", help="run folder or float model file")
+    c.add_argument("--out", metavar="FILE", help=f"[default: the model's path with suffix {SUFFIX}]")
+    budget = c.add_mutually_exclusive_group()
+    budget.add_argument("--max-drop", type=float, metavar="DB", help="smallest budget whose decoded render stays "
+                        "within DB dB of the float model's PSNR [default: 0.1]")
+    budget.add_argument("--bits", nargs="+", metavar="ATTR=B", help="fixed budget: ATTR=B for position "
+                        "(fractional bits), scale, rotation, amplitude, phase, curvature; or one number for all "
+                        f"but position [default of each: {' '.join(f'{k}={v}' for k, v in vars(BitDepths()).items())}]")
+    c.add_argument("--finetune", type=int, default=0, metavar="STEPS", help="quantisation-aware fine-tuning "
+                   "steps on the run's own targets (needs a run folder); kept only if it pays")
+    d = sub.add_parser("decompress", help=f"turn a {SUFFIX} file back into a model file",
+                       description=f"Decode a {SUFFIX} file into a float32 model file (model.safetensors format).")
+    d.add_argument("file", metavar="FILE", help=f"{SUFFIX} file")
+    d.add_argument("--out", metavar="MODEL", help="[default: FILE's stem + .decoded.safetensors]")
 
 
 def _bench_parser(sub: argparse._SubParsersAction) -> None:
@@ -213,9 +236,11 @@ def build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("eval", help="recompute the metrics of a saved run",
                        description="Recompute PSNR/SSIM/FLIP/LPIPS/CVVDP of RUN_DIR's model against "
                        "its targets and rewrite RUN_DIR/metrics.json.")
-    e.add_argument("run_dir", metavar="RUN_DIR", help="folder written by `cvqpg fit`")
+    e.add_argument("run_dir", metavar="RUN_DIR|MODEL", help="folder written by `cvqpg fit`, or a model file "
+                   f"(.safetensors or {SUFFIX}) inside one: its metrics go to <model stem>.metrics.json")
     _display_parsers(sub)
     _view_parser(sub)
+    _compression_parsers(sub)
     sub.add_parser("warmup", help="compile the CPU kernels ahead of the first fit (for clusters and images)",
                    description="Compile the Numba CPU kernels that fits call (with 1 or 2 planes, the defaults) into "
                    "Numba's on-disk cache (next to the package, or NUMBA_CACHE_DIR), so that the first fit "
@@ -392,13 +417,23 @@ def finished_run(folder: Path) -> Path:
     return folder
 
 
+def run_and_model(target: Path) -> tuple[Path, Path | None]:
+    """A run folder and None (its own model), or the run folder that holds the model file `target`."""
+    if not target.is_file():
+        return finished_run(target), None
+    if not (target.parent / CONFIG_FILE).is_file():
+        raise UsageError(f"{target}: a model file needs its run folder's {CONFIG_FILE} (the targets); "
+                         "keep it inside the run folder")
+    return target.parent, target
+
+
 def run_export(args: argparse.Namespace) -> int:
-    folder = finished_run(Path(args.run_dir))
+    folder, model = run_and_model(Path(args.run_dir))
     if args.aperture < 0:
         raise UsageError(f"--aperture {args.aperture}: give a radius ≥ 0 (a fraction of Nyquist; 0: no filter)")
+    out = Path(args.out) if args.out else folder / (EXPORT_FOLDER if model is None else f"{EXPORT_FOLDER}-{model.stem}")
     record = export_run(folder, args.encoding, args.levels, tuple(args.slm) if args.slm else None,
-                        args.aperture or None, args.out)
-    out = Path(args.out) if args.out else folder / EXPORT_FOLDER
+                        args.aperture or None, out, model)
     print(f"{out}: {len(record['files'])} files; mean PSNR against the targets:")
     for label, key in (("phase-only display", "phase_only_display"), ("complex field, same display", "complex_display"),
                        ("complex field, as fitted", "complex_field")):
@@ -421,9 +456,10 @@ def run_info(args: argparse.Namespace) -> int:
           f"  parameters       {info['learnable_params']} learnable, {info['stored_values']} stored "
           f"({info['dtype']})\n"
           f"  file             {info['file_bytes'] / 2**10:.1f} KiB\n"
-          f"  bits per pixel   {info['bits_per_pixel']:.2f} (of the {width}×{height} hologram)\n"
-          f"  compression      {info['compression_ratio']:.2f}× smaller than the complex64 field "
-          f"({info['complex_field_bytes'] / 2**20:.2f} MiB)")
+          f"  bits per pixel   {info['bits_per_pixel']:.3f} (of the {width}×{height} hologram, all channels)")
+    if "bits" in info:
+        print("  bits             " + ", ".join(f"{name} {value}" for name, value in info["bits"].items())
+              + " (position: fractional bits, a grid of 2^-b px)")
     if args.half:
         print(f"  PSNR             {info['psnr_float16']:.3f} dB in float16, {info['psnr_float32']:.3f} dB in "
               f"float32 ({info['psnr_change']:+.4f} dB)")
@@ -464,8 +500,8 @@ def run_view(args: argparse.Namespace) -> int:
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    folder = finished_run(Path(args.run_dir))
-    record = evaluate_run(folder)
+    folder, model = run_and_model(Path(args.run_dir))
+    record = evaluate_run(folder, model)
     print(f"{folder}: {_summary(record)}")
     for name, reason in record["unavailable"].items():
         print(f"  {name}: n/a ({reason})")
@@ -475,6 +511,26 @@ def run_eval(args: argparse.Namespace) -> int:
 def run_warmup(_args: argparse.Namespace) -> int:
     seconds = warmup()
     print(f"cvqpg warmup: CPU kernels compiled and cached in {seconds:.0f} s")
+def run_compress(args: argparse.Namespace) -> int:
+    if args.finetune < 0:
+        raise UsageError(f"--finetune {args.finetune}: give a number of steps ≥ 0")
+    if args.max_drop is not None and args.max_drop < 0:
+        raise UsageError(f"--max-drop {args.max_drop}: give a drop in dB ≥ 0")
+    bits = BitDepths.parse(args.bits) if args.bits else None
+    r = compress_model(Path(args.target), args.out, bits, args.max_drop, args.finetune)
+    scored = (f", float {r['psnr_float']:.3f} dB" if r["psnr_float"] is not None
+              else f" (drop estimated for a fit at {ASSUMED_FIT_PSNR_DB:g} dB)")
+    print(f"{r['file']}: {r['bytes'] / 2**10:.1f} KiB, {r['bits_per_pixel']:.3f} bpp, {r['ratio']:.1f}× smaller than "
+          f"{Path(r['model']).name}; PSNR {r['psnr']:.3f} dB against {r['reference']}{scored}, drop "
+          f"{r['drop']:.3f} dB; bits "
+          + " ".join(f"{k}={v}" for k, v in r["bits"].items())
+          + (f"; fine-tuned {r['finetune_steps']} steps ({'kept' if r['finetune_kept'] else 'did not pay, dropped'})"
+             if r["finetune_steps"] else ""))
+    return 0
+
+
+def run_decompress(args: argparse.Namespace) -> int:
+    print(f"{decompress_file(Path(args.file), args.out)}")
     return 0
 
 
@@ -537,7 +593,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return {"fit": run_fit, "eval": run_eval, "export": run_export, "info": run_info,
                 "render": run_render, "bench": run_bench, "results": run_results,
-                "warmup": run_warmup, "view": run_view}[args.command](args)
+                "warmup": run_warmup, "view": run_view, "compress": run_compress,
+                "decompress": run_decompress}[args.command](args)
     except USER_ERRORS as error:
         print(f"cvqpg {args.command}: error: {error}", file=sys.stderr)
         return 2

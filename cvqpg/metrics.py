@@ -60,6 +60,11 @@ def mean_psnr(recon: Tensor, targets: Tensor) -> float:
     return float(np.mean([psnr(_hwc(r), _hwc(t)) for r, t in zip(recon, targets)]))
 
 
+def mean_ssim(recon: Tensor, targets: Tensor) -> float:
+    """SSIM of reconstructions [M, C, H, W] against targets, averaged over planes."""
+    return float(np.mean([ssim(_hwc(r), _hwc(t)) for r, t in zip(recon, targets)]))
+
+
 def ssim(recon: np.ndarray, target: np.ndarray) -> float:
     """scikit-image SSIM with its defaults (7×7 uniform window), data range 1."""
     if recon.shape[2] == 1:

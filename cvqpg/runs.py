@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -147,19 +148,21 @@ def scene_from_source(source: dict[str, Any], config: FitConfig) -> Scene:
     return load_scene(source["image"], source.get("depth"), config, source.get("resize_depth", False))
 
 
-def evaluate_run(folder: str | Path) -> dict[str, Any]:
-    """Recompute a saved run's metrics from its model and inputs; rewrites `metrics.json`."""
+def evaluate_run(folder: str | Path, model: str | Path | None = None) -> dict[str, Any]:
+    """Recompute a saved run's metrics from its model (or `model`, e.g. a compressed file in the
+    run folder) and inputs; rewrites `metrics.json`, or writes `<model stem>.metrics.json` for `model`."""
     folder = Path(folder)
     _, source = read_run(folder)
-    primitives, config = load_model(folder / MODEL_FILE)
+    primitives, config = load_model(folder / MODEL_FILE if model is None else model)
     scene = scene_from_source(source, config)
     _, recon = render(primitives, config)
+    metrics_file = folder / METRICS_FILE if model is None else folder / f"{Path(model).stem}.{METRICS_FILE}"
     previous = {}
     if (folder / METRICS_FILE).is_file():
         previous = json.loads((folder / METRICS_FILE).read_text())
     kept = {k: v for k, v in previous.items() if k not in ("mean", "per_plane", "unavailable")}
     record = {**metrics_record(evaluate(recon, scene.targets), config, previous.get("seconds", 0.0)), **kept}
-    write_json(folder / METRICS_FILE, record)
+    write_json(metrics_file, record)
     return record
 
 
@@ -188,8 +191,9 @@ def save_phase_pattern(pattern: PhasePattern, labels: list[str], folder: Path) -
 
 def export_run(folder: str | Path, encoding: Encoding = "dpac", levels: int = DEFAULT_LEVELS,
                slm: tuple[int, int] | None = None, aperture: float | None = DEFAULT_APERTURE,
-               out: str | Path | None = None) -> dict[str, Any]:
-    """Write a run's phase-only SLM patterns and simulate showing them (SPEC §8).
+               out: str | Path | None = None, model: str | Path | None = None) -> dict[str, Any]:
+    """Write a run's phase-only SLM patterns and simulate showing them (SPEC §8); `model` replaces
+    the run's own model (e.g. a compressed file in the run folder).
 
     `slm` is the SLM's (W, H) in px (default: the hologram's own size). Writes the patterns, the
     simulated display's planes and `metrics.json` (phase-only display, the same 4f display fed
@@ -199,7 +203,7 @@ def export_run(folder: str | Path, encoding: Encoding = "dpac", levels: int = DE
     out = Path(out) if out is not None else folder / EXPORT_FOLDER
     out.mkdir(parents=True, exist_ok=True)
     _, source = read_run(folder)
-    primitives, config = load_model(folder / MODEL_FILE)
+    primitives, config = load_model(folder / MODEL_FILE if model is None else model)
     scene = scene_from_source(source, config)
     hologram, complex_recon = render(primitives, config)
     canvas = (config.height, config.width) if slm is None else (slm[1], slm[0])
@@ -230,20 +234,27 @@ def model_path(target: str | Path) -> Path:
 
 
 def model_info(path: str | Path) -> dict[str, Any]:
-    """Size accounting of a model file: primitives, parameters, bytes, bits per hologram pixel and
-    the compression ratio against the complex64 field it renders (8 bytes per pixel and channel)."""
+    """Size accounting of a model file: primitives, parameters, bytes and bits per hologram pixel
+    (all channels together); for a compressed file also the bits per attribute and each stream's coding."""
+    from .compression import is_compressed, read_compressed  # compression imports this module
+
     path = model_path(path)
     primitives, config = load_model(path)
     file_bytes = path.stat().st_size
-    field_bytes = 8 * config.channels * config.width * config.height
-    with safe_open(str(path), framework="pt") as handle:
-        dtype = (handle.metadata() or {}).get("dtype", "float32")
+    extra: dict[str, Any] = {}
+    if is_compressed(path):
+        compressed = read_compressed(path)
+        dtype = "compressed"
+        extra = {"bits": asdict(compressed.bits),
+                 "streams": {s["name"]: {"coding": s["coding"], "bytes": s["bytes"]} for s in compressed.streams}}
+    else:
+        with safe_open(str(path), framework="pt") as handle:
+            dtype = (handle.metadata() or {}).get("dtype", "float32")
     return {"file": str(path), "num_primitives": primitives.count, "primitive": config.primitive,
             "learnable_params": primitives.count * config.params_per_primitive,
             "stored_values": sum(t.numel() for t in primitives.tensors().values()), "dtype": dtype,
             "file_bytes": file_bytes, "hologram_px": [config.width, config.height],
-            "channels": config.channels, "bits_per_pixel": 8 * file_bytes / (config.width * config.height),
-            "complex_field_bytes": field_bytes, "compression_ratio": field_bytes / file_bytes}
+            "channels": config.channels, "bits_per_pixel": 8 * file_bytes / (config.width * config.height), **extra}
 
 
 def half_precision_model(folder: str | Path) -> dict[str, Any]:
@@ -278,9 +289,9 @@ def render_model(target: str | Path, out: str | Path, size: tuple[int, int] | No
                  distances_m: Sequence[float] | None = None) -> dict[str, Any]:
     """Render a saved model without fitting: hologram images and the reconstruction at each plane
     (the model's own, or `distances_m`), optionally resampled to `size` (W, H) px."""
+    primitives, config = load_model(model_path(target))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    primitives, config = load_model(model_path(target))
     if size is not None:
         primitives, config = rescaled(primitives, config, *size)
     distances = config.plane_distances if distances_m is None else tuple(distances_m)

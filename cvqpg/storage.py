@@ -51,10 +51,15 @@ def save_model(path: str | Path, primitives: Primitives, config: FitConfig, dtyp
 
 
 def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Primitives, FitConfig]:
-    """Read a model written by `save_model` as float32 primitives on `device`."""
+    """Read a model written by `save_model`, or a compressed `.cvq` file, as float32 primitives on `device`."""
     path = Path(path)
     if not path.is_file():
         raise ModelFileError(f"{path}: no such model file")
+    from .compression import SUFFIX, is_compressed, read_compressed  # compression imports this module
+
+    if is_compressed(path) or path.suffix == SUFFIX:
+        compressed = read_compressed(path)
+        return compressed.primitives.to(device), compressed.config
     try:
         with safe_open(str(path), framework="pt") as handle:
             metadata = handle.metadata() or {}

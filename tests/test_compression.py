@@ -1,0 +1,197 @@
+"""The `.cvq` compressed model: codec, file format, the compress/decompress commands and bad files."""
+
+import json
+import math
+import struct
+
+import pytest
+import torch
+
+from cvqpg import FitConfig, load_model
+from cvqpg.cli import main
+from cvqpg.compression import (FORMAT_VERSION, MAGIC, BitDepths, compress_model, decode, encode, encode_stream,
+                               decode_stream, read_compressed)
+from cvqpg.fitting import render
+from cvqpg.metrics import mean_psnr
+from cvqpg.primitives import activate, init_gaussians
+from cvqpg.runs import read_run, scene_from_source
+
+SMALL_FIT = ["fit", "--size", "40", "30", "--steps", "30", "--warmup", "10", "--quiet"]
+FINE = BitDepths(position=8, scale=16, rotation=16, amplitude=16, phase=16, curvature=16)
+
+
+def random_primitives(config: FitConfig, seed: int = 3):
+    """Initialised primitives with signed amplitudes, wrapped phases and curvature near its bounds."""
+    raw = init_gaussians(config.primitive_count, config.channels, config.width, config.height, seed)
+    g = torch.Generator().manual_seed(seed)
+    raw.color.uniform_(-1, 1, generator=g)
+    raw.phase.uniform_(-7, 14, generator=g)
+    raw.rotation.uniform_(-7, 7, generator=g)
+    raw.curvature.uniform_(-3, 3, generator=g)
+    raw.opacity.uniform_(-2, 2, generator=g)
+    return activate(raw, config)
+
+
+@pytest.mark.parametrize("curvature", ["shared", "per-channel"])
+def test_fine_budget_renders_like_the_float_model(curvature):
+    config = FitConfig(width=48, height=32, ratio=0.3, curvature=curvature, guard_band_px=32)
+    primitives = random_primitives(config)
+    decoded = decode(encode(primitives, config, FINE)).primitives
+    assert decoded.count == primitives.count and torch.all(decoded.opacity == 1)
+    field, decoded_field = render(primitives, config)[0], render(decoded, config)[0]
+    assert (decoded_field - field).abs().max() < 1e-2 * field.abs().max()  # 1/256 px positions, chirps near Nyquist
+
+
+def test_decoding_is_deterministic_and_encoding_reproducible():
+    config = FitConfig(width=48, height=32, color="gray", ratio=0.3)
+    primitives = random_primitives(config)
+    data = encode(primitives, config, BitDepths())
+    assert encode(primitives, config, BitDepths()) == data
+    first, second = decode(data).primitives, decode(data).primitives
+    for name, tensor in first.tensors().items():
+        assert torch.equal(tensor, second.tensors()[name]), name
+
+
+@pytest.mark.parametrize("values", [torch.zeros(7, dtype=torch.long), torch.arange(-5, 300),
+                                    torch.tensor([0, 0, 0, 1, 0, 2, 0, 0, 90000])])
+def test_streams_round_trip_exactly(values):
+    array = values.numpy()
+    descriptor, data = encode_stream(array)
+    assert (decode_stream(descriptor, data) == array).all()
+
+
+@pytest.fixture(scope="module")
+def fitted_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("compress") / "run"
+    assert main([*SMALL_FIT, "--out", str(out)]) == 0
+    return out
+
+
+def test_compress_decompress_render_round_trip(fitted_run, tmp_path, capsys):
+    packed = tmp_path / "model.cvq"
+    assert main(["compress", str(fitted_run), "--bits", "10", "--out", str(packed)]) == 0
+    assert main(["decompress", str(packed), "--out", str(tmp_path / "model.safetensors")]) == 0
+    assert main(["render", str(tmp_path / "model.safetensors"), "--out", str(tmp_path / "r")]) == 0
+    capsys.readouterr()
+    unpacked, config = load_model(tmp_path / "model.safetensors")
+    direct, _ = load_model(packed)
+    for name, tensor in direct.tensors().items():
+        assert torch.equal(tensor, unpacked.tensors()[name]), name
+    original, _ = load_model(fitted_run / "model.safetensors")
+    assert mean_psnr(render(direct, config)[1], render(original, config)[1]) > 40
+    assert (tmp_path / "r" / "recon_1mm.png").is_file()
+
+
+def test_max_drop_is_the_drop_of_the_decoded_file(fitted_run, tmp_path):
+    record = compress_model(fitted_run, tmp_path / "m.cvq", max_drop=0.3)
+    config, source = read_run(fitted_run)
+    targets = scene_from_source(source, config).targets
+    float_psnr = mean_psnr(render(load_model(fitted_run / "model.safetensors")[0], config)[1], targets)
+    decoded_psnr = mean_psnr(render(load_model(tmp_path / "m.cvq")[0], config)[1], targets)
+    assert record["reference"] == "the run's targets"
+    assert record["drop"] == pytest.approx(float_psnr - decoded_psnr, abs=1e-9) and record["drop"] <= 0.3
+    assert record["bytes"] == (tmp_path / "m.cvq").stat().st_size < record["model_bytes"] / 4
+
+
+def test_finetune_is_kept_only_if_it_pays(fitted_run, tmp_path):
+    record = compress_model(fitted_run, tmp_path / "t.cvq", bits=BitDepths.parse(["5"]), finetune_steps=3)
+    assert record["finetune_steps"] == 3 and isinstance(record["finetune_kept"], bool)
+    assert read_compressed(tmp_path / "t.cvq").bits == BitDepths.parse(["5"])
+
+
+def test_eval_info_and_export_read_the_compressed_file(fitted_run, capsys):
+    assert main(["compress", str(fitted_run), "--bits", "8"]) == 0
+    packed = fitted_run / "model.cvq"
+    assert "8.000" not in capsys.readouterr().out
+    assert main(["info", str(packed), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["dtype"] == "compressed" and info["bits"]["phase"] == 8
+    assert info["bits_per_pixel"] == pytest.approx(8 * packed.stat().st_size / (40 * 30))
+    assert main(["eval", str(packed)]) == 0
+    assert json.loads((fitted_run / "model.metrics.json").read_text())["mean"]["psnr"] > 0
+    assert main(["export", str(packed)]) == 0
+    assert (fitted_run / "export-model" / "metrics.json").is_file()
+
+
+def _bad_files(good: bytes) -> dict[str, tuple[bytes, str]]:
+    flipped = bytearray(good)
+    flipped[len(good) // 2] ^= 0x40
+    newer = bytearray(good)
+    struct.pack_into("<H", newer, len(MAGIC), FORMAT_VERSION + 1)
+    return {"truncated": (good[:len(good) - 9], "truncated"), "corrupted": (bytes(flipped), "checksum"),
+            "magic": (b"PK\x03\x04" + good[4:], "wrong magic"), "newer": (bytes(newer), "newer"),
+            "empty": (b"", "wrong magic")}
+
+
+@pytest.mark.parametrize("kind", ["truncated", "corrupted", "magic", "newer", "empty"])
+@pytest.mark.parametrize("command", ["decompress", "info", "render"])
+def test_bad_files_fail_cleanly_and_write_nothing(fitted_run, tmp_path, kind, command, capsys):
+    good = fitted_run / "good.cvq"
+    if not good.exists():
+        assert main(["compress", str(fitted_run), "--bits", "6", "--out", str(good)]) == 0
+    data, message = _bad_files(good.read_bytes())[kind]
+    bad = tmp_path / "bad.cvq"
+    bad.write_bytes(data)
+    capsys.readouterr()
+    assert main([command, str(bad), "--out", str(tmp_path / "out")] if command != "info" else [command, str(bad)]) == 2
+    error = capsys.readouterr().err
+    assert message in error and "Traceback" not in error and len(error.strip().splitlines()) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.cvq"]
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["compress", "{run}", "--bits", "phase=1"], "--bits phase=1"),
+    (["compress", "{run}", "--bits", "colour=8"], "--bits colour=8"),
+    (["compress", "{run}", "--max-drop", "-1"], "--max-drop"),
+    (["compress", "{run}/model.cvq6"], "no such"),
+    (["decompress", "{run}/none.cvq"], "no such"),
+])
+def test_bad_compress_options_fail_cleanly(fitted_run, arguments, message, capsys):
+    before = sorted(p.name for p in fitted_run.iterdir())
+    assert main([a.format(run=fitted_run) for a in arguments]) == 2
+    error = capsys.readouterr().err
+    assert message in error and len(error.strip().splitlines()) == 1
+    assert sorted(p.name for p in fitted_run.iterdir()) == before
+
+
+def test_unknown_option_exits_2(fitted_run, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["compress", str(fitted_run), "--level", "3"])
+    assert exit_.value.code == 2 and "--level" in capsys.readouterr().err
+
+
+def test_periodic_attributes_wrap():
+    config = FitConfig(width=48, height=32, color="gray", ratio=0.3)
+    primitives = random_primitives(config)
+    values = primitives.tensors()
+    values["rotation_rad"] = values["rotation_rad"] + math.pi
+    values["phase_rad"] = values["phase_rad"] + 2 * math.pi
+    shifted = type(primitives).from_tensors(values)
+    assert encode(shifted, config, BitDepths()) == encode(primitives, config, BitDepths())
+
+
+def test_rate_distortion_points_and_bd_rate():
+    pytest.importorskip("imagecodecs")
+    from cvqpg.ratedistortion import anchor_points, bd_rate, rd_points
+
+    config = FitConfig(width=48, height=32, color="gray", ratio=0.3, guard_band_px=32)
+    primitives = random_primitives(config)
+    targets = render(primitives, config)[1].clamp(0.05, 0.95)
+    points = rd_points(primitives, config, targets, ladder=[BitDepths(), BitDepths().shifted(2)], anchors=False)
+    assert [p["codec"] for p in points] == ["model float32", "model float16", "cvqpg", "cvqpg"]
+    assert all(p["bpp"] == pytest.approx(8 * p["bytes"] / (48 * 32)) for p in points)
+    assert points[3]["bytes"] > points[2]["bytes"] and points[0]["bytes"] > points[2]["bytes"]
+    anchors = anchor_points(primitives, config, targets, {"JPEG 2000": [50], "JPEG XL": [1.0]})
+    assert [p.codec for p in anchors] == ["JPEG 2000", "JPEG XL"] and all(p.psnr > 20 for p in anchors)
+    anchor = [{"bpp": 2 * b, "psnr": q} for b, q in ((1, 30), (2, 33), (3, 35), (4, 36))]
+    test = [{"bpp": b, "psnr": q} for b, q in ((1, 30), (2, 33), (3, 35), (4, 36))]
+    assert bd_rate(anchor, test, top_psnr=35) == pytest.approx(-50, abs=0.5)
+
+
+def test_a_bare_model_file_is_scored_against_its_own_reconstruction(fitted_run, tmp_path, capsys):
+    bare = tmp_path / "bare.safetensors"
+    bare.write_bytes((fitted_run / "model.safetensors").read_bytes())
+    assert main(["compress", str(bare), "--max-drop", "0.5"]) == 0
+    shown = capsys.readouterr().out
+    assert "against the float model's own reconstruction" in shown and "estimated for a fit at 30 dB" in shown
+    assert (tmp_path / "bare.cvq").is_file()
