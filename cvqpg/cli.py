@@ -511,6 +511,9 @@ def run_eval(args: argparse.Namespace) -> int:
 def run_warmup(_args: argparse.Namespace) -> int:
     seconds = warmup()
     print(f"cvqpg warmup: CPU kernels compiled and cached in {seconds:.0f} s")
+    return 0
+
+
 def run_compress(args: argparse.Namespace) -> int:
     if args.finetune < 0:
         raise UsageError(f"--finetune {args.finetune}: give a number of steps ≥ 0")
