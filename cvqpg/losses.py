@@ -81,10 +81,14 @@ class _FusedSsim(torch.autograd.Function):
         return torch.from_numpy(gradient).view(recon.shape).to(recon.device), None
 
 
+# Newer torch's oneDNN flags take `allow_tf32`; torch 2.4's take only `enabled`.
+ONEDNN_FLAGS_TAKE_TF32 = "allow_tf32" in inspect.signature(torch.backends.mkldnn.flags).parameters
+
+
 def _without_onednn() -> ContextManager:
-    """oneDNN off inside the block. Where the flags take `allow_tf32` (newer torch), None leaves it
-    as it is: setting it warns on CPUs. torch 2.4 has only `enabled`."""
-    if "allow_tf32" in inspect.signature(torch.backends.mkldnn.flags).parameters:
+    """oneDNN off inside the block. Where the flags take `allow_tf32`, None leaves it as it is:
+    setting it warns on CPUs."""
+    if ONEDNN_FLAGS_TAKE_TF32:
         return torch.backends.mkldnn.flags(enabled=False, allow_tf32=None)
     return torch.backends.mkldnn.flags(enabled=False)
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -21,8 +20,8 @@ from .bench import (DONE, FOLDER_SCENE_PLANES, METHODS, BenchPlan, BenchScene, C
                     setting_label)
 from .config import FitConfig
 from .report import (DECIMALS, TABLE1_METHODS, CellResult, Metrics, Table, channel_frequency_curves, collect,
-                     frequency_curves, frequency_lines, over_scenes, paired_delta, paper_numbers, primitive_count,
-                     scene_values, variant_tables)
+                     frequency_curves, frequency_lines, over_scenes, paired_delta, paper_numbers, paper_scene_mean,
+                     primitive_count, scene_values, variant_tables)
 
 SCENES = ("bento", "dragon", "flower", "sushi", "tiger", "windmill")
 # The paper's ablation means match its per-scene rows of pencil, sushi, flower, tiger and burger; of
@@ -165,35 +164,21 @@ def table1(paper: GridResults) -> Table:
     """Table 1's rows over our scenes: ours, the paper's same-scene mean, and Δ, per metric."""
     table = Table("Table 1: mean over our scenes; each cell: ours (paper on the same scenes, Δ)",
                   ["Setting", "Method", "N", "scenes", "PSNR↑", "SSIM↑", "LPIPS↓", "FLIP↓", "CVVDP↑"])
-    per_scene_paper = paper_numbers()["per_scene"]
     for setting in SETTINGS:
         for method in (*TABLE1_METHODS, "gain"):
             label = "Δ (CVQPG − Baseline)" if method == "gain" else METHODS[method].label
             if method == "gain":
-                ours, _, scenes = paired_delta(paper.results, setting, "cvqpg", False)
-                paper_mean = _paper_mean(per_scene_paper, scenes, setting, "cvqpg", "baseline")
+                ours, paper_mean, scenes = paired_delta(paper.results, setting, "cvqpg", True)
                 n = ""
             else:
                 values = scene_values(paper.results, setting, method)
                 scenes = sorted(values)
                 ours = over_scenes(values, scenes)
-                paper_mean = _paper_mean(per_scene_paper, scenes, setting, method)
+                paper_mean = paper_scene_mean(scenes, setting, method)
                 n = f"{primitive_count(paper.plan, setting, method):,}"
             table.rows.append([setting_label(setting), label, n, f"{len(scenes)}/{len(paper.plan.scenes)}",
                                *(_with_delta(ours, paper_mean, m, method == "gain") for m in DECIMALS)])
     return table
-
-
-def _paper_mean(table: dict[str, Any], scenes: list[str], setting: str, method: str,
-                minus: str | None = None) -> Metrics | None:
-    """The paper's per-scene values averaged over `scenes` (minus another method's, for a gain)."""
-    if not scenes:
-        return None
-    value = {m: float(np.mean([table[s][setting][method][m] for s in scenes])) for m in DECIMALS}
-    if minus is not None:
-        other = _paper_mean(table, scenes, setting, minus)
-        value = {m: value[m] - other[m] for m in DECIMALS}
-    return value
 
 
 def _with_delta(ours: Metrics | None, paper: Metrics | None, metric: str, signed: bool) -> str:
@@ -240,13 +225,13 @@ def claim_lines(grids: dict[str, GridResults]) -> list[str]:
     table1_paper = paper_numbers()["table1"]
     lines = []
     for setting in SETTINGS:
-        delta, _, scenes = paired_delta(paper.results, setting, "cvqpg", False)
+        delta, same_scenes, scenes = paired_delta(paper.results, setting, "cvqpg", True)
         claimed = table1_paper[setting]["cvqpg"]["psnr"] - table1_paper[setting]["baseline"]["psnr"]
         label = f"CVQPG − Baseline PSNR at equal N, {setting_label(setting)}"
         if delta is None:
             lines.append(f"{label}: paper {claimed:+.3f} dB (ten scenes); not measured yet.")
             continue
-        same = _paper_mean(supplement, scenes, setting, "cvqpg", "baseline")["psnr"]
+        same = same_scenes["psnr"]
         complete = len(scenes) == len(paper.grid.scenes)
         lines.append(f"{label}: ours {delta['psnr']:+.3f} dB on {_scenes(len(scenes))}, paper {same:+.3f} on the "
                      f"same scenes ({claimed:+.3f} on ten): "
