@@ -21,7 +21,7 @@ from .metrics import MetricReport, evaluate
 from .optics import reconstruct
 from .primitives import Gaussians, Primitives, activate, init_gaussians
 from .provenance import peak_memory, reset_peak_memory
-from .rasterization import rasterize
+from .ops.rasterize import rasterize
 from .targets import Scene, load_scene
 
 LEARNING_RATE_GROUPS = ("position", "scale", "rotation", "color", "phase", "opacity", "curvature")

@@ -17,8 +17,8 @@ import torch
 from pytorch_msssim import ssim
 from torch import Tensor
 
-from .loss_kernels import SSIM_TAPS, gaussian_taps, pixel_terms, ssim_backward, ssim_forward, standard_normals
-from .rasterization import cpu_array, resolve_backend
+from .ops.loss.cpu import SSIM_TAPS, gaussian_taps, pixel_terms, ssim_backward, ssim_forward, standard_normals
+from .ops.rasterize import cpu_array, resolve_backend
 
 SSIM_WINDOW_PX = SSIM_TAPS  # 11, the fused kernels' constant window
 SSIM_SIGMA_PX = 1.5

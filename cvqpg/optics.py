@@ -11,9 +11,9 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from . import optics_kernels
+from .ops.field import cpu as optics_kernels
 from .config import FitConfig, padded_size
-from .rasterization import cpu_array, resolve_backend
+from .ops.rasterize import cpu_array, resolve_backend
 
 
 @dataclass(frozen=True)

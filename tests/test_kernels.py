@@ -8,9 +8,10 @@ import pytest
 import torch
 from numba.core.errors import TypingError
 
-from cvqpg import FitConfig, builtin_scene, fit, kernels, vectors
+from cvqpg import FitConfig, builtin_scene, fit
+from cvqpg.ops.rasterize import cpu as kernels, vectors
 from cvqpg.primitives import COVARIANCE_REGULARISER_PX2, Gaussians, Primitives, activate, init_gaussians
-from cvqpg.rasterization import (FOOTPRINT_SIGMAS, rasterize, resolve_backend, splat_fused, splat_reference, splats,
+from cvqpg.ops.rasterize.reference import (FOOTPRINT_SIGMAS, rasterize, resolve_backend, splat_fused, splat_reference, splats,
                                  wavenumbers_for)
 
 WIDTH, HEIGHT = 56, 40

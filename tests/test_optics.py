@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from cvqpg.config import FitConfig
-from cvqpg import optics, optics_kernels
+from cvqpg import optics
+from cvqpg.ops.field import cpu as optics_kernels
 from cvqpg.optics import (Grid, TransferBank, clamped_intensity, guard_window, guarded_field, pad_with_guard_band,
                           propagate, propagate_content, slm_field, transfer_function)
 

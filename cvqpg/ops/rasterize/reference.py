@@ -24,8 +24,8 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
-from . import kernels
-from .primitives import COVARIANCE_REGULARISER_PX2, Primitives, inverse_covariance, major_sigma_px
+from . import cpu as kernels
+from ...primitives import COVARIANCE_REGULARISER_PX2, Primitives, inverse_covariance, major_sigma_px
 
 Qpf = Literal["mahalanobis", "standard"]
 

@@ -1,0 +1,1 @@
+"""The SLM field and clamped intensity kernels."""
