@@ -100,7 +100,7 @@ def ssim_per_plane(recon: Tensor, targets: Tensor, backend: str = "auto") -> Ten
     (`auto`, `numba`) the fused kernels compute the same numbers, differentiable in `recon`. Images
     smaller than the window go to the reference, which then blurs only the long axis.
     """
-    if resolve_backend(backend, recon.device) == "torch" or min(recon.shape[-2:]) < SSIM_WINDOW_PX:
+    if resolve_backend(backend, recon.device) != "numba" or min(recon.shape[-2:]) < SSIM_WINDOW_PX:
         # oneDNN's depthwise 1×11 convolutions cost 3× PyTorch's own on one channel.
         with _without_onednn():
             return ssim(recon, targets, data_range=1.0, size_average=False,
@@ -140,7 +140,7 @@ def multiplane_loss(recon: Tensor, targets: Tensor, masks: Tensor, noisy: Tensor
     picks the reference or the fused CPU kernels, as it picks the rasterizer.
     """
     structure = ssim_weight * (1 - ssim_per_plane(recon, targets, backend))
-    if resolve_backend(backend, recon.device) != "torch":
+    if resolve_backend(backend, recon.device) == "numba":
         pixel, mse = _FusedPixelTerms.apply(recon, targets, noisy, masks)
         return (pixel + structure).sum(), mse
     dims = (1, 2, 3)

@@ -1,38 +1,29 @@
-"""Rasterization: the complex hologram `H_c(p) = Σ_n G_{n,c}(p)` on the W×H SLM grid (SPEC §2).
+"""The rasterizer's PyTorch reference: the complex hologram `H_c(p) = Σ_n G_{n,c}(p)` on the W×H SLM grid (SPEC §2).
 
-`rasterize` is the one entry point; it hands the activated primitives to a backend that sums them
-into the hologram. Both backends reduce each primitive to the same `Splats` quantities (centre,
-inverse covariance, footprint, chirp). The reference backend does it with plain differentiable
-PyTorch (`splats`), then evaluates each primitive on a square patch covering its 3σ_major footprint
-(primitives grouped by patch size), recomputing chunks in the backward pass instead of storing them,
-so memory stays bounded by the chunk size whatever N is. The fused CPU backend does the reduction
-and its chain rule inside its kernels (`kernels.splat_geometry`), where it costs a fraction of the
-autograd graph's time.
+`splats` reduces each primitive to the quantities every backend sums (centre, inverse covariance,
+footprint, chirp) in plain differentiable PyTorch. `sum_patches` evaluates each primitive on a
+square patch covering its 3σ_major footprint (primitives grouped by patch size), recomputing chunks
+in the backward pass instead of storing them, so memory stays bounded by the chunk size whatever N
+is. The kernels (`cpu`, `gpu`) are held against these functions.
 """
 
 from __future__ import annotations
 
-import functools
 import math
-import threading
 from dataclasses import dataclass
-from typing import Callable, Literal, Sequence
+from typing import Literal
 
-import numba
-import numpy as np
 import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
-from . import cpu as kernels
-from ...primitives import COVARIANCE_REGULARISER_PX2, Primitives, inverse_covariance, major_sigma_px
+from ...primitives import Primitives, inverse_covariance, major_sigma_px
 
 Qpf = Literal["mahalanobis", "standard"]
 
 FOOTPRINT_SIGMAS = 3.0
 EXPONENT_FLOOR = -50.0
 CHUNK_ELEMENTS = 1 << 20
-PARTIAL_BUFFER_BYTES = 1 << 30
 MIN_PATCH_RADIUS_PX = 2
 
 
@@ -143,117 +134,3 @@ def splat_reference(prims: Primitives, width: int, height: int, wavenumbers: Ten
                     qpf: Qpf) -> Tensor:
     """Pure-PyTorch backend: complex hologram [C, H, W] (dtype follows the primitives), pitch in m."""
     return sum_patches(splats(prims, pixel_pitch, qpf), width, height, wavenumbers)
-
-
-@functools.lru_cache(maxsize=8)
-def _reused_lanes(shape: tuple[int, ...], thread: int) -> np.ndarray:
-    """A zero-initialised float32 array kept between calls (one per calling thread): allocating and
-    zeroing tens of MB per step costs more than the kernels' own passes over them. Its users keep the
-    parts they rely on zero."""
-    return np.zeros(shape, np.float32)
-
-
-def _float32_arrays(*tensors: Tensor) -> tuple[np.ndarray, ...]:
-    """Contiguous float32 copies of the tensors on the CPU, which the kernels read (and keep for the backward pass)."""
-    return tuple(t.detach().to("cpu", torch.float32, copy=True).contiguous().numpy() for t in tensors)
-
-
-class _FusedSplat(torch.autograd.Function):
-    """The Numba kernels behind one autograd boundary: the complex hologram [C, H, W] of the primitives.
-
-    `kernels.splat_geometry` reduces the primitives to Σ⁻¹, footprints and chirps (`splats`' reduction), and
-    `kernels.geometry_gradients` carries their gradients back to scales, rotations and curvatures.
-    The kernels take the primitives in `kernels.locality_order` (each thread every T-th of them).
-    They work on float32 lane images [2, H, (W + STRIP)·C] (`kernels`); the forward pass sums its
-    threads' images into the complex hologram and clears them in one pass, and the backward pass
-    turns the incoming complex gradient into a lane image in one.
-    """
-
-    @staticmethod
-    def forward(ctx, position, scale, rotation, curvature, color, phase, opacity, wavenumbers, pixel_pitch, mahalanobis,
-                width, height):
-        position_a, scale_a, rotation_a, curvature_a, color_a, phase_a, opacity_a = _float32_arrays(
-            position, scale, rotation, curvature_columns(curvature), color, phase, opacity)
-        count = scale_a.shape[0]
-        terms, conic, reach = np.empty((4, count)), np.empty((count, 3), np.float32), np.empty(count, np.float32)
-        chirp = np.empty(curvature_a.shape, np.float32)
-        half_pitch2 = 0.5 * pixel_pitch**2
-        kernels.splat_geometry(scale_a, rotation_a, curvature_a, COVARIANCE_REGULARISER_PX2, FOOTPRINT_SIGMAS,
-                               half_pitch2, mahalanobis, terms, conic, reach, chirp)
-        arrays = (position_a, conic, reach, chirp, color_a, phase_a, opacity_a)
-        order = kernels.locality_order(position_a, height, width)
-        k = wavenumbers.detach().to("cpu", torch.float64).numpy()
-        channels = color.shape[1]
-        lane_width = kernels.lane_image_width(width, channels)
-        threads = max(1, min(numba.get_num_threads(), PARTIAL_BUFFER_BYTES // (height * lane_width * 8)))
-        partial = _reused_lanes((threads, 2, height, lane_width), threading.get_ident())
-        out = torch.empty(channels, height, width, dtype=torch.complex64)
-        try:
-            kernels.splat_forward(order, *arrays, k, mahalanobis, partial)
-            kernels.gather_partials(partial, out.numpy())  # leaves `partial` zero for the next call
-        except BaseException:
-            partial.fill(0.0)
-            raise
-        ctx.arrays, ctx.order, ctx.wavenumbers, ctx.mahalanobis = arrays, order, k, mahalanobis
-        ctx.geometry = scale_a, curvature_a, half_pitch2, terms, curvature.shape
-        ctx.dtype, ctx.device = position.dtype, position.device
-        return out.to(device=position.device, dtype=torch.promote_types(position.dtype, torch.complex64))
-
-    @staticmethod
-    def backward(ctx, grad):
-        position, conic, _, chirp, color, phase, opacity = ctx.arrays
-        grads = tuple(np.zeros(a.shape, np.float64) for a in (position, conic, chirp, color, phase, opacity))
-        channels, height, width = grad.shape
-        lanes = _reused_lanes((2, height, kernels.lane_image_width(width, channels)), threading.get_ident())
-        kernels.split_lanes(grad.detach().to("cpu", torch.complex64).contiguous().numpy(), lanes)  # padding stays 0
-        kernels.splat_backward(ctx.order, *ctx.arrays, ctx.wavenumbers, ctx.mahalanobis, lanes, *grads,
-                               numba.get_num_threads())
-        g_position, g_conic, g_chirp, g_color, g_phase, g_opacity = grads
-        scale, curvature, half_pitch2, terms, curvature_shape = ctx.geometry
-        g_scale, g_rotation, g_curvature = np.empty(scale.shape), np.empty(scale.shape[0]), np.empty(curvature.shape)
-        kernels.geometry_gradients(scale, curvature, half_pitch2, ctx.mahalanobis, terms, g_conic, g_chirp, g_scale,
-                                   g_rotation, g_curvature)
-        results = (g_position, g_scale, g_rotation, g_curvature.reshape(curvature_shape), g_color, g_phase, g_opacity)
-        return (*(torch.from_numpy(g).to(device=ctx.device, dtype=ctx.dtype) for g in results),
-                None, None, None, None, None)
-
-
-def splat_fused(prims: Primitives, width: int, height: int, wavenumbers: Tensor, pixel_pitch: float,
-                qpf: Qpf) -> Tensor:
-    """Fused CPU backend (Numba): complex hologram [C, H, W], float32 inside, pitch in m."""
-    return _FusedSplat.apply(prims.position_px, prims.scale_px, prims.rotation_rad, prims.curvature_per_m,
-                             prims.amplitude, prims.phase_rad, prims.opacity, wavenumbers, pixel_pitch,
-                             qpf == "mahalanobis", width, height)
-
-
-Backend = Callable[[Primitives, int, int, Tensor, float, Qpf], Tensor]
-BACKENDS: dict[str, Backend] = {"torch": splat_reference, "numba": splat_fused}
-
-
-def cpu_array(tensor: Tensor) -> np.ndarray:
-    """A tensor's values as a contiguous NumPy array on the CPU (no gradient), for the Numba kernels."""
-    return tensor.detach().cpu().contiguous().numpy()
-
-
-def resolve_backend(backend: str, device: torch.device | str) -> str:
-    """`auto` → the fused kernels on CPU, the PyTorch reference elsewhere."""
-    if backend == "auto":
-        return "numba" if torch.device(device).type == "cpu" else "torch"
-    if backend not in BACKENDS:
-        raise ValueError(f"unknown rasterizer backend {backend!r}; choose auto or one of "
-                         f"{', '.join(sorted(BACKENDS))}")
-    if backend == "numba" and torch.device(device).type != "cpu":
-        raise ValueError("the numba backend runs on the CPU; use --backend torch with --device cuda")
-    return backend
-
-
-def wavenumbers_for(wavelengths_m: Sequence[float]) -> Tensor:
-    """k_c = 2π/λ_c (1/m) as a float64 tensor."""
-    return torch.tensor([2 * math.pi / w for w in wavelengths_m], dtype=torch.float64)
-
-
-def rasterize(prims: Primitives, width: int, height: int, wavelengths_m: Sequence[float],
-              pixel_pitch: float, qpf: Qpf = "mahalanobis", backend: str = "auto") -> Tensor:
-    """Complex hologram [C, H, W] of the activated primitives on the W×H grid (px), pitch in m."""
-    backend = resolve_backend(backend, prims.position_px.device)
-    return BACKENDS[backend](prims, width, height, wavenumbers_for(wavelengths_m), pixel_pitch, qpf)
