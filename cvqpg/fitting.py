@@ -16,7 +16,7 @@ from tqdm.auto import tqdm
 
 from .compilation import prepare_kernels
 from .config import FitConfig
-from .losses import multiplane_loss, noisy_targets, standard_normal
+from .ops.loss import multiplane_loss, noisy_targets, standard_normal
 from .metrics import MetricReport, evaluate
 from .optics import reconstruct
 from .primitives import Gaussians, Primitives, activate, init_gaussians

@@ -5,13 +5,16 @@ with one, compiled on it. The interpreter runs each program in Python: sizes sta
 """
 
 import math
+import os
+import subprocess
+import sys
 
 import pytest
 import torch
 
 from cvqpg import FitConfig
 from cvqpg.config import ConfigError
-from cvqpg.ops import rasterize as rasterize_op
+from cvqpg import ops
 from cvqpg.ops.rasterize import rasterize, resolve_backend, splat_triton, wavenumbers_for
 from cvqpg.ops.rasterize.reference import splat_reference
 from cvqpg.primitives import Gaussians, Primitives, activate, init_gaussians
@@ -114,7 +117,7 @@ def test_triton_kernels_take_empty_and_offscreen_sets():
 def test_auto_picks_triton_on_cuda_where_it_is_installed(monkeypatch):
     assert resolve_backend("auto", "cuda") == "triton"
     assert resolve_backend("auto", "cpu") == "numba"
-    monkeypatch.setattr(rasterize_op, "triton_installed", lambda: False)
+    monkeypatch.setattr(ops, "triton_installed", lambda: False)
     assert resolve_backend("auto", "cuda") == "torch"
     with pytest.raises(ValueError, match="needs the triton package"):
         resolve_backend("triton", "cuda")
@@ -126,3 +129,29 @@ def test_triton_on_the_cpu_needs_the_interpreter(monkeypatch):
         resolve_backend("triton", "cpu")
     with pytest.raises(ConfigError, match="backend 'triton' runs on the GPU only"):
         FitConfig(backend="triton").validate()
+
+
+# Triton's compiler, run in a process without the interpreter: it rejects code the interpreter runs.
+COMPILE_FOR_SM90 = """
+import inspect
+from triton.backends.compiler import GPUTarget
+from triton.compiler import ASTSource, compile
+from cvqpg.ops.rasterize import gpu
+
+for kernel, pointers in ((gpu.splat_forward, 7), (gpu.splat_backward, 12)):
+    names = list(inspect.signature(kernel.fn).parameters)
+    constants = {"CHANNELS": 3, "CHANNEL_BLOCK": 4, "MAHALANOBIS": True, "BLOCK": gpu.BLOCK}
+    signature = {name: "constexpr" if name in constants else "*fp32" if i < pointers else "i32"
+                 for i, name in enumerate(names)}
+    source = ASTSource(fn=kernel, signature=signature,
+                       constexprs={(names.index(name),): value for name, value in constants.items()})
+    assert compile(source, target=GPUTarget("cuda", 90, 32)).asm["cubin"]
+"""
+
+
+def test_kernels_compile_for_a_gpu():
+    """Both kernels compile to an sm_90 binary; no GPU needed."""
+    environment = {name: value for name, value in os.environ.items() if name != "TRITON_INTERPRET"}
+    run = subprocess.run([sys.executable, "-c", COMPILE_FOR_SM90], env=environment, capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]

@@ -15,9 +15,7 @@ kernels also run on the CPU under Triton's interpreter (`TRITON_INTERPRET=1`), w
 from __future__ import annotations
 
 import functools
-import importlib.util
 import math
-import os
 import threading
 from typing import Callable, Sequence
 
@@ -27,6 +25,7 @@ import torch
 from torch import Tensor
 
 from ...primitives import COVARIANCE_REGULARISER_PX2, Primitives
+from .. import resolve_backend
 from . import cpu
 from .reference import FOOTPRINT_SIGMAS, Qpf, curvature_columns, splat_reference, splats
 
@@ -140,7 +139,7 @@ class _TritonSplat(torch.autograd.Function):
         arrays = ctx.saved_tensors
         position, conic, _, weight, phase, rate = arrays
         channels, height, width = grad.shape
-        incoming = torch.view_as_real(grad.to(torch.complex64).contiguous())
+        incoming = torch.view_as_real(grad.to(torch.complex64).resolve_conj().contiguous())
         grads = tuple(torch.zeros_like(t) for t in (position, conic, weight, phase, rate))
         gpu.launch(gpu.splat_backward, *arrays, incoming, *grads, height=height, width=width,
                    mahalanobis=ctx.mahalanobis)
@@ -162,43 +161,6 @@ def splat_triton(prims: Primitives, width: int, height: int, wavenumbers: Tensor
 
 Backend = Callable[[Primitives, int, int, Tensor, float, Qpf], Tensor]
 BACKENDS: dict[str, Backend] = {"torch": splat_reference, "numba": splat_fused, "triton": splat_triton}
-
-
-def cpu_array(tensor: Tensor) -> np.ndarray:
-    """A tensor's values as a contiguous NumPy array on the CPU (no gradient), for the Numba kernels."""
-    return tensor.detach().cpu().contiguous().numpy()
-
-
-@functools.cache
-def triton_installed() -> bool:
-    """Whether the triton package is importable (CUDA builds of torch ship it)."""
-    return importlib.util.find_spec("triton") is not None
-
-
-def triton_interpreting() -> bool:
-    """Whether Triton runs its kernels on the CPU through its interpreter (`TRITON_INTERPRET=1`, for tests)."""
-    return os.environ.get("TRITON_INTERPRET") == "1"
-
-
-def resolve_backend(backend: str, device: torch.device | str) -> str:
-    """`auto` → the Numba kernels on the CPU, the Triton kernels on CUDA where Triton is installed,
-    the PyTorch reference elsewhere."""
-    kind = torch.device(device).type
-    if backend == "auto":
-        if kind == "cpu":
-            return "numba"
-        return "triton" if kind == "cuda" and triton_installed() else "torch"
-    if backend not in BACKENDS:
-        raise ValueError(f"unknown rasterizer backend {backend!r}; choose auto or one of "
-                         f"{', '.join(sorted(BACKENDS))}")
-    if backend == "numba" and kind != "cpu":
-        raise ValueError("the numba backend runs on the CPU; use --backend torch with --device cuda")
-    if backend == "triton" and not triton_installed():
-        raise ValueError("the triton backend needs the triton package: pip install triton, or use --backend torch")
-    if backend == "triton" and kind != "cuda" and not (kind == "cpu" and triton_interpreting()):
-        raise ValueError(f"the triton backend runs on CUDA, not on {kind}; use --backend numba or torch "
-                         "with --device cpu")
-    return backend
 
 
 def wavenumbers_for(wavelengths_m: Sequence[float]) -> Tensor:

@@ -55,11 +55,22 @@ def _channel_values(values, n, CHANNELS: tl.constexpr, CHANNEL_BLOCK: tl.constex
 
 
 @triton.jit
-def _block_pixels(start, left, top, columns, pixels, cx, cy, a, b, c, reach2, height, width,
-                  CHANNELS: tl.constexpr, CHANNEL_BLOCK: tl.constexpr, BLOCK: tl.constexpr):
-    """One block of a primitive's box: offsets dx, dy [BLOCK] (px), D² and |p − x|² (px²), the
-    clamped envelope (0 outside the circle), whether the floor leaves its exponent alone, and the
-    flat index [CHANNEL_BLOCK, BLOCK] of each pixel's real part in a [C, H, W, 2] array with its mask."""
+def _parameters(conic, weight, phase, rate, n, CHANNELS: tl.constexpr, CHANNEL_BLOCK: tl.constexpr):
+    """Primitive n's Σ⁻¹ entries a, b, c (1/px²) and its weights, phases and phase rates (columns)."""
+    a = tl.load(conic + 3 * n)
+    b = tl.load(conic + 3 * n + 1)
+    c = tl.load(conic + 3 * n + 2)
+    return (a, b, c, _channel_values(weight, n, CHANNELS, CHANNEL_BLOCK),
+            _channel_values(phase, n, CHANNELS, CHANNEL_BLOCK), _channel_values(rate, n, CHANNELS, CHANNEL_BLOCK))
+
+
+@triton.jit
+def _block_pixels(start, left, top, columns, pixels, cx, cy, a, b, c, phi, kappa, reach2, height, width,
+                  CHANNELS: tl.constexpr, CHANNEL_BLOCK: tl.constexpr, MAHALANOBIS: tl.constexpr, BLOCK: tl.constexpr):
+    """One block of a primitive's box: offsets dx, dy [BLOCK] (px), the squared distance P the QPF
+    uses (px²), the clamped envelope (0 outside the circle), whether the floor leaves its exponent
+    alone, the phases [CHANNEL_BLOCK, BLOCK] (rad), and the flat index of each pixel's real part in
+    a [C, H, W, 2] array with its mask."""
     index = start + tl.arange(0, BLOCK)
     in_box = index < pixels
     x = left + index % columns
@@ -74,7 +85,9 @@ def _block_pixels(start, left, top, columns, pixels, cx, cy, a, b, c, reach2, he
     channel = tl.arange(0, CHANNEL_BLOCK)[:, None]
     at = 2 * ((channel * height + y[None, :]) * width + x[None, :])
     mask = (channel < CHANNELS) & inside[None, :]
-    return dx, dy, mahalanobis2, radius2, envelope, exponent >= EXPONENT_FLOOR, at, mask
+    path = mahalanobis2 if MAHALANOBIS else radius2
+    angle = phi + kappa * path[None, :]
+    return dx, dy, path, envelope, exponent >= EXPONENT_FLOOR, angle, at, mask
 
 
 @triton.jit
@@ -84,18 +97,11 @@ def splat_forward(position, conic, reach, weight, phase, rate, out, height, widt
     """Add primitive `program_id`'s values to `out` [C, H, W, 2] (zeroed by the caller)."""
     n = tl.program_id(0)
     cx, cy, reach2, left, top, columns, pixels = _box(position, reach, n, height, width)
-    a = tl.load(conic + 3 * n)
-    b = tl.load(conic + 3 * n + 1)
-    c = tl.load(conic + 3 * n + 2)
-    w = _channel_values(weight, n, CHANNELS, CHANNEL_BLOCK)
-    phi = _channel_values(phase, n, CHANNELS, CHANNEL_BLOCK)
-    kappa = _channel_values(rate, n, CHANNELS, CHANNEL_BLOCK)
+    a, b, c, w, phi, kappa = _parameters(conic, weight, phase, rate, n, CHANNELS, CHANNEL_BLOCK)
     for start in range(0, pixels, BLOCK):
-        dx, dy, mahalanobis2, radius2, envelope, _, at, mask = _block_pixels(
-            start, left, top, columns, pixels, cx, cy, a, b, c, reach2, height, width, CHANNELS, CHANNEL_BLOCK,
-            BLOCK)
-        path = mahalanobis2 if MAHALANOBIS else radius2
-        angle = phi + kappa * path[None, :]
+        _, _, _, envelope, _, angle, at, mask = _block_pixels(
+            start, left, top, columns, pixels, cx, cy, a, b, c, phi, kappa, reach2, height, width, CHANNELS,
+            CHANNEL_BLOCK, MAHALANOBIS, BLOCK)
         magnitude = w * envelope[None, :]
         tl.atomic_add(out + at, magnitude * tl.cos(angle), mask=mask)
         tl.atomic_add(out + at + 1, magnitude * tl.sin(angle), mask=mask)
@@ -110,12 +116,7 @@ def splat_backward(position, conic, reach, weight, phase, rate, grad, g_position
     a real parameter θ gets Σ Re(ḡ · ∂G/∂θ)."""
     n = tl.program_id(0)
     cx, cy, reach2, left, top, columns, pixels = _box(position, reach, n, height, width)
-    a = tl.load(conic + 3 * n)
-    b = tl.load(conic + 3 * n + 1)
-    c = tl.load(conic + 3 * n + 2)
-    w = _channel_values(weight, n, CHANNELS, CHANNEL_BLOCK)
-    phi = _channel_values(phase, n, CHANNELS, CHANNEL_BLOCK)
-    kappa = _channel_values(rate, n, CHANNELS, CHANNEL_BLOCK)
+    a, b, c, w, phi, kappa = _parameters(conic, weight, phase, rate, n, CHANNELS, CHANNEL_BLOCK)
     # Per-pixel partial sums, reduced once after the loop.
     sum_weight = tl.zeros((CHANNEL_BLOCK, BLOCK), tl.float32)
     sum_phase = tl.zeros((CHANNEL_BLOCK, BLOCK), tl.float32)
@@ -126,13 +127,11 @@ def splat_backward(position, conic, reach, weight, phase, rate, grad, g_position
     sum_x = tl.zeros((BLOCK,), tl.float32)
     sum_y = tl.zeros((BLOCK,), tl.float32)
     for start in range(0, pixels, BLOCK):
-        dx, dy, mahalanobis2, radius2, envelope, unclamped, at, mask = _block_pixels(
-            start, left, top, columns, pixels, cx, cy, a, b, c, reach2, height, width, CHANNELS, CHANNEL_BLOCK,
-            BLOCK)
+        dx, dy, path, envelope, unclamped, angle, at, mask = _block_pixels(
+            start, left, top, columns, pixels, cx, cy, a, b, c, phi, kappa, reach2, height, width, CHANNELS,
+            CHANNEL_BLOCK, MAHALANOBIS, BLOCK)
         g_re = tl.load(grad + at, mask=mask, other=0.0)
         g_im = tl.load(grad + at + 1, mask=mask, other=0.0)
-        path = mahalanobis2 if MAHALANOBIS else radius2
-        angle = phi + kappa * path[None, :]
         cosine = tl.cos(angle)
         sine = tl.sin(angle)
         # Re(ḡ·G)/w and Re(ḡ·iG)/w: G's derivatives in its weight and in its phase, per unit weight.
