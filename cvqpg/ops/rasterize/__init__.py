@@ -129,7 +129,7 @@ class _TritonSplat(torch.autograd.Function):
         out = arrays[0].new_zeros(channels, height, width, 2)
         gpu.launch(gpu.splat_forward, *arrays, out, height=height, width=width, mahalanobis=mahalanobis)
         ctx.save_for_backward(*arrays)
-        ctx.mahalanobis, ctx.dtypes = mahalanobis, tuple(t.dtype for t in (position, conic, reach, weight, phase, rate))
+        ctx.mahalanobis, ctx.dtypes = mahalanobis, tuple(t.dtype for t in (position, conic, weight, phase, rate))
         return torch.view_as_complex(out).to(torch.promote_types(position.dtype, torch.complex64))
 
     @staticmethod
@@ -138,13 +138,12 @@ class _TritonSplat(torch.autograd.Function):
 
         arrays = ctx.saved_tensors
         position, conic, _, weight, phase, rate = arrays
-        channels, height, width = grad.shape
+        _, height, width = grad.shape
         incoming = torch.view_as_real(grad.to(torch.complex64).resolve_conj().contiguous())
         grads = tuple(torch.zeros_like(t) for t in (position, conic, weight, phase, rate))
         gpu.launch(gpu.splat_backward, *arrays, incoming, *grads, height=height, width=width,
                    mahalanobis=ctx.mahalanobis)
-        g_position, g_conic, g_weight, g_phase, g_rate = (
-            g.to(dtype) for g, dtype in zip(grads, ctx.dtypes[:2] + ctx.dtypes[3:]))
+        g_position, g_conic, g_weight, g_phase, g_rate = (g.to(dtype) for g, dtype in zip(grads, ctx.dtypes))
         return g_position, g_conic, None, g_weight, g_phase, g_rate, None, None, None
 
 
