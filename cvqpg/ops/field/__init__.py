@@ -1,10 +1,9 @@
 """The SLM field and the clamped intensity (SPEC §3): the public ops and their autograd boundaries.
 
-| op                  | reference (PyTorch)             | cpu (Numba)                                            |
-|---------------------|---------------------------------|--------------------------------------------------------|
-| `guarded_field`     | `reference.guarded_field`,      | `cpu.guarded_field`, `cpu.guarded_field_backward`      |
-|                     | `reference.guarded_field_backward` |                                                     |
-| `clamped_intensity` | `reference.clamped_intensity`   | `cpu.clamped_intensity`, `cpu.clamped_intensity_backward` |
+| op                  | reference.py (PyTorch)                    | cpu.py (Numba)                                    |
+|---------------------|-------------------------------------------|---------------------------------------------------|
+| `guarded_field`     | `guarded_field`, `guarded_field_backward` | `guarded_field`, `guarded_field_backward`         |
+| `clamped_intensity` | `clamped_intensity` (autograd)            | `clamped_intensity`, `clamped_intensity_backward` |
 
 The backend is the rasterizer's (`cvqpg.ops.resolve_backend`): the Numba kernels with `numba`, the
 PyTorch formulas otherwise (`torch`, and `triton` on CUDA, where no fused kernel exists yet).
@@ -65,7 +64,8 @@ class _FusedIntensity(torch.autograd.Function):
     def forward(ctx, field: Tensor) -> Tensor:
         ctx.save_for_backward(field)
         intensity = torch.empty(field.shape, dtype=field.real.dtype)
-        cpu.clamped_intensity(cpu_array(field).reshape(-1, field.shape[-1]), intensity.numpy().reshape(-1, field.shape[-1]))
+        width = field.shape[-1]
+        cpu.clamped_intensity(cpu_array(field).reshape(-1, width), intensity.numpy().reshape(-1, width))
         return intensity
 
     @staticmethod

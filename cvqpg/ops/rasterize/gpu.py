@@ -141,7 +141,8 @@ def splat_backward(position, conic, reach, weight, phase, rate, grad, g_position
         sum_weight += along
         sum_phase += turned
         sum_rate += turned * path[None, :]
-        # ∂L/∂D² and ∂L/∂|p − x|²: the envelope's −½ (where its exponent is above the floor) and the phase's κ.
+        # ∂L/∂D² and ∂L/∂|p − x|²: the envelope's −½ (where its exponent is above the floor) and the
+        # phase's κ.
         by_path = tl.sum(kappa * turned, axis=0)
         by_mahalanobis2 = -0.5 * tl.where(unclamped, tl.sum(w * along, axis=0), 0.0)
         if MAHALANOBIS:
