@@ -35,7 +35,7 @@ import cvqpg
 from cvqpg import FitConfig
 from cvqpg.allocator import keep_freed_memory
 from cvqpg.fitting import apply_gradients, initial_state, optimisation_step, render_hologram
-from cvqpg.losses import multiplane_loss, noisy_targets, standard_normal
+from cvqpg.ops.loss import multiplane_loss, noisy_targets, standard_normal
 from cvqpg.optics import Grid, reconstruct
 from cvqpg.primitives import MIN_SCALE_PX, Gaussians, Primitives, curvature_bound
 from cvqpg.runs import model_path

@@ -8,7 +8,7 @@ from .fitting import FitResult, fit, fit_scene, render, render_hologram
 from .metrics import MetricReport, evaluate
 from .optics import Grid, propagate, reconstruct, transfer_function
 from .primitives import Gaussians, Primitives, activate, init_gaussians
-from .rasterization import rasterize
+from .ops.rasterize import rasterize
 from .runs import evaluate_run, write_run
 from .scenes import builtin_scene
 from .storage import load_model, save_model

@@ -76,9 +76,9 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
                    "[default: 2; 1 for --scene star]")
     p.add_argument("--seed", type=int, default=DEFAULTS.seed, help="random seed")
     p.add_argument("--device", default=DEFAULTS.device, choices=["cpu", "cuda"], help="torch device")
-    p.add_argument("--backend", default=DEFAULTS.backend, choices=["auto", "numba", "torch"],
-                   help="rasterizer: fused Numba kernels (CPU), the PyTorch reference, or auto "
-                   "(Numba on CPU, PyTorch on GPU)")
+    p.add_argument("--backend", default=DEFAULTS.backend, choices=["auto", "numba", "triton", "torch"],
+                   help="rasterizer: fused Numba kernels (CPU), Triton kernels (GPU), the PyTorch reference, "
+                   "or auto (Numba on CPU, Triton on GPU)")
     p.add_argument("--bound", choices=["adaptive", "global"], default=DEFAULTS.bound,
                    help="curvature bound: per-primitive Nyquist (γ_max = ηλ/(6σΔx²)) or global "
                    f"{DEFAULTS.global_bound:g} 1/m (ablation)")
@@ -207,7 +207,7 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="hologram size in px [default: the "
                    "preset's]")
     p.add_argument("--device", choices=["cpu", "cuda"], help="torch device [default: cpu]")
-    p.add_argument("--backend", choices=["auto", "numba", "torch"], help="rasterizer [default: auto]")
+    p.add_argument("--backend", choices=["auto", "numba", "triton", "torch"], help="rasterizer [default: auto]")
     p.add_argument("--shard", metavar="I/N", help="fit only cells I, I+N, I+2N, ... of the grid (1 ≤ I ≤ N), "
                    "e.g. ${SLURM_ARRAY_TASK_ID}/${SLURM_ARRAY_TASK_COUNT} in a job array")
     p.add_argument("--jobs", type=int, default=1, metavar="K", help="cells fitted at once, each on cores/K "

@@ -153,6 +153,9 @@ class FitConfig:
         if self.backend == "numba" and self.device != "cpu":
             raise ConfigError(f"backend 'numba' runs on the CPU only, not on {self.device}; use --backend auto "
                               "(or torch) with --device cuda")
+        if self.backend == "triton" and self.device == "cpu":
+            raise ConfigError("backend 'triton' runs on the GPU only; use --backend auto (or numba, torch) with "
+                              "--device cpu")
         if self.warmup < 0 or self.warmup > self.steps:
             raise ConfigError(f"warmup {self.warmup} must lie in 0..steps ({self.steps})")
         count, pixels = self.primitive_count, self.width * self.height

@@ -11,7 +11,8 @@ import torch
 from torch import Tensor
 
 from .config import ConfigError, FitConfig, padded_size
-from .optics import Grid, propagate_content, slm_field
+from .ops.field import Grid, slm_field
+from .optics import propagate_content
 
 Encoding = Literal["dpac", "phase"]
 ENCODINGS: tuple[str, ...] = ("dpac", "phase")

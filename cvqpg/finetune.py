@@ -12,7 +12,7 @@ from torch import Tensor
 from .compression import BitDepths, outward_range
 from .config import FitConfig
 from .fitting import hologram
-from .losses import multiplane_loss, noisy_targets, standard_normal
+from .ops.loss import multiplane_loss, noisy_targets, standard_normal
 from .optics import reconstruct
 from .primitives import Primitives, curvature_bound
 from .targets import Scene

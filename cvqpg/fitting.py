@@ -16,12 +16,12 @@ from tqdm.auto import tqdm
 
 from .compilation import prepare_kernels
 from .config import FitConfig
-from .losses import multiplane_loss, noisy_targets, standard_normal
+from .ops.loss import multiplane_loss, noisy_targets, standard_normal
 from .metrics import MetricReport, evaluate
 from .optics import reconstruct
 from .primitives import Gaussians, Primitives, activate, init_gaussians
 from .provenance import peak_memory, reset_peak_memory
-from .rasterization import rasterize
+from .ops.rasterize import rasterize
 from .targets import Scene, load_scene
 
 LEARNING_RATE_GROUPS = ("position", "scale", "rotation", "color", "phase", "opacity", "curvature")

@@ -11,154 +11,9 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from . import optics_kernels
-from .config import FitConfig, padded_size
-from .rasterization import cpu_array, resolve_backend
-
-
-@dataclass(frozen=True)
-class Grid:
-    """Geometry of the SLM content (H×W px) inside its guard-banded array (P_H×P_W px)."""
-
-    height: int
-    width: int
-    padded_height: int
-    padded_width: int
-
-    @classmethod
-    def for_config(cls, config: FitConfig) -> "Grid":
-        return cls(config.height, config.width,
-                   padded_size(config.height, config.guard_band_px, config.pad_multiple_px),
-                   padded_size(config.width, config.guard_band_px, config.pad_multiple_px))
-
-    @property
-    def top(self) -> int:
-        return (self.padded_height - self.height) // 2
-
-    @property
-    def left(self) -> int:
-        return (self.padded_width - self.width) // 2
-
-    def crop(self, padded: Tensor) -> Tensor:
-        """Centre H×W content of a [..., P_H, P_W] array."""
-        return padded[..., self.top:self.top + self.height, self.left:self.left + self.width]
-
-
-def _taper(length: int, start: int, stop: int, device: torch.device) -> Tensor:
-    """1 on [start, stop), raised cosine falling to 0 at both array ends across the guard band."""
-    index = torch.arange(length, device=device, dtype=torch.float32)
-    left_guard, right_guard = max(start, 1), max(length - stop, 1)
-    into_left = (start - index) / left_guard
-    into_right = (index - stop + 1) / right_guard
-    into_guard = torch.clamp(torch.maximum(into_left, into_right), min=0.0)
-    return 0.5 * (1 + torch.cos(math.pi * into_guard))
-
-
-@functools.lru_cache(maxsize=16)
-def guard_tapers(grid: Grid, device: torch.device) -> tuple[Tensor, Tensor]:
-    """The window's two factors: [P_H] over rows and [P_W] over columns."""
-    return (_taper(grid.padded_height, grid.top, grid.top + grid.height, device),
-            _taper(grid.padded_width, grid.left, grid.left + grid.width, device))
-
-
-@functools.lru_cache(maxsize=16)
-def guard_window(grid: Grid, device: torch.device) -> Tensor:
-    """Separable raised-cosine window [P_H, P_W]: 1 on the content, 0 at the array edge."""
-    rows, cols = guard_tapers(grid, device)
-    return rows[:, None] * cols[None, :]
-
-
-def pad_with_guard_band(hologram: Tensor, grid: Grid) -> Tensor:
-    """[C, H, W] → [C, P_H, P_W]: edge-replicated guard band (no gradient through it), windowed."""
-    device = hologram.device
-    rows = torch.clamp(torch.arange(grid.padded_height, device=device) - grid.top, 0, grid.height - 1)
-    cols = torch.clamp(torch.arange(grid.padded_width, device=device) - grid.left, 0, grid.width - 1)
-    padded = hologram.detach()[:, rows[:, None], cols[None, :]]
-    padded[:, grid.top:grid.top + grid.height, grid.left:grid.left + grid.width] = hologram
-    return padded * guard_window(grid, device)
-
-
-def slm_field(padded: Tensor) -> Tensor:
-    """`A·e^{iφ}` with `A = clamp(|H|, 0, 1)`, `φ = angle(H)`: written as `H / max(|H|, 1)`.
-
-    The quotient is the same number without atan2/exp and keeps a finite gradient where H = 0.
-    """
-    return padded / torch.clamp(padded.abs(), min=1.0)
-
-
-class _GuardedField(torch.autograd.Function):
-    """`slm_field(pad_with_guard_band(hologram, grid))` with a backward over the content alone.
-
-    The guard band carries no gradient and the window is 1 on the content, so the gradient reaches
-    the hologram only through the content's `u = h / max(|h|, 1)`: the identity where |h| < 1, and
-    where the amplitude saturates, the projection onto the phase direction, `i·h·Im(h̄·g)/|h|³`.
-    Autograd through the composition would run its backward over the whole padded array, in several
-    passes. `fused` runs both directions as the one-pass kernels of `optics_kernels` (CPU).
-    """
-
-    @staticmethod
-    def forward(ctx, hologram: Tensor, grid: Grid, fused: bool) -> Tensor:
-        ctx.save_for_backward(hologram)
-        ctx.grid, ctx.fused = grid, fused
-        if not fused:
-            return slm_field(pad_with_guard_band(hologram, grid))
-        rows, cols = guard_tapers(grid, hologram.device)
-        field = hologram.new_empty(hologram.shape[0], grid.padded_height, grid.padded_width)
-        optics_kernels.guarded_field(cpu_array(hologram), rows.numpy(), cols.numpy(), grid.top, grid.left,
-                                    field.numpy())
-        return field
-
-    @staticmethod
-    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None]:
-        (hologram,) = ctx.saved_tensors
-        grid = ctx.grid
-        if ctx.fused:
-            gradient = torch.empty_like(hologram)
-            optics_kernels.guarded_field_backward(cpu_array(hologram), cpu_array(grad), grid.top, grid.left,
-                                                 gradient.numpy())
-            return gradient, None, None
-        incoming = grid.crop(grad)
-        magnitude = hologram.abs()
-        normal = (hologram.real * incoming.imag - hologram.imag * incoming.real) / magnitude**3
-        projected = torch.complex(-hologram.imag * normal, hologram.real * normal)
-        return torch.where(magnitude >= 1.0, projected, incoming), None, None
-
-
-def guarded_field(hologram: Tensor, grid: Grid, backend: str = "auto") -> Tensor:
-    """SLM field [C, P_H, P_W] of a hologram [C, H, W]: guard band, window and clamped amplitude (SPEC §3).
-
-    `backend` picks the PyTorch formulas (`torch`) or the fused CPU kernels, as it picks the rasterizer.
-    """
-    return _GuardedField.apply(hologram, grid, resolve_backend(backend, hologram.device) == "numba")
-
-
-class _FusedIntensity(torch.autograd.Function):
-    """`clamp(|u|², 0, 1)` of a complex array and its gradient `2·u·g` (where |u|² ≤ 1), one pass each."""
-
-    @staticmethod
-    def forward(ctx, field: Tensor) -> Tensor:
-        ctx.save_for_backward(field)
-        intensity = torch.empty(field.shape, dtype=field.real.dtype)
-        optics_kernels.clamped_intensity(cpu_array(field).reshape(-1, field.shape[-1]),
-                                        intensity.numpy().reshape(-1, field.shape[-1]))
-        return intensity
-
-    @staticmethod
-    def backward(ctx, grad: Tensor) -> Tensor:
-        (field,) = ctx.saved_tensors
-        gradient = torch.empty_like(field)
-        width = field.shape[-1]
-        optics_kernels.clamped_intensity_backward(cpu_array(field).reshape(-1, width),
-                                                 cpu_array(grad).reshape(-1, width),
-                                                 gradient.numpy().reshape(-1, width))
-        return gradient
-
-
-def clamped_intensity(field: Tensor, backend: str = "auto") -> Tensor:
-    """Intensity `clamp(|u|², 0, 1)` of a complex field (SPEC §3), through the backend's formulas."""
-    if resolve_backend(backend, field.device) == "numba":
-        return _FusedIntensity.apply(field)
-    return torch.clamp(field.abs() ** 2, 0.0, 1.0)
+from .config import FitConfig
+from .ops.field import Grid, clamped_intensity, guarded_field
+from .ops.propagation import cpu as propagation_kernels
 
 
 SpectralTerms = tuple[Tensor, Tensor, Tensor]
@@ -330,7 +185,7 @@ def _copy(values: Tensor, out: Tensor, conjugate: bool = False) -> None:
     """out = values, or their conjugates, for [R, N] arrays either of which may be a view into a wider
     array (PyTorch copies such views on one thread: 1 ms for a 768×960 field here)."""
     if _uses_cpu_kernels(values):
-        optics_kernels.copy_rows(values.numpy(), out.numpy(), conjugate)
+        propagation_kernels.copy_rows(values.numpy(), out.numpy(), conjugate)
     else:
         out.copy_(values.conj() if conjugate else values)
 
@@ -346,7 +201,7 @@ def _placed_transposed(values: Tensor, length: int, offset: int) -> Tensor:
 def _transpose(values: Tensor, out: Tensor) -> None:
     """out [N, R] = values [R, N] transposed; either may be a view into a wider array."""
     if _uses_cpu_kernels(values):
-        optics_kernels.transpose(values.numpy(), out.numpy())
+        propagation_kernels.transpose(values.numpy(), out.numpy())
     else:
         out.copy_(values.T)
 
@@ -370,7 +225,7 @@ def _filtered(spectrum: Tensor, halves: Sequence[Tensor], rows: slice) -> Tensor
     all planes."""
     out = _planes_buffer(len(halves), *spectrum.shape, spectrum.dtype, spectrum.device, threading.get_ident())
     if _uses_cpu_kernels(spectrum):
-        optics_kernels.mirrored_products(spectrum.numpy(), tuple(half.numpy() for half in halves), rows.start,
+        propagation_kernels.mirrored_products(spectrum.numpy(), tuple(half.numpy() for half in halves), rows.start,
                                          out.numpy())
     else:
         for plane, half in enumerate(halves):
@@ -382,7 +237,7 @@ def _filtered_sum(spectra: Sequence[Tensor], halves: Sequence[Tensor], rows: sli
     """Σ_p spectra[p] · T_p[rows], written into spectra[0], in one pass over the planes' spectra."""
     total = spectra[0]
     if _uses_cpu_kernels(total):
-        optics_kernels.mirrored_sum(tuple(spectrum.numpy() for spectrum in spectra),
+        propagation_kernels.mirrored_sum(tuple(spectrum.numpy() for spectrum in spectra),
                                     tuple(half.numpy() for half in halves), rows.start)
         return total
     total.mul_(_transfer_rows(halves[0], rows))

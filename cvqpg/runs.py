@@ -21,7 +21,8 @@ from .export import (DEFAULT_APERTURE, DEFAULT_LEVELS, Display, Encoding, PhaseP
                      simulate_display)
 from .fitting import FitResult, hologram, render
 from .metrics import MetricReport, evaluate, mean_psnr
-from .optics import reconstruct, slm_field
+from .ops.field import slm_field
+from .optics import reconstruct
 from .primitives import Primitives
 from .provenance import run_record
 from .scenes import builtin_scene

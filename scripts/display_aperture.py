@@ -12,7 +12,7 @@ import argparse
 from cvqpg.export import DEFAULT_LEVELS, Display, phase_pattern, simulate_display
 from cvqpg.fitting import render
 from cvqpg.metrics import mean_psnr
-from cvqpg.optics import slm_field
+from cvqpg.ops.field import slm_field
 from cvqpg.runs import MODEL_FILE, read_run, scene_from_source
 from cvqpg.storage import load_model
 

@@ -10,9 +10,10 @@ import pytest
 import torch
 
 from cvqpg.config import FitConfig
-from cvqpg import optics, optics_kernels
-from cvqpg.optics import (Grid, TransferBank, clamped_intensity, guard_window, guarded_field, pad_with_guard_band,
-                          propagate, propagate_content, slm_field, transfer_function)
+from cvqpg import optics
+from cvqpg.ops.field import Grid, clamped_intensity, guard_window, guarded_field, pad_with_guard_band, slm_field
+from cvqpg.ops.propagation import cpu as propagation_kernels
+from cvqpg.optics import TransferBank, propagate, propagate_content, transfer_function
 
 CPU = torch.device("cpu")
 PITCH = 3.74e-6
@@ -162,11 +163,11 @@ def test_propagation_transpose_moves_exactly_the_values_it_names(dtype):
     generator = torch.Generator().manual_seed(8)
     source = torch.complex(torch.randn(13, 21, generator=generator), torch.randn(13, 21, generator=generator)).to(dtype)
     wide = torch.full((21, 40), 7.0 + 0j, dtype=dtype)
-    optics_kernels.transpose(source.numpy(), wide[:, 5:18].numpy())
+    propagation_kernels.transpose(source.numpy(), wide[:, 5:18].numpy())
     assert torch.equal(wide[:, 5:18], source.T)
     assert (wide[:, :5] == 7).all() and (wide[:, 18:] == 7).all()
     window = torch.full((9, 25), 3.0 + 0j, dtype=dtype)
-    optics_kernels.transpose(wide[:, 6:15].numpy(), window[:, 2:23].numpy())
+    propagation_kernels.transpose(wide[:, 6:15].numpy(), window[:, 2:23].numpy())
     assert torch.equal(window[:, 2:23], wide[:, 6:15].T)
     assert (window[:, :2] == 3).all() and (window[:, 23:] == 3).all()
 

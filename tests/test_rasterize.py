@@ -11,7 +11,7 @@ import torch
 from cvqpg.config import FitConfig
 from cvqpg.primitives import Gaussians, Primitives, activate, curvature_bound, init_gaussians, major_sigma_px
 from cvqpg.fitting import render_hologram
-from cvqpg.rasterization import rasterize as _rasterize
+from cvqpg.ops.rasterize import rasterize as _rasterize
 
 
 def rasterize(*args, backend="torch"):

@@ -22,7 +22,7 @@ from cvqpg.cli import main
 from cvqpg.fitting import initial_state, optimisation_step
 from cvqpg.optics import reconstruct
 from cvqpg.primitives import Gaussians, activate, inverse_covariance
-from cvqpg.rasterization import rasterize
+from cvqpg.ops.rasterize import rasterize
 from cvqpg.runs import write_run
 from cvqpg.targets import build_scene, load_scene, prepare_depth
 

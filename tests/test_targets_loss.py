@@ -11,9 +11,9 @@ import torch
 import torch.nn.functional as F
 from pytorch_msssim import ssim as msssim_ssim
 
-from cvqpg.loss_kernels import gaussian_taps, ssim_forward
+from cvqpg.ops.loss.cpu import gaussian_taps, ssim_forward
 from cvqpg.config import FitConfig
-from cvqpg.losses import multiplane_loss, noisy_targets, ssim_per_plane, standard_normal
+from cvqpg.ops.loss import multiplane_loss, noisy_targets, ssim_per_plane, standard_normal
 from cvqpg.targets import build_scene, defocus_targets, gaussian_kernel, plane_masks
 
 

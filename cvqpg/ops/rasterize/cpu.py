@@ -195,7 +195,7 @@ def splat_geometry(scale, rotation, curvature, regulariser, sigmas, half_pitch2,
                    chirp):
     """Σ⁻¹ (a, b, c) in 1/px² into conic [N, 3], the footprint radius into reach [N] (px) and the chirp χ
     into chirp [N, S] (S = curvature's columns) from the scales s (px), rotations θ (rad) and curvatures γ
-    (1/m): `rasterization.splats`, the reference's reduction, once per primitive. Σ⁻¹ = R diag(i) Rᵀ with
+    (1/m): `reference.splats`, the reference's reduction, once per primitive. Σ⁻¹ = R diag(i) Rᵀ with
     i = 1/(s² + r) (r the covariance regulariser, px²); the reach is `sigmas`·σ_major, the root of Σ's
     largest eigenvalue max(s)² + r; χ = ½Δx²·γ (half_pitch2 = ½Δx²), times s_x·s_y for the Mahalanobis QPF.
     terms [4, N] (float64) receives cos θ, sin θ, i_x and i_y, which `geometry_gradients` takes."""

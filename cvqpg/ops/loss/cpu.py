@@ -24,7 +24,7 @@ import math
 import numba as nb
 import numpy as np
 
-from .kernels import _cosines_and_sines
+from ..rasterize.cpu import _cosines_and_sines
 
 
 def gaussian_taps(size_px: int, sigma_px: float) -> np.ndarray:

@@ -1,34 +1,35 @@
-"""The multi-plane training loss (SPEC §6).
+"""The multi-plane training loss (SPEC §6) and the targets' noise: the public ops and their autograd boundaries.
 
-Two implementations of one formula. The reference (`--backend torch`, and CUDA) is plain PyTorch
-with pytorch-msssim's SSIM, differentiated by autograd. On the CPU the pixel-wise parts run as the
-fused kernels of `loss_kernels` behind two autograd Functions whose backward passes are written
-out; the tests hold them against the reference in value and gradient.
+| op               | reference (PyTorch)         | cpu (Numba)                              |
+|------------------|-----------------------------|------------------------------------------|
+| `multiplane_loss`| `reference.pixel_terms`     | `cpu.pixel_terms`                        |
+| `ssim_per_plane` | `reference.ssim_per_plane`  | `cpu.ssim_forward`, `cpu.ssim_backward`  |
+| `standard_normal`| `torch.randn`               | `cpu.standard_normals`                   |
+
+The reference (`--backend torch`, and CUDA) is plain PyTorch with pytorch-msssim's SSIM,
+differentiated by autograd. With `numba` the pixel-wise parts run as the CPU kernels behind two
+autograd Functions whose backward passes are written out; the tests hold them against the
+reference in value and gradient.
 """
 
 from __future__ import annotations
 
-import inspect
 import math
-from typing import ContextManager, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
-from pytorch_msssim import ssim
 from torch import Tensor
 
-from .loss_kernels import SSIM_TAPS, gaussian_taps, pixel_terms, ssim_backward, ssim_forward, standard_normals
-from .rasterization import cpu_array, resolve_backend
-
-SSIM_WINDOW_PX = SSIM_TAPS  # 11, the fused kernels' constant window
-SSIM_SIGMA_PX = 1.5
-SSIM_K1, SSIM_K2 = 0.01, 0.03  # stabilisers, as fractions of the data range (1)
+from .. import cpu_array, resolve_backend
+from . import cpu, reference
+from .reference import SSIM_K1, SSIM_K2, SSIM_SIGMA_PX, SSIM_WINDOW_PX
 
 
 def standard_normal(shape: Sequence[int], generator: torch.Generator) -> Tensor:
     """Standard normal draws [shape] (float32) on the generator's device, for the targets' noise.
 
-    On the CPU they are `loss_kernels.standard_normals` of one seed drawn from `generator`: a pure
+    On the CPU they are `cpu.standard_normals` of one seed drawn from `generator`: a pure
     function of that seed, vectorised and threaded, about 3.5× faster than `torch.randn`, which
     draws from one sequential generator. Elsewhere they are `torch.randn`'s.
     """
@@ -37,7 +38,7 @@ def standard_normal(shape: Sequence[int], generator: torch.Generator) -> Tensor:
     seed = int(torch.randint(0, 2**63 - 1, (), generator=generator))
     count = math.prod(shape)
     draws = torch.empty(count + count % 2)  # the kernel fills whole pairs
-    standard_normals(seed, draws.numpy())
+    cpu.standard_normals(seed, draws.numpy())
     return draws[:count].view(tuple(shape))
 
 
@@ -63,10 +64,10 @@ class _FusedSsim(torch.autograd.Function):
     def forward(ctx, recon: Tensor, targets: Tensor) -> Tensor:
         planes, channels, height, width = recon.shape
         x, y = _FusedSsim.images(recon, targets)
-        taps = gaussian_taps(SSIM_WINDOW_PX, SSIM_SIGMA_PX).astype(x.dtype)
+        taps = cpu.gaussian_taps(SSIM_WINDOW_PX, SSIM_SIGMA_PX).astype(x.dtype)
         valid = (x.shape[0], height - taps.size + 1, width - taps.size + 1)
         derivatives = tuple(np.empty(valid, x.dtype) for _ in range(3))
-        sums = ssim_forward(x, y, taps, SSIM_K1**2, SSIM_K2**2, *derivatives)
+        sums = cpu.ssim_forward(x, y, taps, SSIM_K1**2, SSIM_K2**2, *derivatives)
         ctx.derivatives, ctx.taps, ctx.count = derivatives, taps, channels * valid[1] * valid[2]
         ctx.save_for_backward(recon, targets)
         return torch.from_numpy(sums.reshape(planes, channels).sum(axis=1) / ctx.count).to(recon.device, recon.dtype)
@@ -77,20 +78,8 @@ class _FusedSsim(torch.autograd.Function):
         x, y = _FusedSsim.images(recon, targets)
         weights = np.repeat(cpu_array(grad).astype(np.float64) / ctx.count, recon.shape[1])
         gradient = np.empty_like(x)
-        ssim_backward(*ctx.derivatives, weights, x, y, ctx.taps, gradient)
+        cpu.ssim_backward(*ctx.derivatives, weights, x, y, ctx.taps, gradient)
         return torch.from_numpy(gradient).view(recon.shape).to(recon.device), None
-
-
-# Newer torch's oneDNN flags take `allow_tf32`; torch 2.4's take only `enabled`.
-ONEDNN_FLAGS_TAKE_TF32 = "allow_tf32" in inspect.signature(torch.backends.mkldnn.flags).parameters
-
-
-def _without_onednn() -> ContextManager:
-    """oneDNN off inside the block. Where the flags take `allow_tf32`, None leaves it as it is:
-    setting it warns on CPUs."""
-    if ONEDNN_FLAGS_TAKE_TF32:
-        return torch.backends.mkldnn.flags(enabled=False, allow_tf32=None)
-    return torch.backends.mkldnn.flags(enabled=False)
 
 
 def ssim_per_plane(recon: Tensor, targets: Tensor, backend: str = "auto") -> Tensor:
@@ -100,11 +89,8 @@ def ssim_per_plane(recon: Tensor, targets: Tensor, backend: str = "auto") -> Ten
     (`auto`, `numba`) the fused kernels compute the same numbers, differentiable in `recon`. Images
     smaller than the window go to the reference, which then blurs only the long axis.
     """
-    if resolve_backend(backend, recon.device) == "torch" or min(recon.shape[-2:]) < SSIM_WINDOW_PX:
-        # oneDNN's depthwise 1×11 convolutions cost 3× PyTorch's own on one channel.
-        with _without_onednn():
-            return ssim(recon, targets, data_range=1.0, size_average=False,
-                        win_size=SSIM_WINDOW_PX, win_sigma=SSIM_SIGMA_PX)
+    if resolve_backend(backend, recon.device) != "numba" or min(recon.shape[-2:]) < SSIM_WINDOW_PX:
+        return reference.ssim_per_plane(recon, targets)
     return _FusedSsim.apply(recon, targets)
 
 
@@ -116,9 +102,9 @@ class _FusedPixelTerms(torch.autograd.Function):
     def forward(ctx, recon: Tensor, targets: Tensor, noisy: Tensor, masks: Tensor) -> tuple[Tensor, Tensor]:
         x = cpu_array(recon)
         gradient = np.empty_like(x)
-        sums = pixel_terms(x, cpu_array(targets).astype(x.dtype, copy=False),
-                           cpu_array(noisy).astype(x.dtype, copy=False),
-                           cpu_array(masks).astype(x.dtype, copy=False), gradient)
+        sums = cpu.pixel_terms(x, cpu_array(targets).astype(x.dtype, copy=False),
+                               cpu_array(noisy).astype(x.dtype, copy=False),
+                               cpu_array(masks).astype(x.dtype, copy=False), gradient)
         count = x[0].size
         ctx.gradient, ctx.count = gradient, count
         values, mse = (torch.from_numpy(v / count).to(recon.device, recon.dtype) for v in (sums.sum(axis=1), sums[:, 0]))
@@ -140,12 +126,8 @@ def multiplane_loss(recon: Tensor, targets: Tensor, masks: Tensor, noisy: Tensor
     picks the reference or the fused CPU kernels, as it picks the rasterizer.
     """
     structure = ssim_weight * (1 - ssim_per_plane(recon, targets, backend))
-    if resolve_backend(backend, recon.device) != "torch":
+    if resolve_backend(backend, recon.device) == "numba":
         pixel, mse = _FusedPixelTerms.apply(recon, targets, noisy, masks)
         return (pixel + structure).sum(), mse
-    dims = (1, 2, 3)
-    mask = masks[:, None]
-    mse = ((recon - targets) ** 2).mean(dim=dims)
-    masked = ((recon * mask - noisy * mask) ** 2).mean(dim=dims)
-    correlation = ((recon * noisy - noisy * noisy) ** 2).mean(dim=dims)
-    return (mse + masked + correlation + structure).sum(), mse.detach()
+    pixel, mse = reference.pixel_terms(recon, targets, noisy, masks)
+    return (pixel + structure).sum(), mse

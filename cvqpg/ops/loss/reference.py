@@ -1,0 +1,48 @@
+"""The training loss's PyTorch reference (SPEC §6): the pixel-wise terms and pytorch-msssim's SSIM,
+differentiated by autograd."""
+
+from __future__ import annotations
+
+import inspect
+from typing import ContextManager
+
+import torch
+from pytorch_msssim import ssim
+from torch import Tensor
+
+from .cpu import SSIM_TAPS
+
+SSIM_WINDOW_PX = SSIM_TAPS  # 11, the CPU kernels' constant window
+SSIM_SIGMA_PX = 1.5
+SSIM_K1, SSIM_K2 = 0.01, 0.03  # stabilisers, as fractions of the data range (1)
+
+
+def pixel_terms(recon: Tensor, targets: Tensor, noisy: Tensor, masks: Tensor) -> tuple[Tensor, Tensor]:
+    """Per plane [M]: MSE(Î,T) + MSE(Î·Mask, T̃·Mask) + MSE(Î·T̃, T̃·T̃), and MSE(Î,T) alone (detached).
+    recon, targets, noisy: [M, C, H, W]; masks: [M, H, W]."""
+    dims = (1, 2, 3)
+    mask = masks[:, None]
+    mse = ((recon - targets) ** 2).mean(dim=dims)
+    masked = ((recon * mask - noisy * mask) ** 2).mean(dim=dims)
+    correlation = ((recon * noisy - noisy * noisy) ** 2).mean(dim=dims)
+    return mse + masked + correlation, mse.detach()
+
+
+# Newer torch's oneDNN flags take `allow_tf32`; torch 2.4's take only `enabled`.
+ONEDNN_FLAGS_TAKE_TF32 = "allow_tf32" in inspect.signature(torch.backends.mkldnn.flags).parameters
+
+
+def _without_onednn() -> ContextManager:
+    """oneDNN off inside the block. Where the flags take `allow_tf32`, None leaves it as it is:
+    setting it warns on CPUs."""
+    if ONEDNN_FLAGS_TAKE_TF32:
+        return torch.backends.mkldnn.flags(enabled=False, allow_tf32=None)
+    return torch.backends.mkldnn.flags(enabled=False)
+
+
+def ssim_per_plane(recon: Tensor, targets: Tensor) -> Tensor:
+    """SSIM [M] of [M, C, H, W] images (pytorch-msssim), Gaussian window 11 px, σ 1.5 px, data range 1."""
+    # oneDNN's depthwise 1×11 convolutions cost 3× PyTorch's own on one channel.
+    with _without_onednn():
+        return ssim(recon, targets, data_range=1.0, size_average=False, win_size=SSIM_WINDOW_PX,
+                    win_sigma=SSIM_SIGMA_PX)
