@@ -242,7 +242,7 @@ def smallest_within(points: Sequence[dict[str, Any]], top_psnr: float, drop_db: 
 def cell_summary(record: dict[str, Any], span_db: float = 1.0, drop_db: float = 0.1) -> dict[str, Any]:
     """What the tables show of one cell's record: the codec's BD-rate against each anchor and against
     the better one (the anchor against which the codec saves least), and the smallest files within
-    `drop_db` of the fit, the codec's as a fraction of the float32 model file, with its times."""
+    `drop_db` of the fit, the codec's as a fraction of the fit's `model.safetensors`, with its times."""
     by_codec: dict[str, list[dict[str, Any]]] = {}
     for point in record["points"]:
         by_codec.setdefault(point["codec"], []).append(point)
@@ -254,5 +254,5 @@ def cell_summary(record: dict[str, Any], span_db: float = 1.0, drop_db: float = 
     held = {codec: smallest_within(by_codec.get(codec, []), top, drop_db) for codec in (CODEC, *ANCHORS)}
     codec_point = held[CODEC]
     return {"fit_psnr": top, "bd_rate": rates, "better_anchor": better,
-            "held": held, "float32_bytes": float32["bytes"], "float32_decode_s": float32["decode_s"],
-            "fraction": None if codec_point is None else codec_point["bytes"] / float32["bytes"]}
+            "held": held, "float32_decode_s": float32["decode_s"],
+            "fraction": None if codec_point is None else codec_point["bytes"] / record["model_bytes"]}

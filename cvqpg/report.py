@@ -345,7 +345,7 @@ def rate_distortion_table(plan: BenchPlan, results: list[CellResult]) -> tuple[l
         return [], []
     table = Table("Rate–distortion: the .cvq codec against JPEG 2000 and JPEG XL on the same field",
                   ["Scene", "Setting", "fit PSNR", *(f"BD-rate vs {a}" for a in ANCHORS), "BD-rate vs the better",
-                   "cvqpg ≤ 0.1 dB: bpp", "÷ float32 file", *(f"{a} ≤ 0.1 dB: bpp" for a in ANCHORS),
+                   "cvqpg ≤ 0.1 dB: bpp", "÷ model.safetensors", *(f"{a} ≤ 0.1 dB: bpp" for a in ANCHORS),
                    "encode s", "decode+render s", "float32 load+render s", "load"],
                   note="BD-rate: bits of the codec's Pareto front against the anchor's at equal PSNR, log-rate "
                   "interpolated with bjontegaard's PCHIP, averaged over the range shown (the fit's PSNR down to 1 dB "
