@@ -376,14 +376,14 @@ def rate_distortion_table(plan: BenchPlan, results: list[CellResult]) -> tuple[l
                          "bd_low_db": "" if better is None else better.low - top,
                          "bd_high_db": "" if better is None else better.high - top,
                          "bytes_within_0.1db": "" if codec is None else codec["bytes"],
-                         "fraction_of_float32": "" if summary["fraction"] is None else summary["fraction"],
+                         "fraction_of_model": "" if summary["fraction"] is None else summary["fraction"],
                          "encode_s": "" if codec is None else codec["encode_s"],
                          "decode_render_s": "" if codec is None else codec["decode_s"],
                          "load_average": r.rd["run"]["load_average"]})
         betters = [float(row["bd_rate_better"]) for row in rows if row["setting"] == setting
                    and row["bd_rate_better"] != ""]
-        fractions = [float(row["fraction_of_float32"]) for row in rows if row["setting"] == setting
-                     and row["fraction_of_float32"] != ""]
+        fractions = [float(row["fraction_of_model"]) for row in rows if row["setting"] == setting
+                     and row["fraction_of_model"] != ""]
         table.rows.append([f"mean ({len(per_scene)}/{len(plan.scenes)} scenes)", setting_label(setting), "", "", "",
                            f"{np.mean(betters):+.1f}%" if betters else MISSING, "",
                            f"1/{1 / np.mean(fractions):.1f}" if fractions else MISSING, "", "", "", "", "", ""])

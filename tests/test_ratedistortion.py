@@ -45,7 +45,7 @@ def test_a_compression_cell_takes_the_fit_from_another_grid_and_records_its_poin
     summary = (grids / "rd" / "summary.md").read_text()
     assert "Rate–distortion" in summary and "rd_gray-10.png" in summary and (grids / "rd" / "rd_gray-10.png").is_file()
     row = next(csv.DictReader((grids / "rd" / "rd.csv").open()))
-    assert row["cell"] == CELL and float(row["fraction_of_float32"]) == pytest.approx(
+    assert row["cell"] == CELL and float(row["fraction_of_model"]) == pytest.approx(
         cell_summary(record)["fraction"])
 
 
