@@ -357,7 +357,8 @@ def config_differences(folder: Path, config: FitConfig) -> list[str]:
 
 def describe_cells(plan: BenchPlan, cells: tuple[Cell, ...]) -> list[str]:
     """One line per cell: status, name, N, steps, size."""
-    return [f"{cell_status(plan.cell_dir(c), plan.done_file):>11}  {c.name}  N={c.config.primitive_count}  steps={c.config.steps}  "
+    return [f"{cell_status(plan.cell_dir(c), plan.done_file):>11}  {c.name}  N={c.config.primitive_count}  "
+            f"steps={c.config.steps}  "
             f"{c.config.width}×{c.config.height}" for c in cells]
 
 

@@ -550,7 +550,8 @@ def run_bench(args: argparse.Namespace) -> int:
     plan = make_plan(args.preset, args.out, overrides)
     for folder in args.fits:
         if not PRESETS[args.preset].rate_distortion:
-            raise UsageError(f"--fits is for rate–distortion grids (--preset compression), not --preset {args.preset}")
+            raise UsageError(f"--fits is for rate–distortion grids (--preset compression), not --preset "
+                             f"{args.preset}")
         if not (Path(folder) / CELLS_DIR).is_dir():
             raise UsageError(f"--fits {folder}: not a bench folder (no {CELLS_DIR}/ in it)")
     cells = plan.shard(*parse_shard(args.shard)) if args.shard else plan.cells

@@ -115,8 +115,8 @@ def model_file_points(primitives: Primitives, config: FitConfig, targets: Tensor
             encoded = time.perf_counter()
             loaded, _ = load_model(path)
             recon = _render(loaded, config)
-            points.append(_point(FLOAT32 if dtype == "float32" else FLOAT16, "safetensors", path.stat().st_size, config, recon, targets,
-                                 encoded - started, time.perf_counter() - encoded))
+            points.append(_point(FLOAT32 if dtype == "float32" else FLOAT16, "safetensors", path.stat().st_size,
+                                 config, recon, targets, encoded - started, time.perf_counter() - encoded))
     return points
 
 

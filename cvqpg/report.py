@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 
 from . import figures
-from .bench import (CELLS_DIR, DONE, METHODS, PRESETS, METRICS_FILE, RD_FILE, SPECTRUM_FILE, BenchPlan, Cell, cell_status,
-                    read_json, setting_label)
+from .bench import (CELLS_DIR, DONE, METHODS, METRICS_FILE, PRESETS, RD_FILE, SPECTRUM_FILE, BenchPlan, Cell,
+                    cell_status, read_json, setting_label)
 from .runs import write_atomic
 from .view import VIEW_FILE
 
@@ -406,8 +406,8 @@ def rate_distortion_figures(plan: BenchPlan, results: list[CellResult]) -> list[
                 codecs.setdefault(point["codec"], []).append(point)
             fronts = {codec: pareto(points) if codec not in (FLOAT32, FLOAT16) else points
                       for codec, points in codecs.items()}
-            panels[r.cell.scene.name] = (r.rd["fit_psnr"], {codec: ([p["bpp"] for p in front], [p["psnr"] for p in front])
-                                                            for codec, front in fronts.items()})
+            panels[r.cell.scene.name] = (r.rd["fit_psnr"], {
+                codec: ([p["bpp"] for p in front], [p["psnr"] for p in front]) for codec, front in fronts.items()})
         if panels:
             name = Path(f"rd_{setting}.png")
             figures.rate_distortion_figure({f"{scene}, {setting_label(setting)}": panel
