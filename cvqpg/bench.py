@@ -33,8 +33,8 @@ from .fitting import (CheckpointDeviceError, CheckpointPolicy, FitInterrupted, F
                       fit_scene, state_from_payload)
 from .metrics import radial_error_spectrum
 from .provenance import available_cores
-from .runs import (CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, read_run, scene_from_source, start_run, write_atomic,
-                   write_json, write_run)
+from .runs import (CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, MODEL_FILE, read_run, scene_from_source, start_run,
+                   write_atomic, write_json, write_run)
 from .scenes import SCENES
 from .storage import ModelFileError, load_checkpoint, save_checkpoint
 from .targets import check_depth_geometry, load_picture
@@ -43,6 +43,7 @@ log = logging.getLogger("cvqpg")
 
 CELLS_DIR = "cells"
 SPECTRUM_FILE = "spectrum.json"
+RD_FILE = "rd.json"
 ERROR_FILE = "error.log"
 SPECTRUM_BINS = 32
 FOLDER_SCENE_PLANES = 2
@@ -50,9 +51,10 @@ POLL_SECONDS = 0.5
 COLORS = ("rgb", "gray")
 
 DONE, SKIPPED, INTERRUPTED, NOT_STARTED, FAILED = "done", "skipped", "interrupted", "not started", "failed"
+FITTED = "fitted"  # a rate–distortion cell whose fit is done and whose R-D points are not
 REUSED = "reused"
 # What a finished cell keeps in git (results/): enough to rebuild every table; metrics.json last (the done mark).
-RECORD_FILES = (CONFIG_FILE, SPECTRUM_FILE, METRICS_FILE)
+RECORD_FILES = (CONFIG_FILE, SPECTRUM_FILE, RD_FILE, METRICS_FILE)
 STARTED, MISSING = "started", "missing"
 
 
@@ -97,6 +99,7 @@ class Preset:
     builtin_scenes: tuple[str, ...] = ()
     size: tuple[int, int] = (640, 480)
     steps: int = 2000
+    rate_distortion: bool = False  # each cell also records the R-D points of its model (`rd.json`)
 
 
 PRESETS = {
@@ -110,6 +113,9 @@ PRESETS = {
                         "CVQPG and the baseline, at equal N and at per-channel's parameter count",
                         ("rgb",), (0.1, 0.2), ("baseline", "cvqpg", "per-channel", "channel-bound", "baseline+pc",
                                                "cvqpg+pc")),
+    "compression": Preset("issue #28: the Table 1 CVQPG cells at {rgb, gray} 10%, each with the R-D points of the "
+                          ".cvq codec, JPEG 2000 and JPEG XL on its field, and its float32/float16 model files",
+                          COLORS, (0.1,), ("cvqpg",), rate_distortion=True),
     "quick": Preset("smoke test: built-in scenes, 160×120, 60 steps",
                     ("gray",), (0.1,), ("baseline", "cvqpg"), ("demo", "star"), (160, 120), 60),
 }
@@ -172,6 +178,11 @@ class BenchPlan:
 
     def cell_dir(self, cell: Cell) -> Path:
         return self.folder / CELLS_DIR / cell.name
+
+    @property
+    def done_file(self) -> str:
+        """The file whose presence marks a cell done: `rd.json` in a rate–distortion grid, else `metrics.json`."""
+        return RD_FILE if PRESETS[self.preset].rate_distortion else METRICS_FILE
 
     def shard(self, index: int, count: int) -> tuple[Cell, ...]:
         """Cells of shard `index` of `count` (1-based): every `count`-th cell from position index − 1."""
@@ -317,10 +328,13 @@ def recorded_scenes(folder: Path) -> dict[str, BenchScene]:
     return dict(sorted(scenes.items()))
 
 
-def cell_status(folder: Path) -> str:
-    """`done` (metrics.json), `interrupted` (a checkpoint), `failed` (an error log), `started` or `missing`."""
-    if (folder / METRICS_FILE).is_file():
+def cell_status(folder: Path, done_file: str = METRICS_FILE) -> str:
+    """`done` (`done_file`), `fitted` (metrics.json where `done_file` is another), `interrupted` (a
+    checkpoint), `failed` (an error log), `started` or `missing`."""
+    if (folder / done_file).is_file():
         return DONE
+    if (folder / METRICS_FILE).is_file():
+        return FITTED
     if (folder / CHECKPOINT_FILE).is_file():
         return INTERRUPTED
     if (folder / ERROR_FILE).is_file():
@@ -343,7 +357,8 @@ def config_differences(folder: Path, config: FitConfig) -> list[str]:
 
 def describe_cells(plan: BenchPlan, cells: tuple[Cell, ...]) -> list[str]:
     """One line per cell: status, name, N, steps, size."""
-    return [f"{cell_status(plan.cell_dir(c)):>11}  {c.name}  N={c.config.primitive_count}  steps={c.config.steps}  "
+    return [f"{cell_status(plan.cell_dir(c), plan.done_file):>11}  {c.name}  N={c.config.primitive_count}  "
+            f"steps={c.config.steps}  "
             f"{c.config.width}×{c.config.height}" for c in cells]
 
 
@@ -355,7 +370,7 @@ def peak_bytes(cells: tuple[Cell, ...], jobs: int) -> int:
 def check_inputs(plan: BenchPlan, cells: tuple[Cell, ...]) -> None:
     """Before any fit: every scene file of a cell still to fit decodes, and no finished cell was fitted
     with other settings."""
-    todo = [c for c in cells if cell_status(plan.cell_dir(c)) != DONE]
+    todo = [c for c in cells if cell_status(plan.cell_dir(c), plan.done_file) != DONE]
     for scene in {c.scene.name: c.scene for c in todo}.values():
         if "image" in scene.source:
             check_depth_geometry(load_picture(scene.source["image"]),
@@ -392,11 +407,11 @@ def adopt_finished(plan: BenchPlan, cells: tuple[Cell, ...], others: Sequence[Pa
     adopted = []
     for cell in cells:
         folder = plan.cell_dir(cell)
-        if cell_status(folder) == DONE:
+        if cell_status(folder, plan.done_file) == DONE:
             continue
         for other in others:
             source = Path(other) / CELLS_DIR / cell.name
-            if cell_status(source) == DONE and not config_differences(source, cell.config):
+            if cell_status(source, plan.done_file) == DONE and not config_differences(source, cell.config):
                 folder.mkdir(parents=True, exist_ok=True)
                 for name in RECORD_FILES:
                     if (source / name).is_file():
@@ -443,9 +458,53 @@ def run_cell(cell: Cell, folder: Path, stop_requested: Callable[[], bool] | None
     return DONE
 
 
-def _attempt(cell: Cell, folder: Path, stop_requested: Callable[[], bool] | None) -> tuple[str, str | None]:
-    """`run_cell`, with a failure turned into a status, its traceback kept in the cell's `error.log`."""
+def fitted_model(cell: Cell, fits: Sequence[Path]) -> Path | None:
+    """The model of the first bench folder in `fits` that finished this cell with the same settings and
+    kept its `model.safetensors` (a recorded `results/` folder keeps none)."""
+    for other in fits:
+        source = Path(other) / CELLS_DIR / cell.name
+        if ((source / MODEL_FILE).is_file() and cell_status(source) == DONE
+                and not config_differences(source, cell.config)):
+            return source / MODEL_FILE
+    return None
+
+
+def run_rate_distortion_cell(cell: Cell, folder: Path, fits: Sequence[Path],
+                             stop_requested: Callable[[], bool] | None = None) -> str:
+    """A rate–distortion cell: take the fit from `fits` (its records copied) or fit it here, then write
+    `rd.json` with the R-D points of its model against the scene's targets (`ratedistortion.cell_record`)."""
+    from .ratedistortion import cell_record
+
+    if (folder / RD_FILE).is_file():
+        return SKIPPED
+    model = fitted_model(cell, fits)
+    if model is not None:
+        folder.mkdir(parents=True, exist_ok=True)
+        for name in RECORD_FILES:
+            if (model.parent / name).is_file():
+                write_atomic(folder / name, (model.parent / name).read_bytes())
+    else:
+        status = run_cell(cell, folder, stop_requested)
+        if status not in (DONE, SKIPPED):
+            return status
+        model = folder / MODEL_FILE
+        if not model.is_file():
+            raise BenchError(f"{folder} holds a finished fit but no {MODEL_FILE}; give --fits DIR with that "
+                             "cell's model, or delete the cell folder to refit it")
+    if stop_requested is not None and stop_requested():
+        return INTERRUPTED
+    targets = scene_from_source(cell.scene.source, cell.config).targets
+    write_json(folder / RD_FILE, cell_record(model, targets))
+    return DONE
+
+
+def _attempt(cell: Cell, folder: Path, stop_requested: Callable[[], bool] | None,
+             fits: Sequence[Path] | None = None) -> tuple[str, str | None]:
+    """`run_cell`, or `run_rate_distortion_cell` where `fits` is given, with a failure turned into a
+    status, its traceback kept in the cell's `error.log`."""
     try:
+        if fits is not None:
+            return run_rate_distortion_cell(cell, folder, fits, stop_requested), None
         return run_cell(cell, folder, stop_requested), None
     except Exception as error:  # one broken cell must not cost the rest of the grid; it is reported
         folder.mkdir(parents=True, exist_ok=True)
@@ -473,14 +532,16 @@ def _init_worker(threads: int, stop_event: Any) -> None:
     _worker_stop = stop_event
 
 
-def _attempt_in_worker(cell: Cell, folder: Path) -> tuple[str, str | None]:
-    return _attempt(cell, folder, _worker_stop.is_set)
+def _attempt_in_worker(cell: Cell, folder: Path, fits: Sequence[Path] | None) -> tuple[str, str | None]:
+    return _attempt(cell, folder, _worker_stop.is_set, fits)
 
 
 def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int = 1, progress: bool = True,
-             stop_requested: Callable[[], bool] | None = None, reuse: Sequence[Path] = ()) -> BenchOutcome:
+             stop_requested: Callable[[], bool] | None = None, reuse: Sequence[Path] = (),
+             fits: Sequence[Path] = ()) -> BenchOutcome:
     """Fit every cell of `cells` (default: the whole plan) that is not done, `jobs` at a time; cells
-    that a bench folder in `reuse` has finished with the same settings are copied, not fitted.
+    that a bench folder in `reuse` has finished with the same settings are copied, not fitted. In a
+    rate–distortion grid a cell takes its model from the first folder of `fits` that kept it.
 
     With jobs > 1 a spawn-context process pool runs the cells, each worker on cores // jobs threads.
     When `stop_requested()` turns true, running fits save a checkpoint and stop, and no new cell starts.
@@ -496,11 +557,12 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
     for cell in cells:
         if cell.name in outcome.statuses:
             continue
-        if cell_status(plan.cell_dir(cell)) == DONE:
+        if cell_status(plan.cell_dir(cell), plan.done_file) == DONE:
             outcome.statuses[cell.name] = SKIPPED
         else:
             todo.append(cell)
     stop = stop_requested or (lambda: False)
+    rd_fits = tuple(Path(f) for f in fits) if PRESETS[plan.preset].rate_distortion else None
     with tqdm(total=len(todo), desc=f"bench {plan.preset}", unit="cell", disable=not progress,
               dynamic_ncols=True) as bar:
         def record(cell: Cell, status: str, error: str | None) -> None:
@@ -513,20 +575,20 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
         if jobs == 1:
             limit_threads(available_cores())
             for cell in todo:
-                record(cell, *_attempt(cell, plan.cell_dir(cell), stop))
+                record(cell, *_attempt(cell, plan.cell_dir(cell), stop, rd_fits))
         else:
-            _run_pool(plan, todo, jobs, stop, record)
+            _run_pool(plan, todo, jobs, stop, record, rd_fits)
     return outcome
 
 
 def _run_pool(plan: BenchPlan, todo: list[Cell], jobs: int, stop: Callable[[], bool],
-              record: Callable[[Cell, str, str | None], None]) -> None:
+              record: Callable[[Cell, str, str | None], None], fits: Sequence[Path] | None) -> None:
     context = multiprocessing.get_context("spawn")
     stop_event = context.Event()
     threads = max(1, available_cores() // jobs)
     with ProcessPoolExecutor(jobs, mp_context=context, initializer=_init_worker,
                              initargs=(threads, stop_event)) as pool:
-        futures = {pool.submit(_attempt_in_worker, cell, plan.cell_dir(cell)): cell for cell in todo}
+        futures = {pool.submit(_attempt_in_worker, cell, plan.cell_dir(cell), fits): cell for cell in todo}
         pending = set(futures)
         try:
             while pending:

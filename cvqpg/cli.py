@@ -16,7 +16,8 @@ import torch
 
 from . import __version__
 from .allocator import keep_freed_memory
-from .bench import METHODS, PRESETS, BenchError, Overrides, describe_cells, make_plan, parse_shard, peak_bytes, run_plan
+from .bench import (CELLS_DIR, METHODS, PRESETS, BenchError, Overrides, describe_cells, make_plan, parse_shard,
+                    peak_bytes, run_plan)
 from .compilation import warmup
 from .compression import ASSUMED_FIT_PSNR_DB, SUFFIX, BitDepths, compress_model, decompress_file
 from .config import CURVATURES, ConfigError, FitConfig, default_warmup
@@ -215,6 +216,10 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--reuse", nargs="+", default=[], metavar="DIR", help="other bench folders whose finished "
                    "cells with the same settings are copied instead of fitted (e.g. the chromatic grid reuses "
                    "results/paper's baseline and CVQPG cells)")
+    p.add_argument("--fits", nargs="+", default=[], metavar="DIR", help="rate–distortion grids (--preset "
+                   "compression): bench folders whose finished cells with the same settings kept their "
+                   "model.safetensors; a cell takes its model from the first that has it instead of fitting it "
+                   "(e.g. runs/bench-paper)")
     p.add_argument("--summary-only", action="store_true", help="fit nothing; rebuild the tables, figures "
                    "and report from the finished cells")
     p.add_argument("--dry-run", action="store_true", help="list the cells (of the shard) and their status")
@@ -543,6 +548,12 @@ def run_bench(args: argparse.Namespace) -> int:
                           ratios=args.ratios, methods=args.methods, seeds=seeds, size=args.size, steps=args.steps,
                           warmup=args.warmup, device=args.device, backend=args.backend)
     plan = make_plan(args.preset, args.out, overrides)
+    for folder in args.fits:
+        if not PRESETS[args.preset].rate_distortion:
+            raise UsageError(f"--fits is for rate–distortion grids (--preset compression), not --preset "
+                             f"{args.preset}")
+        if not (Path(folder) / CELLS_DIR).is_dir():
+            raise UsageError(f"--fits {folder}: not a bench folder (no {CELLS_DIR}/ in it)")
     cells = plan.shard(*parse_shard(args.shard)) if args.shard else plan.cells
     if args.dry_run:
         print("\n".join(describe_cells(plan, cells) + [f"{len(cells)} of {len(plan.cells)} cells, in {plan.folder}"]))
@@ -555,7 +566,7 @@ def run_bench(args: argparse.Namespace) -> int:
                              "GiB are available; lower --jobs or --size")
         with StopRequest() as stop_requested:
             outcome = run_plan(plan, cells, args.jobs, progress=not args.quiet, stop_requested=stop_requested,
-                               reuse=[Path(d) for d in args.reuse])
+                               reuse=[Path(d) for d in args.reuse], fits=[Path(d) for d in args.fits])
         print(f"cvqpg bench: {outcome.describe()}")
         for name, error in outcome.failures.items():
             print(f"  {name}: {error}", file=sys.stderr)

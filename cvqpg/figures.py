@@ -157,3 +157,30 @@ def frequency_figure(curves: dict[str, tuple[np.ndarray, np.ndarray]], path: Pat
         axis.legend()
     figure.tight_layout()
     save_figure(figure, path)
+
+
+RD_MARKERS = {"cvqpg": "o", "JPEG 2000": "s", "JPEG XL": "^", "model float32": "*", "model float16": "P"}
+
+
+def rate_distortion_figure(panels: dict[str, tuple[float, dict[str, tuple[list[float], list[float]]]]],
+                           path: Path, span_db: float = 1.0) -> None:
+    """One panel per title (title → (the fit's PSNR in dB, codec → (bpp, PSNR) of its Pareto front)):
+    PSNR against bpp (log scale), the BD-rate range (the fit's PSNR and `span_db` below it) shaded."""
+    plt = _pyplot()
+    columns = min(len(panels), 3) or 1
+    rows = max(math.ceil(len(panels) / columns), 1)
+    figure, axes = plt.subplots(rows, columns, figsize=(4.2 * columns, 3.4 * rows), dpi=110, squeeze=False)
+    for axis in axes.ravel()[len(panels):]:
+        axis.set_visible(False)
+    for axis, (title, (top, curves)) in zip(axes.ravel(), panels.items()):
+        axis.axhspan(top - span_db, top, color="0.92")
+        for codec, (bpp, psnr) in curves.items():
+            axis.plot(bpp, psnr, marker=RD_MARKERS.get(codec, "."), markersize=4, linewidth=1, label=codec)
+        axis.set_xscale("log")
+        axis.set_ylim(top - 2 * span_db, top + 0.3 * span_db)
+        axis.set_title(title, fontsize=10)
+        axis.set_xlabel("bits per hologram pixel")
+        axis.set_ylabel("mean PSNR over planes (dB)")
+    axes.ravel()[0].legend(fontsize=8, loc="lower right")
+    figure.tight_layout()
+    save_figure(figure, path)

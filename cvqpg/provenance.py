@@ -108,10 +108,14 @@ def run_record(device: torch.device, loop_seconds: float, compile_seconds: float
     """What a results table needs beside a fit's numbers (`metrics.json`'s `run`); `peak` is what
     `peak_memory` returned; `compile_seconds` compiled or loaded the CPU kernels before the loop,
     whose `loop_seconds` exclude them."""
+    return {**machine_record(device), "loop_seconds": loop_seconds, "compile_seconds": compile_seconds,
+            "peak_memory_bytes": peak.get("peak_memory_bytes"), "peak_memory_kind": peak.get("peak_memory_kind")}
+
+
+def machine_record(device: torch.device) -> dict[str, Any]:
+    """Code commit, date, device, threads and the machine's load: what any timed record needs beside
+    its seconds."""
     now = datetime.datetime.now(datetime.timezone.utc)
     return {"commit": IMPORTED_COMMIT, "date": now.isoformat(timespec="seconds"), "device": device_name(device),
             "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
-            "numba_threads": numba.get_num_threads(), "loop_seconds": loop_seconds,
-            "compile_seconds": compile_seconds, "load_average": _load_average(), "machine_cores": os.cpu_count(),
-            "peak_memory_bytes": peak.get("peak_memory_bytes"),
-            "peak_memory_kind": peak.get("peak_memory_kind")}
+            "numba_threads": numba.get_num_threads(), "load_average": _load_average(), "machine_cores": os.cpu_count()}

@@ -18,17 +18,21 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .compression import LADDER, BitDepths, decode, encode
+from .compression import LADDER, BitDepths, Reference, choose_bits, decode, encode
 from .config import FitConfig
 from .fitting import hologram
 from .metrics import mean_psnr, mean_ssim
 from .optics import reconstruct
 from .primitives import Primitives
+from .provenance import machine_record
 from .storage import load_model, save_model
 
-JPEG2K_PSNRS = (35, 40, 45, 50, 55, 60, 70)  # OpenJPEG's quality layer, the planes' own PSNR in dB
-JPEGXL_DISTANCES = (8.0, 4.0, 2.0, 1.5, 1.0, 0.7, 0.5, 0.25)  # butteraugli distances, smaller is finer
+JPEG2K_PSNRS = (35, 40, 43, 46, 50, 55, 60, 70)  # OpenJPEG's quality layer, the planes' own PSNR in dB
+JPEGXL_DISTANCES = (8.0, 4.0, 3.0, 2.0, 1.5, 1.0, 0.7, 0.5, 0.25)  # butteraugli distances, smaller is finer
 RANGE_BYTES = 8  # float32 low and high per plane
+MAX_DROPS_DB = (0.1, 0.5)  # the `--max-drop` budgets of a benchmark cell (each search takes tens of renders)
+CODEC, FLOAT32, FLOAT16 = "cvqpg", "model float32", "model float16"
+ANCHORS = ("JPEG 2000", "JPEG XL")
 
 
 @dataclass
@@ -60,6 +64,18 @@ def _render(primitives: Primitives, config: FitConfig) -> Tensor:
         return reconstruct(hologram(primitives, config), config)
 
 
+def _decoded_point(codec: str, setting: str, data: bytes, config: FitConfig, targets: Tensor,
+                   encode_s: float) -> Point:
+    """The point of a `.cvq` file's bytes, decoded and rendered as a reader would (timed)."""
+    started = time.perf_counter()
+    recon = _render(decode(data).primitives, config)
+    return _point(codec, setting, len(data), config, recon, targets, encode_s, time.perf_counter() - started)
+
+
+def _describe(bits: BitDepths) -> str:
+    return " ".join(f"{k}={v}" for k, v in asdict(bits).items())
+
+
 def codec_points(primitives: Primitives, config: FitConfig, targets: Tensor,
                  ladder: Sequence[BitDepths] = LADDER) -> list[Point]:
     """The `.cvq` codec at each budget of `ladder`."""
@@ -67,10 +83,24 @@ def codec_points(primitives: Primitives, config: FitConfig, targets: Tensor,
     for bits in ladder:
         started = time.perf_counter()
         data = encode(primitives, config, bits)
-        encoded = time.perf_counter()
-        recon = _render(decode(data).primitives, config)
-        points.append(_point("cvqpg", " ".join(f"{k}={v}" for k, v in asdict(bits).items()), len(data), config,
-                             recon, targets, encoded - started, time.perf_counter() - encoded))
+        points.append(_decoded_point(CODEC, _describe(bits), data, config, targets, time.perf_counter() - started))
+    return points
+
+
+def searched_points(primitives: Primitives, config: FitConfig, targets: Tensor, fit_psnr: float,
+                    max_drops: Sequence[float] = MAX_DROPS_DB) -> list[Point]:
+    """The `.cvq` codec at the budgets that `cvqpg compress --max-drop D` picks (per-attribute search,
+    no fine-tuning), one point per distinct budget; the search counts as encoding time."""
+    reference = Reference(targets, "the run's targets", fit_psnr)
+    points, seen = [], set()
+    for max_drop in max_drops:
+        started = time.perf_counter()
+        choice = choose_bits(primitives, config, reference, max_drop)
+        searched = time.perf_counter() - started
+        if choice.bits not in seen:
+            seen.add(choice.bits)
+            points.append(_decoded_point(CODEC, f"--max-drop {max_drop:g}: {_describe(choice.bits)}", choice.data,
+                                         config, targets, searched))
     return points
 
 
@@ -85,8 +115,8 @@ def model_file_points(primitives: Primitives, config: FitConfig, targets: Tensor
             encoded = time.perf_counter()
             loaded, _ = load_model(path)
             recon = _render(loaded, config)
-            points.append(_point(f"model {dtype}", "safetensors", path.stat().st_size, config, recon, targets,
-                                 encoded - started, time.perf_counter() - encoded))
+            points.append(_point(FLOAT32 if dtype == "float32" else FLOAT16, "safetensors", path.stat().st_size,
+                                 config, recon, targets, encoded - started, time.perf_counter() - encoded))
     return points
 
 
@@ -144,21 +174,85 @@ def rd_points(primitives: Primitives, config: FitConfig, targets: Tensor, ladder
     return [asdict(p) for p in points]
 
 
+def cell_record(model_file: Path, targets: Tensor, ladder: Sequence[BitDepths] = LADDER,
+                max_drops: Sequence[float] = MAX_DROPS_DB) -> dict[str, Any]:
+    """A benchmark cell's R-D record (`rd.json`): every point of `rd_points` and `searched_points` for the
+    model in `model_file` against `targets`, the fit's own PSNR, and how long it all took on which
+    machine at which load (wall and process CPU seconds: their ratio shows how shared the cores were)."""
+    primitives, config = load_model(model_file)
+    started, cpu_started = time.perf_counter(), time.process_time()
+    _render(primitives, config)  # compiles the kernels, so that no point's decode time includes it
+    fit_psnr = mean_psnr(_render(primitives, config), targets)
+    points = rd_points(primitives, config, targets, ladder)
+    points += [asdict(p) for p in searched_points(primitives, config, targets, fit_psnr, max_drops)]
+    return {"model_file": str(model_file), "model_bytes": model_file.stat().st_size, "fit_psnr": fit_psnr,
+            "finetune_steps": 0, "points": points, "seconds": time.perf_counter() - started,
+            "cpu_seconds": time.process_time() - cpu_started, "run": machine_record(torch.device(config.device))}
+
+
+def pareto(points: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The points that no cheaper point matches in PSNR, by increasing rate (and so increasing PSNR)."""
+    front: list[dict[str, Any]] = []
+    for point in sorted(points, key=lambda p: (p["bpp"], -p["psnr"])):
+        if not front or point["psnr"] > front[-1]["psnr"]:
+            front.append(point)
+    return front
+
+
+@dataclass
+class BdRate:
+    """BD-rate (%) of a test codec against an anchor over PSNR `low`..`high` (dB); negative: fewer bits."""
+
+    percent: float
+    low: float
+    high: float
+
+
 def bd_rate(anchor: Sequence[dict[str, Any]], test: Sequence[dict[str, Any]], top_psnr: float,
-            span_db: float = 1.0) -> float:
-    """BD-rate (%) of `test` against `anchor` (points as `rd_points` gives them) over PSNR from
-    `top_psnr` − `span_db` to `top_psnr`, with `bjontegaard`'s PCHIP interpolation; each curve keeps
-    its points in that range plus the nearest point on either side, so that the range is bracketed."""
+            span_db: float = 1.0) -> BdRate | None:
+    """BD-rate of `test` against `anchor` (points as `rd_points` gives them) over PSNR from
+    `top_psnr` − `span_db` to `top_psnr`, narrowed to where both Pareto fronts have points; None
+    where they share no such range or a front has fewer than two points.
+
+    log10(bpp) is interpolated over PSNR with `bjontegaard`'s PCHIP interpolators (its own default
+    integrates over the curves' whole overlap; here the range is ours), then averaged over the range.
+    """
     import bjontegaard
 
-    def bracketed(points: Sequence[dict[str, Any]]) -> tuple[list[float], list[float]]:
-        ordered = sorted(points, key=lambda p: p["psnr"])
-        psnrs = [p["psnr"] for p in ordered]
-        low = max(np.searchsorted(psnrs, top_psnr - span_db) - 1, 0)
-        high = min(np.searchsorted(psnrs, top_psnr) + 1, len(ordered))
-        kept = ordered[low:high]
-        return [p["bpp"] for p in kept], [p["psnr"] for p in kept]
+    fronts = [pareto(anchor), pareto(test)]
+    if min(len(front) for front in fronts) < 2:
+        return None
+    low = max(top_psnr - span_db, *(front[0]["psnr"] for front in fronts))
+    high = min(top_psnr, *(front[-1]["psnr"] for front in fronts))
+    if high <= low:
+        return None
+    (rate_a, psnr_a), (rate_t, psnr_t) = ([[p[k] for p in front] for k in ("bpp", "psnr")] for front in fronts)
+    _, f_anchor, f_test = bjontegaard.bd_rate(rate_a, psnr_a, rate_t, psnr_t, method="pchip",
+                                              require_matching_points=False, interpolators=True, min_overlap=0)
+    mean_log_ratio = (f_test.integrate(low, high) - f_anchor.integrate(low, high)) / (high - low)
+    return BdRate(float((10**mean_log_ratio - 1) * 100), low, high)
 
-    rate_a, psnr_a = bracketed(anchor)
-    rate_t, psnr_t = bracketed(test)
-    return float(bjontegaard.bd_rate(rate_a, psnr_a, rate_t, psnr_t, method="pchip", require_matching_points=False))
+
+def smallest_within(points: Sequence[dict[str, Any]], top_psnr: float, drop_db: float) -> dict[str, Any] | None:
+    """The smallest point at most `drop_db` below `top_psnr`, or None."""
+    held = [p for p in points if p["psnr"] >= top_psnr - drop_db]
+    return min(held, key=lambda p: p["bytes"]) if held else None
+
+
+def cell_summary(record: dict[str, Any], span_db: float = 1.0, drop_db: float = 0.1) -> dict[str, Any]:
+    """What the tables show of one cell's record: the codec's BD-rate against each anchor and against
+    the better one (the anchor against which the codec saves least), and the smallest files within
+    `drop_db` of the fit, the codec's as a fraction of the fit's `model.safetensors`, with its times."""
+    by_codec: dict[str, list[dict[str, Any]]] = {}
+    for point in record["points"]:
+        by_codec.setdefault(point["codec"], []).append(point)
+    top = record["fit_psnr"]
+    rates = {anchor: bd_rate(by_codec.get(anchor, []), by_codec.get(CODEC, []), top, span_db) for anchor in ANCHORS}
+    known = {anchor: rate for anchor, rate in rates.items() if rate is not None}
+    better = max(known, key=lambda anchor: known[anchor].percent) if known else None
+    float32 = by_codec[FLOAT32][0]
+    held = {codec: smallest_within(by_codec.get(codec, []), top, drop_db) for codec in (CODEC, *ANCHORS)}
+    codec_point = held[CODEC]
+    return {"fit_psnr": top, "bd_rate": rates, "better_anchor": better,
+            "held": held, "float32_decode_s": float32["decode_s"],
+            "fraction": None if codec_point is None else codec_point["bytes"] / record["model_bytes"]}

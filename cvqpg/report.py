@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 
 from . import figures
-from .bench import (CELLS_DIR, DONE, METHODS, METRICS_FILE, SPECTRUM_FILE, BenchPlan, Cell, cell_status, read_json,
-                    setting_label)
+from .bench import (CELLS_DIR, DONE, METHODS, METRICS_FILE, PRESETS, RD_FILE, SPECTRUM_FILE, BenchPlan, Cell,
+                    cell_status, read_json, setting_label)
 from .runs import write_atomic
 from .view import VIEW_FILE
 
@@ -48,6 +48,7 @@ class CellResult:
     status: str
     metrics: dict[str, Any] | None
     spectrum: dict[str, Any] | None
+    rd: dict[str, Any] | None = None
 
 
 @dataclass
@@ -95,10 +96,11 @@ def collect(plan: BenchPlan) -> list[CellResult]:
     results = []
     for cell in plan.cells:
         folder = plan.cell_dir(cell)
-        status = cell_status(folder)
-        done = status == DONE
-        results.append(CellResult(cell, status, read_json(folder / METRICS_FILE) if done else None,
-                                  read_json(folder / SPECTRUM_FILE) if done else None))
+        status = cell_status(folder, plan.done_file)
+        fitted = (folder / METRICS_FILE).is_file()
+        results.append(CellResult(cell, status, read_json(folder / METRICS_FILE) if fitted else None,
+                                  read_json(folder / SPECTRUM_FILE) if fitted else None,
+                                  read_json(folder / RD_FILE) if status == DONE else None))
     return results
 
 
@@ -321,6 +323,99 @@ def cells_table(plan: BenchPlan, results: list[CellResult]) -> tuple[Table, list
     return table, rows
 
 
+def _bd_text(rate: Any, top: float, with_range: bool = False) -> str:
+    if rate is None:
+        return NA
+    span = f" ({rate.low - top:+.2f}…{rate.high - top:+.2f} dB)" if with_range else ""
+    return f"{rate.percent:+.1f}%{span}"
+
+
+def _held_text(point: dict[str, Any] | None, top: float) -> str:
+    return MISSING if point is None else f"{point['bpp']:.3f} ({point['psnr'] - top:+.3f} dB)"
+
+
+def rate_distortion_table(plan: BenchPlan, results: list[CellResult]) -> tuple[list[Table], list[dict[str, Any]]]:
+    """In a rate–distortion grid, per setting and scene (`rd.json`): the codec's BD-rate against each anchor
+    and the better one, over the fit's own PSNR down to 1 dB below it; the smallest file within 0.1 dB of
+    the fit as bpp and as a share of the float32 model file, beside the anchors'; its encode and decode +
+    render seconds, beside loading and rendering the float32 model. Also the rows for `rd.csv`."""
+    from .ratedistortion import ANCHORS, cell_summary
+
+    if not PRESETS[plan.preset].rate_distortion:
+        return [], []
+    table = Table("Rate–distortion: the .cvq codec against JPEG 2000 and JPEG XL on the same field",
+                  ["Scene", "Setting", "fit PSNR", *(f"BD-rate vs {a}" for a in ANCHORS), "BD-rate vs the better",
+                   "cvqpg ≤ 0.1 dB: bpp", "÷ model.safetensors", *(f"{a} ≤ 0.1 dB: bpp" for a in ANCHORS),
+                   "encode s", "decode+render s", "float32 load+render s", "load"],
+                  note="BD-rate: bits of the codec's Pareto front against the anchor's at equal PSNR, log-rate "
+                  "interpolated with bjontegaard's PCHIP, averaged over the range shown (the fit's PSNR down to 1 dB "
+                  "below it, narrowed to where both curves have points); negative means fewer bits. ≤ 0.1 dB: the "
+                  "smallest file within 0.1 dB of the float32 fit, with its drop; encode s of a `--max-drop` point "
+                  "includes its budget search. Seconds are wall time on the machine and load (15-minute load "
+                  "average) of the cell's run record.")
+    rows: list[dict[str, Any]] = []
+    for setting in plan.settings:
+        per_scene = [(r, cell_summary(r.rd)) for r in results if r.rd is not None and r.cell.setting == setting]
+        for r, summary in per_scene:
+            top, held, rates = summary["fit_psnr"], summary["held"], summary["bd_rate"]
+            better = rates[summary["better_anchor"]] if summary["better_anchor"] else None
+            codec = held["cvqpg"]
+            table.rows.append([r.cell.scene.name, setting_label(setting), f"{top:.3f}",
+                               *(_bd_text(rates[a], top) for a in ANCHORS), _bd_text(better, top, True),
+                               _held_text(codec, top),
+                               MISSING if summary["fraction"] is None else f"1/{1 / summary['fraction']:.1f}",
+                               *(_held_text(held[a], top) for a in ANCHORS),
+                               MISSING if codec is None else f"{codec['encode_s']:.2f}",
+                               MISSING if codec is None else f"{codec['decode_s']:.2f}",
+                               f"{summary['float32_decode_s']:.2f}", f"{r.rd['run']['load_average']}"])
+            rows.append({"cell": r.cell.name, "scene": r.cell.scene.name, "setting": setting, "fit_psnr": top,
+                         **{f"bd_rate_{a.replace(' ', '').lower()}": "" if rates[a] is None else rates[a].percent
+                            for a in ANCHORS},
+                         "better_anchor": summary["better_anchor"] or "",
+                         "bd_rate_better": "" if better is None else better.percent,
+                         "bd_low_db": "" if better is None else better.low - top,
+                         "bd_high_db": "" if better is None else better.high - top,
+                         "bytes_within_0.1db": "" if codec is None else codec["bytes"],
+                         "fraction_of_model": "" if summary["fraction"] is None else summary["fraction"],
+                         "encode_s": "" if codec is None else codec["encode_s"],
+                         "decode_render_s": "" if codec is None else codec["decode_s"],
+                         "load_average": r.rd["run"]["load_average"]})
+        betters = [float(row["bd_rate_better"]) for row in rows if row["setting"] == setting
+                   and row["bd_rate_better"] != ""]
+        fractions = [float(row["fraction_of_model"]) for row in rows if row["setting"] == setting
+                     and row["fraction_of_model"] != ""]
+        table.rows.append([f"mean ({len(per_scene)}/{len(plan.scenes)} scenes)", setting_label(setting), "", "", "",
+                           f"{np.mean(betters):+.1f}%" if betters else MISSING, "",
+                           f"1/{1 / np.mean(fractions):.1f}" if fractions else MISSING, "", "", "", "", "", ""])
+        table.bold.add((len(table.rows) - 1, 5))
+    return [table], rows
+
+
+def rate_distortion_figures(plan: BenchPlan, results: list[CellResult]) -> list[Path]:
+    """`rd_<setting>.png`: per scene, each codec's Pareto front and the two model files."""
+    from .ratedistortion import FLOAT16, FLOAT32, pareto
+
+    drawn = []
+    for setting in plan.settings:
+        panels = {}
+        for r in results:
+            if r.rd is None or r.cell.setting != setting:
+                continue
+            codecs: dict[str, list[dict[str, Any]]] = {}
+            for point in r.rd["points"]:
+                codecs.setdefault(point["codec"], []).append(point)
+            fronts = {codec: pareto(points) if codec not in (FLOAT32, FLOAT16) else points
+                      for codec, points in codecs.items()}
+            panels[r.cell.scene.name] = (r.rd["fit_psnr"], {
+                codec: ([p["bpp"] for p in front], [p["psnr"] for p in front]) for codec, front in fronts.items()})
+        if panels:
+            name = Path(f"rd_{setting}.png")
+            figures.rate_distortion_figure({f"{scene}, {setting_label(setting)}": panel
+                                            for scene, panel in panels.items()}, plan.folder / name)
+            drawn.append(name)
+    return drawn
+
+
 @dataclass
 class FrequencyCurve:
     """Radially binned error spectra of one setting, `method` against `reference`, over the (scene, seed)
@@ -516,13 +611,16 @@ def write_summary(plan: BenchPlan) -> Path:
     main, main_rows = main_table(plan, results)
     cells, cell_rows = cells_table(plan, results)
     curves, channel_curves = frequency_curves(plan, results), channel_frequency_curves(plan, results)
-    tables = [main, per_scene_table(plan, results), *variant_tables(plan, results), *seed_tables(plan, results),
-              cells]
+    rd_tables, rd_rows = rate_distortion_table(plan, results)
+    tables = [main, *rd_tables, per_scene_table(plan, results), *variant_tables(plan, results),
+              *seed_tables(plan, results), cells]
     overview = overview_lines(plan, results)
     frequency = frequency_lines(curves) + (frequency_lines(channel_curves) if channel_curves else [])
-    images = draw_figures(plan, results, curves, channel_curves)
+    images = rate_distortion_figures(plan, results) + draw_figures(plan, results, curves, channel_curves)
     write_atomic(plan.folder / "summary.csv", _csv(main_rows))
     write_atomic(plan.folder / "cells.csv", _csv(cell_rows))
+    if rd_rows:
+        write_atomic(plan.folder / "rd.csv", _csv(rd_rows))
     write_atomic(plan.folder / "frequency.csv", _csv(frequency_rows(curves)))
     if channel_curves:
         write_atomic(plan.folder / "frequency_channels.csv", _csv(frequency_rows(channel_curves)))

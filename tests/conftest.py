@@ -2,8 +2,10 @@
 
 import os
 
+import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 if not torch.cuda.is_available():
     # The Triton kernels' tests (test_triton.py) run them through Triton's interpreter on the CPU,
@@ -19,3 +21,24 @@ torch.set_num_threads(2)
 def tiny_config() -> FitConfig:
     """64×48 px, two planes, a narrow guard band: a fit step costs a few tens of ms."""
     return FitConfig(width=64, height=48, steps=20, warmup=5, guard_band_px=32)
+
+
+def write_scenes(root):
+    """Three scene folders as ../shared/scenes holds them, with tiny images; returns `root`."""
+    for name in ("sushi", "tiger", "zebra"):
+        (root / name).mkdir(parents=True)
+        Image.new("RGB", (8, 6), (90, 120, 200)).save(root / name / "image.png")
+        Image.fromarray(np.tile(np.linspace(0, 255, 8, dtype=np.uint8), (6, 1))).save(root / name / "depth.png")
+    return root
+
+
+@pytest.fixture
+def scenes_dir(tmp_path):
+    """Scene folders that a test may change (see `write_scenes`)."""
+    return write_scenes(tmp_path / "scenes")
+
+
+@pytest.fixture(scope="module")
+def module_scenes_dir(tmp_path_factory):
+    """Scene folders shared by a module's tests, left unchanged (see `write_scenes`)."""
+    return write_scenes(tmp_path_factory.mktemp("scenes"))

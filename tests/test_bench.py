@@ -29,17 +29,6 @@ def quick_bench(tmp_path_factory):
     return out
 
 
-@pytest.fixture
-def scenes_dir(tmp_path):
-    """Three scene folders as ../shared/scenes holds them, with tiny images (never fitted here)."""
-    root = tmp_path / "scenes"
-    for name in ("sushi", "tiger", "zebra"):
-        (root / name).mkdir(parents=True)
-        Image.new("RGB", (8, 6), (90, 120, 200)).save(root / name / "image.png")
-        Image.fromarray(np.tile(np.linspace(0, 255, 8, dtype=np.uint8), (6, 1))).save(root / name / "depth.png")
-    return root
-
-
 def test_quick_preset_writes_tables_figures_and_report(quick_bench):
     plan = make_plan("quick", quick_bench)
     assert len(plan.cells) == 4 and {c.method for c in plan.cells} == {"baseline", "cvqpg"}

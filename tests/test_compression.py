@@ -185,7 +185,7 @@ def test_rate_distortion_points_and_bd_rate():
     assert [p.codec for p in anchors] == ["JPEG 2000", "JPEG XL"] and all(p.psnr > 20 for p in anchors)
     anchor = [{"bpp": 2 * b, "psnr": q} for b, q in ((1, 30), (2, 33), (3, 35), (4, 36))]
     test = [{"bpp": b, "psnr": q} for b, q in ((1, 30), (2, 33), (3, 35), (4, 36))]
-    assert bd_rate(anchor, test, top_psnr=35) == pytest.approx(-50, abs=0.5)
+    assert bd_rate(anchor, test, top_psnr=35).percent == pytest.approx(-50, abs=1e-9)
 
 
 def test_a_bare_model_file_is_scored_against_its_own_reconstruction(fitted_run, tmp_path, capsys):

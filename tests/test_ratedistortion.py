@@ -1,0 +1,104 @@
+"""The rate–distortion benchmark (`cvqpg bench --preset compression`): cells that take their fit from
+another grid or fit it, their `rd.json`, the tables rebuilt from the records alone, and BD-rate."""
+
+import csv
+import json
+import shutil
+
+import pytest
+
+from cvqpg.cli import main
+from cvqpg.ratedistortion import bd_rate, cell_summary, pareto
+
+pytest.importorskip("imagecodecs", reason="the JPEG 2000 / JPEG XL anchors need the `compression` extra")
+
+TINY = ["--size", "48", "36", "--steps", "2", "--warmup", "1", "--colors", "gray", "--scene-names", "sushi",
+        "--quiet"]
+CELL = "sushi_gray-10_cvqpg_s100"
+RECORDS = ("config.json", "spectrum.json", "metrics.json", "rd.json")
+
+
+@pytest.fixture(scope="module")
+def grids(module_scenes_dir, tmp_path_factory):
+    """A Table 1 grid that fitted the cell, and a compression grid that took its model from there."""
+    root = tmp_path_factory.mktemp("rd")
+    scenes = ["--scenes", str(module_scenes_dir)]
+    assert main(["bench", "--preset", "paper", "--methods", "cvqpg", "--ratios", "0.1", "--out", str(root / "paper"),
+                 *scenes, *TINY]) == 0
+    assert main(["bench", "--preset", "compression", "--out", str(root / "rd"), "--fits", str(root / "paper"),
+                 *scenes, *TINY]) == 0
+    return root
+
+
+def test_a_compression_cell_takes_the_fit_from_another_grid_and_records_its_points(grids):
+    fitted, cell = grids / "paper" / "cells" / CELL, grids / "rd" / "cells" / CELL
+    assert not (cell / "model.safetensors").exists()  # not refitted
+    assert (cell / "metrics.json").read_bytes() == (fitted / "metrics.json").read_bytes()
+    record = json.loads((cell / "rd.json").read_text())
+    codecs = {p["codec"] for p in record["points"]}
+    assert codecs == {"cvqpg", "JPEG 2000", "JPEG XL", "model float32", "model float16"}
+    assert record["model_bytes"] == (fitted / "model.safetensors").stat().st_size
+    float32 = next(p for p in record["points"] if p["codec"] == "model float32")
+    assert float32["psnr"] == pytest.approx(record["fit_psnr"], abs=1e-6)
+    assert all(p["bpp"] == pytest.approx(8 * p["bytes"] / (48 * 36)) and p["decode_s"] > 0 for p in record["points"])
+    assert record["run"]["load_average"] is not None and record["cpu_seconds"] > 0
+    summary = (grids / "rd" / "summary.md").read_text()
+    assert "Rate–distortion" in summary and "rd_gray-10.png" in summary
+    assert (grids / "rd" / "rd_gray-10.png").is_file()
+    row = next(csv.DictReader((grids / "rd" / "rd.csv").open()))
+    assert row["cell"] == CELL and float(row["fraction_of_model"]) == pytest.approx(
+        cell_summary(record)["fraction"])
+
+
+def test_summary_only_rebuilds_the_tables_from_the_records_alone(grids, tmp_path, capsys):
+    recorded = tmp_path / "results" / "compression"
+    (recorded / "cells" / CELL).mkdir(parents=True)
+    for name in RECORDS:
+        shutil.copy(grids / "rd" / "cells" / CELL / name, recorded / "cells" / CELL / name)
+    assert main(["bench", "--preset", "compression", "--out", str(recorded), "--summary-only", *TINY]) == 0
+    assert (recorded / "rd.csv").read_text() == (grids / "rd" / "rd.csv").read_text()
+    assert (recorded / "summary.md").read_text() == (grids / "rd" / "summary.md").read_text()
+    capsys.readouterr()
+    assert main(["bench", "--preset", "compression", "--out", str(recorded), *TINY]) == 0
+    assert "0 done, 1 skipped" in capsys.readouterr().out
+
+
+def test_a_compression_cell_without_a_kept_fit_fits_it_first(module_scenes_dir, tmp_path):
+    out = tmp_path / "rd"
+    assert main(["bench", "--preset", "compression", "--scenes", str(module_scenes_dir), "--out", str(out),
+                 *TINY]) == 0
+    cell = out / "cells" / CELL
+    assert (cell / "model.safetensors").is_file() and (cell / "rd.json").is_file()
+    assert json.loads((cell / "rd.json").read_text())["model_file"] == str(cell / "model.safetensors")
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["--preset", "paper", "--fits", "."], "--fits is for rate–distortion grids"),
+    (["--preset", "compression", "--fits", "no-such-folder"], "--fits no-such-folder: not a bench folder"),
+])
+def test_bad_fits_are_one_line_and_exit_code_2(arguments, message, module_scenes_dir, tmp_path, capsys):
+    assert main(["bench", *arguments, "--scenes", str(module_scenes_dir), "--out", str(tmp_path / "b"), "--quiet"]) == 2
+    error = capsys.readouterr().err
+    assert message in error and error.count("\n") == 1 and not (tmp_path / "b").exists()
+
+
+def curve(rates, psnrs):
+    return [{"bpp": b, "bytes": b, "psnr": q} for b, q in zip(rates, psnrs)]
+
+
+def test_bd_rate_of_a_codec_that_halves_the_bytes_is_minus_50_percent():
+    psnrs = [30.0, 33.0, 35.0, 36.0, 36.5]
+    anchor = curve([1, 2, 3, 4, 5], psnrs)
+    half = curve([0.5, 1, 1.5, 2, 2.5], psnrs)
+    rate = bd_rate(anchor, half, top_psnr=36.5)
+    assert rate.percent == pytest.approx(-50, abs=1e-9) and (rate.low, rate.high) == (35.5, 36.5)
+    assert bd_rate(half, anchor, top_psnr=36.5).percent == pytest.approx(100, abs=1e-9)
+
+
+def test_bd_rate_range_is_narrowed_to_both_curves_and_dominated_points_are_dropped():
+    anchor = curve([1, 2, 3, 4], [30.0, 33.0, 35.0, 36.0])
+    test = curve([1, 2, 2.5, 3], [33.5, 35.2, 34.0, 35.6])  # the third point is worse than the second
+    assert [p["psnr"] for p in pareto(test)] == [33.5, 35.2, 35.6]
+    rate = bd_rate(anchor, test, top_psnr=36.2)
+    assert (rate.low, rate.high) == (35.2, 35.6)
+    assert bd_rate(anchor, curve([1, 2], [20.0, 21.0]), top_psnr=36.0) is None  # no PSNR in common
