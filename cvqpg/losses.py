@@ -8,6 +8,7 @@ out; the tests hold them against the reference in value and gradient.
 
 from __future__ import annotations
 
+import functools
 import inspect
 import math
 from typing import ContextManager, Sequence
@@ -15,6 +16,7 @@ from typing import ContextManager, Sequence
 import numpy as np
 import torch
 from pytorch_msssim import ssim
+from pytorch_msssim.ssim import _fspecial_gauss_1d
 from torch import Tensor
 
 from .loss_kernels import SSIM_TAPS, gaussian_taps, pixel_terms, ssim_backward, ssim_forward, standard_normals
@@ -93,6 +95,13 @@ def _without_onednn() -> ContextManager:
     return torch.backends.mkldnn.flags(enabled=False)
 
 
+@functools.lru_cache(maxsize=8)
+def ssim_window(channels: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """pytorch-msssim's own Gaussian window [C, 1, 11] on `device`, made once: left to pytorch-msssim
+    it is built on the host and copied to the device at every call, which on CUDA waits for the GPU."""
+    return _fspecial_gauss_1d(SSIM_WINDOW_PX, SSIM_SIGMA_PX).repeat(channels, 1, 1).to(device, dtype)
+
+
 def ssim_per_plane(recon: Tensor, targets: Tensor, backend: str = "auto") -> Tensor:
     """SSIM [M] of [M, C, H, W] images, Gaussian window 11 px, σ 1.5 px, data range 1.
 
@@ -104,7 +113,7 @@ def ssim_per_plane(recon: Tensor, targets: Tensor, backend: str = "auto") -> Ten
         # oneDNN's depthwise 1×11 convolutions cost 3× PyTorch's own on one channel.
         with _without_onednn():
             return ssim(recon, targets, data_range=1.0, size_average=False,
-                        win_size=SSIM_WINDOW_PX, win_sigma=SSIM_SIGMA_PX)
+                        win=ssim_window(recon.shape[1], recon.dtype, recon.device))
     return _FusedSsim.apply(recon, targets)
 
 
