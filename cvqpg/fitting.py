@@ -231,32 +231,41 @@ def all_finite(tensors: list[Tensor]) -> Tensor:
     return torch.stack([torch.isfinite(t).all() for t in tensors]).all()
 
 
+def surely_false(flag: Tensor) -> bool:
+    """Whether a 0-dim bool `flag` is known to be false without waiting for a device: read where that
+    costs nothing (the CPU), else never known. Lets the CPU skip work that the flag makes a no-op."""
+    return flag.device.type == "cpu" and not bool(flag)
+
+
 def apply_gradients(optimizer: Adan, config: FitConfig, step: int, finite_loss: Tensor | None = None
                     ) -> tuple[Tensor, Tensor]:
     """Non-finite gradient entries → 0 (SPEC §6), clip to the global norm, anneal position, Adan.
 
     The update is undone, parameters and Adan's moments alike, where `finite_loss` is false or a
-    parameter came out non-finite; the choice is made on the device (`torch.where`), so nothing is
-    read back. Returns the flags (sanitised: some gradient entry was replaced, on a step whose loss
-    was finite; skipped: the update was undone) as 0-dim bool tensors.
+    parameter came out non-finite: they are copied into one buffer before it and put back with
+    `torch.where`, so the choice is made on the device and nothing waits for it. Returns the flags
+    (sanitised: some gradient entry was replaced, on a step whose loss was finite; skipped: the update
+    was undone) as 0-dim bool tensors.
     """
     params = [p for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
     grads = [p.grad for p in params]
     finite_grads = all_finite(grads)
-    for grad in grads:
-        torch.nan_to_num_(grad, nan=0.0, posinf=0.0, neginf=0.0)
+    if not surely_false(~finite_grads):
+        for grad in grads:
+            torch.nan_to_num_(grad, nan=0.0, posinf=0.0, neginf=0.0)
     torch.nn.utils.clip_grad_norm_(params, config.grad_clip_norm)
     for group in optimizer.param_groups:
         if group["name"] == "position":
             group["lr"] = position_learning_rate(step, config)
     kept = params + [t for p in params for t in optimizer.state.get(p, {}).values() if isinstance(t, Tensor)]
-    before = [t.clone() for t in kept]
+    before = torch.cat([t.detach().reshape(-1) for t in kept])
     optimizer.step()
     finite_loss = finite_grads.new_ones(()) if finite_loss is None else finite_loss
     skipped = ~(finite_loss & all_finite(params))
-    with torch.no_grad():
-        for tensor, previous in zip(kept, before):
-            torch.where(skipped, previous, tensor, out=tensor)
+    if not surely_false(skipped):
+        with torch.no_grad():
+            for tensor, previous in zip(kept, before.split([t.numel() for t in kept])):
+                torch.where(skipped, previous.view_as(tensor), tensor, out=tensor)
     return finite_loss & ~finite_grads, skipped
 
 

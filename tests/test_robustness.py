@@ -269,7 +269,7 @@ def optimiser_snapshot(state):
     optimizer = state.optimizer
     return ({k: v.detach().clone() for k, v in state.gaussians.tensors().items()},
             {id(p): {k: v.clone() for k, v in optimizer.state[p].items()} for p in optimizer.state},
-            [group["step"] for group in optimizer.param_groups])
+            [group.get("step", 0) for group in optimizer.param_groups])  # Adan starts a missing counter at 0
 
 
 def assert_same_snapshot(before, after):
@@ -338,7 +338,9 @@ def test_reading_steps_back_in_batches_gives_the_same_fit_and_counts(monkeypatch
         calls.append(steps)
     single, batched = results
     assert np.isnan(single.history["loss"][3]) and single.skipped_steps == batched.skipped_steps == 1
-    assert batched.history == single.history and calls[0] == calls[1]
+    for name in ("loss", "psnr"):
+        np.testing.assert_array_equal(batched.history[name], single.history[name])  # NaN equals NaN here
+    np.testing.assert_array_equal(np.array(calls[1]), np.array(calls[0]))
     assert [c[0] for c in calls[1]] == list(range(config.steps + 1))
     for name, tensor in single.gaussians.tensors().items():
         assert torch.equal(tensor, batched.gaussians.tensors()[name]), name
