@@ -1,27 +1,28 @@
 #!/usr/bin/env bash
 # Every GPU figure of issue #24's targets, measured in one command on a machine with one CUDA GPU.
 #
-#   benchmarks/gpu.sh OUT [PART ...]     PART: env stage fits bento bench (default: all of them, in that order)
+#   benchmarks/gpu.sh OUT [PART ...]     PART: env stage fits fits4k bento bench (default: all, in that order)
 #
-# Writes into OUT (at most 7 files, so that they all come back from a lent machine):
+# Writes into OUT (8 files at most, so that they all come back from a lent machine):
 #   env.txt          GPU, driver, torch, CPU cores
 #   stage.txt/.json  benchmarks/step.py --device cuda: the stage table against the GPU FFT floor, full-grid
 #                    propagation (auto's choice on CUDA), with one round of the PyTorch reference rasterizer
 #   stage_pruned.txt the same table with --propagation pruned: full-grid cuFFT against the pruned transforms
-#   fits.txt         whole 2000-step fits (RGB 20% and grayscale 10% at 640×480, RGB 20% at 3840×2160):
-#                    warm-up apart, fit loop, peak torch.cuda.max_memory_allocated, PSNR
+#   fits.txt         whole 2000-step fits of RGB 20% and grayscale 10% at 640×480: warm-up apart, fit
+#                    loop, peak torch.cuda.max_memory_allocated, PSNR
+#   fits4k.txt       the same for RGB 20% at 3840×2160
 #   bento.txt        bento RGB 20%, 2000 steps, on the GPU and on the CPU of the same machine: both PSNRs
 #                    (needs $SCENES/bento: image.* and depth.png; SCENES defaults to ../shared/scenes)
 #   bench.txt        `cvqpg bench --device cuda --jobs K` for K = 1, 2, 4 on one small grid: wall time each
 # A part whose file is already in OUT is skipped, so a run cut short continues where it stopped, and the
-# parts can be run one call at a time where a call's time is limited (fits and bento take longest).
+# parts can be run one call at a time where a call's time is limited (fits4k and bento take longest).
 # PYTHON picks the interpreter (default: python); the run folders go to a temporary folder.
 set -euo pipefail
 
-out=$(realpath -m "${1:?usage: benchmarks/gpu.sh OUT [env|stage|fits|bento|bench ...]}")
+out=$(realpath -m "${1:?usage: benchmarks/gpu.sh OUT [env|stage|fits|fits4k|bento|bench ...]}")
 shift
 parts=("$@")
-[ ${#parts[@]} -eq 0 ] && parts=(env stage fits bento bench)
+[ ${#parts[@]} -eq 0 ] && parts=(env stage fits fits4k bento bench)
 python=${PYTHON:-python}
 scenes=$(realpath -m "${SCENES:-../shared/scenes}")
 cd "$(dirname "$0")/.."
@@ -48,7 +49,11 @@ part_stage_pruned() {
 }
 
 part_fits() {
-    "$python" benchmarks/step.py --device cuda --whole-fit --fits-only
+    "$python" benchmarks/step.py --device cuda --whole-fit small --fits-only
+}
+
+part_fits4k() {
+    "$python" benchmarks/step.py --device cuda --whole-fit big --fits-only
 }
 
 psnr_of() { "$python" -c "import json, sys; print(json.load(open(sys.argv[1]))['mean']['psnr'])" "$1/metrics.json"; }
@@ -85,8 +90,8 @@ for part in "${parts[@]}"; do
     case $part in
         env) files=(env) ;;
         stage) files=(stage stage_pruned) ;;
-        fits|bento|bench) files=("$part") ;;
-        *) echo "unknown part $part: choose env, stage, fits, bento or bench" >&2; exit 2 ;;
+        fits|fits4k|bento|bench) files=("$part") ;;
+        *) echo "unknown part $part: choose env, stage, fits, fits4k, bento or bench" >&2; exit 2 ;;
     esac
     for name in "${files[@]}"; do
         if [ -s "$out/$name.txt" ]; then

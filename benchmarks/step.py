@@ -265,11 +265,15 @@ def report(label: str, config: FitConfig, rounds: int, reference_rounds: int,
     return {**median, **ratios, "torch backend": reference}
 
 
-def print_whole_fits(base: FitConfig, big: tuple[int, int], steps: int) -> dict[str, dict[str, float]]:
-    """`whole_fit` of RGB 20% and grayscale 10% at `base`'s size and of RGB 20% at `big` (W, H) px."""
-    fits = {f"RGB 20%, {base.width}×{base.height}": base.replace(color="rgb", ratio=0.2),
-            f"grayscale 10%, {base.width}×{base.height}": base.replace(color="gray", ratio=0.1),
-            f"RGB 20%, {big[0]}×{big[1]}": base.replace(color="rgb", ratio=0.2, width=big[0], height=big[1])}
+def print_whole_fits(base: FitConfig, big: tuple[int, int], steps: int, which: str) -> dict[str, dict[str, float]]:
+    """`whole_fit` of RGB 20% and grayscale 10% at `base`'s size (`which` small or all) and of RGB 20% at
+    `big` (W, H) px (big or all)."""
+    fits = {}
+    if which in ("small", "all"):
+        fits[f"RGB 20%, {base.width}×{base.height}"] = base.replace(color="rgb", ratio=0.2)
+        fits[f"grayscale 10%, {base.width}×{base.height}"] = base.replace(color="gray", ratio=0.1)
+    if which in ("big", "all"):
+        fits[f"RGB 20%, {big[0]}×{big[1]}"] = base.replace(color="rgb", ratio=0.2, width=big[0], height=big[1])
     print(f"\n## whole fits of the demo scene on {base.device}, {steps} steps (indices 0..{steps}), "
           f"warm-up {default_warmup(steps)}, 2 planes")
     print(f"{'fit':>28}  {'warm-up':>9}  {'fit loop':>9}  {'whole call':>10}  {'peak':>9}  {'PSNR':>9}")
@@ -295,8 +299,9 @@ def main() -> None:
     parser.add_argument("--rss-steps", type=int, default=5, help="steps of the fit whose peak RSS is measured (CPU)")
     parser.add_argument("--model", help="a fitted model (run folder or .safetensors): measure its configuration "
                                             "on its primitives instead of RGB 20%% and grayscale 10%% at initialisation")
-    parser.add_argument("--whole-fit", action="store_true", help="also time whole fits (RGB 20%% and grayscale "
-                        "10%% at the table's size, RGB 20%% at --big-size): warm-up, fit loop, peak memory")
+    parser.add_argument("--whole-fit", nargs="?", const="all", choices=["small", "big", "all"],
+                        help="also time whole fits: small (RGB 20%% and grayscale 10%% at the table's size), big "
+                        "(RGB 20%% at --big-size) or all (without a value): warm-up, fit loop, peak memory")
     parser.add_argument("--fits-only", action="store_true", help="with --whole-fit: no stage tables")
     parser.add_argument("--fit-steps", type=int, default=2000, help="steps of each whole fit")
     parser.add_argument("--big-size", type=int, nargs=2, default=(3840, 2160), metavar=("W", "H"),
@@ -330,7 +335,7 @@ def main() -> None:
         print(f"\npeak RSS of an RGB 20% fit ({args.rss_steps} steps, separate process): {rss:.2f} GiB")
         results["peak rss gib"] = rss
     if args.whole_fit:
-        results["whole fits"] = print_whole_fits(rgb, tuple(args.big_size), args.fit_steps)
+        results["whole fits"] = print_whole_fits(rgb, tuple(args.big_size), args.fit_steps, args.whole_fit)
     if args.json:
         with open(args.json, "w") as handle:
             json.dump(results, handle, indent=2)
