@@ -97,9 +97,9 @@ def _without_onednn() -> ContextManager:
 
 @functools.lru_cache(maxsize=8)
 def ssim_window(channels: int, dtype: torch.dtype, device: torch.device) -> Tensor:
-    """pytorch-msssim's own Gaussian window [C, 1, 11] on `device`, made once: left to pytorch-msssim
+    """pytorch-msssim's own Gaussian window [C, 1, 1, 11] on `device`, made once: left to pytorch-msssim
     it is built on the host and copied to the device at every call, which on CUDA waits for the GPU."""
-    return _fspecial_gauss_1d(SSIM_WINDOW_PX, SSIM_SIGMA_PX).repeat(channels, 1, 1).to(device, dtype)
+    return _fspecial_gauss_1d(SSIM_WINDOW_PX, SSIM_SIGMA_PX).repeat(channels, 1, 1, 1).to(device, dtype)
 
 
 def ssim_per_plane(recon: Tensor, targets: Tensor, backend: str = "auto") -> Tensor:
