@@ -3,6 +3,7 @@
     python benchmarks/step.py                        # RGB 20% and grayscale 10%, ~5 minutes on 2 cores
     python benchmarks/step.py --quick                # smaller, for a smoke test
     python benchmarks/step.py --model runs/bento     # the primitives of a fitted model instead
+    python benchmarks/step.py --device cuda --whole-fit   # on the GPU, and whole 2000-step fits
 
 Primitives at initialisation are small and round. They are measured twice for RGB: flat, as in the
 baseline and during CVQPG's warm-up (curvature frozen at zero), and curved, as after the warm-up
@@ -16,6 +17,12 @@ inverse per channel and plane, and as many again in the backward pass. This pack
 (only the rows each 1D pass needs); the same 1D transforms, timed alone, are printed next to it.
 The stages and the floor take turns round by round, and the ratios are the medians of the rounds'
 ratios: the machine is shared and has slow spells, and only ratios of the same round are meaningful.
+
+With `--device cuda` everything runs on the GPU, each timed region between two `torch.cuda.synchronize`
+calls, and the floor is the same transforms (cuFFT) timed alone on the GPU. `--whole-fit` also times
+whole fits (RGB 20% and grayscale 10% at 640×480, RGB 20% at 3840×2160) on the device: the fit loop's
+seconds, the warm-up apart (a 2-step fit of the same configuration first: kernel compilation, FFT plans,
+allocator growth), and the peak memory (`torch.cuda.max_memory_allocated` on CUDA, RSS on the CPU).
 """
 
 from __future__ import annotations
@@ -33,30 +40,41 @@ import torch
 
 import cvqpg
 from cvqpg import FitConfig
+from cvqpg.config import PROPAGATIONS, default_warmup
 from cvqpg.allocator import keep_freed_memory
-from cvqpg.fitting import apply_gradients, initial_state, optimisation_step, render_hologram
+from cvqpg.fitting import apply_gradients, fit_scene, initial_state, optimisation_step, render_hologram
 from cvqpg.ops.loss import multiplane_loss, noisy_targets, standard_normal
 from cvqpg.optics import Grid, reconstruct
 from cvqpg.primitives import MIN_SCALE_PX, Gaussians, Primitives, curvature_bound
 from cvqpg.runs import model_path
 from cvqpg.scenes import builtin_scene
 from cvqpg.storage import load_model
-from cvqpg.targets import load_scene
+from cvqpg.targets import Scene, load_scene
 
 OPEN_INTERVAL_MARGIN = 1e-6  # keeps atanh and logit finite at saturated values
 
 
-def interleaved_seconds(actions: dict[str, Callable[[], object]], rounds: int) -> dict[str, list[float]]:
+def synchronize(device: torch.device) -> None:
+    """Wait for the device's queued work (CUDA); the CPU runs its work as it is called."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def interleaved_seconds(actions: dict[str, Callable[[], object]], rounds: int,
+                        device: torch.device = torch.device("cpu")) -> dict[str, list[float]]:
     """Seconds of each action in each of `rounds` rounds, the actions taking turns within a round
-    (after one untimed call each). The machine is shared and has slow spells lasting seconds; taken in
-    turns, a round's stages and floor see the same machine, so ratios are formed round by round."""
+    (after one untimed call each), each timed from a synchronised device to its work's end. The machine
+    is shared and has slow spells lasting seconds; taken in turns, a round's stages and floor see the
+    same machine, so ratios are formed round by round."""
     for action in actions.values():
         action()
     times: dict[str, list[float]] = {name: [] for name in actions}
     for _ in range(rounds):
         for name, action in actions.items():
+            synchronize(device)
             started = time.perf_counter()
             action()
+            synchronize(device)
             times[name].append(time.perf_counter() - started)
     return times
 
@@ -69,11 +87,12 @@ def transform_actions(config: FitConfig) -> dict[str, Callable[[], object]]:
     grid = Grid.for_config(config)
     rows, cols = 2 * grid.padded_height, 2 * grid.padded_width
     shape = (config.channels, rows, cols)
-    field = torch.randn(shape, dtype=torch.complex64)
-    spectra = torch.randn((config.num_planes, *shape), dtype=torch.complex64)
-    field_rows = torch.randn(grid.padded_height, cols, dtype=torch.complex64)
-    content_rows = torch.randn(grid.height, cols, dtype=torch.complex64)
-    columns = torch.randn(cols, rows, dtype=torch.complex64)
+    options = {"dtype": torch.complex64, "device": config.device}
+    field = torch.randn(shape, **options)
+    spectra = torch.randn((config.num_planes, *shape), **options)
+    field_rows = torch.randn(grid.padded_height, cols, **options)
+    content_rows = torch.randn(grid.height, cols, **options)
+    columns = torch.randn(cols, rows, **options)
 
     def batched():
         torch.fft.fft2(field)
@@ -109,13 +128,19 @@ def load_raw_parameters(gaussians: Gaussians, primitives: Primitives, config: Fi
         gaussians.curvature.copy_(torch.atanh(share.clamp(-inside, inside)).view_as(gaussians.curvature))
 
 
+def demo_scene(config: FitConfig) -> Scene:
+    """The built-in demo scene at `config`'s size, its tensors on `config`'s device."""
+    builtin = builtin_scene("demo", config.width, config.height)
+    scene = load_scene(builtin.image, builtin.depth, config)
+    return Scene(*(t.to(config.device) for t in (scene.image, scene.masks, scene.targets)))
+
+
 def stage_actions(config: FitConfig, primitives: Primitives | None = None,
                   curved: bool = True) -> dict[str, Callable[[], object]]:
     """Each stage of a step, and whole steps. `curved` unlocks the curvature (at initialisation, each
     a random fraction of its bound); otherwise it stays frozen at zero, as in the warm-up, through the
     whole steps too."""
-    builtin = builtin_scene("demo", config.width, config.height)
-    scene = load_scene(builtin.image, builtin.depth, config)
+    scene = demo_scene(config)
     config = config.replace(warmup=0 if curved else 10**9)
     state = initial_state(config)
     if primitives is not None:
@@ -126,7 +151,8 @@ def stage_actions(config: FitConfig, primitives: Primitives | None = None,
             curvature.copy_(2 * torch.rand(curvature.shape, generator=torch.Generator().manual_seed(1)) - 1)
     state.gaussians.curvature.requires_grad_(curved)
     gaussians, optimizer, generator = state.gaussians, state.optimizer, state.generator
-    hologram_grad = torch.randn(config.channels, config.height, config.width, dtype=torch.complex64)
+    hologram_grad = torch.randn(config.channels, config.height, config.width, dtype=torch.complex64,
+                                device=config.device)
 
     def raster_forward():
         with torch.no_grad():
@@ -136,7 +162,7 @@ def stage_actions(config: FitConfig, primitives: Primitives | None = None,
         render_hologram(gaussians, config).backward(hologram_grad)
 
     leaf = raster_forward().requires_grad_(True)
-    recon_grad = torch.rand(config.num_planes, config.channels, config.height, config.width)
+    recon_grad = torch.rand(config.num_planes, config.channels, config.height, config.width, device=config.device)
 
     def propagation():
         reconstruct(leaf, config).backward(recon_grad)
@@ -173,10 +199,37 @@ def peak_rss_gib(config: FitConfig, steps: int) -> float:
     return int(output.split()[-1]) / 2**20
 
 
+def whole_fit(config: FitConfig) -> dict[str, float]:
+    """A whole fit of the demo scene on `config.device`: the warm-up (a 2-step fit of the same
+    configuration, run first), the fit loop's seconds and the whole call's, the peak memory (GiB) and
+    the final PSNR (dB)."""
+    scene = demo_scene(config)
+    device = torch.device(config.device)
+    synchronize(device)
+    started = time.perf_counter()
+    fit_scene(scene, config.replace(steps=2, warmup=min(config.warmup, 1)), progress=False)
+    synchronize(device)
+    warmup = time.perf_counter() - started
+    started = time.perf_counter()
+    result = fit_scene(scene, config, progress=False)
+    synchronize(device)
+    return {"warm-up s": warmup, "fit loop s": result.seconds, "fit call s": time.perf_counter() - started,
+            "kernel compile s": result.compile_seconds,
+            "peak GiB": result.peak_memory.get("peak_memory_bytes", 0) / 2**30,
+            "peak kind": result.peak_memory.get("peak_memory_kind"), "psnr dB": result.metrics.mean["psnr"]}
+
+
+def fast_backend(device: str) -> str:
+    """The backend a fit picks on `device` by default: the fused CPU kernels, or `auto`'s choice."""
+    return "numba" if torch.device(device).type == "cpu" else "auto"
+
+
 def report(label: str, config: FitConfig, rounds: int, reference_rounds: int,
            primitives: Primitives | None = None, curved: bool = True) -> dict[str, float]:
-    fast = config.replace(backend="numba")
-    times = interleaved_seconds({**stage_actions(fast, primitives, curved), **transform_actions(fast)}, rounds)
+    fast = config.replace(backend=fast_backend(config.device))
+    device = torch.device(config.device)
+    times = interleaved_seconds({**stage_actions(fast, primitives, curved), **transform_actions(fast)}, rounds,
+                                device)
     per_round = {name: torch.tensor(values, dtype=torch.float64) for name, values in times.items()}
     per_round["raster backward"] = per_round["raster forward+backward"] - per_round["raster forward"]
     per_round["FFT floor"] = 2 * torch.minimum(per_round["floor, batched"], per_round["floor, one at a time"])
@@ -190,11 +243,12 @@ def report(label: str, config: FitConfig, rounds: int, reference_rounds: int,
     if reference_rounds:
         reference_times = interleaved_seconds(
             {name: action for name, action in stage_actions(fast.replace(backend="torch"), primitives, curved).items()
-             if name in ("raster forward+backward", "whole step")}, reference_rounds)
+             if name in ("raster forward+backward", "whole step")}, reference_rounds, device)
         reference = {name: statistics.median(values) for name, values in reference_times.items()}
     count = config.primitive_count if primitives is None else primitives.position_px.shape[0]
+    where = f"{torch.get_num_threads()} threads" if device.type == "cpu" else torch.cuda.get_device_name(device)
     print(f"\n## {label}: {config.width}×{config.height}, N = {count}, "
-          f"{config.num_planes} planes, {torch.get_num_threads()} threads, medians of {rounds} rounds")
+          f"{config.num_planes} planes, {config.device} ({where}), medians of {rounds} rounds")
     for name in ("raster forward", "raster backward", "propagation forward+backward", "loss forward+backward",
                  "optimizer", "whole step", "FFT floor"):
         print(f"{name:>30}: {1000 * median[name]:9.1f} ms")
@@ -211,39 +265,80 @@ def report(label: str, config: FitConfig, rounds: int, reference_rounds: int,
     return {**median, **ratios, "torch backend": reference}
 
 
+def print_whole_fits(base: FitConfig, big: tuple[int, int], steps: int, which: str) -> dict[str, dict[str, float]]:
+    """`whole_fit` of RGB 20% and grayscale 10% at `base`'s size (`which` small or all) and of RGB 20% at
+    `big` (W, H) px (big or all)."""
+    fits = {}
+    if which in ("small", "all"):
+        fits[f"RGB 20%, {base.width}×{base.height}"] = base.replace(color="rgb", ratio=0.2)
+        fits[f"grayscale 10%, {base.width}×{base.height}"] = base.replace(color="gray", ratio=0.1)
+    if which in ("big", "all"):
+        fits[f"RGB 20%, {big[0]}×{big[1]}"] = base.replace(color="rgb", ratio=0.2, width=big[0], height=big[1])
+    print(f"\n## whole fits of the demo scene on {base.device}, {steps} steps (indices 0..{steps}), "
+          f"warm-up {default_warmup(steps)}, 2 planes")
+    print(f"{'fit':>28}  {'warm-up':>9}  {'fit loop':>9}  {'whole call':>10}  {'peak':>9}  {'PSNR':>9}")
+    results = {}
+    for label, config in fits.items():
+        numbers = whole_fit(config.replace(steps=steps, warmup=default_warmup(steps)))
+        results[label] = numbers
+        print(f"{label:>28}  {numbers['warm-up s']:8.1f}s  {numbers['fit loop s']:8.1f}s  "
+              f"{numbers['fit call s']:9.1f}s  {numbers['peak GiB']:5.2f} GiB  {numbers['psnr dB']:6.2f} dB"
+              f"  ({numbers['peak kind']})")
+    return results
+
+
 def main() -> None:
     keep_freed_memory()
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="320×240, for a smoke test")
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where everything runs")
+    parser.add_argument("--propagation", default="auto", choices=PROPAGATIONS, help="the fit's propagation "
+                        "transforms (auto: pruned on the CPU, full-grid on CUDA)")
     parser.add_argument("--rounds", type=int, default=7, help="rounds in which every stage and the floor take turns")
     parser.add_argument("--reference-rounds", type=int, default=1, help="rounds of the torch backend (slow)")
-    parser.add_argument("--rss-steps", type=int, default=5, help="steps of the fit whose peak RSS is measured")
+    parser.add_argument("--rss-steps", type=int, default=5, help="steps of the fit whose peak RSS is measured (CPU)")
     parser.add_argument("--model", help="a fitted model (run folder or .safetensors): measure its configuration "
                                             "on its primitives instead of RGB 20%% and grayscale 10%% at initialisation")
+    parser.add_argument("--whole-fit", nargs="?", const="all", choices=["small", "big", "all"],
+                        help="also time whole fits: small (RGB 20%% and grayscale 10%% at the table's size), big "
+                        "(RGB 20%% at --big-size) or all (without a value): warm-up, fit loop, peak memory")
+    parser.add_argument("--fits-only", action="store_true", help="with --whole-fit: no stage tables")
+    parser.add_argument("--fit-steps", type=int, default=2000, help="steps of each whole fit")
+    parser.add_argument("--big-size", type=int, nargs=2, default=(3840, 2160), metavar=("W", "H"),
+                        help="size of the large whole fit")
     parser.add_argument("--json", help="also write the numbers here")
     args = parser.parse_args()
+    if args.device == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda: no CUDA GPU is visible to PyTorch")
     width, height = (320, 240) if args.quick else (640, 480)
-    rgb = FitConfig(width=width, height=height, color="rgb", ratio=0.2)
+    rgb = FitConfig(width=width, height=height, color="rgb", ratio=0.2, device=args.device,
+                    propagation=args.propagation)
     if args.model and args.quick:
         parser.error("--quick sets the size, --model brings its own; pass one of them")
-    gray = FitConfig(width=width, height=height, color="gray", ratio=0.1)
+    gray = rgb.replace(color="gray", ratio=0.1)
     if args.model:
         primitives, config = load_model(model_path(args.model))
-        settings = {f"fitted model {args.model}": (config, primitives, True)}
+        settings = {f"fitted model {args.model}": (config.replace(device=args.device, propagation=args.propagation),
+                                                     primitives, True)}
     else:
         settings = {"RGB 20%, at initialisation, flat (warm-up)": (rgb, None, False),
                     "RGB 20%, at initialisation, curved": (rgb, None, True),
                     "grayscale 10%, at initialisation, curved": (gray, None, True)}
     results = {}
+    if args.fits_only and not args.whole_fit:
+        parser.error("--fits-only goes with --whole-fit")
     for label, (config, primitives, curved) in settings.items():
-        results[label] = report(label, config, args.rounds, args.reference_rounds, primitives, curved)
-    rss = peak_rss_gib(rgb, args.rss_steps)
-    print(f"\npeak RSS of an RGB 20% fit ({args.rss_steps} steps, separate process): {rss:.2f} GiB")
-    results["peak rss gib"] = rss
+        if not args.fits_only:
+            results[label] = report(label, config, args.rounds, args.reference_rounds, primitives, curved)
+    if args.device == "cpu" and not args.fits_only:
+        rss = peak_rss_gib(rgb, args.rss_steps)
+        print(f"\npeak RSS of an RGB 20% fit ({args.rss_steps} steps, separate process): {rss:.2f} GiB")
+        results["peak rss gib"] = rss
+    if args.whole_fit:
+        results["whole fits"] = print_whole_fits(rgb, tuple(args.big_size), args.fit_steps, args.whole_fit)
     if args.json:
         with open(args.json, "w") as handle:
             json.dump(results, handle, indent=2)
-
 
 if __name__ == "__main__":
     main()

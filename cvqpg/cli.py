@@ -20,7 +20,7 @@ from .bench import (CELLS_DIR, METHODS, PRESETS, BenchError, Overrides, describe
                     peak_bytes, run_plan)
 from .compilation import warmup
 from .compression import ASSUMED_FIT_PSNR_DB, SUFFIX, BitDepths, compress_model, decompress_file
-from .config import CURVATURES, ConfigError, FitConfig, default_warmup
+from .config import CURVATURES, PROPAGATIONS, ConfigError, FitConfig, default_warmup
 from .depth import DEPTH_FILE, DEPTH_MODEL, estimate_depth, load_depth_model
 from .fitting import (CheckpointDeviceError, CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes,
                       fit_scene, state_from_payload)
@@ -80,6 +80,9 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--backend", default=DEFAULTS.backend, choices=["auto", "numba", "triton", "torch"],
                    help="rasterizer: fused Numba kernels (CPU), Triton kernels (GPU), the PyTorch reference, "
                    "or auto (Numba on CPU, Triton on GPU)")
+    p.add_argument("--propagation", default=DEFAULTS.propagation, choices=PROPAGATIONS,
+                   help="propagation transforms: pruned 1D passes (the CPU's), full-grid 2D FFTs, or auto "
+                   "(pruned on CPU, full-grid on GPU)")
     p.add_argument("--bound", choices=["adaptive", "global"], default=DEFAULTS.bound,
                    help="curvature bound: per-primitive Nyquist (γ_max = ηλ/(6σΔx²)) or global "
                    f"{DEFAULTS.global_bound:g} 1/m (ablation)")
@@ -111,6 +114,11 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
 
+def _device_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--device", default=DEFAULTS.device, choices=["cpu", "cuda"], help="torch device to render on "
+                   f"[default: {DEFAULTS.device}]")
+
+
 def _display_parsers(sub: argparse._SubParsersAction) -> None:
     x = sub.add_parser("export", help="phase-only SLM patterns of a run, and their simulated display",
                        description="Encode RUN_DIR's hologram as phase-only patterns (SPEC §8), one per colour "
@@ -127,6 +135,7 @@ def _display_parsers(sub: argparse._SubParsersAction) -> None:
     x.add_argument("--aperture", type=float, default=DEFAULT_APERTURE, help="radius of the 4f filter's "
                    "circular Fourier aperture as a fraction of the Nyquist frequency (0 disables the filter)")
     x.add_argument("--out", metavar="DIR", help="output folder [default: RUN_DIR/export]")
+    _device_argument(x)
     i = sub.add_parser("info", help="size of a saved model: bits per pixel, and bits per attribute if compressed",
                        description="Print N, parameters, file size and bits per hologram pixel of a model file "
                        f"(.safetensors or {SUFFIX}); for a compressed file also the bits of each attribute.")
@@ -143,6 +152,7 @@ def _display_parsers(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--distance", type=float, nargs="+", metavar="M", help="reconstruction distances in m "
                    "(e.g. 0.001 0.002 0.003 to refocus) [default: the model's planes]")
     r.add_argument("--out", metavar="DIR", help="output folder [default: RUN_DIR/render, or next to MODEL]")
+    _device_argument(r)
 
 
 def _view_parser(sub: argparse._SubParsersAction) -> None:
@@ -243,6 +253,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "its targets and rewrite RUN_DIR/metrics.json.")
     e.add_argument("run_dir", metavar="RUN_DIR|MODEL", help="folder written by `cvqpg fit`, or a model file "
                    f"(.safetensors or {SUFFIX}) inside one: its metrics go to <model stem>.metrics.json")
+    _device_argument(e)
     _display_parsers(sub)
     _view_parser(sub)
     _compression_parsers(sub)
@@ -282,6 +293,7 @@ def _config_and_source(args: argparse.Namespace) -> tuple[FitConfig, dict]:
                        warmup=default_warmup(args.steps) if args.warmup is None else args.warmup,
                        seed=args.seed, num_planes=planes, bound=args.bound,
                        qpf=args.qpf, curvature=args.curvature, device=args.device, backend=args.backend,
+                       propagation=args.propagation,
                        pixel_pitch=args.pitch,
                        plane_center=args.plane_center, plane_span=args.plane_span,
                        wavelengths_m=tuple(args.wavelengths) if args.wavelengths else None)
@@ -310,13 +322,21 @@ def available_memory_bytes() -> int | None:
     return None
 
 
-def check_memory(config: FitConfig) -> None:
-    if config.device != "cpu":
-        return
-    needed, available = estimated_peak_bytes(config), available_memory_bytes()
+def device_memory_bytes(device: str) -> int | None:
+    """Memory a fit on `device` may take: the GPU's free memory (CUDA), else the host's MemAvailable."""
+    if torch.device(device).type == "cuda":
+        return torch.cuda.mem_get_info(torch.device(device))[0]
+    return available_memory_bytes()
+
+
+def check_memory(config: FitConfig, available: int | None) -> None:
+    """Refuse a fit whose estimated peak (`estimated_peak_bytes`, the CPU's; unmeasured on a GPU) exceeds
+    `available` bytes of `config.device` (None: unknown, accepted)."""
+    needed = estimated_peak_bytes(config)
     if available is not None and needed > available:
+        where = "free on the GPU" if torch.device(config.device).type == "cuda" else "available"
         raise UsageError(f"a {config.width}×{config.height} fit with {config.num_planes} plane(s) needs about "
-                         f"{needed / 2**30:.1f} GiB but {available / 2**30:.1f} GiB are available; "
+                         f"{needed / 2**30:.1f} GiB but {available / 2**30:.1f} GiB are {where}; "
                          "reduce --size or --planes")
 
 
@@ -366,7 +386,7 @@ def _prepare(args: argparse.Namespace) -> tuple[Path, FitConfig, dict, Scene, Fi
     if (folder / CONFIG_FILE).exists() and not args.overwrite:
         raise UsageError(f"{folder} already holds a run; choose another --out, pass --overwrite, or "
                          f"--resume {folder}")
-    check_memory(config)
+    check_memory(config, device_memory_bytes(config.device))
     if "depth_model" not in source:
         scene = scene_from_source(source, config)
         start_run(folder, config, source)
@@ -433,12 +453,13 @@ def run_and_model(target: Path) -> tuple[Path, Path | None]:
 
 
 def run_export(args: argparse.Namespace) -> int:
+    check_device(args.device)
     folder, model = run_and_model(Path(args.run_dir))
     if args.aperture < 0:
         raise UsageError(f"--aperture {args.aperture}: give a radius ≥ 0 (a fraction of Nyquist; 0: no filter)")
     out = Path(args.out) if args.out else folder / (EXPORT_FOLDER if model is None else f"{EXPORT_FOLDER}-{model.stem}")
     record = export_run(folder, args.encoding, args.levels, tuple(args.slm) if args.slm else None,
-                        args.aperture or None, out, model)
+                        args.aperture or None, out, model, args.device)
     print(f"{out}: {len(record['files'])} files; mean PSNR against the targets:")
     for label, key in (("phase-only display", "phase_only_display"), ("complex field, same display", "complex_display"),
                        ("complex field, as fitted", "complex_field")):
@@ -472,6 +493,7 @@ def run_info(args: argparse.Namespace) -> int:
 
 
 def run_render(args: argparse.Namespace) -> int:
+    check_device(args.device)
     target = Path(args.target)
     if target.is_dir():
         finished_run(target)
@@ -481,7 +503,7 @@ def run_render(args: argparse.Namespace) -> int:
                                            else target.with_name(target.stem + "-render"))
     if args.distance is not None and min(args.distance) <= 0:
         raise UsageError("--distance: give positive distances in m (e.g. 0.001 for 1 mm)")
-    record = render_model(target, out, tuple(args.size) if args.size else None, args.distance)
+    record = render_model(target, out, tuple(args.size) if args.size else None, args.distance, args.device)
     width, height = record["hologram_px"]
     print(f"{out}: {width}×{height} px at {record['pixel_pitch_m'] * 1e6:.3f} µm, planes at "
           + ", ".join(f"{d * 1e3:g} mm" for d in record["distances_m"]))
@@ -505,8 +527,9 @@ def run_view(args: argparse.Namespace) -> int:
 
 
 def run_eval(args: argparse.Namespace) -> int:
+    check_device(args.device)
     folder, model = run_and_model(Path(args.run_dir))
-    record = evaluate_run(folder, model)
+    record = evaluate_run(folder, model, args.device)
     print(f"{folder}: {_summary(record)}")
     for name, reason in record["unavailable"].items():
         print(f"  {name}: n/a ({reason})")
@@ -560,10 +583,11 @@ def run_bench(args: argparse.Namespace) -> int:
         return 0
     code = 0
     if not args.summary_only:
-        needed, available = peak_bytes(cells, args.jobs), available_memory_bytes()
-        if plan.cells[0].config.device == "cpu" and available is not None and needed > available:
+        device = plan.cells[0].config.device
+        needed, available = peak_bytes(cells, args.jobs), device_memory_bytes(device)
+        if available is not None and needed > available:
             raise UsageError(f"--jobs {args.jobs} needs about {needed / 2**30:.1f} GiB but {available / 2**30:.1f} "
-                             "GiB are available; lower --jobs or --size")
+                             f"GiB are available on {device}; lower --jobs or --size")
         with StopRequest() as stop_requested:
             outcome = run_plan(plan, cells, args.jobs, progress=not args.quiet, stop_requested=stop_requested,
                                reuse=[Path(d) for d in args.reuse], fits=[Path(d) for d in args.fits])

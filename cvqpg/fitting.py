@@ -88,9 +88,9 @@ def position_learning_rate(step: int, config: FitConfig) -> float:
         1 + math.cos(math.pi * progress)) / 2
 
 
-def psnr_from_mse(mse: Tensor) -> float:
-    """Mean over planes of −10·log10(MSE) (dB), data range 1."""
-    return float((-10 * torch.log10(mse.clamp(min=1e-12))).mean())
+def psnr_from_mse(mse: Tensor) -> Tensor:
+    """Mean over planes of −10·log10(MSE) (dB), data range 1, as a 0-dim tensor on MSE's device."""
+    return (-10 * torch.log10(mse.clamp(min=1e-12))).mean()
 
 
 @dataclass
@@ -111,6 +111,34 @@ class FitState:
     def note_peak_memory(self, device: torch.device) -> None:
         """Keep the larger of the recorded peak and this segment's (a resumed fit runs in several)."""
         self.peak_memory = max(self.peak_memory, peak_memory(device), key=lambda p: p.get("peak_memory_bytes", -1))
+
+    def settle(self, outcomes: list[StepOutcome]) -> list[tuple[float, float]]:
+        """Read queued steps back in one transfer: append their loss and PSNR to the history and count
+        the skipped and sanitised ones; returns (loss, PSNR) per step.
+
+        A skipped step's tensors were restored on the device; what Adan keeps on the host is rolled
+        back here: its step counter (bias correction) and, for the latest step only, the moments it
+        created for a parameter on its first update. When the loop reads back after every step (the
+        CPU) a skipped step thus leaves the optimiser exactly as it was; on CUDA the steps queued
+        after a skip until the next read use a counter one too high, and moments that a skipped
+        first update created stay.
+        """
+        if not outcomes:
+            return []
+        values = torch.stack([torch.stack([o.loss.double(), o.psnr.double(), o.skipped.double(),
+                                           o.sanitised.double()]) for o in outcomes]).tolist()
+        for outcome, (loss, psnr, skipped, sanitised) in zip(outcomes, values):
+            self.history["loss"].append(loss)
+            self.history["psnr"].append(psnr)
+            self.skipped_steps += int(skipped)
+            self.sanitised_steps += int(sanitised)
+            if skipped:
+                for group in self.optimizer.param_groups:
+                    group["step"] -= 1
+        if values[-1][2]:
+            for parameter in outcomes[-1].fresh_state:
+                self.optimizer.state.pop(parameter, None)
+        return [(loss, psnr) for loss, psnr, _, _ in values]
 
     def to_payload(self) -> dict:
         """Plain tensors and numbers, for `torch.save`."""
@@ -155,11 +183,25 @@ def state_from_payload(payload: dict, config: FitConfig) -> FitState:
     return state
 
 
-def optimisation_step(state: FitState, scene: Scene, config: FitConfig) -> tuple[float, float]:
-    """One update of SPEC §6: render, propagate, loss, sanitise and clip gradients, Adan.
+@dataclass
+class StepOutcome:
+    """One update's numbers, left on the device until the loop reads them back (`FitState.settle`)."""
 
-    A step whose loss is not finite, or whose update would leave a parameter non-finite, changes
-    nothing and is counted in `state.skipped_steps`. Returns the loss and the progress PSNR (dB).
+    step: int
+    loss: Tensor  # 0-dim
+    psnr: Tensor  # 0-dim, dB: the progress PSNR, mean over planes
+    skipped: Tensor  # 0-dim bool: the update was undone
+    sanitised: Tensor  # 0-dim bool: some gradient entries were replaced by 0
+    fresh_state: tuple[Tensor, ...] = ()  # parameters whose optimiser state this update created
+
+
+def update(state: FitState, scene: Scene, config: FitConfig) -> StepOutcome:
+    """One update of SPEC §6: render, propagate, loss, sanitise and clip gradients, Adan, without
+    reading anything back to the host (on CUDA the step is queued, not waited for).
+
+    A step whose loss is not finite, or whose update would leave a parameter non-finite, is undone
+    on the device (`apply_gradients`); `FitState.settle` counts it and rolls back what Adan keeps on
+    the host.
     """
     gaussians, step = state.gaussians, state.step
     gaussians.curvature.requires_grad_(config.primitive == "cvqpg" and step >= config.warmup)
@@ -168,37 +210,73 @@ def optimisation_step(state: FitState, scene: Scene, config: FitConfig) -> tuple
     loss, mse = multiplane_loss(recon, scene.targets, scene.masks,
                                 noisy_targets(scene.targets, noise, config.target_noise),
                                 config.ssim_weight, config.backend)
-    state.optimizer.zero_grad(set_to_none=True)
-    if not torch.isfinite(loss):
-        state.skipped_steps += 1
-        return float(loss.detach()), psnr_from_mse(mse)
+    optimizer = state.optimizer
+    optimizer.zero_grad(set_to_none=True)
     loss.backward()
-    before = {name: t.detach().clone() for name, t in gaussians.tensors().items()}
-    state.sanitised_steps += apply_gradients(state.optimizer, config, step)
-    if not all(torch.isfinite(t).all() for t in gaussians.tensors().values()):
-        with torch.no_grad():
-            for name, tensor in gaussians.tensors().items():
-                tensor.copy_(before[name])
-        state.skipped_steps += 1
-    return float(loss.detach()), psnr_from_mse(mse)
+    fresh = tuple(p for group in optimizer.param_groups for p in group["params"]
+                  if p.grad is not None and p not in optimizer.state)
+    loss = loss.detach()
+    sanitised, skipped = apply_gradients(optimizer, config, step, torch.isfinite(loss))
+    return StepOutcome(step, loss, psnr_from_mse(mse), skipped, sanitised, fresh)
 
 
-def apply_gradients(optimizer: Adan, config: FitConfig, step: int) -> bool:
+def optimisation_step(state: FitState, scene: Scene, config: FitConfig) -> tuple[float, float]:
+    """`update`, read back at once: the loss and the progress PSNR (dB); counts a skipped or sanitised
+    step in `state`. `state.step` is left to the caller."""
+    return state.settle([update(state, scene, config)])[0]
+
+
+def all_finite(tensors: list[Tensor]) -> Tensor:
+    """Whether every entry of every tensor is finite, as a 0-dim bool tensor (no host read)."""
+    return torch.stack([torch.isfinite(t).all() for t in tensors]).all()
+
+
+def surely_false(flag: Tensor) -> bool:
+    """Whether a 0-dim bool `flag` is known to be false without waiting for a device: read where that
+    costs nothing (the CPU), else never known. Lets the CPU skip work that the flag makes a no-op."""
+    return flag.device.type == "cpu" and not bool(flag)
+
+
+def apply_gradients(optimizer: Adan, config: FitConfig, step: int, finite_loss: Tensor | None = None
+                    ) -> tuple[Tensor, Tensor]:
     """Non-finite gradient entries → 0 (SPEC §6), clip to the global norm, anneal position, Adan.
 
-    Returns whether any gradient entry had to be replaced.
+    The update is undone, parameters and Adan's moments alike, where `finite_loss` is false or a
+    parameter came out non-finite: they are copied into one buffer before it and put back with
+    `torch.where`, so the choice is made on the device and nothing waits for it. Returns the flags
+    (sanitised: some gradient entry was replaced, on a step whose loss was finite; skipped: the update
+    was undone) as 0-dim bool tensors.
     """
     params = [p for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
-    sanitised = not all(torch.isfinite(p.grad).all() for p in params)
-    if sanitised:
-        for p in params:
-            torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+    grads = [p.grad for p in params]
+    finite_grads = all_finite(grads)
+    if not surely_false(~finite_grads):
+        for grad in grads:
+            torch.nan_to_num_(grad, nan=0.0, posinf=0.0, neginf=0.0)
     torch.nn.utils.clip_grad_norm_(params, config.grad_clip_norm)
     for group in optimizer.param_groups:
         if group["name"] == "position":
             group["lr"] = position_learning_rate(step, config)
+    kept = params + [t for p in params for t in optimizer.state.get(p, {}).values() if isinstance(t, Tensor)]
+    before = torch.cat([t.detach().reshape(-1) for t in kept])
     optimizer.step()
-    return sanitised
+    finite_loss = finite_grads.new_ones(()) if finite_loss is None else finite_loss
+    skipped = ~(finite_loss & all_finite(params))
+    if not surely_false(skipped):
+        with torch.no_grad():
+            for tensor, previous in zip(kept, before.split([t.numel() for t in kept])):
+                torch.where(skipped, previous.view_as(tensor), tensor, out=tensor)
+    return finite_loss & ~finite_grads, skipped
+
+
+READBACK_SECONDS = 0.5
+
+
+def readback_due(device: torch.device, seconds_since_readback: float) -> bool:
+    """Whether the loop reads the queued steps back now: after every step on the CPU, where a read
+    costs nothing and keeps Adan's host-side state exact after a skipped step (`FitState.settle`);
+    on CUDA every `READBACK_SECONDS`, as each read waits for the GPU to finish its queue."""
+    return device.type == "cpu" or seconds_since_readback >= READBACK_SECONDS
 
 
 BASE_BYTES = 2**30
@@ -259,6 +337,10 @@ def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = Tr
     true the loop saves a checkpoint between two steps and raises `FitInterrupted`. The CPU kernels
     are compiled (first run) or loaded before the first step, with a status line when `progress`;
     that time is `compile_seconds`, outside the fit's `seconds`.
+
+    The steps run without host synchronisations; the loop reads their losses back (`readback_due`:
+    after every step on the CPU, every `READBACK_SECONDS` on CUDA, and before a checkpoint and at
+    the end), and calls `on_step(step, loss, psnr)` for each step as it reads it back.
     """
     config.validate()
     device = torch.device(config.device)
@@ -269,23 +351,36 @@ def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = Tr
     last_save, clock = time.perf_counter(), time.perf_counter()
     bar = tqdm(range(state.step, config.steps + 1), initial=state.step, total=config.steps + 1,
                disable=not progress, desc=f"fit {config.primitive}", unit="step", dynamic_ncols=True)
+    pending: list[StepOutcome] = []
+
+    def read_back() -> None:
+        nonlocal clock
+        for outcome, (loss, psnr) in zip(pending, state.settle(pending)):
+            if on_step is not None:
+                on_step(outcome.step, loss, psnr)
+        if pending:
+            bar.set_postfix(loss=f"{state.history['loss'][-1]:.4f}", psnr=f"{state.history['psnr'][-1]:.2f}dB",
+                            refresh=False)
+        pending.clear()
+        now = time.perf_counter()
+        state.seconds += now - clock
+        clock = now
+
     for step in bar:
         if stop_requested is not None and stop_requested():
+            read_back()
             if checkpoint is not None:
                 state.note_peak_memory(device)
                 checkpoint.save(state)
             raise FitInterrupted(step)
-        loss, psnr = optimisation_step(state, scene, config)
+        pending.append(update(state, scene, config))
         state.step = step + 1
         now = time.perf_counter()
-        state.seconds += now - clock
-        clock = now
-        state.history["loss"].append(loss)
-        state.history["psnr"].append(psnr)
-        bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{psnr:.2f}dB", refresh=False)
-        if on_step is not None:
-            on_step(step, loss, psnr)
-        if checkpoint is not None and state.step <= config.steps and checkpoint.due(state.step, now - last_save):
+        saving = (checkpoint is not None and state.step <= config.steps
+                  and checkpoint.due(state.step, now - last_save))
+        if saving or state.step > config.steps or readback_due(device, now - clock):
+            read_back()
+        if saving:
             state.note_peak_memory(device)
             checkpoint.save(state)
             last_save = time.perf_counter()

@@ -331,5 +331,17 @@ def reconstruct(hologram: Tensor, config: FitConfig, distances_m: Sequence[float
     grid = Grid.for_config(config)
     field = guarded_field(hologram, grid, config.backend)
     distances = config.plane_distances if distances_m is None else tuple(distances_m)
-    planes = propagate_content(field, grid, distances, config.wavelengths, config.pixel_pitch)
+    if resolve_propagation(config.propagation, field.device) == "full":
+        planes = grid.crop(propagate(field, distances, config.wavelengths, config.pixel_pitch))
+    else:
+        planes = propagate_content(field, grid, distances, config.wavelengths, config.pixel_pitch)
     return clamped_intensity(planes, config.backend)
+
+
+def resolve_propagation(propagation: str, device: torch.device | str) -> str:
+    """`auto` → the pruned transforms (`propagate_content`) on the CPU, where they were measured faster,
+    and the full-grid transforms (`propagate`, one batched cuFFT call each way) elsewhere; which is
+    faster on a GPU has not been measured (docs/performance.md)."""
+    if propagation == "auto":
+        return "pruned" if torch.device(device).type == "cpu" else "full"
+    return propagation

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, fields
 
@@ -97,9 +98,16 @@ def init_gaussians(count: int, channels: int, width: int, height: int, seed: int
     return raw.to(device)
 
 
+@functools.lru_cache(maxsize=32)
+def device_constants(values: tuple[float, ...], dtype: torch.dtype, device: torch.device) -> Tensor:
+    """A few numbers as a tensor on `device`, made once: building it every step would copy it from
+    the host each time, which on CUDA waits for the GPU's queue. Read-only."""
+    return torch.tensor(values, dtype=dtype, device=device)
+
+
 def positions_px(raw_position: Tensor, width: int, height: int) -> Tensor:
     """Raw position → px: `(tanh(raw)+1)/2 · (W, H)`."""
-    extent = torch.tensor([width, height], dtype=raw_position.dtype, device=raw_position.device)
+    extent = device_constants((width, height), raw_position.dtype, raw_position.device)
     return (torch.tanh(raw_position) + 1) / 2 * extent
 
 
@@ -122,8 +130,7 @@ def curvature_bound(scale_px: Tensor, config: FitConfig) -> Tensor:
     scale = config.eta / (6 * sigma_px * config.pixel_pitch**2)
     if not per_channel:
         return scale * min(config.wavelengths)
-    wavelengths = torch.tensor(config.wavelengths, dtype=scale_px.dtype, device=scale_px.device)
-    return scale[:, None] * wavelengths
+    return scale[:, None] * device_constants(config.wavelengths, scale_px.dtype, scale_px.device)
 
 
 def activate(raw: Gaussians, config: FitConfig) -> Primitives:

@@ -306,20 +306,20 @@ def seed_tables(plan: BenchPlan, results: list[CellResult]) -> list[Table]:
 def cells_table(plan: BenchPlan, results: list[CellResult]) -> tuple[Table, list[dict[str, Any]]]:
     """Every cell: status, N, steps, updates, seconds and PSNR; a finished cell's name links to its view page
     (`cvqpg view`) where it has one."""
-    table = Table("Cells", ["Cell", "Status", "N", "Steps", "Updates", "Seconds", "PSNR"])
+    table = Table("Cells", ["Cell", "Status", "N", "Steps", "Updates", "Seconds", "Device", "PSNR"])
     rows = []
     for r in results:
         m = r.metrics or {}
         row = {"cell": r.cell.name, "scene": r.cell.scene.name, "setting": r.cell.setting, "method": r.cell.method,
                "seed": r.cell.config.seed, "status": r.status, "n": r.cell.config.primitive_count,
                "steps": m.get("steps", r.cell.config.steps), "updates": m.get("updates", ""),
-               "seconds": "" if "seconds" not in m else round(m["seconds"], 1),
+               "seconds": "" if "seconds" not in m else round(m["seconds"], 1), "device": fitted_on(r),
                **{k: "" if not m else NA if m["mean"][k] is None else m["mean"][k] for k in TABLE_METRICS}}
         rows.append(row)
         if r.status == DONE and (plan.cell_dir(r.cell) / VIEW_FILE).is_file():
             table.links[(len(table.rows), 0)] = f"{CELLS_DIR}/{r.cell.name}/{VIEW_FILE}"
         table.rows.append([row["cell"], r.status, f"{row['n']:,}", str(row["steps"]), str(row["updates"]),
-                           str(row["seconds"]), fmt(m["mean"]["psnr"], "psnr") if m else MISSING])
+                           str(row["seconds"]), row["device"], fmt(m["mean"]["psnr"], "psnr") if m else MISSING])
     return table, rows
 
 
@@ -555,6 +555,24 @@ def draw_figures(plan: BenchPlan, results: list[CellResult], curves: list[Freque
     return drawn
 
 
+def fitted_on(result: CellResult) -> str:
+    """The device a finished cell's fit ran on, as its `metrics.json` records it (`cpu: <model>`,
+    `cuda: <GPU>`); empty for a cell not finished or recorded before devices were."""
+    return ((result.metrics or {}).get("run") or {}).get("device") or ""
+
+
+def devices_line(results: list[CellResult]) -> str:
+    """Which devices the finished cells ran on, with how many each; says so when they were several."""
+    counts: dict[str, int] = {}
+    for r in results:
+        if fitted_on(r):
+            counts[fitted_on(r)] = counts.get(fitted_on(r), 0) + 1
+    listed = "; ".join(f"{device} ({n})" for device, n in sorted(counts.items()))
+    if len(counts) > 1:
+        return f"finished cells ran on several devices: {listed}; the Device column of the cell list says which"
+    return f"finished cells ran on {listed or 'no recorded device'}"
+
+
 def overview_lines(plan: BenchPlan, results: list[CellResult]) -> list[str]:
     """What the bench folder holds and how it was fitted."""
     counts: dict[str, int] = {}
@@ -566,6 +584,7 @@ def overview_lines(plan: BenchPlan, results: list[CellResult]) -> list[str]:
             f"scenes: {', '.join(s.name for s in plan.scenes)}; seeds: {', '.join(map(str, plan.seeds))}",
             (f"fits: {config.width}×{config.height} px, {config.steps} steps (warm-up {config.warmup}), "
              f"device {config.device}"),
+            devices_line(results),
             ("metrics that this machine cannot compute read n/a; cells not finished are left out of the means "
              "(see the scenes column and the cell list)")]
 

@@ -149,12 +149,21 @@ def scene_from_source(source: dict[str, Any], config: FitConfig) -> Scene:
     return load_scene(source["image"], source.get("depth"), config, source.get("resize_depth", False))
 
 
-def evaluate_run(folder: str | Path, model: str | Path | None = None) -> dict[str, Any]:
+def load_model_on(path: str | Path, device: str) -> tuple[Primitives, FitConfig]:
+    """A model file's primitives and settings, to render on `device`: a rasterizer backend that runs on
+    the CPU only (`numba`) becomes `auto` elsewhere."""
+    primitives, config = load_model(path, device)
+    backend = "auto" if config.backend == "numba" and torch.device(device).type != "cpu" else config.backend
+    return primitives, config.replace(device=device, backend=backend)
+
+
+def evaluate_run(folder: str | Path, model: str | Path | None = None, device: str = "cpu") -> dict[str, Any]:
     """Recompute a saved run's metrics from its model (or `model`, e.g. a compressed file in the
-    run folder) and inputs; rewrites `metrics.json`, or writes `<model stem>.metrics.json` for `model`."""
+    run folder) and inputs, rendered on `device`; rewrites `metrics.json`, or writes
+    `<model stem>.metrics.json` for `model`."""
     folder = Path(folder)
     _, source = read_run(folder)
-    primitives, config = load_model(folder / MODEL_FILE if model is None else model)
+    primitives, config = load_model_on(folder / MODEL_FILE if model is None else model, device)
     scene = scene_from_source(source, config)
     _, recon = render(primitives, config)
     metrics_file = folder / METRICS_FILE if model is None else folder / f"{Path(model).stem}.{METRICS_FILE}"
@@ -192,9 +201,10 @@ def save_phase_pattern(pattern: PhasePattern, labels: list[str], folder: Path) -
 
 def export_run(folder: str | Path, encoding: Encoding = "dpac", levels: int = DEFAULT_LEVELS,
                slm: tuple[int, int] | None = None, aperture: float | None = DEFAULT_APERTURE,
-               out: str | Path | None = None, model: str | Path | None = None) -> dict[str, Any]:
-    """Write a run's phase-only SLM patterns and simulate showing them (SPEC §8); `model` replaces
-    the run's own model (e.g. a compressed file in the run folder).
+               out: str | Path | None = None, model: str | Path | None = None, device: str = "cpu"
+               ) -> dict[str, Any]:
+    """Write a run's phase-only SLM patterns and simulate showing them (SPEC §8), rendered on `device`;
+    `model` replaces the run's own model (e.g. a compressed file in the run folder).
 
     `slm` is the SLM's (W, H) in px (default: the hologram's own size). Writes the patterns, the
     simulated display's planes and `metrics.json` (phase-only display, the same 4f display fed
@@ -202,9 +212,9 @@ def export_run(folder: str | Path, encoding: Encoding = "dpac", levels: int = DE
     """
     folder = Path(folder)
     out = Path(out) if out is not None else folder / EXPORT_FOLDER
-    out.mkdir(parents=True, exist_ok=True)
     _, source = read_run(folder)
-    primitives, config = load_model(folder / MODEL_FILE if model is None else model)
+    primitives, config = load_model_on(folder / MODEL_FILE if model is None else model, device)
+    out.mkdir(parents=True, exist_ok=True)
     scene = scene_from_source(source, config)
     hologram, complex_recon = render(primitives, config)
     canvas = (config.height, config.width) if slm is None else (slm[1], slm[0])
@@ -287,10 +297,10 @@ def rescaled(primitives: Primitives, config: FitConfig, width: int, height: int)
 
 
 def render_model(target: str | Path, out: str | Path, size: tuple[int, int] | None = None,
-                 distances_m: Sequence[float] | None = None) -> dict[str, Any]:
-    """Render a saved model without fitting: hologram images and the reconstruction at each plane
-    (the model's own, or `distances_m`), optionally resampled to `size` (W, H) px."""
-    primitives, config = load_model(model_path(target))
+                 distances_m: Sequence[float] | None = None, device: str = "cpu") -> dict[str, Any]:
+    """Render a saved model on `device` without fitting: hologram images and the reconstruction at each
+    plane (the model's own, or `distances_m`), optionally resampled to `size` (W, H) px."""
+    primitives, config = load_model_on(model_path(target), device)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if size is not None:

@@ -15,7 +15,7 @@ from cvqpg.bench import (DONE, INTERRUPTED, BenchError, Overrides, cell_status, 
                          run_plan)
 from cvqpg.cli import main
 from cvqpg.metrics import radial_error_spectrum
-from cvqpg.report import CellResult, main_table, paper_numbers, seed_tables
+from cvqpg.report import CellResult, cells_table, devices_line, main_table, paper_numbers, seed_tables
 from cvqpg.runs import start_run
 from cvqpg.storage import load_checkpoint, save_checkpoint
 
@@ -232,6 +232,21 @@ def test_seed_spread_table_pairs_methods_within_each_seed(tmp_path):
     assert table.rows[0][2:] == ["20.000", "21.000", f"{math.sqrt(0.5):.3f}"]
     assert table.rows[2][1:] == ["Δ (CVQPG − Baseline)", "+0.500", "+0.100", f"{math.sqrt(0.08):.3f}"]
     assert seed_tables(make_plan("quick", tmp_path / "one"), results) == []
+
+
+def test_summary_says_which_device_each_cell_ran_on(tmp_path):
+    plan = make_plan("quick", tmp_path / "bench")
+    devices = ["cpu: AMD EPYC", "cuda: NVIDIA H100", "cuda: NVIDIA H100", None]
+    results = [CellResult(c, DONE if device else INTERRUPTED,
+                          {"mean": {"psnr": 20.0, "ssim": 0.5, "lpips": None, "flip": 0.2, "cvvdp": None},
+                           "steps": 60, "updates": 61, "seconds": 3.0, "run": {"device": device}} if device else None,
+                          None) for c, device in zip(plan.cells, devices)]
+    table, rows = cells_table(plan, results)
+    assert [row["device"] for row in rows] == ["cpu: AMD EPYC", "cuda: NVIDIA H100", "cuda: NVIDIA H100", ""]
+    assert [r[table.header.index("Device")] for r in table.rows] == [row["device"] for row in rows]
+    line = devices_line(results)
+    assert "several devices" in line and "cpu: AMD EPYC (1)" in line and "cuda: NVIDIA H100 (2)" in line
+    assert devices_line(results[1:]) == "finished cells ran on cuda: NVIDIA H100 (2)"
 
 
 def test_paper_numbers_per_scene_means_reproduce_table_1():

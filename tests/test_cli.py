@@ -152,3 +152,28 @@ def test_a_checkpoint_from_another_device_is_refused_with_its_device_named(tmp_p
     error = capsys.readouterr().err
     assert "written on cuda" in error and "--device cuda" in error and error.count("\n") == 1
     assert load_checkpoint(out / "checkpoint.pt")["device"] == "cuda"
+
+
+@pytest.mark.parametrize("command", [["eval"], ["export"], ["render"]])
+def test_eval_export_and_render_refuse_an_absent_gpu_before_writing(command, demo_run, capsys, monkeypatch):
+    before = sorted(p.relative_to(demo_run) for p in demo_run.rglob("*"))
+    monkeypatch.setattr("torch.cuda.is_available", lambda: False)
+    assert main([*command, str(demo_run), "--device", "cuda"]) == 2
+    error = capsys.readouterr().err
+    assert "no CUDA GPU" in error and "--device cpu" in error and error.count("\n") == 1
+    assert sorted(p.relative_to(demo_run) for p in demo_run.rglob("*")) == before
+
+
+def test_render_takes_a_device_and_renders_there(demo_run, tmp_path, capsys):
+    assert main(["render", str(demo_run), "--device", "cpu", "--out", str(tmp_path / "r")]) == 0
+    assert (tmp_path / "r" / "amplitude.png").is_file()
+
+
+def test_a_cuda_fit_larger_than_the_gpus_free_memory_is_refused_before_writing(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("torch.cuda.is_available", lambda: True)
+    monkeypatch.setattr("torch.cuda.mem_get_info", lambda device=None: (2 * 2**30, 80 * 2**30))
+    out = tmp_path / "r"
+    assert main(["fit", "--device", "cuda", "--size", "3840", "2160", "--quiet", "--out", str(out)]) == 2
+    error = capsys.readouterr().err
+    assert "GiB are free on the GPU" in error and "reduce --size or --planes" in error and error.count("\n") == 1
+    assert not out.exists()

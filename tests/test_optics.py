@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import torch
 
-from cvqpg.config import FitConfig
+from cvqpg.config import ConfigError, FitConfig
 from cvqpg import optics
 from cvqpg.ops.field import Grid, clamped_intensity, guard_window, guarded_field, pad_with_guard_band, slm_field
 from cvqpg.ops.propagation import cpu as propagation_kernels
-from cvqpg.optics import TransferBank, propagate, propagate_content, transfer_function
+from cvqpg.optics import TransferBank, propagate, propagate_content, reconstruct, transfer_function
 
 CPU = torch.device("cpu")
 PITCH = 3.74e-6
@@ -214,6 +214,33 @@ def test_pruned_content_propagation_and_its_adjoint_match_the_full_transforms(ke
     assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
     # rebuilt functions are built once per pass, not once per block (a 3840×2160 build takes seconds)
     assert built_in_runs == (0 if cached else 2 * 2 * len(distances) * len(wavelengths))
+
+
+def test_full_grid_and_pruned_propagation_give_the_same_reconstruction_and_gradient():
+    """`reconstruct` through the full-grid transforms (`--propagation full`, auto's choice on CUDA) and
+    through the pruned ones (the CPU's): the same intensities and hologram gradient to float32 noise."""
+    config = FitConfig(width=40, height=28, guard_band_px=8, pad_multiple_px=8)
+    generator = torch.Generator().manual_seed(4)
+    hologram = 0.6 * torch.complex(torch.randn(3, 28, 40, generator=generator), torch.randn(3, 28, 40, generator=generator))
+    upstream = torch.rand(2, 3, 28, 40, generator=generator)
+    results = {}
+    for propagation in ("full", "pruned"):
+        leaf = hologram.clone().requires_grad_(True)
+        recon = reconstruct(leaf, config.replace(propagation=propagation))
+        (recon * upstream).sum().backward()
+        results[propagation] = recon.detach(), leaf.grad
+    (full, full_grad), (pruned, pruned_grad) = results["full"], results["pruned"]
+    assert full.shape == pruned.shape == (2, 3, 28, 40) and full.max() > 0.01
+    assert float((full - pruned).abs().max()) < 1e-5 * float(full.abs().max()) + 1e-7
+    assert float((full_grad - pruned_grad).abs().max()) < 1e-4 * float(full_grad.abs().max())
+
+
+def test_auto_propagation_is_pruned_on_the_cpu_and_full_grid_on_cuda():
+    assert optics.resolve_propagation("auto", "cpu") == "pruned"
+    assert optics.resolve_propagation("auto", torch.device("cuda")) == "full"
+    assert optics.resolve_propagation("pruned", torch.device("cuda")) == "pruned"
+    with pytest.raises(ConfigError, match="propagation 'fft'"):
+        FitConfig(propagation="fft").validate()
 
 
 def test_energy_conserved_equals_band_limited_input_energy():

@@ -19,7 +19,8 @@ from safetensors.torch import load_file, save_file
 
 from cvqpg import FitConfig, builtin_scene, fit
 from cvqpg.cli import main
-from cvqpg.fitting import initial_state, optimisation_step
+from cvqpg import fitting
+from cvqpg.fitting import fit_scene, initial_state, optimisation_step, readback_due
 from cvqpg.optics import reconstruct
 from cvqpg.primitives import Gaussians, activate, inverse_covariance
 from cvqpg.ops.rasterize import rasterize
@@ -261,6 +262,120 @@ def test_non_finite_loss_skips_the_step():
     assert state.skipped_steps == 1
     for name, tensor in state.gaussians.tensors().items():
         assert torch.equal(tensor.detach(), before[name]), name
+
+
+def optimiser_snapshot(state):
+    """Parameters, Adan's moments and step counters, copied."""
+    optimizer = state.optimizer
+    return ({k: v.detach().clone() for k, v in state.gaussians.tensors().items()},
+            {id(p): {k: v.clone() for k, v in optimizer.state[p].items()} for p in optimizer.state},
+            [group.get("step", 0) for group in optimizer.param_groups])  # Adan starts a missing counter at 0
+
+
+def assert_same_snapshot(before, after):
+    for name in before[0]:
+        assert torch.equal(before[0][name], after[0][name]), name
+    assert before[1].keys() == after[1].keys()
+    for key, moments in before[1].items():
+        assert all(torch.equal(moments[k], after[1][key][k]) for k in moments)
+    assert before[2] == after[2]
+
+
+@pytest.mark.parametrize("ordinary_steps", [0, 2])
+def test_a_nan_step_leaves_parameters_and_optimiser_state_as_they_were(ordinary_steps):
+    """On the first step (no optimiser state yet) and after two ordinary ones (moments and counters)."""
+    config = FitConfig(width=24, height=20, steps=5, warmup=1, num_gaussians=30, guard_band_px=8)
+    scene = tiny_scene(config)
+    state = initial_state(config)
+    for _ in range(ordinary_steps):
+        optimisation_step(state, scene, config)
+        state.step += 1
+    before = optimiser_snapshot(state)
+    scene.targets[0, 0, 0, 0] = float("nan")
+    loss, _ = optimisation_step(state, scene, config)
+    assert np.isnan(loss) and state.skipped_steps == 1 and state.sanitised_steps == 0
+    assert_same_snapshot(before, optimiser_snapshot(state))
+
+
+def test_an_update_that_leaves_a_parameter_non_finite_is_undone_with_the_optimiser_state(monkeypatch):
+    config = FitConfig(width=24, height=20, steps=5, warmup=1, num_gaussians=30, guard_band_px=8)
+    scene = tiny_scene(config)
+    state = initial_state(config)
+    optimisation_step(state, scene, config)
+    state.step += 1
+    before = optimiser_snapshot(state)
+    original = state.optimizer.step
+
+    def overflowing_step():
+        original()
+        state.gaussians.scale.data[3, 0] = float("inf")
+
+    monkeypatch.setattr(state.optimizer, "step", overflowing_step)
+    loss, _ = optimisation_step(state, scene, config)
+    assert np.isfinite(loss) and state.skipped_steps == 1
+    assert_same_snapshot(before, optimiser_snapshot(state))
+
+
+def test_reading_steps_back_in_batches_gives_the_same_fit_and_counts(monkeypatch):
+    """The CUDA cadence (steps queued, read back now and then) on the CPU, with a skipped step (non-finite
+    loss) read back right after it: the same history, counts, parameters and `on_step` calls as reading
+    back after every step."""
+    config = FitConfig(width=24, height=20, steps=7, warmup=2, num_gaussians=30, guard_band_px=8)
+    scene = tiny_scene(config)
+    loss_of = fitting.multiplane_loss
+    results, calls = [], []
+    for every in (1, 3):
+        reads, losses = iter(range(10**6)), iter(range(10**6))
+        monkeypatch.setattr(fitting, "readback_due", lambda device, seconds, every=every: next(reads) % every == 0)
+
+        def poisoned(recon, targets, *rest, losses=losses):
+            loss, mse = loss_of(recon, targets, *rest)
+            return (loss * float("nan"), mse) if targets is scene.targets and next(losses) == 3 else (loss, mse)
+
+        monkeypatch.setattr(fitting, "multiplane_loss", poisoned)
+        steps = []
+        results.append(fit_scene(scene, config, progress=False, on_step=lambda *a, steps=steps: steps.append(a)))
+        calls.append(steps)
+    single, batched = results
+    assert np.isnan(single.history["loss"][3]) and single.skipped_steps == batched.skipped_steps == 1
+    for name in ("loss", "psnr"):
+        np.testing.assert_array_equal(batched.history[name], single.history[name])  # NaN equals NaN here
+    np.testing.assert_array_equal(np.array(calls[1]), np.array(calls[0]))
+    assert [c[0] for c in calls[1]] == list(range(config.steps + 1))
+    for name, tensor in single.gaussians.tensors().items():
+        assert torch.equal(tensor, batched.gaussians.tensors()[name]), name
+
+
+def test_steps_are_read_back_after_each_on_the_cpu_and_every_half_second_on_cuda():
+    assert readback_due(torch.device("cpu"), 0.0)
+    assert not readback_due(torch.device("cuda"), 0.1) and readback_due(torch.device("cuda"), 0.6)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_propagation_loss_and_update_read_nothing_back_on_cuda():
+    """Everything of a step after the rasterizer, under CUDA's sync debug mode set to fail on a host read."""
+    config = FitConfig(width=24, height=20, steps=5, warmup=0, num_gaussians=30, guard_band_px=8, device="cuda")
+    state = initial_state(config)
+    with torch.no_grad():
+        hologram = fitting.render_hologram(state.gaussians, config).requires_grad_(True)
+    scene = tiny_scene(config)
+    targets, masks = scene.targets.cuda(), scene.masks.cuda()
+    grads = {p: torch.randn_like(p) for group in state.optimizer.param_groups for p in group["params"]}
+    reconstruct(hologram, config)  # builds and keeps the transfer functions
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        recon = reconstruct(hologram, config)
+        noise = fitting.standard_normal(targets.shape, state.generator)
+        loss, mse = fitting.multiplane_loss(recon, targets, masks, fitting.noisy_targets(targets, noise, 1e-3))
+        loss.backward()
+        for parameter, grad in grads.items():
+            parameter.grad = grad
+        sanitised, skipped = fitting.apply_gradients(state.optimizer, config, 0, torch.isfinite(loss.detach()))
+        fitting.psnr_from_mse(mse)
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
+    assert not skipped.item() and not sanitised.item()
 
 
 def test_non_finite_gradient_entries_are_zeroed_and_counted():

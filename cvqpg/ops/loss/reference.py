@@ -3,11 +3,13 @@ differentiated by autograd."""
 
 from __future__ import annotations
 
+import functools
 import inspect
 from typing import ContextManager
 
 import torch
 from pytorch_msssim import ssim
+from pytorch_msssim.ssim import _fspecial_gauss_1d
 from torch import Tensor
 
 from .cpu import SSIM_TAPS
@@ -40,9 +42,16 @@ def _without_onednn() -> ContextManager:
     return torch.backends.mkldnn.flags(enabled=False)
 
 
+@functools.lru_cache(maxsize=8)
+def ssim_window(channels: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """pytorch-msssim's own Gaussian window [C, 1, 1, 11] on `device`, made once: left to pytorch-msssim
+    it is built on the host and copied to the device at every call, which on CUDA waits for the GPU."""
+    return _fspecial_gauss_1d(SSIM_WINDOW_PX, SSIM_SIGMA_PX).repeat(channels, 1, 1, 1).to(device, dtype)
+
+
 def ssim_per_plane(recon: Tensor, targets: Tensor) -> Tensor:
     """SSIM [M] of [M, C, H, W] images (pytorch-msssim), Gaussian window 11 px, σ 1.5 px, data range 1."""
     # oneDNN's depthwise 1×11 convolutions cost 3× PyTorch's own on one channel.
     with _without_onednn():
-        return ssim(recon, targets, data_range=1.0, size_average=False, win_size=SSIM_WINDOW_PX,
-                    win_sigma=SSIM_SIGMA_PX)
+        return ssim(recon, targets, data_range=1.0, size_average=False,
+                    win=ssim_window(recon.shape[1], recon.dtype, recon.device))

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ...primitives import COVARIANCE_REGULARISER_PX2, Primitives
+from ...primitives import COVARIANCE_REGULARISER_PX2, Primitives, device_constants
 from .. import resolve_backend
 from . import cpu
 from .reference import FOOTPRINT_SIGMAS, Qpf, curvature_columns, splat_reference, splats
@@ -162,13 +162,14 @@ Backend = Callable[[Primitives, int, int, Tensor, float, Qpf], Tensor]
 BACKENDS: dict[str, Backend] = {"torch": splat_reference, "numba": splat_fused, "triton": splat_triton}
 
 
-def wavenumbers_for(wavelengths_m: Sequence[float]) -> Tensor:
-    """k_c = 2π/λ_c (1/m) as a float64 tensor."""
-    return torch.tensor([2 * math.pi / w for w in wavelengths_m], dtype=torch.float64)
+def wavenumbers_for(wavelengths_m: Sequence[float], device: torch.device | str = "cpu") -> Tensor:
+    """k_c = 2π/λ_c (1/m) as a float64 tensor on `device` (made once per device; read-only)."""
+    return device_constants(tuple(2 * math.pi / w for w in wavelengths_m), torch.float64, torch.device(device))
 
 
 def rasterize(prims: Primitives, width: int, height: int, wavelengths_m: Sequence[float],
               pixel_pitch: float, qpf: Qpf = "mahalanobis", backend: str = "auto") -> Tensor:
     """Complex hologram [C, H, W] of the activated primitives on the W×H grid (px), pitch in m."""
     backend = resolve_backend(backend, prims.position_px.device)
-    return BACKENDS[backend](prims, width, height, wavenumbers_for(wavelengths_m), pixel_pitch, qpf)
+    wavenumbers = wavenumbers_for(wavelengths_m, prims.position_px.device)
+    return BACKENDS[backend](prims, width, height, wavenumbers, pixel_pitch, qpf)
