@@ -29,7 +29,9 @@ from .optics import SPECTRUM_BLOCK_ROWS
 if TYPE_CHECKING:
     from .targets import Scene
 
-COMPILE_ESTIMATE_SECONDS = 60  # a fit's cold compile on the shared 2-core development machine (README)
+# A cold compile's critical path on 2 idle cores: the rasterizer's kernels (about 31 CPU s) and Numba's library
+# functions, while the second process compiles the rest (benchmarks/compile.py, README).
+COMPILE_ESTIMATE_SECONDS = 40
 PROBE_SIZE_PX = (32, 24)  # above the SSIM window (11 px), so that every loss kernel runs
 PROBE_PRIMITIVES = 24
 # The padded grid then spans more than one block of the propagation's spectrum rows, as every real
