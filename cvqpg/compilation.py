@@ -4,7 +4,8 @@ Numba compiles a kernel on its first call and caches the machine code on disk (`
 only the first fit after installing (or after the kernels' source changed) pays for it. A fit on
 the CPU therefore starts with one optimisation step of a tiny scene with the same settings
 (`compile_kernels`): it compiles, or loads from the cache, exactly the kernel specialisations that
-the fit calls, before the progress bar and the fit's clock start. When Numba compiles (rather
+the fit calls, before the progress bar and the fit's clock start; cold, a second process compiles
+the propagation's and the loss's kernels meanwhile (`CompileAlongside`). When Numba compiles (rather
 than loads from its cache), a status line says so and counts the seconds. `warmup` does the same ahead of time for
 every kind of fit (`cvqpg warmup`, run by `scripts/install.sh`).
 """
@@ -34,9 +35,9 @@ if TYPE_CHECKING:
 COMPILE_ESTIMATE_SECONDS = 40
 PROBE_SIZE_PX = (32, 24)  # above the SSIM window (11 px), so that every loss kernel runs
 PROBE_PRIMITIVES = 24
-# The padded grid then spans more than one block of the propagation's spectrum rows, as every real
-# fit's does: its transposes and copies take the same strided views (array layouts), so the probe
-# compiles the specialisations a fit calls rather than those of a grid that fits one block.
+# With this guard band the probe's padded grid spans more than one block of the propagation's
+# spectrum rows, as every real fit's does: its transposes and copies take the same strided views
+# (array layouts), so the probe compiles the specialisations a fit calls, not those of a one-block grid.
 PROBE_GUARD_BAND_PX = SPECTRUM_BLOCK_ROWS // 4
 
 # Fits whose kernels differ in their argument types differ in their plane count only (the
@@ -85,7 +86,8 @@ def compile_propagation_and_loss(probe: FitConfig) -> None:
 class CompileAlongside(event.Listener):
     """Within the block, at the first kernel that Numba compiles (on a warm cache there is none),
     starts `target(*args)` in another process (on another core), which compiles other kernels into
-    Numba's disk cache meanwhile; waits for it at the end of the block."""
+    Numba's disk cache meanwhile; waits for it at the end of the block, or stops it if the block
+    raised (an interrupted fit does not wait for it)."""
 
     def __init__(self, target: Callable[..., None], *args: object) -> None:
         self.target, self.args = target, args
@@ -104,9 +106,11 @@ class CompileAlongside(event.Listener):
         event.register("numba:compile", self)
         return self
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, exc_type: type | None, *exc: object) -> None:
         event.unregister("numba:compile", self)
         if self.process is not None:
+            if exc_type is not None:
+                self.process.terminate()
             self.process.join()
 
 
@@ -124,7 +128,6 @@ def compile_kernels(config: FitConfig, alongside: bool = True) -> None:
     with CompileAlongside(compile_propagation_and_loss, probe) if alongside else contextlib.nullcontext():
         hologram = render_hologram(state.gaussians, probe)
         hologram.backward(torch.ones_like(hologram))
-    state.optimizer.zero_grad(set_to_none=True)
     optimisation_step(state, probe_scene(probe), probe)
     render(activate(state.gaussians.detached(), probe), probe)
 

@@ -113,3 +113,13 @@ def test_without_a_compile_no_helper_process_starts():
     with CompileAlongside(time.sleep, 1.0) as alongside:
         compile_kernels(FitConfig(width=48, height=36), alongside=False)  # now loads from the cache
     assert alongside.process is None
+
+
+def test_an_interrupted_block_stops_the_helper_process_instead_of_waiting():
+    started = time.perf_counter()
+    with pytest.raises(KeyboardInterrupt):
+        with CompileAlongside(time.sleep, 60.0) as alongside:
+            with event.trigger_event("numba:compile", data={}):
+                pass
+            raise KeyboardInterrupt
+    assert alongside.process.exitcode is not None and time.perf_counter() - started < 30.0
