@@ -30,9 +30,8 @@ from .optics import SPECTRUM_BLOCK_ROWS
 if TYPE_CHECKING:
     from .targets import Scene
 
-# A cold compile's critical path on 2 idle cores: the rasterizer's kernels (about 31 CPU s) and Numba's library
-# functions, while the second process compiles the rest (benchmarks/compile.py, README).
-COMPILE_ESTIMATE_SECONDS = 40
+# A demo fit's cold compile on 2 idle cores, the rasterizer's kernels here and the rest alongside (docs/performance.md)
+COMPILE_ESTIMATE_SECONDS = 30
 PROBE_SIZE_PX = (32, 24)  # above the SSIM window (11 px), so that every loss kernel runs
 PROBE_PRIMITIVES = 24
 # With this guard band the probe's padded grid spans more than one block of the propagation's
