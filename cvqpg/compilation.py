@@ -4,17 +4,20 @@ Numba compiles a kernel on its first call and caches the machine code on disk (`
 only the first fit after installing (or after the kernels' source changed) pays for it. A fit on
 the CPU therefore starts with one optimisation step of a tiny scene with the same settings
 (`compile_kernels`): it compiles, or loads from the cache, exactly the kernel specialisations that
-the fit calls, before the progress bar and the fit's clock start. When Numba compiles (rather
+the fit calls, before the progress bar and the fit's clock start; cold, a second process compiles
+the propagation's and the loss's kernels meanwhile (`CompileAlongside`). When Numba compiles (rather
 than loads from its cache), a status line says so and counts the seconds. `warmup` does the same ahead of time for
 every kind of fit (`cvqpg warmup`, run by `scripts/install.sh`).
 """
 
 from __future__ import annotations
 
+import contextlib
+import multiprocessing
 import sys
 import threading
 import time
-from typing import TextIO
+from typing import TYPE_CHECKING, Callable, TextIO
 
 import numpy as np
 import torch
@@ -22,10 +25,19 @@ from numba.core import event
 from PIL import Image
 
 from .config import FitConfig
+from .optics import SPECTRUM_BLOCK_ROWS
 
-COMPILE_ESTIMATE_SECONDS = 60  # a fit's cold compile on the shared 2-core development machine (README)
+if TYPE_CHECKING:
+    from .targets import Scene
+
+# A demo fit's cold compile on 2 idle cores, the rasterizer's kernels here and the rest alongside (docs/performance.md)
+COMPILE_ESTIMATE_SECONDS = 30
 PROBE_SIZE_PX = (32, 24)  # above the SSIM window (11 px), so that every loss kernel runs
 PROBE_PRIMITIVES = 24
+# With this guard band the probe's padded grid spans more than one block of the propagation's
+# spectrum rows, as every real fit's does: its transposes and copies take the same strided views
+# (array layouts), so the probe compiles the specialisations a fit calls, not those of a one-block grid.
+PROBE_GUARD_BAND_PX = SPECTRUM_BLOCK_ROWS // 4
 
 # Fits whose kernels differ in their argument types differ in their plane count only (the
 # propagation takes one array per plane; colour, primitive, curvature and QPF change values, not
@@ -44,25 +56,78 @@ def probe_config(config: FitConfig) -> FitConfig:
     kernel specialisations, a few milliseconds per step once compiled."""
     width, height = PROBE_SIZE_PX
     return config.replace(width=width, height=height, num_gaussians=PROBE_PRIMITIVES, steps=1,
-                          warmup=0, guard_band_px=8, device="cpu").validate()
+                          warmup=0, guard_band_px=PROBE_GUARD_BAND_PX, device="cpu").validate()
 
 
-def compile_kernels(config: FitConfig) -> None:
-    """Compile (or load from Numba's cache) every kernel that a CPU fit of `config` calls, by running
-    one optimisation step and one render of a tiny scene of the same kind."""
-    from .fitting import initial_state, optimisation_step, render
-    from .primitives import activate
+def probe_scene(probe: FitConfig) -> Scene:
+    """The demo scene at the probe's size, with a depth ramp over all pixels that puts some on every
+    plane, however many --planes asks for."""
     from .scenes import builtin_scene
     from .targets import load_scene
 
-    probe = probe_config(config)
     demo = builtin_scene("demo", probe.width, probe.height)
-    # A depth ramp over all pixels puts some on every plane, however many --planes asks for.
     ramp = Image.fromarray(np.linspace(0.0, 1.0, probe.width * probe.height, dtype=np.float32)
                            .reshape(probe.height, probe.width), "F")
-    scene = load_scene(demo.image, ramp if probe.num_planes > 1 else None, probe)
+    return load_scene(demo.image, ramp if probe.num_planes > 1 else None, probe)
+
+
+def compile_propagation_and_loss(probe: FitConfig) -> None:
+    """Compile (or load) the propagation's and the loss's kernels for fits of `probe`'s kind: the
+    loss of a random hologram, and its gradient."""
+    from .fitting import hologram_loss
+
+    generator = torch.Generator().manual_seed(0)
+    field = torch.randn(probe.channels, probe.height, probe.width, dtype=torch.complex64, generator=generator)
+    loss, _ = hologram_loss(field.requires_grad_(True), probe_scene(probe), probe, generator)
+    loss.backward()
+
+
+class CompileAlongside(event.Listener):
+    """Within the block, at the first kernel that Numba compiles (on a warm cache there is none),
+    starts `target(*args)` in another process (on another core), which compiles other kernels into
+    Numba's disk cache meanwhile; waits for it at the end of the block, or stops it if the block
+    raised (an interrupted fit does not wait for it)."""
+
+    def __init__(self, target: Callable[..., None], *args: object) -> None:
+        self.target, self.args = target, args
+        self.process: multiprocessing.process.BaseProcess | None = None
+
+    def on_start(self, ev: event.Event) -> None:
+        if self.process is None:
+            self.process = multiprocessing.get_context("spawn").Process(target=self.target, args=self.args,
+                                                                        daemon=True)
+            self.process.start()
+
+    def on_end(self, ev: event.Event) -> None:
+        pass
+
+    def __enter__(self) -> "CompileAlongside":
+        event.register("numba:compile", self)
+        return self
+
+    def __exit__(self, exc_type: type | None, *exc: object) -> None:
+        event.unregister("numba:compile", self)
+        if self.process is not None:
+            if exc_type is not None:
+                self.process.terminate()
+            self.process.join()
+
+
+def compile_kernels(config: FitConfig, alongside: bool = True) -> None:
+    """Compile (or load from Numba's cache) every kernel that a CPU fit of `config` calls, by running
+    one optimisation step and one render of a tiny scene of the same kind.
+
+    Cold and `alongside`, the rasterizer's kernels compile here while another process compiles the
+    propagation's and the loss's (`CompileAlongside`); the step then loads those from the cache."""
+    from .fitting import initial_state, optimisation_step, render, render_hologram
+    from .primitives import activate
+
+    probe = probe_config(config)
     state = initial_state(probe)
-    optimisation_step(state, scene, probe)
+    with CompileAlongside(compile_propagation_and_loss, probe) if alongside else contextlib.nullcontext():
+        hologram = render_hologram(state.gaussians, probe)
+        hologram.backward(torch.ones_like(hologram))
+    optimisation_step(state, probe_scene(probe), probe)
     render(activate(state.gaussians.detached(), probe), probe)
 
 

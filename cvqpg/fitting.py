@@ -183,6 +183,16 @@ def state_from_payload(payload: dict, config: FitConfig) -> FitState:
     return state
 
 
+def hologram_loss(field: Tensor, scene: Scene, config: FitConfig,
+                  generator: torch.Generator) -> tuple[Tensor, Tensor]:
+    """SPEC §6's training loss of a complex hologram [C, H, W]: propagated to the scene's planes and
+    compared with its targets under fresh noise drawn from `generator`; returns it and the plain MSE."""
+    noise = standard_normal(scene.targets.shape, generator)
+    return multiplane_loss(reconstruct(field, config), scene.targets, scene.masks,
+                           noisy_targets(scene.targets, noise, config.target_noise), config.ssim_weight,
+                           config.backend)
+
+
 @dataclass
 class StepOutcome:
     """One update's numbers, left on the device until the loop reads them back (`FitState.settle`)."""
@@ -205,11 +215,7 @@ def update(state: FitState, scene: Scene, config: FitConfig) -> StepOutcome:
     """
     gaussians, step = state.gaussians, state.step
     gaussians.curvature.requires_grad_(config.primitive == "cvqpg" and step >= config.warmup)
-    recon = reconstruct(render_hologram(gaussians, config), config)
-    noise = standard_normal(scene.targets.shape, state.generator)
-    loss, mse = multiplane_loss(recon, scene.targets, scene.masks,
-                                noisy_targets(scene.targets, noise, config.target_noise),
-                                config.ssim_weight, config.backend)
+    loss, mse = hologram_loss(render_hologram(gaussians, config), scene, config, state.generator)
     optimizer = state.optimizer
     optimizer.zero_grad(set_to_none=True)
     loss.backward()

@@ -7,27 +7,27 @@ import time
 
 import pytest
 from numba.core import event
+from numba.core.dispatcher import Dispatcher
 
 from cvqpg import compilation
+from cvqpg.ops.field import cpu as field_kernels
+from cvqpg.ops.loss import cpu as loss_kernels
+from cvqpg.ops.propagation import cpu as propagation_kernels
+from cvqpg.ops.rasterize import cpu as rasterize_kernels
 from cvqpg.cli import main
-from cvqpg.compilation import CompileStatus, compile_kernels
+from cvqpg.compilation import CompileAlongside, CompileStatus, compile_kernels
 from cvqpg.config import FitConfig
 from cvqpg.fitting import fit_scene
 from cvqpg.scenes import builtin_scene
 from cvqpg.targets import load_scene
 
 
-class CompileCounter(event.Listener):
-    """Counts Numba compilations (loads from the on-disk cache are not compilations)."""
-
-    def __init__(self):
-        self.compiled = []
-
-    def on_start(self, ev):
-        pass
-
-    def on_end(self, ev):
-        self.compiled.append(ev.data["dispatcher"].py_func.__name__)
+def kernel_signatures():
+    """Every type signature that the kernel modules' functions hold, compiled or loaded from the cache."""
+    modules = (rasterize_kernels, field_kernels, propagation_kernels, loss_kernels)
+    return {(module.__name__, name, signature) for module in modules
+            for name, function in vars(module).items() if isinstance(function, Dispatcher)
+            for signature in function.signatures}
 
 
 @pytest.mark.parametrize("config", [FitConfig(width=48, height=36, steps=2, warmup=1),
@@ -35,13 +35,13 @@ class CompileCounter(event.Listener):
                                               primitive="flat", qpf="standard"),
                                     FitConfig(width=48, height=36, steps=2, warmup=1, curvature="per-channel")],
                          ids=["demo", "gray-flat-one-plane", "per-channel"])
-def test_after_the_probe_a_fit_compiles_nothing(config):
+def test_after_the_probe_a_fit_needs_no_other_kernel_specialisation(config):
     compile_kernels(config)
+    probed = kernel_signatures()
     demo = builtin_scene("demo", config.width, config.height)
     scene = load_scene(demo.image, demo.depth if config.num_planes > 1 else None, config)
-    with event.install_listener("numba:compile", CompileCounter()) as counter:
-        fit_scene(scene, config, progress=False)
-    assert counter.compiled == []
+    fit_scene(scene, config, progress=False)
+    assert kernel_signatures() == probed
 
 
 def test_the_probe_serves_more_planes_than_the_demo_depth_separates():
@@ -101,3 +101,30 @@ def test_a_slow_cache_load_shows_nothing():
 def test_warmup_command_compiles_every_kind(capsys):
     assert main(["warmup"]) == 0
     assert "CPU kernels compiled and cached" in capsys.readouterr().out
+
+
+def test_a_compile_starts_the_helper_process_and_the_block_waits_for_it():
+    with CompileAlongside(time.sleep, 1.0) as alongside:
+        with event.trigger_event("numba:compile", data={}):
+            pass
+        with event.trigger_event("numba:compile", data={}):
+            pass  # a second compile starts no second process
+        started = alongside.process
+    assert started is not None and started.exitcode == 0
+
+
+def test_without_a_compile_no_helper_process_starts():
+    compile_kernels(FitConfig(width=48, height=36))
+    with CompileAlongside(time.sleep, 1.0) as alongside:
+        compile_kernels(FitConfig(width=48, height=36), alongside=False)  # now loads from the cache
+    assert alongside.process is None
+
+
+def test_an_interrupted_block_stops_the_helper_process_instead_of_waiting():
+    started = time.perf_counter()
+    with pytest.raises(KeyboardInterrupt):
+        with CompileAlongside(time.sleep, 60.0) as alongside:
+            with event.trigger_event("numba:compile", data={}):
+                pass
+            raise KeyboardInterrupt
+    assert alongside.process.exitcode is not None and time.perf_counter() - started < 30.0

@@ -46,7 +46,7 @@ def guarded_field(hologram, row_window, column_window, top, left, out):
     its left band, content and right band.
     """
     channels, height, width = hologram.shape
-    padded_height, padded_width = out.shape[1], out.shape[2]
+    padded_height = out.shape[1]
     for row in nb.prange(channels * padded_height):
         channel, y = row // padded_height, row % padded_height
         source = hologram[channel, min(max(y - top, 0), height - 1)]

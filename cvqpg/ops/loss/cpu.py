@@ -127,7 +127,7 @@ SSIM_TASKS = 64  # the SSIM kernels' rows go in consecutive runs to this many ta
 @nb.njit(cache=True, nogil=True)
 def _task_rows(task, rows):
     """The run of rows that task `task` of SSIM_TASKS takes: consecutive rows share their input rows in
-    cache."""
+    cache. `task` comes as np.int64 (see `kernels.splat_forward`: one compilation, not two)."""
     return range(task * rows // SSIM_TASKS, (task + 1) * rows // SSIM_TASKS)
 
 
@@ -209,7 +209,7 @@ def ssim_forward(x, y, taps, c1, c2, d_mean_x, d_mean_xx, d_mean_xy):
         m_x, m_y, m_xx, m_yy, m_xy = (np.empty(out_width, x.dtype), np.empty(out_width, x.dtype),
                                       np.empty(out_width, x.dtype), np.empty(out_width, x.dtype),
                                       np.empty(out_width, x.dtype))
-        for row in _task_rows(task, rows.shape[0]):
+        for row in _task_rows(np.int64(task), rows.shape[0]):
             rows[row] = _ssim_row(x, y, taps, c1, c2, row // out_height, row % out_height, (s_x, s_y, s_xx, s_yy, s_xy),
                                   (m_x, m_y, m_xx, m_yy, m_xy), d_mean_x, d_mean_xx, d_mean_xy)
     return rows.reshape(images, out_height).sum(axis=1)
@@ -259,7 +259,7 @@ def ssim_backward(d_mean_x, d_mean_xx, d_mean_xy, weights, x, y, taps, out):
         c_x, c_xx, c_xy = (np.zeros(out_width + 2 * margin, x.dtype), np.zeros(out_width + 2 * margin, x.dtype),
                            np.zeros(out_width + 2 * margin, x.dtype))
         g_x, g_xx, g_xy = np.empty(width, x.dtype), np.empty(width, x.dtype), np.empty(width, x.dtype)
-        for row in _task_rows(task, images * height):
+        for row in _task_rows(np.int64(task), images * height):
             b, i = row // height, row % height
             _gathered_columns(d_mean_x[b], d_mean_xx[b], d_mean_xy[b], i, taps, c_x[margin:margin + out_width],
                               c_xx[margin:margin + out_width], c_xy[margin:margin + out_width])

@@ -801,6 +801,11 @@ def _splat_loop(t, threads, order, position, conic, reach, chirp, color, phase, 
                    out_re, out_im, image_re, image_im, lefts, rights, spans, lanes, scratch)
 
 
+# A prange index is int64 where Numba first types a parallel function and uint64 in the loop body it
+# compiles from it: a function called with the bare index compiles twice (for the rasterizer's loops,
+# an eighth of a fit's first compilation). The parallel loops hand it on as np.int64.
+
+
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def splat_forward(order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, partial):
     """partial[t] += the sum over primitives order[t], order[t+T], order[t+2T], ... (T = partial.shape[0]).
@@ -810,8 +815,8 @@ def splat_forward(order, position, conic, reach, chirp, color, phase, opacity, w
     """
     threads = partial.shape[0]
     for t in nb.prange(threads):
-        _splat_share(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers,
-                     mahalanobis, partial[t, 0], partial[t, 1])
+        _splat_share(np.int64(t), threads, order, position, conic, reach, chirp, color, phase, opacity,
+                     wavenumbers, mahalanobis, partial[t, 0], partial[t, 1])
 
 
 @nb.njit(parallel=True, cache=True)
@@ -1020,5 +1025,6 @@ def splat_backward(order, position, conic, reach, chirp, color, phase, opacity, 
     not reproduced: it concerns values below e⁻⁵⁰.)
     """
     for t in nb.prange(threads):
-        _gradients_share(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers,
-                         mahalanobis, grad[0], grad[1], g_position, g_conic, g_chirp, g_color, g_phase, g_opacity)
+        _gradients_share(np.int64(t), threads, order, position, conic, reach, chirp, color, phase, opacity,
+                         wavenumbers, mahalanobis, grad[0], grad[1], g_position, g_conic, g_chirp, g_color, g_phase,
+                         g_opacity)
