@@ -1,23 +1,41 @@
-"""cvqpg: holograms as complex-valued (quadratic-phase) Gaussian primitives."""
+"""cvqpg: holograms as complex-valued (quadratic-phase) Gaussian primitives.
+
+The library API below is imported on first use (PEP 562), so that importing one module of the
+package, as the first run's compile processes do, does not import all of them.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
 
 __version__ = "0.1.0"
 
-from .config import FitConfig, LearningRates
-from .depth import estimate_depth, load_depth_model
-from .fitting import FitResult, fit, fit_scene, render, render_hologram
-from .metrics import MetricReport, evaluate
-from .optics import Grid, propagate, reconstruct, transfer_function
-from .primitives import Gaussians, Primitives, activate, init_gaussians
-from .ops.rasterize import rasterize
-from .runs import evaluate_run, write_run
-from .scenes import builtin_scene
-from .storage import load_model, save_model
-from .targets import Scene, build_scene, load_scene
+_API_MODULES = {
+    "config": ("FitConfig", "LearningRates"),
+    "depth": ("estimate_depth", "load_depth_model"),
+    "fitting": ("FitResult", "fit", "fit_scene", "render", "render_hologram"),
+    "metrics": ("MetricReport", "evaluate"),
+    "optics": ("Grid", "propagate", "reconstruct", "transfer_function"),
+    "primitives": ("Gaussians", "Primitives", "activate", "init_gaussians"),
+    "ops.rasterize": ("rasterize",),
+    "runs": ("evaluate_run", "write_run"),
+    "scenes": ("builtin_scene",),
+    "storage": ("load_model", "save_model"),
+    "targets": ("Scene", "build_scene", "load_scene"),
+}
+_MODULE_OF = {name: module for module, names in _API_MODULES.items() for name in names}
 
-__all__ = [
-    "FitConfig", "LearningRates", "FitResult", "fit", "fit_scene", "render", "render_hologram",
-    "MetricReport", "evaluate", "Grid", "propagate", "reconstruct", "transfer_function",
-    "Gaussians", "Primitives", "activate", "init_gaussians", "rasterize", "builtin_scene",
-    "Scene", "build_scene", "load_scene", "evaluate_run", "write_run", "load_model", "save_model",
-    "estimate_depth", "load_depth_model", "__version__",
-]
+__all__ = [*_MODULE_OF, "__version__"]
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _MODULE_OF:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{_MODULE_OF[name]}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})

@@ -4,20 +4,21 @@ Numba compiles a kernel on its first call and caches the machine code on disk (`
 only the first fit after installing (or after the kernels' source changed) pays for it. A fit on
 the CPU therefore starts with one optimisation step of a tiny scene with the same settings
 (`compile_kernels`): it compiles, or loads from the cache, exactly the kernel specialisations that
-the fit calls, before the progress bar and the fit's clock start; cold, a second process compiles
-the propagation's and the loss's kernels meanwhile (`CompileAlongside`). When Numba compiles (rather
-than loads from its cache), a status line says so and counts the seconds. `warmup` does the same ahead of time for
-every kind of fit (`cvqpg warmup`, run by `scripts/install.sh`).
+the fit calls, before the progress bar and the fit's clock start. Cold, the fit compiles the
+rasterizer's kernels while another process compiles the propagation's and the loss's into the cache
+(`CompileAlongside`). When Numba compiles (rather than loads from its cache), a status line says so
+and counts the seconds. `warmup` does the same ahead of time for every kind of fit (`cvqpg warmup`,
+run by `scripts/install.sh`).
 """
 
 from __future__ import annotations
 
-import contextlib
-import multiprocessing
+import json
+import subprocess
 import sys
 import threading
 import time
-from typing import TYPE_CHECKING, Callable, TextIO
+from typing import TYPE_CHECKING, Callable, Sequence, TextIO
 
 import numpy as np
 import torch
@@ -31,7 +32,7 @@ if TYPE_CHECKING:
     from .targets import Scene
 
 # A demo fit's cold compile on 2 idle cores, the rasterizer's kernels here and the rest alongside (docs/performance.md)
-COMPILE_ESTIMATE_SECONDS = 30
+COMPILE_ESTIMATE_SECONDS = 25
 PROBE_SIZE_PX = (32, 24)  # above the SSIM window (11 px), so that every loss kernel runs
 PROBE_PRIMITIVES = 24
 # With this guard band the probe's padded grid spans more than one block of the propagation's
@@ -82,21 +83,39 @@ def compile_propagation_and_loss(probe: FitConfig) -> None:
     loss.backward()
 
 
+# What another process compiles while a cold fit compiles the rasterizer's kernels (docs/performance.md,
+# "First run").
+ALONGSIDE_PARTS: dict[str, Callable[[FitConfig], None]] = {"propagation-and-loss": compile_propagation_and_loss}
+
+
+def compile_part(part: str, probe_json: str) -> None:
+    """Entry point of a compile process: compile `part` (a key of ALONGSIDE_PARTS) for the probe
+    configuration given as JSON."""
+    ALONGSIDE_PARTS[part](FitConfig.from_dict(json.loads(probe_json)))
+
+
+def part_command(part: str, probe: FitConfig) -> list[str]:
+    """The command of a process that compiles `part` for fits of `probe`'s kind. A fresh interpreter
+    imports only the modules the part needs (not the CLI, as a multiprocessing child would)."""
+    return [sys.executable, "-c", "import sys; from cvqpg.compilation import compile_part; compile_part(*sys.argv[1:])",
+            part, json.dumps(probe.to_dict())]
+
+
 class CompileAlongside(event.Listener):
     """Within the block, at the first kernel that Numba compiles (on a warm cache there is none),
-    starts `target(*args)` in another process (on another core), which compiles other kernels into
-    Numba's disk cache meanwhile; waits for it at the end of the block, or stops it if the block
-    raised (an interrupted fit does not wait for it)."""
+    starts one process per command, each compiling other kernels into Numba's disk cache on another
+    core; waits for them at the end of the block, or stops them if the block raised (an interrupted
+    fit does not wait). A process that fails costs nothing but time: the fit compiles what it
+    left out itself."""
 
-    def __init__(self, target: Callable[..., None], *args: object) -> None:
-        self.target, self.args = target, args
-        self.process: multiprocessing.process.BaseProcess | None = None
+    def __init__(self, commands: Sequence[Sequence[str]]) -> None:
+        self.commands = [list(command) for command in commands]
+        self.processes: list[subprocess.Popen] = []
 
     def on_start(self, ev: event.Event) -> None:
-        if self.process is None:
-            self.process = multiprocessing.get_context("spawn").Process(target=self.target, args=self.args,
-                                                                        daemon=True)
-            self.process.start()
+        if not self.processes:
+            self.processes = [subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                               stderr=subprocess.DEVNULL) for command in self.commands]
 
     def on_end(self, ev: event.Event) -> None:
         pass
@@ -107,10 +126,10 @@ class CompileAlongside(event.Listener):
 
     def __exit__(self, exc_type: type | None, *exc: object) -> None:
         event.unregister("numba:compile", self)
-        if self.process is not None:
+        for process in self.processes:
             if exc_type is not None:
-                self.process.terminate()
-            self.process.join()
+                process.terminate()
+            process.wait()
 
 
 def compile_kernels(config: FitConfig, alongside: bool = True) -> None:
@@ -118,13 +137,14 @@ def compile_kernels(config: FitConfig, alongside: bool = True) -> None:
     one optimisation step and one render of a tiny scene of the same kind.
 
     Cold and `alongside`, the rasterizer's kernels compile here while another process compiles the
-    propagation's and the loss's (`CompileAlongside`); the step then loads those from the cache."""
+    propagation's and the loss's (`ALONGSIDE_PARTS`); the step then loads those from the cache."""
     from .fitting import initial_state, optimisation_step, render, render_hologram
     from .primitives import activate
 
     probe = probe_config(config)
     state = initial_state(probe)
-    with CompileAlongside(compile_propagation_and_loss, probe) if alongside else contextlib.nullcontext():
+    commands = [part_command(part, probe) for part in ALONGSIDE_PARTS] if alongside else []
+    with CompileAlongside(commands):
         hologram = render_hologram(state.gaussians, probe)
         hologram.backward(torch.ones_like(hologram))
     optimisation_step(state, probe_scene(probe), probe)

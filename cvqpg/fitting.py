@@ -6,11 +6,10 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import torch
 from PIL import Image
-from pytorch_optimizer import Adan
 from torch import Tensor
 from tqdm.auto import tqdm
 
@@ -23,6 +22,9 @@ from .primitives import Gaussians, Primitives, activate, init_gaussians
 from .provenance import peak_memory, reset_peak_memory
 from .ops.rasterize import rasterize
 from .targets import Scene, load_scene
+
+if TYPE_CHECKING:
+    from pytorch_optimizer import Adan
 
 LEARNING_RATE_GROUPS = ("position", "scale", "rotation", "color", "phase", "opacity", "curvature")
 
@@ -76,6 +78,10 @@ def trainable_groups(config: FitConfig) -> tuple[str, ...]:
 
 def make_optimizer(gaussians: Gaussians, config: FitConfig) -> Adan:
     """Adan (pytorch-optimizer) with one group per parameter kind and SPEC §6 learning rates."""
+    # Imported here: pytorch-optimizer imports transformers where it is installed (a second or more),
+    # which the first run's compile processes, importing this module, do not need.
+    from pytorch_optimizer import Adan
+
     groups = [{"params": [getattr(gaussians, name)], "lr": getattr(config.lr, name), "name": name}
               for name in trainable_groups(config)]
     return Adan(groups, betas=config.betas, eps=config.adan_eps, weight_decay=0.0, max_grad_norm=0.0)

@@ -3,6 +3,8 @@ the fit's, and a compile that takes a while shows a status line."""
 
 import io
 import json
+import subprocess
+import sys
 import time
 
 import pytest
@@ -103,28 +105,39 @@ def test_warmup_command_compiles_every_kind(capsys):
     assert "CPU kernels compiled and cached" in capsys.readouterr().out
 
 
-def test_a_compile_starts_the_helper_process_and_the_block_waits_for_it():
-    with CompileAlongside(time.sleep, 1.0) as alongside:
+def sleeping(seconds: float) -> list[str]:
+    return [sys.executable, "-c", f"import time; time.sleep({seconds})"]
+
+
+def test_a_compile_starts_the_helper_processes_and_the_block_waits_for_them():
+    with CompileAlongside([sleeping(1.0), sleeping(0.5)]) as alongside:
         with event.trigger_event("numba:compile", data={}):
             pass
         with event.trigger_event("numba:compile", data={}):
-            pass  # a second compile starts no second process
-        started = alongside.process
-    assert started is not None and started.exitcode == 0
+            pass  # a second compile starts no more processes
+        started = list(alongside.processes)
+    assert len(started) == 2 and all(process.returncode == 0 for process in started)
 
 
 def test_without_a_compile_no_helper_process_starts():
     compile_kernels(FitConfig(width=48, height=36))
-    with CompileAlongside(time.sleep, 1.0) as alongside:
+    with CompileAlongside([sleeping(1.0)]) as alongside:
         compile_kernels(FitConfig(width=48, height=36), alongside=False)  # now loads from the cache
-    assert alongside.process is None
+    assert alongside.processes == []
 
 
-def test_an_interrupted_block_stops_the_helper_process_instead_of_waiting():
+def test_an_interrupted_block_stops_the_helper_processes_instead_of_waiting():
     started = time.perf_counter()
     with pytest.raises(KeyboardInterrupt):
-        with CompileAlongside(time.sleep, 60.0) as alongside:
+        with CompileAlongside([sleeping(60.0)]) as alongside:
             with event.trigger_event("numba:compile", data={}):
                 pass
             raise KeyboardInterrupt
-    assert alongside.process.exitcode is not None and time.perf_counter() - started < 30.0
+    assert alongside.processes[0].returncode is not None and time.perf_counter() - started < 30.0
+
+
+@pytest.mark.parametrize("part", sorted(compilation.ALONGSIDE_PARTS))
+def test_each_part_compiles_in_a_process_of_its_own(part):
+    probe = compilation.probe_config(FitConfig(width=48, height=36))
+    done = subprocess.run(compilation.part_command(part, probe), capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
