@@ -31,7 +31,7 @@ from .runs import CONFIG_FILE, model_path, read_run, scene_from_source, write_at
 from .storage import ModelFileError, load_model, save_model
 
 MAGIC = b"\x89CVQ\r\n\x1a\n"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2 added the `bitlength` coding; a version 1 file reads unchanged
 SUFFIX = ".cvq"
 PREFIX = struct.Struct("<8sHI")  # magic, format version, header length (bytes)
 CHECKSUM = struct.Struct("<I")
@@ -44,7 +44,7 @@ def _limits(name: str) -> tuple[int, int]:
     return (0, MAX_POSITION_BITS) if name == "position" else (2, MAX_BITS)
 
 # Stream codings; each stream takes the smallest that applies, so a coding that does not pay is never used.
-RAW, LAPLACE, GAUSSIAN, CATEGORICAL = "raw", "laplace", "gaussian", "categorical"
+RAW, LAPLACE, GAUSSIAN, CATEGORICAL, BIT_LENGTH = "raw", "laplace", "gaussian", "categorical", "bitlength"
 
 
 @dataclass(frozen=True)
@@ -262,8 +262,44 @@ def encode_stream(values: np.ndarray) -> tuple[dict[str, Any], bytes]:
             histogram = zlib.compress(_varints(counts), 9)
             candidates.append(({"coding": CATEGORICAL, "histogram_bytes": len(histogram)},
                                histogram + _ans(shifted, _model(CATEGORICAL, 0, top, counts.tolist()))))
+    if top > 2:  # then the lengths' largest symbol is smaller than `top`, so the recursion ends
+        candidates.append(_bit_length_coded(shifted))
     descriptor, data = min(candidates, key=lambda c: len(c[1]))
     return {**descriptor, "min": low, "max": top + low, "shape": list(values.shape), "bytes": len(data)}, data
+
+
+def _bit_length_coded(shifted: np.ndarray) -> tuple[dict[str, Any], bytes]:
+    """Elias-gamma-like coding of non-negative symbols: each symbol's bit length as a stream of its own
+    (coded by `encode_stream`), then the bits below each leading one, raw, grouped by length. It
+    serves long-tailed streams, such as the Morton gaps, whose largest symbol is too large for the
+    parametric models and costs `raw` its full width on every symbol."""
+    lengths = _bit_lengths(shifted)
+    descriptor, data = encode_stream(lengths)
+    mantissas = b"".join(_raw_bits(shifted[lengths == length] - (1 << (length - 1)), length - 1)
+                         for length in range(2, int(lengths.max(initial=0)) + 1))
+    return {"coding": BIT_LENGTH, "lengths": descriptor}, data + mantissas
+
+
+def _bit_lengths(values: np.ndarray) -> np.ndarray:
+    lengths = np.zeros(values.shape, np.int64)
+    remaining = values.astype(np.uint64)
+    while remaining.any():
+        lengths += remaining > 0
+        remaining >>= np.uint64(1)
+    return lengths
+
+
+def _from_bit_length_coded(descriptor: dict[str, Any], data: bytes, count: int) -> np.ndarray:
+    lengths_descriptor = descriptor["lengths"]
+    lengths = decode_stream(lengths_descriptor, data[:lengths_descriptor["bytes"]]).ravel()
+    values = np.where(lengths > 0, 1, 0).astype(np.int64) << np.maximum(lengths - 1, 0)
+    offset = lengths_descriptor["bytes"]
+    for length in range(2, int(lengths.max(initial=0)) + 1):
+        chosen = lengths == length
+        size = (int(chosen.sum()) * (length - 1) + 7) // 8
+        values[chosen] += _from_raw_bits(data[offset:offset + size], int(chosen.sum()), length - 1)
+        offset += size
+    return values
 
 
 def _varints(counts: np.ndarray) -> bytes:
@@ -296,6 +332,8 @@ def decode_stream(descriptor: dict[str, Any], data: bytes) -> np.ndarray:
     coding = descriptor["coding"]
     if coding == RAW:
         shifted = _from_raw_bits(data, count, descriptor["width"])
+    elif coding == BIT_LENGTH:
+        shifted = _from_bit_length_coded(descriptor, data, count)
     else:
         if coding == CATEGORICAL:
             split = descriptor["histogram_bytes"]
