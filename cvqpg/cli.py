@@ -187,6 +187,9 @@ def _compression_parsers(sub: argparse._SubParsersAction) -> None:
                         f"but position [default of each: {' '.join(f'{k}={v}' for k, v in vars(BitDepths()).items())}]")
     c.add_argument("--finetune", type=int, default=0, metavar="STEPS", help="quantisation-aware fine-tuning "
                    "steps on the run's own targets (needs a run folder); kept only if it pays")
+    c.add_argument("--prune", type=float, default=0.0, metavar="FRACTION", help="with --finetune: first remove "
+                   "this fraction (0 ≤ FRACTION < 1) of the primitives, those of least field energy, and let the "
+                   "fine-tuning make up for them [default: 0]")
     d = sub.add_parser("decompress", help=f"turn a {SUFFIX} file back into a model file",
                        description=f"Decode a {SUFFIX} file into a float32 model file (model.safetensors format).")
     d.add_argument("file", metavar="FILE", help=f"{SUFFIX} file")
@@ -550,15 +553,19 @@ def run_compress(args: argparse.Namespace) -> int:
         raise UsageError(f"--finetune {args.finetune}: give a number of steps ≥ 0")
     if args.max_drop is not None and args.max_drop < 0:
         raise UsageError(f"--max-drop {args.max_drop}: give a drop in dB ≥ 0")
+    if not 0 <= args.prune < 1:
+        raise UsageError(f"--prune {args.prune}: give the fraction of primitives to remove, 0 ≤ FRACTION < 1")
     bits = BitDepths.parse(args.bits) if args.bits else None
-    r = compress_model(Path(args.target), args.out, bits, args.max_drop, args.finetune)
+    r = compress_model(Path(args.target), args.out, bits, args.max_drop, args.finetune, args.prune)
     scored = (f", float {r['psnr_float']:.3f} dB" if r["psnr_float"] is not None
               else f" (drop estimated for a fit at {ASSUMED_FIT_PSNR_DB:g} dB)")
     print(f"{r['file']}: {r['bytes'] / 2**10:.1f} KiB, {r['bits_per_pixel']:.3f} bpp, {r['ratio']:.1f}× smaller than "
           f"{Path(r['model']).name}; PSNR {r['psnr']:.3f} dB against {r['reference']}{scored}, drop "
           f"{r['drop']:.3f} dB; bits "
           + " ".join(f"{k}={v}" for k, v in r["bits"].items())
-          + (f"; fine-tuned {r['finetune_steps']} steps ({'kept' if r['finetune_kept'] else 'did not pay, dropped'})"
+          + (f"; fine-tuned {r['finetune_steps']} steps"
+             + (f" after pruning {r['prune_fraction']:.0%} of the primitives" if r["prune_fraction"] else "")
+             + f" ({'kept' if r['finetune_kept'] else 'did not pay, dropped'}); {r['num_primitives']} primitives"
              if r["finetune_steps"] else ""))
     return 0
 

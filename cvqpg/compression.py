@@ -507,13 +507,37 @@ def choose_bits(primitives: Primitives, config: FitConfig, reference: Reference,
     return best
 
 
+def field_energy(primitives: Primitives) -> torch.Tensor:
+    """Each primitive's field energy up to a constant factor: Σ_c (amplitude_c·opacity)² σx σy [N].
+
+    A primitive's field is a Gaussian of that peak and those scales whatever its curvature (a chirp
+    changes only the phase), and propagation to the planes preserves energy, so removing it changes the
+    reconstructed fields by this much (squared L2), interference with the others aside."""
+    weight = primitives.amplitude * primitives.opacity[:, None]
+    return (weight**2).sum(dim=1) * primitives.scale_px.prod(dim=1)
+
+
+def prune(primitives: Primitives, fraction: float) -> Primitives:
+    """The primitives without the `fraction` (0 ≤ fraction < 1) of least field energy (`field_energy`),
+    the others in their order. The rest only regain the PSNR lost with fine-tuning (`finetune`)."""
+    if not 0 <= fraction < 1:
+        raise ValueError(f"prune fraction {fraction}: give 0 ≤ FRACTION < 1")
+    kept = round((1 - fraction) * primitives.count)
+    order = torch.argsort(field_energy(primitives), descending=True, stable=True)
+    chosen = order[:kept].sort().values
+    return type(primitives).from_tensors({name: tensor[chosen] for name, tensor in primitives.tensors().items()})
+
+
 def compress_model(target: str | Path, out: str | Path | None = None, bits: BitDepths | None = None,
-                   max_drop: float | None = None, finetune_steps: int = 0) -> dict[str, Any]:
+                   max_drop: float | None = None, finetune_steps: int = 0, prune_fraction: float = 0.0
+                   ) -> dict[str, Any]:
     """Compress a run folder's model or a model file into a `.cvq` file (atomically) and report it.
 
     `bits` fixes the budget; otherwise `max_drop` (dB, default 0.1) picks it with `choose_bits`. A
     model inside a run folder is scored against the run's targets, a bare model file against its own
-    reconstruction. `finetune_steps` > 0 first tunes the model at the budget (needs the run folder).
+    reconstruction. `finetune_steps` > 0 first tunes the model at the budget (needs the run folder),
+    after removing the `prune_fraction` of its primitives of least field energy (`prune`; it needs
+    fine-tuning, and like it is kept only where it pays).
     """
     model_file = model_path(target)
     if not model_file.is_file():
@@ -524,6 +548,9 @@ def compress_model(target: str | Path, out: str | Path | None = None, bits: BitD
     folder = model_file.parent if (model_file.parent / CONFIG_FILE).is_file() else None
     if finetune_steps and folder is None:
         raise ModelFileError(f"--finetune needs the run folder's inputs; {model_file} is not in a run folder")
+    if prune_fraction and not finetune_steps:
+        raise ModelFileError(f"--prune {prune_fraction:g} needs --finetune STEPS: pruned primitives cost PSNR "
+                             "that only fine-tuning regains")
     scene = scene_from_source(read_run(folder)[1], config) if folder is not None else None
     out = Path(out) if out is not None else model_file.with_suffix(SUFFIX)
     started = time.perf_counter()
@@ -536,8 +563,9 @@ def compress_model(target: str | Path, out: str | Path | None = None, bits: BitD
         from .finetune import finetune
 
         # Tuned models hold coarser budgets: first try one bit below the choice everywhere, then the choice.
+        start = prune(primitives, prune_fraction)
         for bits_tried in ((choice.bits,) if max_drop is None else (choice.bits.shifted(-1), choice.bits)):
-            candidate = trial(finetune(primitives, config, scene, bits_tried, finetune_steps), config, bits_tried,
+            candidate = trial(finetune(start, config, scene, bits_tried, finetune_steps), config, bits_tried,
                               reference)
             if max_drop is None or candidate.drop <= max_drop:
                 break
@@ -555,6 +583,7 @@ def compress_model(target: str | Path, out: str | Path | None = None, bits: BitD
             "ratio": model_file.stat().st_size / len(choice.data), "bits": asdict(choice.bits),
             "reference": reference.label, "psnr_float": reference.fit_psnr, "psnr": choice.psnr,
             "drop": choice.drop, "max_drop": max_drop, "finetune_steps": finetune_steps, "finetune_kept": tuned,
+            "prune_fraction": prune_fraction, "num_primitives": choice.decoded.count,
             "seconds": seconds}
 
 

@@ -40,7 +40,10 @@ def test_a_compression_cell_takes_the_fit_from_another_grid_and_records_its_poin
     assert record["model_bytes"] == (fitted / "model.safetensors").stat().st_size and record["finetune_steps"] == 2
     tuned = [p for p in record["points"] if p["setting"].startswith("--finetune 2: ")]
     drops = {p["setting"]: record["fit_psnr"] - p["psnr"] for p in record["points"] if p["setting"].startswith("pos")}
-    assert len(tuned) == sum(0.1 < drop <= 4.0 for drop in drops.values())
+    rungs = sum(0.1 < drop <= 4.0 for drop in drops.values())
+    assert len(tuned) == rungs and record["prune_fractions"] == [0.05, 0.1, 0.2]
+    pruned = [p for p in record["points"] if p["setting"].startswith("--prune ")]
+    assert len(pruned) == (3 if rungs else 0)
     float32 = next(p for p in record["points"] if p["codec"] == "model float32")
     assert float32["psnr"] == pytest.approx(record["fit_psnr"], abs=1e-6)
     assert all(p["bpp"] == pytest.approx(8 * p["bytes"] / (48 * 36)) and p["decode_s"] > 0 for p in record["points"])
