@@ -49,10 +49,10 @@ def test_a_compression_cell_takes_the_fit_from_another_grid_and_records_its_poin
     assert all(p["bpp"] == pytest.approx(8 * p["bytes"] / (48 * 36)) and p["decode_s"] > 0 for p in record["points"])
     assert record["run"]["load_average"] is not None and record["cpu_seconds"] > 0
     summary = (grids / "rd" / "summary.md").read_text()
-    assert "Rate–distortion" in summary and "rd_gray-10.png" in summary
+    assert "Rate–distortion" in summary and "rd_gray-10.png" in summary and "| 2 steps |" in summary
     assert (grids / "rd" / "rd_gray-10.png").is_file()
     row = next(csv.DictReader((grids / "rd" / "rd.csv").open()))
-    assert row["cell"] == CELL and float(row["fraction_of_model"]) == pytest.approx(
+    assert row["cell"] == CELL and row["finetune_steps"] == "2" and float(row["fraction_of_model"]) == pytest.approx(
         cell_summary(record)["fraction"])
 
 
