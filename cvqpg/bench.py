@@ -459,6 +459,16 @@ def run_cell(cell: Cell, folder: Path, stop_requested: Callable[[], bool] | None
     return DONE
 
 
+@dataclass(frozen=True)
+class RateDistortionOptions:
+    """How a rate–distortion grid's cells get their points: `fits`, bench folders whose kept models
+    they take; `finetune_steps`, the steps of quantisation-aware fine-tuning at some of the codec's
+    budgets (0: none; see `ratedistortion.finetuned_points`)."""
+
+    fits: tuple[Path, ...] = ()
+    finetune_steps: int = 0
+
+
 def fitted_model(cell: Cell, fits: Sequence[Path]) -> Path | None:
     """The model of the first bench folder in `fits` that finished this cell with the same settings and
     kept its `model.safetensors` (a recorded `results/` folder keeps none)."""
@@ -470,15 +480,16 @@ def fitted_model(cell: Cell, fits: Sequence[Path]) -> Path | None:
     return None
 
 
-def run_rate_distortion_cell(cell: Cell, folder: Path, fits: Sequence[Path],
+def run_rate_distortion_cell(cell: Cell, folder: Path, options: RateDistortionOptions,
                              stop_requested: Callable[[], bool] | None = None) -> str:
-    """A rate–distortion cell: take the fit from `fits` (its records copied) or fit it here, then write
-    `rd.json` with the R-D points of its model against the scene's targets (`ratedistortion.cell_record`)."""
+    """A rate–distortion cell: take the fit from `options.fits` (its records copied) or fit it here, then
+    write `rd.json` with the R-D points of its model against the scene's targets
+    (`ratedistortion.cell_record`)."""
     from .ratedistortion import cell_record
 
     if (folder / RD_FILE).is_file():
         return SKIPPED
-    model = fitted_model(cell, fits)
+    model = fitted_model(cell, options.fits)
     if model is not None:
         folder.mkdir(parents=True, exist_ok=True)
         for name in RECORD_FILES:
@@ -494,18 +505,18 @@ def run_rate_distortion_cell(cell: Cell, folder: Path, fits: Sequence[Path],
                              "cell's model, or delete the cell folder to refit it")
     if stop_requested is not None and stop_requested():
         return INTERRUPTED
-    targets = scene_from_source(cell.scene.source, cell.config).targets
-    write_json(folder / RD_FILE, cell_record(model, targets))
+    scene = scene_from_source(cell.scene.source, cell.config)
+    write_json(folder / RD_FILE, cell_record(model, scene, finetune_steps=options.finetune_steps))
     return DONE
 
 
 def _attempt(cell: Cell, folder: Path, stop_requested: Callable[[], bool] | None,
-             fits: Sequence[Path] | None = None) -> tuple[str, str | None]:
-    """`run_cell`, or `run_rate_distortion_cell` where `fits` is given, with a failure turned into a
-    status, its traceback kept in the cell's `error.log`."""
+             rate_distortion: RateDistortionOptions | None = None) -> tuple[str, str | None]:
+    """`run_cell`, or `run_rate_distortion_cell` where `rate_distortion` is given, with a failure turned
+    into a status, its traceback kept in the cell's `error.log`."""
     try:
-        if fits is not None:
-            return run_rate_distortion_cell(cell, folder, fits, stop_requested), None
+        if rate_distortion is not None:
+            return run_rate_distortion_cell(cell, folder, rate_distortion, stop_requested), None
         return run_cell(cell, folder, stop_requested), None
     except Exception as error:  # one broken cell must not cost the rest of the grid; it is reported
         folder.mkdir(parents=True, exist_ok=True)
@@ -533,16 +544,18 @@ def _init_worker(threads: int, stop_event: Any) -> None:
     _worker_stop = stop_event
 
 
-def _attempt_in_worker(cell: Cell, folder: Path, fits: Sequence[Path] | None) -> tuple[str, str | None]:
-    return _attempt(cell, folder, _worker_stop.is_set, fits)
+def _attempt_in_worker(cell: Cell, folder: Path, rate_distortion: RateDistortionOptions | None
+                       ) -> tuple[str, str | None]:
+    return _attempt(cell, folder, _worker_stop.is_set, rate_distortion)
 
 
 def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int = 1, progress: bool = True,
              stop_requested: Callable[[], bool] | None = None, reuse: Sequence[Path] = (),
-             fits: Sequence[Path] = ()) -> BenchOutcome:
+             rate_distortion: RateDistortionOptions = RateDistortionOptions()) -> BenchOutcome:
     """Fit every cell of `cells` (default: the whole plan) that is not done, `jobs` at a time; cells
     that a bench folder in `reuse` has finished with the same settings are copied, not fitted. In a
-    rate–distortion grid a cell takes its model from the first folder of `fits` that kept it.
+    rate–distortion grid a cell takes its model from the first folder of `rate_distortion.fits` that
+    kept it.
 
     With jobs > 1 a spawn-context process pool runs the cells, each worker on cores // jobs threads.
     When `stop_requested()` turns true, running fits save a checkpoint and stop, and no new cell starts.
@@ -563,7 +576,7 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
         else:
             todo.append(cell)
     stop = stop_requested or (lambda: False)
-    rd_fits = tuple(Path(f) for f in fits) if PRESETS[plan.preset].rate_distortion else None
+    rd_options = rate_distortion if PRESETS[plan.preset].rate_distortion else None
     with tqdm(total=len(todo), desc=f"bench {plan.preset}", unit="cell", disable=not progress,
               dynamic_ncols=True) as bar:
         def record(cell: Cell, status: str, error: str | None) -> None:
@@ -576,20 +589,21 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
         if jobs == 1:
             limit_threads(available_cores())
             for cell in todo:
-                record(cell, *_attempt(cell, plan.cell_dir(cell), stop, rd_fits))
+                record(cell, *_attempt(cell, plan.cell_dir(cell), stop, rd_options))
         else:
-            _run_pool(plan, todo, jobs, stop, record, rd_fits)
+            _run_pool(plan, todo, jobs, stop, record, rd_options)
     return outcome
 
 
 def _run_pool(plan: BenchPlan, todo: list[Cell], jobs: int, stop: Callable[[], bool],
-              record: Callable[[Cell, str, str | None], None], fits: Sequence[Path] | None) -> None:
+              record: Callable[[Cell, str, str | None], None], rate_distortion: RateDistortionOptions | None
+              ) -> None:
     context = multiprocessing.get_context("spawn")
     stop_event = context.Event()
     threads = max(1, available_cores() // jobs)
     with ProcessPoolExecutor(jobs, mp_context=context, initializer=_init_worker,
                              initargs=(threads, stop_event)) as pool:
-        futures = {pool.submit(_attempt_in_worker, cell, plan.cell_dir(cell), fits): cell for cell in todo}
+        futures = {pool.submit(_attempt_in_worker, cell, plan.cell_dir(cell), rate_distortion): cell for cell in todo}
         pending = set(futures)
         try:
             while pending:

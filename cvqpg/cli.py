@@ -16,8 +16,8 @@ import torch
 
 from . import __version__
 from .allocator import keep_freed_memory
-from .bench import (CELLS_DIR, METHODS, PRESETS, BenchError, Overrides, describe_cells, make_plan, parse_shard,
-                    peak_bytes, run_plan)
+from .bench import (CELLS_DIR, METHODS, PRESETS, BenchError, Overrides, RateDistortionOptions, describe_cells,
+                    make_plan, parse_shard, peak_bytes, run_plan)
 from .compilation import warmup
 from .compression import ASSUMED_FIT_PSNR_DB, SUFFIX, BitDepths, compress_model, decompress_file
 from .config import CURVATURES, PROPAGATIONS, ConfigError, FitConfig, default_warmup
@@ -187,6 +187,9 @@ def _compression_parsers(sub: argparse._SubParsersAction) -> None:
                         f"but position [default of each: {' '.join(f'{k}={v}' for k, v in vars(BitDepths()).items())}]")
     c.add_argument("--finetune", type=int, default=0, metavar="STEPS", help="quantisation-aware fine-tuning "
                    "steps on the run's own targets (needs a run folder); kept only if it pays")
+    c.add_argument("--prune", type=float, default=0.0, metavar="FRACTION", help="with --finetune: first remove "
+                   "this fraction (0 ≤ FRACTION < 1) of the primitives, those of least field energy, and let the "
+                   "fine-tuning make up for them [default: 0]")
     d = sub.add_parser("decompress", help=f"turn a {SUFFIX} file back into a model file",
                        description=f"Decode a {SUFFIX} file into a float32 model file (model.safetensors format).")
     d.add_argument("file", metavar="FILE", help=f"{SUFFIX} file")
@@ -230,6 +233,9 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
                    "compression): bench folders whose finished cells with the same settings kept their "
                    "model.safetensors; a cell takes its model from the first that has it instead of fitting it "
                    "(e.g. runs/bench-paper)")
+    p.add_argument("--finetune", type=int, default=0, metavar="STEPS", help="rate–distortion grids: also record "
+                   "the codec after STEPS steps of quantisation-aware fine-tuning at each budget whose drop without it "
+                   "is 0.1–4 dB (docs/compression.md) [default: 0, none]")
     p.add_argument("--summary-only", action="store_true", help="fit nothing; rebuild the tables, figures "
                    "and report from the finished cells")
     p.add_argument("--dry-run", action="store_true", help="list the cells (of the shard) and their status")
@@ -547,15 +553,19 @@ def run_compress(args: argparse.Namespace) -> int:
         raise UsageError(f"--finetune {args.finetune}: give a number of steps ≥ 0")
     if args.max_drop is not None and args.max_drop < 0:
         raise UsageError(f"--max-drop {args.max_drop}: give a drop in dB ≥ 0")
+    if not 0 <= args.prune < 1:
+        raise UsageError(f"--prune {args.prune}: give the fraction of primitives to remove, 0 ≤ FRACTION < 1")
     bits = BitDepths.parse(args.bits) if args.bits else None
-    r = compress_model(Path(args.target), args.out, bits, args.max_drop, args.finetune)
+    r = compress_model(Path(args.target), args.out, bits, args.max_drop, args.finetune, args.prune)
     scored = (f", float {r['psnr_float']:.3f} dB" if r["psnr_float"] is not None
               else f" (drop estimated for a fit at {ASSUMED_FIT_PSNR_DB:g} dB)")
     print(f"{r['file']}: {r['bytes'] / 2**10:.1f} KiB, {r['bits_per_pixel']:.3f} bpp, {r['ratio']:.1f}× smaller than "
           f"{Path(r['model']).name}; PSNR {r['psnr']:.3f} dB against {r['reference']}{scored}, drop "
           f"{r['drop']:.3f} dB; bits "
           + " ".join(f"{k}={v}" for k, v in r["bits"].items())
-          + (f"; fine-tuned {r['finetune_steps']} steps ({'kept' if r['finetune_kept'] else 'did not pay, dropped'})"
+          + (f"; fine-tuned {r['finetune_steps']} steps"
+             + (f" after pruning {r['prune_fraction']:.0%} of the primitives" if r["prune_fraction"] else "")
+             + f" ({'kept' if r['finetune_kept'] else 'did not pay, dropped'}); {r['num_primitives']} primitives"
              if r["finetune_steps"] else ""))
     return 0
 
@@ -571,10 +581,13 @@ def run_bench(args: argparse.Namespace) -> int:
                           ratios=args.ratios, methods=args.methods, seeds=seeds, size=args.size, steps=args.steps,
                           warmup=args.warmup, device=args.device, backend=args.backend)
     plan = make_plan(args.preset, args.out, overrides)
-    for folder in args.fits:
-        if not PRESETS[args.preset].rate_distortion:
-            raise UsageError(f"--fits is for rate–distortion grids (--preset compression), not --preset "
+    for option, given in (("--fits", bool(args.fits)), ("--finetune", args.finetune != 0)):
+        if given and not PRESETS[args.preset].rate_distortion:
+            raise UsageError(f"{option} is for rate–distortion grids (--preset compression), not --preset "
                              f"{args.preset}")
+    if args.finetune < 0:
+        raise UsageError(f"--finetune {args.finetune}: give a number of steps ≥ 0")
+    for folder in args.fits:
         if not (Path(folder) / CELLS_DIR).is_dir():
             raise UsageError(f"--fits {folder}: not a bench folder (no {CELLS_DIR}/ in it)")
     cells = plan.shard(*parse_shard(args.shard)) if args.shard else plan.cells
@@ -590,7 +603,8 @@ def run_bench(args: argparse.Namespace) -> int:
                              f"GiB are available on {device}; lower --jobs or --size")
         with StopRequest() as stop_requested:
             outcome = run_plan(plan, cells, args.jobs, progress=not args.quiet, stop_requested=stop_requested,
-                               reuse=[Path(d) for d in args.reuse], fits=[Path(d) for d in args.fits])
+                               reuse=[Path(d) for d in args.reuse],
+                               rate_distortion=RateDistortionOptions(tuple(Path(d) for d in args.fits), args.finetune))
         print(f"cvqpg bench: {outcome.describe()}")
         for name, error in outcome.failures.items():
             print(f"  {name}: {error}", file=sys.stderr)

@@ -31,7 +31,7 @@ from .runs import CONFIG_FILE, model_path, read_run, scene_from_source, write_at
 from .storage import ModelFileError, load_model, save_model
 
 MAGIC = b"\x89CVQ\r\n\x1a\n"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2 added the `bitlength` coding; a version 1 file reads unchanged
 SUFFIX = ".cvq"
 PREFIX = struct.Struct("<8sHI")  # magic, format version, header length (bytes)
 CHECKSUM = struct.Struct("<I")
@@ -44,7 +44,7 @@ def _limits(name: str) -> tuple[int, int]:
     return (0, MAX_POSITION_BITS) if name == "position" else (2, MAX_BITS)
 
 # Stream codings; each stream takes the smallest that applies, so a coding that does not pay is never used.
-RAW, LAPLACE, GAUSSIAN, CATEGORICAL = "raw", "laplace", "gaussian", "categorical"
+RAW, LAPLACE, GAUSSIAN, CATEGORICAL, BIT_LENGTH = "raw", "laplace", "gaussian", "categorical", "bitlength"
 
 
 @dataclass(frozen=True)
@@ -262,8 +262,44 @@ def encode_stream(values: np.ndarray) -> tuple[dict[str, Any], bytes]:
             histogram = zlib.compress(_varints(counts), 9)
             candidates.append(({"coding": CATEGORICAL, "histogram_bytes": len(histogram)},
                                histogram + _ans(shifted, _model(CATEGORICAL, 0, top, counts.tolist()))))
+    if top > 2:  # then the lengths' largest symbol is smaller than `top`, so the recursion ends
+        candidates.append(_bit_length_coded(shifted))
     descriptor, data = min(candidates, key=lambda c: len(c[1]))
     return {**descriptor, "min": low, "max": top + low, "shape": list(values.shape), "bytes": len(data)}, data
+
+
+def _bit_length_coded(shifted: np.ndarray) -> tuple[dict[str, Any], bytes]:
+    """Elias-gamma-like coding of non-negative symbols: each symbol's bit length as a stream of its own
+    (coded by `encode_stream`), then the bits below each leading one, raw, grouped by length. It
+    serves long-tailed streams, such as the Morton gaps, whose largest symbol is too large for the
+    parametric models and costs `raw` its full width on every symbol."""
+    lengths = _bit_lengths(shifted)
+    descriptor, data = encode_stream(lengths)
+    mantissas = b"".join(_raw_bits(shifted[lengths == length] - (1 << (length - 1)), length - 1)
+                         for length in range(2, int(lengths.max(initial=0)) + 1))
+    return {"coding": BIT_LENGTH, "lengths": descriptor}, data + mantissas
+
+
+def _bit_lengths(values: np.ndarray) -> np.ndarray:
+    lengths = np.zeros(values.shape, np.int64)
+    remaining = values.astype(np.uint64)
+    while remaining.any():
+        lengths += remaining > 0
+        remaining >>= np.uint64(1)
+    return lengths
+
+
+def _from_bit_length_coded(descriptor: dict[str, Any], data: bytes, count: int) -> np.ndarray:
+    lengths_descriptor = descriptor["lengths"]
+    lengths = decode_stream(lengths_descriptor, data[:lengths_descriptor["bytes"]]).ravel()
+    values = np.where(lengths > 0, 1, 0).astype(np.int64) << np.maximum(lengths - 1, 0)
+    offset = lengths_descriptor["bytes"]
+    for length in range(2, int(lengths.max(initial=0)) + 1):
+        chosen = lengths == length
+        size = (int(chosen.sum()) * (length - 1) + 7) // 8
+        values[chosen] += _from_raw_bits(data[offset:offset + size], int(chosen.sum()), length - 1)
+        offset += size
+    return values
 
 
 def _varints(counts: np.ndarray) -> bytes:
@@ -296,6 +332,8 @@ def decode_stream(descriptor: dict[str, Any], data: bytes) -> np.ndarray:
     coding = descriptor["coding"]
     if coding == RAW:
         shifted = _from_raw_bits(data, count, descriptor["width"])
+    elif coding == BIT_LENGTH:
+        shifted = _from_bit_length_coded(descriptor, data, count)
     else:
         if coding == CATEGORICAL:
             split = descriptor["histogram_bytes"]
@@ -469,13 +507,37 @@ def choose_bits(primitives: Primitives, config: FitConfig, reference: Reference,
     return best
 
 
+def field_energy(primitives: Primitives) -> torch.Tensor:
+    """Each primitive's field energy up to a constant factor: Σ_c (amplitude_c·opacity)² σx σy [N].
+
+    A primitive's field is a Gaussian of that peak and those scales whatever its curvature (a chirp
+    changes only the phase), and propagation to the planes preserves energy, so removing it changes the
+    reconstructed fields by this much (squared L2), interference with the others aside."""
+    weight = primitives.amplitude * primitives.opacity[:, None]
+    return (weight**2).sum(dim=1) * primitives.scale_px.prod(dim=1)
+
+
+def prune(primitives: Primitives, fraction: float) -> Primitives:
+    """The primitives without the `fraction` (0 ≤ fraction < 1) of least field energy (`field_energy`),
+    the others in their order. The rest only regain the PSNR lost with fine-tuning (`finetune`)."""
+    if not 0 <= fraction < 1:
+        raise ValueError(f"prune fraction {fraction}: give 0 ≤ FRACTION < 1")
+    kept = round((1 - fraction) * primitives.count)
+    order = torch.argsort(field_energy(primitives), descending=True, stable=True)
+    chosen = order[:kept].sort().values
+    return type(primitives).from_tensors({name: tensor[chosen] for name, tensor in primitives.tensors().items()})
+
+
 def compress_model(target: str | Path, out: str | Path | None = None, bits: BitDepths | None = None,
-                   max_drop: float | None = None, finetune_steps: int = 0) -> dict[str, Any]:
+                   max_drop: float | None = None, finetune_steps: int = 0, prune_fraction: float = 0.0
+                   ) -> dict[str, Any]:
     """Compress a run folder's model or a model file into a `.cvq` file (atomically) and report it.
 
     `bits` fixes the budget; otherwise `max_drop` (dB, default 0.1) picks it with `choose_bits`. A
     model inside a run folder is scored against the run's targets, a bare model file against its own
-    reconstruction. `finetune_steps` > 0 first tunes the model at the budget (needs the run folder).
+    reconstruction. `finetune_steps` > 0 first tunes the model at the budget (needs the run folder),
+    after removing the `prune_fraction` of its primitives of least field energy (`prune`; it needs
+    fine-tuning, and like it is kept only where it pays).
     """
     model_file = model_path(target)
     if not model_file.is_file():
@@ -486,6 +548,9 @@ def compress_model(target: str | Path, out: str | Path | None = None, bits: BitD
     folder = model_file.parent if (model_file.parent / CONFIG_FILE).is_file() else None
     if finetune_steps and folder is None:
         raise ModelFileError(f"--finetune needs the run folder's inputs; {model_file} is not in a run folder")
+    if prune_fraction and not finetune_steps:
+        raise ModelFileError(f"--prune {prune_fraction:g} needs --finetune STEPS: pruned primitives cost PSNR "
+                             "that only fine-tuning regains")
     scene = scene_from_source(read_run(folder)[1], config) if folder is not None else None
     out = Path(out) if out is not None else model_file.with_suffix(SUFFIX)
     started = time.perf_counter()
@@ -498,8 +563,9 @@ def compress_model(target: str | Path, out: str | Path | None = None, bits: BitD
         from .finetune import finetune
 
         # Tuned models hold coarser budgets: first try one bit below the choice everywhere, then the choice.
+        start = prune(primitives, prune_fraction)
         for bits_tried in ((choice.bits,) if max_drop is None else (choice.bits.shifted(-1), choice.bits)):
-            candidate = trial(finetune(primitives, config, scene, bits_tried, finetune_steps), config, bits_tried,
+            candidate = trial(finetune(start, config, scene, bits_tried, finetune_steps), config, bits_tried,
                               reference)
             if max_drop is None or candidate.drop <= max_drop:
                 break
@@ -517,6 +583,7 @@ def compress_model(target: str | Path, out: str | Path | None = None, bits: BitD
             "ratio": model_file.stat().st_size / len(choice.data), "bits": asdict(choice.bits),
             "reference": reference.label, "psnr_float": reference.fit_psnr, "psnr": choice.psnr,
             "drop": choice.drop, "max_drop": max_drop, "finetune_steps": finetune_steps, "finetune_kept": tuned,
+            "prune_fraction": prune_fraction, "num_primitives": choice.decoded.count,
             "seconds": seconds}
 
 

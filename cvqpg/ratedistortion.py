@@ -18,19 +18,27 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .compression import LADDER, BitDepths, Reference, choose_bits, decode, encode
+from .compression import LADDER, BitDepths, Reference, choose_bits, decode, encode, prune
 from .config import FitConfig
+from .finetune import finetune
 from .fitting import hologram
 from .metrics import mean_psnr, mean_ssim
 from .optics import reconstruct
 from .primitives import Primitives
 from .provenance import machine_record
 from .storage import load_model, save_model
+from .targets import Scene
 
 JPEG2K_PSNRS = (35, 40, 43, 46, 50, 55, 60, 70)  # OpenJPEG's quality layer, the planes' own PSNR in dB
 JPEGXL_DISTANCES = (8.0, 4.0, 3.0, 2.0, 1.5, 1.0, 0.7, 0.5, 0.25)  # butteraugli distances, smaller is finer
 RANGE_BYTES = 8  # float32 low and high per plane
 MAX_DROPS_DB = (0.1, 0.5)  # the `--max-drop` budgets of a benchmark cell (each search takes tens of renders)
+# The rungs of `LADDER` that a cell fine-tunes: those whose drop without it lies in this range (dB). Rungs
+# already within 0.1 dB gain nothing; rungs below 4 dB cannot be brought back within the fit's last decibel.
+FINETUNED_DROPS_DB = (0.1, 4.0)
+# The fractions of primitives that a cell prunes (least field energy first) before fine-tuning at the
+# finest of those rungs: fewer primitives, each at the same bits.
+PRUNE_FRACTIONS = (0.05, 0.1, 0.2)
 CODEC, FLOAT32, FLOAT16 = "cvqpg", "model float32", "model float16"
 ANCHORS = ("JPEG 2000", "JPEG XL")
 
@@ -104,6 +112,25 @@ def searched_points(primitives: Primitives, config: FitConfig, targets: Tensor, 
     return points
 
 
+def finetuned_points(primitives: Primitives, config: FitConfig, scene: Scene, fit_psnr: float, steps: int,
+                     ladder: Sequence[BitDepths], untuned: Sequence[Point],
+                     prune_fractions: Sequence[float] = PRUNE_FRACTIONS) -> list[Point]:
+    """The `.cvq` codec after `steps` steps of quantisation-aware fine-tuning on the run's own targets, at
+    each rung of `ladder` whose drop without it (`untuned`, the points of `codec_points` in ladder
+    order) lies within `FINETUNED_DROPS_DB`, and at the finest of those rungs after pruning each of
+    `prune_fractions` of the primitives (`compression.prune`). Fine-tuning counts as encoding time."""
+    low, high = FINETUNED_DROPS_DB
+    rungs = [bits for bits, point in zip(ladder, untuned) if low < fit_psnr - point.psnr <= high]
+    settings = [(bits, 0.0) for bits in rungs] + [(rungs[-1], fraction) for fraction in prune_fractions if rungs]
+    points = []
+    for bits, fraction in settings:
+        started = time.perf_counter()
+        data = encode(finetune(prune(primitives, fraction), config, scene, bits, steps), config, bits)
+        label = (f"--prune {fraction:g} " if fraction else "") + f"--finetune {steps}: {_describe(bits)}"
+        points.append(_decoded_point(CODEC, label, data, config, scene.targets, time.perf_counter() - started))
+    return points
+
+
 def model_file_points(primitives: Primitives, config: FitConfig, targets: Tensor) -> list[Point]:
     """The float32 and float16 `model.safetensors` files."""
     points = []
@@ -174,20 +201,29 @@ def rd_points(primitives: Primitives, config: FitConfig, targets: Tensor, ladder
     return [asdict(p) for p in points]
 
 
-def cell_record(model_file: Path, targets: Tensor, ladder: Sequence[BitDepths] = LADDER,
-                max_drops: Sequence[float] = MAX_DROPS_DB) -> dict[str, Any]:
-    """A benchmark cell's R-D record (`rd.json`): every point of `rd_points` and `searched_points` for the
-    model in `model_file` against `targets`, the fit's own PSNR, and how long it all took on which
-    machine at which load (wall and process CPU seconds: their ratio shows how shared the cores were)."""
+def cell_record(model_file: Path, scene: Scene, ladder: Sequence[BitDepths] = LADDER,
+                max_drops: Sequence[float] = MAX_DROPS_DB, finetune_steps: int = 0) -> dict[str, Any]:
+    """A benchmark cell's R-D record (`rd.json`) for the model in `model_file` against the scene's
+    targets: the float32 and float16 model files, the codec at each rung of `ladder`, the anchors, the
+    codec at the `--max-drop` budgets, and with `finetune_steps` > 0 the codec fine-tuned, and pruned
+    and fine-tuned, at some rungs (`finetuned_points`); the fit's own PSNR; and how long it all took on which machine at which load (wall and
+    process CPU seconds: their ratio shows how shared the cores were)."""
     primitives, config = load_model(model_file)
+    targets = scene.targets
     started, cpu_started = time.perf_counter(), time.process_time()
     _render(primitives, config)  # compiles the kernels, so that no point's decode time includes it
     fit_psnr = mean_psnr(_render(primitives, config), targets)
-    points = rd_points(primitives, config, targets, ladder)
-    points += [asdict(p) for p in searched_points(primitives, config, targets, fit_psnr, max_drops)]
+    ladder_points = codec_points(primitives, config, targets, ladder)
+    points = [*model_file_points(primitives, config, targets), *ladder_points,
+              *anchor_points(primitives, config, targets),
+              *searched_points(primitives, config, targets, fit_psnr, max_drops)]
+    if finetune_steps:
+        points += finetuned_points(primitives, config, scene, fit_psnr, finetune_steps, ladder, ladder_points)
     return {"model_file": str(model_file), "model_bytes": model_file.stat().st_size, "fit_psnr": fit_psnr,
-            "finetune_steps": 0, "points": points, "seconds": time.perf_counter() - started,
-            "cpu_seconds": time.process_time() - cpu_started, "run": machine_record(torch.device(config.device))}
+            "finetune_steps": finetune_steps, "prune_fractions": list(PRUNE_FRACTIONS) if finetune_steps else [],
+            "points": [asdict(p) for p in points],
+            "seconds": time.perf_counter() - started, "cpu_seconds": time.process_time() - cpu_started,
+            "run": machine_record(torch.device(config.device))}
 
 
 def pareto(points: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:

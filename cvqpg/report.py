@@ -344,12 +344,15 @@ def rate_distortion_table(plan: BenchPlan, results: list[CellResult]) -> tuple[l
     if not PRESETS[plan.preset].rate_distortion:
         return [], []
     table = Table("Rate–distortion: the .cvq codec against JPEG 2000 and JPEG XL on the same field",
-                  ["Scene", "Setting", "fit PSNR", *(f"BD-rate vs {a}" for a in ANCHORS), "BD-rate vs the better",
+                  ["Scene", "Setting", "fit PSNR", "fine-tuning", *(f"BD-rate vs {a}" for a in ANCHORS),
+                   "BD-rate vs the better",
                    "cvqpg ≤ 0.1 dB: bpp", "÷ model.safetensors", *(f"{a} ≤ 0.1 dB: bpp" for a in ANCHORS),
                    "encode s", "decode+render s", "float32 load+render s", "load"],
                   note="BD-rate: bits of the codec's Pareto front against the anchor's at equal PSNR, log-rate "
                   "interpolated with bjontegaard's PCHIP, averaged over the range shown (the fit's PSNR down to 1 dB "
-                  "below it, narrowed to where both curves have points); negative means fewer bits. ≤ 0.1 dB: the "
+                  "below it, narrowed to where both curves have points); negative means fewer bits. Fine-tuning: the "
+                  "steps of the codec's fine-tuned and pruned points (`--finetune`), none where the cell has only the "
+                  "ladder and the searched budgets. ≤ 0.1 dB: the "
                   "smallest file within 0.1 dB of the float32 fit, with its drop; encode s of a `--max-drop` point "
                   "includes its budget search. Seconds are wall time on the machine and load (15-minute load "
                   "average) of the cell's run record.")
@@ -360,8 +363,9 @@ def rate_distortion_table(plan: BenchPlan, results: list[CellResult]) -> tuple[l
             top, held, rates = summary["fit_psnr"], summary["held"], summary["bd_rate"]
             better = rates[summary["better_anchor"]] if summary["better_anchor"] else None
             codec = held["cvqpg"]
+            steps = r.rd.get("finetune_steps", 0)
             table.rows.append([r.cell.scene.name, setting_label(setting), f"{top:.3f}",
-                               *(_bd_text(rates[a], top) for a in ANCHORS), _bd_text(better, top, True),
+                               f"{steps} steps" if steps else "none", *(_bd_text(rates[a], top) for a in ANCHORS), _bd_text(better, top, True),
                                _held_text(codec, top),
                                MISSING if summary["fraction"] is None else f"1/{1 / summary['fraction']:.1f}",
                                *(_held_text(held[a], top) for a in ANCHORS),
@@ -369,6 +373,7 @@ def rate_distortion_table(plan: BenchPlan, results: list[CellResult]) -> tuple[l
                                MISSING if codec is None else f"{codec['decode_s']:.2f}",
                                f"{summary['float32_decode_s']:.2f}", f"{r.rd['run']['load_average']}"])
             rows.append({"cell": r.cell.name, "scene": r.cell.scene.name, "setting": setting, "fit_psnr": top,
+                         "finetune_steps": steps,
                          **{f"bd_rate_{a.replace(' ', '').lower()}": "" if rates[a] is None else rates[a].percent
                             for a in ANCHORS},
                          "better_anchor": summary["better_anchor"] or "",
@@ -385,9 +390,9 @@ def rate_distortion_table(plan: BenchPlan, results: list[CellResult]) -> tuple[l
         fractions = [float(row["fraction_of_model"]) for row in rows if row["setting"] == setting
                      and row["fraction_of_model"] != ""]
         table.rows.append([f"mean ({len(per_scene)}/{len(plan.scenes)} scenes)", setting_label(setting), "", "", "",
-                           f"{np.mean(betters):+.1f}%" if betters else MISSING, "",
+                           "", f"{np.mean(betters):+.1f}%" if betters else MISSING, "",
                            f"1/{1 / np.mean(fractions):.1f}" if fractions else MISSING, "", "", "", "", "", ""])
-        table.bold.add((len(table.rows) - 1, 5))
+        table.bold.add((len(table.rows) - 1, 6))
     return [table], rows
 
 

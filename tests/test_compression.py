@@ -4,6 +4,7 @@ import json
 import math
 import struct
 
+import numpy as np
 import pytest
 import torch
 
@@ -53,11 +54,21 @@ def test_decoding_is_deterministic_and_encoding_reproducible():
 
 
 @pytest.mark.parametrize("values", [torch.zeros(7, dtype=torch.long), torch.arange(-5, 300),
-                                    torch.tensor([0, 0, 0, 1, 0, 2, 0, 0, 90000])])
+                                    torch.tensor([0, 0, 0, 1, 0, 2, 0, 0, 90000]), torch.tensor([2**40, 5, 0, 3]),
+                                    torch.tensor([3])])
 def test_streams_round_trip_exactly(values):
     array = values.numpy()
     descriptor, data = encode_stream(array)
     assert (decode_stream(descriptor, data) == array).all()
+
+
+def test_long_tailed_streams_take_the_bit_length_coding():
+    # Morton gaps: geometric, with one jump beyond the parametric models' range, which `raw` pays on every symbol
+    gaps = np.random.default_rng(0).geometric(1e-3, 4000)
+    gaps[17] = 3 << 21
+    descriptor, data = encode_stream(gaps)
+    assert descriptor["coding"] == "bitlength" and len(data) < 0.6 * 4000 * 23 / 8
+    assert (decode_stream(descriptor, data) == gaps).all()
 
 
 @pytest.fixture(scope="module")
@@ -97,6 +108,74 @@ def test_finetune_is_kept_only_if_it_pays(fitted_run, tmp_path):
     record = compress_model(fitted_run, tmp_path / "t.cvq", bits=BitDepths.parse(["5"]), finetune_steps=3)
     assert record["finetune_steps"] == 3 and isinstance(record["finetune_kept"], bool)
     assert read_compressed(tmp_path / "t.cvq").bits == BitDepths.parse(["5"])
+
+
+def test_finetune_leaves_its_input_alone_and_trains_on_the_file_s_own_bins():
+    from cvqpg.compression import quantise
+    from cvqpg.finetune import finetune
+    from cvqpg.ratedistortion import Point, finetuned_points
+    from cvqpg.targets import Scene
+
+    config = FitConfig(width=48, height=32, color="gray", ratio=0.3, guard_band_px=32)
+    primitives = random_primitives(config)
+    targets = render(primitives, config)[1].clamp(0.05, 0.95).detach()
+    scene = Scene(targets[0], torch.ones(targets.shape[0], 32, 48), targets)
+    before = primitives.detached()
+    bits = BitDepths().shifted(-3)
+    tuned = finetune(primitives, config, scene, bits, 4)
+    for name, tensor in primitives.tensors().items():
+        assert torch.equal(tensor, before.tensors()[name]), name
+    # the file's ranges (and so its bins) are those the loop quantised against
+    assert quantise(tuned, config, bits).ranges == quantise(primitives, config, bits).ranges
+    assert not torch.equal(tuned.position_px, primitives.position_px)
+    fit = mean_psnr(render(primitives, config)[1], targets)
+    untuned = [Point("cvqpg", "", 1, 1.0, fit - drop, 0.5, 0.0, 0.0) for drop in (5.0, 1.0, 0.05)]
+    points = finetuned_points(primitives, config, scene, fit, 2, [bits, bits.shifted(3), bits.shifted(6)], untuned,
+                              prune_fractions=(0.5,))
+    assert [p.setting.split(":")[0] for p in points] == ["--finetune 2", "--prune 0.5 --finetune 2"]
+    assert points[0].setting.endswith("position=3 scale=8 rotation=7 amplitude=8 phase=7 curvature=8")
+    assert points[1].bytes < 0.7 * points[0].bytes
+
+
+def test_pruning_removes_the_primitives_of_least_field_energy_and_the_file_round_trips():
+    from cvqpg.compression import field_energy, prune
+
+    config = FitConfig(width=48, height=32, color="rgb", ratio=0.3)
+    primitives = random_primitives(config)
+    values = primitives.tensors()
+    values["amplitude"] = torch.ones_like(values["amplitude"])
+    values["scale_px"] = torch.ones_like(values["scale_px"])
+    values["opacity"] = torch.linspace(1.0, 0.1, primitives.count).roll(7)  # energy falls with opacity²
+    primitives = type(primitives).from_tensors(values)
+    pruned = prune(primitives, 0.25)
+    kept = round(0.75 * primitives.count)
+    expected = torch.argsort(values["opacity"], descending=True)[:kept].sort().values
+    assert torch.equal(pruned.position_px, primitives.position_px[expected])
+    assert field_energy(pruned).min() >= field_energy(primitives).sort().values[-kept]
+    decoded = decode(encode(pruned, config, BitDepths())).primitives
+    assert decoded.count == kept and prune(primitives, 0.0).count == primitives.count
+    with pytest.raises(ValueError, match="0 ≤ FRACTION < 1"):
+        prune(primitives, 1.0)
+
+
+def test_prune_with_finetune_writes_fewer_primitives_where_it_pays(fitted_run, tmp_path):
+    record = compress_model(fitted_run, tmp_path / "p.cvq", bits=BitDepths.parse(["6"]), finetune_steps=2,
+                            prune_fraction=0.25)
+    count = load_model(fitted_run / "model.safetensors")[0].count
+    assert record["num_primitives"] == (round(0.75 * count) if record["finetune_kept"] else count)
+    assert read_compressed(tmp_path / "p.cvq").primitives.count == record["num_primitives"]
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["--prune", "1.5", "--finetune", "2"], "--prune 1.5: give the fraction of primitives to remove"),
+    (["--prune", "-0.1", "--finetune", "2"], "--prune -0.1: give the fraction"),
+    (["--prune", "0.2"], "--prune 0.2 needs --finetune STEPS"),
+])
+def test_bad_prune_is_one_line_exit_2_and_writes_nothing(fitted_run, tmp_path, arguments, message, capsys):
+    out = tmp_path / "x.cvq"
+    assert main(["compress", str(fitted_run), "--out", str(out), *arguments]) == 2
+    error = capsys.readouterr().err
+    assert message in error and len(error.strip().splitlines()) == 1 and not out.exists()
 
 
 def test_eval_info_and_export_read_the_compressed_file(fitted_run, capsys):

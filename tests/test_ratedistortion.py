@@ -26,7 +26,7 @@ def grids(module_scenes_dir, tmp_path_factory):
     assert main(["bench", "--preset", "paper", "--methods", "cvqpg", "--ratios", "0.1", "--out", str(root / "paper"),
                  *scenes, *TINY]) == 0
     assert main(["bench", "--preset", "compression", "--out", str(root / "rd"), "--fits", str(root / "paper"),
-                 *scenes, *TINY]) == 0
+                 "--finetune", "2", *scenes, *TINY]) == 0
     return root
 
 
@@ -37,16 +37,22 @@ def test_a_compression_cell_takes_the_fit_from_another_grid_and_records_its_poin
     record = json.loads((cell / "rd.json").read_text())
     codecs = {p["codec"] for p in record["points"]}
     assert codecs == {"cvqpg", "JPEG 2000", "JPEG XL", "model float32", "model float16"}
-    assert record["model_bytes"] == (fitted / "model.safetensors").stat().st_size
+    assert record["model_bytes"] == (fitted / "model.safetensors").stat().st_size and record["finetune_steps"] == 2
+    tuned = [p for p in record["points"] if p["setting"].startswith("--finetune 2: ")]
+    drops = {p["setting"]: record["fit_psnr"] - p["psnr"] for p in record["points"] if p["setting"].startswith("pos")}
+    rungs = sum(0.1 < drop <= 4.0 for drop in drops.values())
+    assert len(tuned) == rungs and record["prune_fractions"] == [0.05, 0.1, 0.2]
+    pruned = [p for p in record["points"] if p["setting"].startswith("--prune ")]
+    assert len(pruned) == (3 if rungs else 0)
     float32 = next(p for p in record["points"] if p["codec"] == "model float32")
     assert float32["psnr"] == pytest.approx(record["fit_psnr"], abs=1e-6)
     assert all(p["bpp"] == pytest.approx(8 * p["bytes"] / (48 * 36)) and p["decode_s"] > 0 for p in record["points"])
     assert record["run"]["load_average"] is not None and record["cpu_seconds"] > 0
     summary = (grids / "rd" / "summary.md").read_text()
-    assert "Rate–distortion" in summary and "rd_gray-10.png" in summary
+    assert "Rate–distortion" in summary and "rd_gray-10.png" in summary and "| 2 steps |" in summary
     assert (grids / "rd" / "rd_gray-10.png").is_file()
     row = next(csv.DictReader((grids / "rd" / "rd.csv").open()))
-    assert row["cell"] == CELL and float(row["fraction_of_model"]) == pytest.approx(
+    assert row["cell"] == CELL and row["finetune_steps"] == "2" and float(row["fraction_of_model"]) == pytest.approx(
         cell_summary(record)["fraction"])
 
 
@@ -75,6 +81,8 @@ def test_a_compression_cell_without_a_kept_fit_fits_it_first(module_scenes_dir, 
 @pytest.mark.parametrize("arguments, message", [
     (["--preset", "paper", "--fits", "."], "--fits is for rate–distortion grids"),
     (["--preset", "compression", "--fits", "no-such-folder"], "--fits no-such-folder: not a bench folder"),
+    (["--preset", "paper", "--finetune", "5"], "--finetune is for rate–distortion grids"),
+    (["--preset", "compression", "--finetune", "-1"], "--finetune -1: give a number of steps ≥ 0"),
 ])
 def test_bad_fits_are_one_line_and_exit_code_2(arguments, message, module_scenes_dir, tmp_path, capsys):
     assert main(["bench", *arguments, "--scenes", str(module_scenes_dir), "--out", str(tmp_path / "b"), "--quiet"]) == 2
