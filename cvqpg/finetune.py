@@ -64,7 +64,8 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
     trained = [name for name in params if name != "curvature" or config.primitive == "cvqpg"]
     for name in trained:
         params[name].requires_grad_(True)
-    optimizer = torch.optim.Adam([{"params": [params[name]], "lr": LEARNING_RATE_BINS * steps_of[name]} for name in trained])
+    optimizer = torch.optim.Adam([{"params": [params[name]], "lr": LEARNING_RATE_BINS * steps_of[name]}
+                                  for name in trained])
     schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda i: min(1.0, (i + 1) / (WARMUP_STEPS + 1))
                                                  * 0.5 * (1 + math.cos(math.pi * i / max(steps, 1))))
     generator = torch.Generator(device=config.device).manual_seed(config.seed if seed is None else seed)

@@ -206,8 +206,9 @@ def cell_record(model_file: Path, scene: Scene, ladder: Sequence[BitDepths] = LA
     """A benchmark cell's R-D record (`rd.json`) for the model in `model_file` against the scene's
     targets: the float32 and float16 model files, the codec at each rung of `ladder`, the anchors, the
     codec at the `--max-drop` budgets, and with `finetune_steps` > 0 the codec fine-tuned, and pruned
-    and fine-tuned, at some rungs (`finetuned_points`); the fit's own PSNR; and how long it all took on which machine at which load (wall and
-    process CPU seconds: their ratio shows how shared the cores were)."""
+    and fine-tuned, at some rungs (`finetuned_points`); the fit's own PSNR; and how long it all took
+    on which machine at which load (wall and process CPU seconds: their ratio shows how shared the
+    cores were)."""
     primitives, config = load_model(model_file)
     targets = scene.targets
     started, cpu_started = time.perf_counter(), time.process_time()

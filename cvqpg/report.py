@@ -365,7 +365,8 @@ def rate_distortion_table(plan: BenchPlan, results: list[CellResult]) -> tuple[l
             codec = held["cvqpg"]
             steps = r.rd.get("finetune_steps", 0)
             table.rows.append([r.cell.scene.name, setting_label(setting), f"{top:.3f}",
-                               f"{steps} steps" if steps else "none", *(_bd_text(rates[a], top) for a in ANCHORS), _bd_text(better, top, True),
+                               f"{steps} steps" if steps else "none", *(_bd_text(rates[a], top) for a in ANCHORS),
+                               _bd_text(better, top, True),
                                _held_text(codec, top),
                                MISSING if summary["fraction"] is None else f"1/{1 / summary['fraction']:.1f}",
                                *(_held_text(held[a], top) for a in ANCHORS),

@@ -10,8 +10,8 @@ import torch
 
 from cvqpg import FitConfig, load_model
 from cvqpg.cli import main
-from cvqpg.compression import (FORMAT_VERSION, MAGIC, BitDepths, compress_model, decode, encode, encode_stream,
-                               decode_stream, read_compressed)
+from cvqpg.compression import (CHECKSUM, FORMAT_VERSION, MAGIC, BitDepths, compress_model, decode, decode_stream,
+                               encode, encode_stream, read_compressed)
 from cvqpg.fitting import render
 from cvqpg.metrics import mean_psnr
 from cvqpg.primitives import activate, init_gaussians
@@ -60,6 +60,20 @@ def test_streams_round_trip_exactly(values):
     array = values.numpy()
     descriptor, data = encode_stream(array)
     assert (decode_stream(descriptor, data) == array).all()
+
+
+def test_a_version_1_file_still_reads():
+    import zlib
+
+    config = FitConfig(width=48, height=32, color="gray", ratio=0.3)
+    current = encode(random_primitives(config), config, BitDepths())
+    body = bytearray(current[:-CHECKSUM.size])
+    struct.pack_into("<H", body, len(MAGIC), 1)
+    older = bytes(body) + CHECKSUM.pack(zlib.crc32(body))
+    assert FORMAT_VERSION == 2 and older != current
+    expected = decode(current).primitives.tensors()
+    for name, tensor in decode(older).primitives.tensors().items():
+        assert torch.equal(tensor, expected[name]), name
 
 
 def test_long_tailed_streams_take_the_bit_length_coding():
