@@ -202,8 +202,9 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
                        "folder per cell in OUT/cells: finished cells (metrics.json) are skipped, interrupted ones "
                        "resume from their checkpoint. Then (re)write summary.md, summary.csv, cells.csv, "
                        "frequency.csv/png, figures/ and report.html in OUT from whatever cells are finished.")
+    # argparse expands %-formats in help strings, and the presets' descriptions name percentages.
     p.add_argument("--preset", default="quick", metavar="NAME", help="the grid [default: quick]: " + "; ".join(
-        f"{name}: {preset.description}" for name, preset in PRESETS.items()))
+        f"{name}: {preset.description}" for name, preset in PRESETS.items()).replace("%", "%%"))
     p.add_argument("--scenes", metavar="DIR", help="folder of <name>/image.* + <name>/depth.png (e.g. "
                    "../shared/scenes); needed by paper and ablation, replaces the built-in scenes of star and quick")
     p.add_argument("--out", metavar="DIR", help="bench folder [default: runs/bench-<preset>]")

@@ -126,6 +126,15 @@ def test_help_explains_options_with_units_and_defaults(capsys):
         assert expected in text, expected
 
 
+@pytest.mark.parametrize("command", ["fit", "eval", "render", "export", "info", "view", "compress", "decompress",
+                                     "bench", "results", "warmup"])
+def test_every_command_prints_its_help(command, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main([command, "--help"])
+    assert exit_.value.code == 0
+    assert f"usage: cvqpg {command}" in capsys.readouterr().out
+
+
 def test_resume_checks_the_recorded_device_before_writing(tmp_path, capsys, monkeypatch):
     out = tmp_path / "run"
     assert main(["fit", *SMALL, "--checkpoint-every", "1", "--out", str(out)]) == 0
