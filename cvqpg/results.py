@@ -157,6 +157,24 @@ def machine_lines(grids: list[GridResults]) -> list[str]:
                       for run in known)
     if commits:
         lines.append("commits: " + ", ".join(f"{commit} ({count})" for commit, count in sorted(commits.items())))
+    return lines + mixed_machine_lines(grids)
+
+
+def mixed_machine_lines(grids: list[GridResults]) -> list[str]:
+    """The scene–setting groups whose methods, compared with each other in the tables, ran on different
+    devices: between CPU models one fit differs by about SIMILAR_DB, so their differences are weaker evidence."""
+    lines = []
+    for g in grids:
+        devices: dict[tuple[str, str], dict[str, list[str]]] = {}
+        for r in g.done:
+            run = r.metrics.get("run") or {}
+            group = devices.setdefault((r.cell.scene.name, r.cell.setting), {})
+            group.setdefault(run.get("device", "unrecorded"), []).append(METHODS[r.cell.method].label)
+        for (scene, setting), by_device in devices.items():
+            if len(by_device) > 1:
+                where = "; ".join(f"{', '.join(methods)} on {device}" for device, methods in sorted(by_device.items()))
+                lines.append(f"{g.grid.title}, {scene} {setting_label(setting)}: methods fitted on different "
+                             f"devices ({where}); their differences carry the ±{SIMILAR_DB} dB spread between CPUs.")
     return lines
 
 

@@ -14,7 +14,8 @@ from cvqpg.results import ABLATION_SCENES, CAMPAIGN, RecordError, campaign_plan,
 REPOSITORY = Path(__file__).resolve().parents[1]
 
 
-def record_cell(root: Path, preset: str, name: str, psnr: float, **config_changes) -> Path:
+def record_cell(root: Path, preset: str, name: str, psnr: float, device: str = "cpu: test CPU",
+                **config_changes) -> Path:
     """Write a campaign cell's record (config, spectrum, metrics) as a finished fit leaves it."""
     grid = next(g for g in CAMPAIGN if g.preset == preset)
     cell = next(c for c in campaign_plan(grid, root).cells if c.name == name)
@@ -28,7 +29,7 @@ def record_cell(root: Path, preset: str, name: str, psnr: float, **config_change
     (folder / "spectrum.json").write_text(json.dumps({"bins": SPECTRUM_BINS, "edges": edges, "power": power,
                                                       "counts": [1] * (SPECTRUM_BINS + 1), "mse": 1.0 / psnr}))
     mean = {"psnr": psnr, "ssim": 0.8, "lpips": None, "flip": 0.1, "cvvdp": None}
-    run = {"commit": "0" * 40, "date": "2026-11-25T09:00:00+00:00", "device": "cpu: test CPU", "torch": "2.13.0",
+    run = {"commit": "0" * 40, "date": "2026-11-25T09:00:00+00:00", "device": device, "torch": "2.13.0",
            "torch_threads": 2, "numba_threads": 2, "loop_seconds": 480.0, "load_average": 3.0, "machine_cores": 2,
            "peak_memory_bytes": 2**30,
            "peak_memory_kind": "rss"}
@@ -75,6 +76,16 @@ def test_the_document_compares_gains_per_scene_and_states_each_claim(tmp_path):
     assert "| Table 1 | `results/paper` | 3 | 72 | 69 |" in text
     assert "3 cells on cpu: test CPU, 2 torch / 2 Numba threads" in text
     assert "| RGB 10% | CVQPG | 15,360 | 1 | 8.0 | +0.0% | 1.00 | +0.0% | 1.5 | 17.0 | +0.0% | 10.9 | -0.1% |" in text
+
+
+def test_methods_of_one_scene_fitted_on_different_cpus_are_named(tmp_path):
+    record_cell(tmp_path, "paper", "tiger_gray-10_baseline_s100", 24.0, device="cpu: CPU A")
+    record_cell(tmp_path, "paper", "tiger_gray-10_cvqpg_s100", 24.3, device="cpu: CPU B")
+    record_cell(tmp_path, "paper", "bento_gray-10_baseline_s100", 24.0, device="cpu: CPU A")
+    record_cell(tmp_path, "paper", "bento_gray-10_cvqpg_s100", 24.3, device="cpu: CPU A")
+    lines = [line for line in document(tmp_path).splitlines() if "fitted on different devices" in line]
+    assert lines == ["- Table 1, tiger Grayscale 10%: methods fitted on different devices (Baseline on cpu: CPU A; "
+                     "CVQPG on cpu: CPU B); their differences carry the ±0.05 dB spread between CPUs."]
 
 
 def test_the_ablation_order_is_judged_once_every_cell_is_recorded(tmp_path):
