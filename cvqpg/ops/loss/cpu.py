@@ -95,6 +95,21 @@ def standard_normals(seed, out):
         _normal_pairs(seed, first, stop - first, out[2 * first:2 * stop])
 
 
+@nb.njit(cache=True, nogil=True)
+def _run_sums(rows, runs):
+    """Sums [runs, K] (float64) of rows [runs·n, K] over each run of n consecutive rows, each added in
+    the order of its rows, as `rows.reshape(runs, n, K).sum(axis=1)` adds them. Without fastmath, so
+    LLVM keeps that order. (NumPy's sum over an axis compiles 2.7 s of Numba's library functions,
+    most of them for the error messages of its axis check.)"""
+    length = rows.shape[0] // runs
+    sums = np.zeros((runs, rows.shape[1]))
+    for run in range(runs):
+        for row in range(run * length, (run + 1) * length):
+            for k in range(rows.shape[1]):
+                sums[run, k] += rows[row, k]
+    return sums
+
+
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def pixel_terms(recon, targets, noisy, masks, gradient):
     """Per-plane sums over [C, H, W] of `(x − t)²` and of `(m² + ñ²)(x − ñ)²` ([M, 2], float64).
@@ -117,7 +132,7 @@ def pixel_terms(recon, targets, noisy, masks, gradient):
                 weighted += weight * noisy_error * noisy_error
                 gradient[m, c, i, j] = 2.0 * (error + weight * noisy_error)
         rows[row, 0], rows[row, 1] = plain, weighted
-    return rows.reshape(planes, height, 2).sum(axis=1)
+    return _run_sums(rows, planes)
 
 
 SSIM_TAPS = 11  # the window (px), a constant: the filters' loops over taps unroll, their loops over pixels vectorise
@@ -202,7 +217,7 @@ def ssim_forward(x, y, taps, c1, c2, d_mean_x, d_mean_xx, d_mean_xy):
         raise ValueError("the SSIM kernels take SSIM_TAPS taps")
     images, height, width = x.shape
     out_height, out_width = height - SSIM_TAPS + 1, width - SSIM_TAPS + 1
-    rows = np.zeros(images * out_height)
+    rows = np.zeros((images * out_height, 1))
     for task in nb.prange(SSIM_TASKS):
         s_x, s_y, s_xx, s_yy, s_xy = (np.empty(width, x.dtype), np.empty(width, x.dtype), np.empty(width, x.dtype),
                                       np.empty(width, x.dtype), np.empty(width, x.dtype))  # apart: no aliasing
@@ -210,9 +225,10 @@ def ssim_forward(x, y, taps, c1, c2, d_mean_x, d_mean_xx, d_mean_xy):
                                       np.empty(out_width, x.dtype), np.empty(out_width, x.dtype),
                                       np.empty(out_width, x.dtype))
         for row in _task_rows(np.int64(task), rows.shape[0]):
-            rows[row] = _ssim_row(x, y, taps, c1, c2, row // out_height, row % out_height, (s_x, s_y, s_xx, s_yy, s_xy),
-                                  (m_x, m_y, m_xx, m_yy, m_xy), d_mean_x, d_mean_xx, d_mean_xy)
-    return rows.reshape(images, out_height).sum(axis=1)
+            rows[row, 0] = _ssim_row(x, y, taps, c1, c2, row // out_height, row % out_height,
+                                     (s_x, s_y, s_xx, s_yy, s_xy), (m_x, m_y, m_xx, m_yy, m_xy), d_mean_x, d_mean_xx,
+                                     d_mean_xy)
+    return _run_sums(rows, images)[:, 0]
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
