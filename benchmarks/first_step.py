@@ -7,9 +7,10 @@ Each run starts `python -m cvqpg.cli fit --size 320 240 --steps 300 --out TMP` i
 `cvqpg` first on PYTHONPATH), with NUMBA_CACHE_DIR an empty temporary folder, reads the progress
 output as it comes, and stops the fit once the bar shows step 1 (tqdm's `1/301`). With several trees
 the rounds alternate between them (tree A, tree B, tree A, ...), so that a drift of the machine's
-speed falls on both. Per run it prints the wall seconds until the compile's status line and until the
-first step, and the CPU seconds the fit had used by then, its own and those of the compile process it
-had waited for (from /proc). Wall seconds compare on an idle machine only; CPU seconds also compare
+speed falls on both. Per run it prints the wall seconds until the compile's status line, the compile's
+seconds as that line counted them (`COMPILE_ESTIMATE_SECONDS` estimates them), the wall seconds until
+the first step, and the CPU seconds the fit had used by then, its own and those of the compile process
+it had waited for (from /proc). Wall seconds compare on an idle machine only; CPU seconds also compare
 on a loaded one.
 """
 
@@ -30,12 +31,14 @@ from pathlib import Path
 DEMO = ["fit", "--size", "320", "240", "--steps", "300"]
 FIRST_STEP = re.compile(rb"\b([1-9]\d*)/\d+ \[")  # tqdm's "n/total [" once n ≥ 1
 STATUS = b"compiling CPU kernels"
+COMPILED = re.compile(rb"compiling CPU kernels [^\r\n]*: (\d+) s, done")  # the status line's last count
 
 
 @dataclass
 class Run:
     tree: Path
     status_s: float | None  # wall seconds until the compile's status line (None: no compile)
+    compile_s: int | None  # the compile's seconds, as its status line counted them
     first_step_s: float  # wall seconds until the bar showed step 1
     cpu_s: float  # CPU seconds of the fit process by then
     children_cpu_s: float  # CPU seconds of the compile processes it had waited for
@@ -72,6 +75,7 @@ def first_step(tree: Path, python: str, timeout_s: float) -> Run:
                     raise RuntimeError(f"{tree}: no first step within {timeout_s:.0f} s")
             elapsed = time.perf_counter() - started
             own, children = cpu_seconds(process.pid)
+            compiled = COMPILED.search(shown)
         finally:
             process.send_signal(signal.SIGINT)  # the fit saves a checkpoint and exits; the folder goes with `scratch`
             try:
@@ -80,7 +84,7 @@ def first_step(tree: Path, python: str, timeout_s: float) -> Run:
                 process.kill()
                 process.wait()
             process.stderr.close()
-    return Run(tree, status_s, elapsed, own, children)
+    return Run(tree, status_s, int(compiled[1]) if compiled else None, elapsed, own, children)
 
 
 def summary(runs: list[Run]) -> str:
@@ -103,7 +107,8 @@ def main() -> None:
         for tree in runs:
             run = first_step(tree, args.python, args.timeout)
             runs[tree].append(run)
-            status = "no compile" if run.status_s is None else f"status line {run.status_s:.1f} s"
+            status = ("no compile" if run.status_s is None
+                      else f"status line {run.status_s:.1f} s, compile {run.compile_s} s")
             print(f"round {round_ + 1}  {tree}: {status}, first step {run.first_step_s:.1f} s; CPU s by then: "
                   f"fit {run.cpu_s:.1f}, compile process {run.children_cpu_s:.1f}", flush=True)
     for tree_runs in runs.values():

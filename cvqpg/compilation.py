@@ -31,7 +31,7 @@ from .optics import SPECTRUM_BLOCK_ROWS
 if TYPE_CHECKING:
     from .targets import Scene
 
-# A demo fit's cold compile on 2 idle cores, the rasterizer's kernels here and the rest alongside (docs/performance.md)
+# A demo fit's cold compile on 2 idle cores, the rasterizer's loops here and the rest alongside (docs/performance.md)
 COMPILE_ESTIMATE_SECONDS = 25
 PROBE_SIZE_PX = (32, 24)  # above the SSIM window (11 px), so that every loss kernel runs
 PROBE_PRIMITIVES = 24
