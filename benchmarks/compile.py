@@ -7,9 +7,10 @@ Runs `compilation.compile_kernels` (what a fit runs before its progress bar) twi
 fresh process whose NUMBA_CACHE_DIR is an empty temporary folder. First in one process, listening
 to Numba's compile events: per function, the CPU seconds of its own compilation (less those of the
 functions compiled while typing it, listed apart) and the type signatures it compiled (more than
-one: the same code compiled twice). Then as a fit runs it, with the propagation's and the loss's
-kernels compiled alongside in a second process: CPU seconds of both processes, and the wall time.
-CPU seconds compare across runs on a loaded machine; wall time only on a quiet one."""
+one: the same code compiled twice). Then as a fit runs it, with the rasterizer's loops over the
+primitives compiled here and every other kernel alongside in a second process: CPU seconds of each
+process, the functions this one compiled, and the wall time. CPU seconds compare across runs on a
+loaded machine; wall time only on a quiet one."""
 
 from __future__ import annotations
 
@@ -50,10 +51,10 @@ class CompileTimes(event.Listener):
         self.signatures[name] += 1
 
 
-def process_cpu_seconds() -> float:
-    """CPU seconds of this process and of its children that have ended."""
+def process_cpu_seconds() -> tuple[float, float]:
+    """CPU seconds of this process, and of its children that have ended."""
     own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+    return own.ru_utime + own.ru_stime, children.ru_utime + children.ru_stime
 
 
 def measure(color: str, planes: int, alongside: bool) -> None:
@@ -62,15 +63,18 @@ def measure(color: str, planes: int, alongside: bool) -> None:
     from cvqpg.config import FitConfig
 
     times = CompileTimes()
-    cpu, wall = process_cpu_seconds(), time.perf_counter()
+    (own, children), wall = process_cpu_seconds(), time.perf_counter()
     with event.install_listener("numba:compile", times):
         compile_kernels(FitConfig(color=color, num_planes=planes), alongside=alongside)
-    cpu, wall = process_cpu_seconds() - cpu, time.perf_counter() - wall
+    own, children = (after - before for after, before in zip(process_cpu_seconds(), (own, children)))
+    wall = time.perf_counter() - wall
     how = "alongside another process" if alongside else "in one process"
-    print(f"{color}, {planes} plane(s), empty cache, {how}: {cpu:.1f} CPU s, {wall:.1f} s wall")
-    if alongside:
-        return
+    print(f"{color}, {planes} plane(s), empty cache, {how}: {own + children:.1f} CPU s, {wall:.1f} s wall")
     ours = {name: seconds for name, seconds in times.seconds.items() if name.startswith("cvqpg.")}
+    if alongside:
+        print(f"  this process {own:.1f} CPU s, compiling {sum(times.seconds.values()):.1f} s of it "
+              f"({', '.join(sorted(name.rsplit('.', 1)[1] for name in ours))}); the other process {children:.1f} s")
+        return
     print(f"  cvqpg's functions {sum(ours.values()):.1f} s, Numba's library functions "
           f"{sum(times.seconds.values()) - sum(ours.values()):.1f} s")
     for name, seconds in sorted(ours.items(), key=lambda item: -item[1]):

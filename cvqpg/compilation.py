@@ -4,9 +4,9 @@ Numba compiles a kernel on its first call and caches the machine code on disk (`
 only the first fit after installing (or after the kernels' source changed) pays for it. A fit on
 the CPU therefore starts with one optimisation step of a tiny scene with the same settings
 (`compile_kernels`): it compiles, or loads from the cache, exactly the kernel specialisations that
-the fit calls, before the progress bar and the fit's clock start. Cold, the fit compiles the
-rasterizer's kernels while another process compiles the propagation's and the loss's into the cache
-(`CompileAlongside`). When Numba compiles (rather than loads from its cache), a status line says so
+the fit calls, before the progress bar and the fit's clock start. Cold, the fit compiles most of the
+rasterizer's kernels while another process compiles the rest into the cache (`CompileAlongside`,
+`ALONGSIDE_PARTS`). When Numba compiles (rather than loads from its cache), a status line says so
 and counts the seconds. `warmup` does the same ahead of time for every kind of fit (`cvqpg warmup`,
 run by `scripts/install.sh`).
 """
@@ -18,7 +18,7 @@ import subprocess
 import sys
 import threading
 import time
-from typing import TYPE_CHECKING, Callable, Sequence, TextIO
+from typing import TYPE_CHECKING, Sequence, TextIO
 
 import numpy as np
 import torch
@@ -31,7 +31,7 @@ from .optics import SPECTRUM_BLOCK_ROWS
 if TYPE_CHECKING:
     from .targets import Scene
 
-# A demo fit's cold compile on 2 idle cores, the rasterizer's kernels here and the rest alongside (docs/performance.md)
+# A demo fit's cold compile on 2 idle cores, the rasterizer's loops here and the rest alongside (docs/performance.md)
 COMPILE_ESTIMATE_SECONDS = 25
 PROBE_SIZE_PX = (32, 24)  # above the SSIM window (11 px), so that every loss kernel runs
 PROBE_PRIMITIVES = 24
@@ -72,6 +72,20 @@ def probe_scene(probe: FitConfig) -> Scene:
     return load_scene(demo.image, ramp if probe.num_planes > 1 else None, probe)
 
 
+def compile_rasterizer_kernels(probe: FitConfig, per_primitive: bool = False) -> None:
+    """Compile (or load) the fused rasterizer's kernels from their types (`KERNEL_TYPES`), without
+    running them: its kernels other than the two loops over the primitives, or only those loops
+    (`per_primitive`, `PER_PRIMITIVE_KERNELS`: about half of a cold fit's compile). Nothing where
+    `probe`'s rasterizer is not the Numba one."""
+    from .ops import resolve_backend
+    from .ops.rasterize import KERNEL_TYPES, PER_PRIMITIVE_KERNELS
+
+    if resolve_backend(probe.backend, probe.device) == "numba":
+        for kernel, types in KERNEL_TYPES.items():
+            if (kernel in PER_PRIMITIVE_KERNELS) == per_primitive:
+                kernel.compile(types)
+
+
 def compile_propagation_and_loss(probe: FitConfig) -> None:
     """Compile (or load) the propagation's and the loss's kernels for fits of `probe`'s kind: the
     loss of a random hologram, and its gradient."""
@@ -83,22 +97,25 @@ def compile_propagation_and_loss(probe: FitConfig) -> None:
     loss.backward()
 
 
-# What another process compiles while a cold fit compiles the rasterizer's kernels (docs/performance.md,
-# "First run").
-ALONGSIDE_PARTS: dict[str, Callable[[FitConfig], None]] = {"propagation-and-loss": compile_propagation_and_loss}
+# What another process compiles while a cold fit compiles the rasterizer's loops over the primitives
+# (docs/performance.md, "First run"): the rasterizer's other kernels, then the propagation's and the
+# loss's. The fit loads them from the cache in its probe step.
+ALONGSIDE_PARTS = (compile_rasterizer_kernels, compile_propagation_and_loss)
 
 
-def compile_part(part: str, probe_json: str) -> None:
-    """Entry point of a compile process: compile `part` (a key of ALONGSIDE_PARTS) for the probe
-    configuration given as JSON."""
-    ALONGSIDE_PARTS[part](FitConfig.from_dict(json.loads(probe_json)))
+def compile_alongside(probe_json: str) -> None:
+    """Entry point of the compile process: compile `ALONGSIDE_PARTS` for the probe configuration given
+    as JSON."""
+    probe = FitConfig.from_dict(json.loads(probe_json))
+    for part in ALONGSIDE_PARTS:
+        part(probe)
 
 
-def part_command(part: str, probe: FitConfig) -> list[str]:
-    """The command of a process that compiles `part` for fits of `probe`'s kind. A fresh interpreter
-    imports only the modules the part needs (not the CLI, as a multiprocessing child would)."""
-    return [sys.executable, "-c", "import sys; from cvqpg.compilation import compile_part; compile_part(*sys.argv[1:])",
-            part, json.dumps(probe.to_dict())]
+def alongside_command(probe: FitConfig) -> list[str]:
+    """The command of the process that compiles `ALONGSIDE_PARTS` for fits of `probe`'s kind. A fresh
+    interpreter imports only the modules the parts need (not the CLI, as a multiprocessing child would)."""
+    return [sys.executable, "-c", "import sys; from cvqpg.compilation import compile_alongside; "
+            "compile_alongside(sys.argv[1])", json.dumps(probe.to_dict())]
 
 
 class CompileAlongside(event.Listener):
@@ -136,17 +153,16 @@ def compile_kernels(config: FitConfig, alongside: bool = True) -> None:
     """Compile (or load from Numba's cache) every kernel that a CPU fit of `config` calls, by running
     one optimisation step and one render of a tiny scene of the same kind.
 
-    Cold and `alongside`, the rasterizer's kernels compile here while another process compiles the
-    propagation's and the loss's (`ALONGSIDE_PARTS`); the step then loads those from the cache."""
-    from .fitting import initial_state, optimisation_step, render, render_hologram
+    The rasterizer's loops over the primitives compile first, from their types; cold and `alongside`,
+    another process compiles the other kernels meanwhile (`ALONGSIDE_PARTS`), and the step waits for
+    it and loads them from the cache. Otherwise the step compiles them."""
+    from .fitting import initial_state, optimisation_step, render
     from .primitives import activate
 
     probe = probe_config(config)
-    state = initial_state(probe)
-    commands = [part_command(part, probe) for part in ALONGSIDE_PARTS] if alongside else []
-    with CompileAlongside(commands):
-        hologram = render_hologram(state.gaussians, probe)
-        hologram.backward(torch.ones_like(hologram))
+    with CompileAlongside([alongside_command(probe)] if alongside else []):
+        compile_rasterizer_kernels(probe, per_primitive=True)
+        state = initial_state(probe)  # the optimiser's imports, before waiting for the other process
     optimisation_step(state, probe_scene(probe), probe)
     render(activate(state.gaussians.detached(), probe), probe)
 

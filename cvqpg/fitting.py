@@ -357,8 +357,10 @@ def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = Tr
     config.validate()
     device = torch.device(config.device)
     scene = Scene(*(t.to(device) for t in (scene.image, scene.masks, scene.targets)))
+    # The kernels first: a cold compile starts its second process before this one imports the optimiser.
+    compile_seconds = prepare_kernels(config, show_status=progress)
     state = state or initial_state(config)
-    state.compile_seconds += prepare_kernels(config, show_status=progress)
+    state.compile_seconds += compile_seconds
     reset_peak_memory(device)
     last_save, clock = time.perf_counter(), time.perf_counter()
     bar = tqdm(range(state.step, config.steps + 1), initial=state.step, total=config.steps + 1,

@@ -20,6 +20,7 @@ from cvqpg.cli import main
 from cvqpg.compilation import CompileAlongside, CompileStatus, compile_kernels
 from cvqpg.config import FitConfig
 from cvqpg.fitting import fit_scene
+from cvqpg.ops.rasterize import KERNEL_TYPES
 from cvqpg.scenes import builtin_scene
 from cvqpg.targets import load_scene
 
@@ -32,11 +33,14 @@ def kernel_signatures():
             for signature in function.signatures}
 
 
-@pytest.mark.parametrize("config", [FitConfig(width=48, height=36, steps=2, warmup=1),
-                                    FitConfig(width=40, height=30, steps=2, warmup=1, color="gray", num_planes=1,
-                                              primitive="flat", qpf="standard"),
-                                    FitConfig(width=48, height=36, steps=2, warmup=1, curvature="per-channel")],
-                         ids=["demo", "gray-flat-one-plane", "per-channel"])
+KINDS = pytest.mark.parametrize("config", [FitConfig(width=48, height=36, steps=2, warmup=1),
+                                           FitConfig(width=40, height=30, steps=2, warmup=1, color="gray",
+                                                     num_planes=1, primitive="flat", qpf="standard"),
+                                           FitConfig(width=48, height=36, steps=2, warmup=1, curvature="per-channel")],
+                                ids=["demo", "gray-flat-one-plane", "per-channel"])
+
+
+@KINDS
 def test_after_the_probe_a_fit_needs_no_other_kernel_specialisation(config):
     compile_kernels(config)
     probed = kernel_signatures()
@@ -44,6 +48,17 @@ def test_after_the_probe_a_fit_needs_no_other_kernel_specialisation(config):
     scene = load_scene(demo.image, demo.depth if config.num_planes > 1 else None, config)
     fit_scene(scene, config, progress=False)
     assert kernel_signatures() == probed
+
+
+@KINDS
+def test_the_rasterizer_kernels_are_compiled_from_the_types_a_fit_calls_them_with(config):
+    probe = compilation.probe_config(config)
+    for per_primitive in (True, False):
+        compilation.compile_rasterizer_kernels(probe, per_primitive)
+    from_types = {(kernel, signature) for kernel in KERNEL_TYPES for signature in kernel.signatures}
+    assert {(kernel, types) for kernel, types in KERNEL_TYPES.items()} <= from_types
+    compile_kernels(config, alongside=False)
+    assert {(kernel, signature) for kernel in KERNEL_TYPES for signature in kernel.signatures} == from_types
 
 
 def test_the_probe_serves_more_planes_than_the_demo_depth_separates():
@@ -136,8 +151,7 @@ def test_an_interrupted_block_stops_the_helper_processes_instead_of_waiting():
     assert alongside.processes[0].returncode is not None and time.perf_counter() - started < 30.0
 
 
-@pytest.mark.parametrize("part", sorted(compilation.ALONGSIDE_PARTS))
-def test_each_part_compiles_in_a_process_of_its_own(part):
+def test_the_alongside_process_compiles_its_parts():
     probe = compilation.probe_config(FitConfig(width=48, height=36))
-    done = subprocess.run(compilation.part_command(part, probe), capture_output=True, text=True, timeout=600)
+    done = subprocess.run(compilation.alongside_command(probe), capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr

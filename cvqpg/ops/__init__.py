@@ -26,6 +26,12 @@ from torch import Tensor
 
 BACKEND_NAMES = ("numba", "torch", "triton")
 
+# Numba options for the CPU kernels' functions that only other kernels call: without the CPython and C
+# wrappers that Numba otherwise compiles for every function, which nothing calls. Their machine code is
+# the same; a cold compile takes 7% less CPU time (docs/performance.md, "First run"). Python cannot call
+# such a function.
+CALLED_BY_KERNELS_ONLY = {"no_cpython_wrapper": True, "no_cfunc_wrapper": True}
+
 
 def cpu_array(tensor: Tensor) -> np.ndarray:
     """A tensor's values as a contiguous NumPy array on the CPU (no gradient), for the Numba kernels."""

@@ -24,6 +24,7 @@ import math
 import numba as nb
 import numpy as np
 
+from .. import CALLED_BY_KERNELS_ONLY
 from ..rasterize.cpu import _cosines_and_sines
 
 
@@ -64,7 +65,7 @@ def _logarithm(x):
     return (exponent + high) * np.float32(math.log(2.0)) + np.float32(2.0) * s * series
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nb.njit(cache=True, nogil=True, fastmath=True, error_model="numpy", **CALLED_BY_KERNELS_ONLY)
 def _normal_pairs(seed, first, count, out):
     """Pairs first..first + count − 1 of `standard_normals` into out [2·count] (its slice). The steps
     are separate loops, each of which LLVM vectorises (no division checks: NumPy's error model)."""
@@ -95,6 +96,21 @@ def standard_normals(seed, out):
         _normal_pairs(seed, first, stop - first, out[2 * first:2 * stop])
 
 
+@nb.njit(cache=True, nogil=True, **CALLED_BY_KERNELS_ONLY)
+def _run_sums(rows, runs):
+    """Sums [runs, K] (float64) of rows [runs·n, K] over each run of n consecutive rows, each added in
+    the order of its rows, as `rows.reshape(runs, n, K).sum(axis=1)` adds them. Without fastmath, so
+    LLVM keeps that order. (NumPy's sum over an axis compiles 2.7 s of Numba's library functions,
+    most of them for the error messages of its axis check.)"""
+    length = rows.shape[0] // runs
+    sums = np.zeros((runs, rows.shape[1]))
+    for run in range(runs):
+        for row in range(run * length, (run + 1) * length):
+            for k in range(rows.shape[1]):
+                sums[run, k] += rows[row, k]
+    return sums
+
+
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def pixel_terms(recon, targets, noisy, masks, gradient):
     """Per-plane sums over [C, H, W] of `(x − t)²` and of `(m² + ñ²)(x − ñ)²` ([M, 2], float64).
@@ -117,21 +133,21 @@ def pixel_terms(recon, targets, noisy, masks, gradient):
                 weighted += weight * noisy_error * noisy_error
                 gradient[m, c, i, j] = 2.0 * (error + weight * noisy_error)
         rows[row, 0], rows[row, 1] = plain, weighted
-    return rows.reshape(planes, height, 2).sum(axis=1)
+    return _run_sums(rows, planes)
 
 
 SSIM_TAPS = 11  # the window (px), a constant: the filters' loops over taps unroll, their loops over pixels vectorise
 SSIM_TASKS = 64  # the SSIM kernels' rows go in consecutive runs to this many tasks (a few per thread)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, **CALLED_BY_KERNELS_ONLY)
 def _task_rows(task, rows):
     """The run of rows that task `task` of SSIM_TASKS takes: consecutive rows share their input rows in
     cache. `task` comes as np.int64 (see `kernels.splat_forward`: one compilation, not two)."""
     return range(task * rows // SSIM_TASKS, (task + 1) * rows // SSIM_TASKS)
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True)
+@nb.njit(cache=True, nogil=True, fastmath=True, **CALLED_BY_KERNELS_ONLY)
 def _filtered(row, taps, out):
     """out[j] = Σ_k taps[k]·row[j + k] for every j of out (row holds SSIM_TAPS − 1 values more), each
     output summed in registers."""
@@ -142,7 +158,7 @@ def _filtered(row, taps, out):
         out[j] = total
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True)
+@nb.njit(cache=True, nogil=True, fastmath=True, **CALLED_BY_KERNELS_ONLY)
 def _column_moments(x, y, i, taps, s_x, s_y, s_xx, s_yy, s_xy):
     """Column sums of x, y, x², y² and xy [W] under the window whose top row is i, weighted by taps.
 
@@ -165,7 +181,7 @@ def _column_moments(x, y, i, taps, s_x, s_y, s_xx, s_yy, s_xy):
             s_xy[j] += p0 * b0 + p1 * b1
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True)
+@nb.njit(cache=True, nogil=True, fastmath=True, **CALLED_BY_KERNELS_ONLY)
 def _gathered_columns(d_x, d_xx, d_xy, i, taps, c_x, c_xx, c_xy):
     """The vertical blur's adjoint at input row i: c[j] = Σ_k taps[k]·d[i − k, j] over the output rows
     i − k that exist, for the three derivative maps [h, w] at once, two taps per pass as in
@@ -202,7 +218,7 @@ def ssim_forward(x, y, taps, c1, c2, d_mean_x, d_mean_xx, d_mean_xy):
         raise ValueError("the SSIM kernels take SSIM_TAPS taps")
     images, height, width = x.shape
     out_height, out_width = height - SSIM_TAPS + 1, width - SSIM_TAPS + 1
-    rows = np.zeros(images * out_height)
+    rows = np.zeros((images * out_height, 1))
     for task in nb.prange(SSIM_TASKS):
         s_x, s_y, s_xx, s_yy, s_xy = (np.empty(width, x.dtype), np.empty(width, x.dtype), np.empty(width, x.dtype),
                                       np.empty(width, x.dtype), np.empty(width, x.dtype))  # apart: no aliasing
@@ -210,12 +226,13 @@ def ssim_forward(x, y, taps, c1, c2, d_mean_x, d_mean_xx, d_mean_xy):
                                       np.empty(out_width, x.dtype), np.empty(out_width, x.dtype),
                                       np.empty(out_width, x.dtype))
         for row in _task_rows(np.int64(task), rows.shape[0]):
-            rows[row] = _ssim_row(x, y, taps, c1, c2, row // out_height, row % out_height, (s_x, s_y, s_xx, s_yy, s_xy),
-                                  (m_x, m_y, m_xx, m_yy, m_xy), d_mean_x, d_mean_xx, d_mean_xy)
-    return rows.reshape(images, out_height).sum(axis=1)
+            rows[row, 0] = _ssim_row(x, y, taps, c1, c2, row // out_height, row % out_height,
+                                     (s_x, s_y, s_xx, s_yy, s_xy), (m_x, m_y, m_xx, m_yy, m_xy), d_mean_x, d_mean_xx,
+                                     d_mean_xy)
+    return _run_sums(rows, images)[:, 0]
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+@nb.njit(cache=True, nogil=True, fastmath=True, error_model="numpy", **CALLED_BY_KERNELS_ONLY)
 def _ssim_row(x, y, taps, c1, c2, b, i, sums, blurred, d_mean_x, d_mean_xx, d_mean_xy):
     """Output row i of image b (`ssim_forward`), through a thread's buffers for the five moments' column
     sums and blurs: its derivative maps, and the sum of its SSIM map."""

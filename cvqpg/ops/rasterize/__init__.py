@@ -105,6 +105,31 @@ class _FusedSplat(torch.autograd.Function):
                 None, None, None, None, None)
 
 
+# The argument types that `_FusedSplat` passes to its kernels, the same for every fit (tests/
+# test_compilation.py checks them against the fits' calls). A cold fit compiles its kernels from
+# these, in two processes at once, neither waiting for the kernels that come before in a pass
+# (`compilation`). Types, not signature strings: Numba's cache files a compile under what `compile`
+# was given, and a call looks up types.
+_F32, _F64, _C64, _I64, _BOOL = numba.float32, numba.float64, numba.complex64, numba.int64, numba.boolean
+_SPLATS = (_I64[::1], _F32[:, ::1], _F32[:, ::1], _F32[::1], _F32[:, ::1], _F32[:, ::1], _F32[:, ::1], _F32[::1],
+           _F64[::1], _BOOL)  # order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis
+KERNEL_TYPES = {
+    cpu.splat_geometry: (_F32[:, ::1], _F32[::1], _F32[:, ::1], _F64, _F64, _F64, _BOOL,  # scale ... mahalanobis
+                         _F64[:, ::1], _F32[:, ::1], _F32[::1], _F32[:, ::1]),  # terms, conic, reach, chirp
+    cpu.locality_order: (_F32[:, ::1], _I64, _I64),
+    cpu.splat_forward: (*_SPLATS, _F32[:, :, :, ::1]),
+    cpu.gather_partials: (_F32[:, :, :, ::1], _C64[:, :, ::1]),
+    cpu.split_lanes: (_C64[:, :, ::1], _F32[:, :, ::1]),
+    cpu.splat_backward: (*_SPLATS, _F32[:, :, ::1], _F64[:, ::1], _F64[:, ::1], _F64[:, ::1], _F64[:, ::1],
+                         _F64[:, ::1], _F64[::1], _I64),  # grad, g_position ... g_opacity, threads
+    cpu.geometry_gradients: (_F32[:, ::1], _F32[:, ::1], _F64, _BOOL, _F64[:, ::1],  # scale ... terms
+                             _F64[:, ::1], _F64[:, ::1], _F64[:, ::1], _F64[::1],  # g_conic ... g_rotation
+                             _F64[:, ::1]),  # g_curvature
+}
+# The two loops over the primitives: 24 of the demo fit's 45 CPU s of kernel compilation.
+PER_PRIMITIVE_KERNELS = (cpu.splat_forward, cpu.splat_backward)
+
+
 def splat_fused(prims: Primitives, width: int, height: int, wavenumbers: Tensor, pixel_pitch: float,
                 qpf: Qpf) -> Tensor:
     """Fused CPU backend (Numba): complex hologram [C, H, W], float32 inside, pitch in m."""

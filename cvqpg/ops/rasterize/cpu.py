@@ -59,6 +59,7 @@ import math
 import numba as nb
 import numpy as np
 
+from .. import CALLED_BY_KERNELS_ONLY
 from . import vectors
 
 FLOOR_MAHALANOBIS2 = 100.0  # D² where the envelope exponent −½D² reaches SPEC's floor of −50
@@ -289,7 +290,7 @@ def _exponent_coefficients(a, b, c, k_chirp, mahalanobis):
     return complex(-0.5 * a, k_chirp * pa), complex(-0.5 * b, k_chirp * pb), complex(-0.5 * c, k_chirp * pc)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, **CALLED_BY_KERNELS_ONLY)
 def _scratch(channels):
     """A thread's arrays for the lane tables: angles, their cosines and sines (six per channel), the
     six magnitudes, the per-channel lane patterns (`PATTERNS`), and the walks' start values
@@ -342,7 +343,7 @@ def _lane_exponents(dx, dy, a, b, c):
             2.0 * b * dx + c * (2.0 * dy + 1.0), 2.0 * b, 2.0 * c)
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True)
+@nb.njit(cache=True, nogil=True, fastmath=True, **CALLED_BY_KERNELS_ONLY)
 def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumbers, mahalanobis, count, lanes,
                  scratch):
     """Every channel's lanes (lane = column · C + channel) on the box's first row, zero past them up to
@@ -378,7 +379,7 @@ def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumb
         g_re[j] = g_im[j] = h_re[j] = h_im[j] = 0.0
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True)
+@nb.njit(cache=True, nogil=True, fastmath=True, **CALLED_BY_KERNELS_ONLY)
 def _walk_along_row(starts, channels, columns, lanes):
     """G and H of every column and channel into the lanes (G ← G·ratio, ratio ← ratio·step,
     H ← H·step_H per column), from `starts` [10, ·] (G, ratio, step, H, step_H, real and imaginary
@@ -416,7 +417,7 @@ def _lane_magnitudes(dx, dy, a, b, c, magnitudes):
         magnitudes[j] = math.exp(-0.5 * envelope[j])
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True)
+@nb.njit(cache=True, nogil=True, fastmath=True, **CALLED_BY_KERNELS_ONLY)
 def _real_lane_tables(a, b, c, x0, y0, low, first, columns, channels, count, lanes, magnitudes, patterns):
     """`_lane_tables` for a primitive without quadratic phase (χ = 0 in every channel): exp(E) is then
     the real envelope, the same in every channel, and its lanes hold it without the phase e^{iφ}
@@ -459,7 +460,7 @@ def _amplitude_pattern(n, color, opacity, patterns):
             patterns[2, j] = amplitude
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, **CALLED_BY_KERNELS_ONLY)
 def _rotation_pattern(n, phase, color, opacity, with_amplitude, patterns):
     """e^{iφ} of primitive n's channels, times the amplitude αc if `with_amplitude`, into the lane
     patterns (real and imaginary parts, `_pattern_index`): what real lanes are multiplied by. libm's
@@ -656,14 +657,14 @@ def _accumulate_real_strips(lanes, patterns, channels, count, spans, rows, row_l
                        sine * vr - cosine * vi)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, **CALLED_BY_KERNELS_ONLY)
 def _exact_at(A, B, C, dx, dy):
     """exp(E) at offset (dx, dy), and the ratios to its right and left neighbours."""
     return (cmath.exp(A * dx * dx + 2.0 * B * dx * dy + C * dy * dy),
             cmath.exp(A * (2.0 * dx + 1.0) + 2.0 * B * dy), cmath.exp(A * (1.0 - 2.0 * dx) - 2.0 * B * dy))
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, **CALLED_BY_KERNELS_ONLY)
 def _walk_start(A, B, C, dx0, dy0):
     """Exact values at the walk's start (column dx0, first row dy0): exp(E), the vertical ratio and
     its change, the rightward and leftward ratios, their changes per row (right, left) and per step."""
@@ -672,7 +673,7 @@ def _walk_start(A, B, C, dx0, dy0):
             cmath.exp(2.0 * B), cmath.exp(-2.0 * B), cmath.exp(2.0 * A))
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, **CALLED_BY_KERNELS_ONLY)
 def _row_walks(walk, A, B, C, scale, z_row, s_right, s_left, s_step, x0, dy, cx, ridge_slope, left, right):
     """Both walks of a row, stepped together so that their two multiplication chains overlap.
 
@@ -691,14 +692,14 @@ def _row_walks(walk, A, B, C, scale, z_row, s_right, s_left, s_step, x0, dy, cx,
     return start, z_row, s_right, z_row * s_left, s_left * s_step, steps
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, **CALLED_BY_KERNELS_ONLY)
 def _next_row(z_row, v, v_step, s_right, s_left, s_row, s_row_left):
     """The walk's state one row down (no division: off the walk's range these values overflow to
     unused infinities, and a division by an underflowed zero would raise)."""
     return z_row * v, v * v_step, s_right * s_row, s_left * s_row_left
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True)
+@nb.njit(cache=True, nogil=True, fastmath=True, **CALLED_BY_KERNELS_ONLY)
 def _with_row(moments, m0, m1, m2, dy):
     """A primitive's moments (Σm, Σm·dx, Σm·dx², Σm·dy, Σm·dx·dy, Σm·dy²) with one row's sums
     (Σm, Σm·dx, Σm·dx² over the row, at offset dy) added."""
@@ -712,7 +713,7 @@ def _chirp_slot(channel, chirp):
     return min(channel, chirp.shape[1] - 1)
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True)
+@nb.njit(cache=True, nogil=True, fastmath=True, **CALLED_BY_KERNELS_ONLY)
 def _walked_rows(A, B, C, amplitude, way, x0, y0, low, high, lefts, rights, lane, channels, out_re, out_im):
     """out += amplitude · exp(E) over the footprint, each row walked outwards (see the module notes)."""
     cx = round(x0)
@@ -767,7 +768,7 @@ def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumb
         _add_strips(box, patterns, channels, count, spans, high + 1 - low, row_length, start, image_re, image_im)
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True)
+@nb.njit(cache=True, nogil=True, fastmath=True, **CALLED_BY_KERNELS_ONLY)
 def _splat_share(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                  out_re, out_im):
     """out += the sum over primitives order[t], order[t+T], order[t+2T], ... (T = threads): one thread's
@@ -789,7 +790,7 @@ def _splat_share(t, threads, order, position, conic, reach, chirp, color, phase,
 WITHOUT_REFERENCE_COUNTS = {"_nrt": False}
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True, **WITHOUT_REFERENCE_COUNTS)
+@nb.njit(cache=True, nogil=True, fastmath=True, **WITHOUT_REFERENCE_COUNTS, **CALLED_BY_KERNELS_ONLY)
 def _splat_loop(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                 out_re, out_im, image_re, image_im, lefts, rights, spans, lanes, scratch):
     """`_splat_share`'s loop: a plain loop into which each primitive's work is inlined (a call per
@@ -850,7 +851,7 @@ def split_lanes(values, out):
                 real[x * channels + ch], imag[x * channels + ch] = source[x].real, source[x].imag
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True)
+@nb.njit(cache=True, nogil=True, fastmath=True, **CALLED_BY_KERNELS_ONLY)
 def _walked_moments(grad_re, grad_im, A, B, C, rotation, way, x0, y0, low, high, lefts, rights, lane, channels):
     """One channel's moments of t and u (see `splat_backward`) over the footprint, walking each row
     outwards from its start by complex multiplication."""
@@ -978,7 +979,7 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
     g_position[n, 0], g_position[n, 1] = gx, gy
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True)
+@nb.njit(cache=True, nogil=True, fastmath=True, **CALLED_BY_KERNELS_ONLY)
 def _gradients_share(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers,
                      mahalanobis, grad_re, grad_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity):
     """The gradients of primitives order[t], order[t+T], ... (T = threads): one thread's share, with its
@@ -996,7 +997,7 @@ def _gradients_share(t, threads, order, position, conic, reach, chirp, color, ph
                     _scratch(color.shape[1]), np.empty((12, _vector_channels(color.shape[1]))))
 
 
-@nb.njit(cache=True, nogil=True, fastmath=True, **WITHOUT_REFERENCE_COUNTS)
+@nb.njit(cache=True, nogil=True, fastmath=True, **WITHOUT_REFERENCE_COUNTS, **CALLED_BY_KERNELS_ONLY)
 def _gradients_loop(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers,
                     mahalanobis, grad_re, grad_im, image_re, image_im, g_position, g_conic, g_chirp, g_color, g_phase,
                     g_opacity, lefts, rights, spans, lanes, scratch, moments):
