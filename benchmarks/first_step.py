@@ -1,7 +1,7 @@
 """Seconds from starting the README's demo fit with an empty Numba cache until its first step is shown.
 
     python benchmarks/first_step.py                                        # this tree, 3 runs
-    python benchmarks/first_step.py --trees /work/main /work/wt-25 --rounds 3
+    python benchmarks/first_step.py --trees ../cvqpg-before . --rounds 3   # two checkouts, alternating
 
 Each run starts `python -m cvqpg.cli fit --size 320 240 --steps 300 --out TMP` in a source tree (its
 `cvqpg` first on PYTHONPATH), with NUMBA_CACHE_DIR an empty temporary folder, reads the progress

@@ -161,8 +161,9 @@ def machine_lines(grids: list[GridResults]) -> list[str]:
 
 
 def mixed_machine_lines(grids: list[GridResults]) -> list[str]:
-    """The scene–setting groups whose methods, compared with each other in the tables, ran on different
-    devices: between CPU models one fit differs by about SIMILAR_DB, so their differences are weaker evidence."""
+    """Per grid, the scene–setting groups whose methods, compared with each other in the tables, ran on
+    different devices: between CPU models one fit differs by about SIMILAR_DB, so their differences are
+    weaker evidence."""
     lines = []
     for g in grids:
         devices: dict[tuple[str, str], dict[str, list[str]]] = {}
@@ -170,11 +171,13 @@ def mixed_machine_lines(grids: list[GridResults]) -> list[str]:
             run = r.metrics.get("run") or {}
             group = devices.setdefault((r.cell.scene.name, r.cell.setting), {})
             group.setdefault(run.get("device", "unrecorded"), []).append(METHODS[r.cell.method].label)
-        for (scene, setting), by_device in devices.items():
-            if len(by_device) > 1:
-                where = "; ".join(f"{', '.join(methods)} on {device}" for device, methods in sorted(by_device.items()))
-                lines.append(f"{g.grid.title}, {scene} {setting_label(setting)}: methods fitted on different "
-                             f"devices ({where}); their differences carry the ±{SIMILAR_DB} dB spread between CPUs.")
+        mixed = [f"{scene} {setting_label(setting)} ("
+                 + "; ".join(f"{', '.join(methods)} on {device}" for device, methods in sorted(by_device.items())) + ")"
+                 for (scene, setting), by_device in devices.items() if len(by_device) > 1]
+        if mixed:
+            lines.append(f"{g.grid.title}: the methods of {len(mixed)} scene–setting group{'s' * (len(mixed) != 1)} "
+                         f"ran on different devices, so their differences carry the ±{SIMILAR_DB} dB spread between "
+                         f"CPUs: {', '.join(mixed)}.")
     return lines
 
 
