@@ -32,7 +32,7 @@ if TYPE_CHECKING:
     from .targets import Scene
 
 # A demo fit's cold compile on 2 idle cores, the rasterizer's loops here and the rest alongside (docs/performance.md)
-COMPILE_ESTIMATE_SECONDS = 25
+COMPILE_ESTIMATE_SECONDS = 23
 PROBE_SIZE_PX = (32, 24)  # above the SSIM window (11 px), so that every loss kernel runs
 PROBE_PRIMITIVES = 24
 # With this guard band the probe's padded grid spans more than one block of the propagation's
