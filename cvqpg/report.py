@@ -173,31 +173,62 @@ def setting_methods(plan: BenchPlan, setting: str) -> list[str]:
     return [m for m in plan.methods if m in present]
 
 
+def shared_means(results: list[CellResult], setting: str, methods: list[str]
+                 ) -> tuple[list[str], dict[str, Metrics | None]]:
+    """The scenes finished in `setting` by every method of `methods` that has finished any, and each
+    method's mean over them (None for a method with no finished cell): a table's rows are means over the
+    same scenes, so that one row can be read against another."""
+    finished = {m: scene_values(results, setting, m) for m in methods}
+    started = [set(values) for values in finished.values() if values]
+    scenes = sorted(set.intersection(*started)) if started else []
+    return scenes, {m: over_scenes(values, scenes) if values else None for m, values in finished.items()}
+
+
+def baseline_gain(means: dict[str, Metrics | None], method: str) -> Metrics | None:
+    """`means[method]` − `means["baseline"]` per metric; None where either is missing."""
+    ours, base = means.get(method), means.get("baseline")
+    return None if ours is None or base is None else _difference(ours, base)
+
+
+def waiting_note(results: list[CellResult], setting: str, methods: list[str], scenes: list[str]) -> str:
+    """Says which finished cells a table's means leave out, until the other methods reach their scenes."""
+    waiting = sum(len(set(scene_values(results, setting, m)) - set(scenes)) for m in methods)
+    if not waiting:
+        return ""
+    return (f"{setting_label(setting)}: means over the scenes every method has finished ({', '.join(scenes)}); "
+            f"{waiting} more finished cell{'s' * (waiting != 1)} join{'s' * (waiting == 1)} them once the other "
+            "methods finish their scenes.")
+
+
 def main_table(plan: BenchPlan, results: list[CellResult]) -> tuple[Table, list[dict[str, Any]]]:
-    """Table 1's layout: per setting and method N and the mean metrics over scenes; Δ of CVQPG over the
-    baseline over the scenes both finished. Also the same rows for `summary.csv`."""
+    """Table 1's layout: per setting and method N and the mean metrics over the scenes every method has
+    finished, and Δ of CVQPG over the baseline on them. Also the same rows for `summary.csv`."""
     table = Table("Mean over scenes (Table 1 layout); in parentheses: the paper, same scenes",
                   ["Setting", "Method", "N", "scenes", *(HEADINGS[m] for m in TABLE_METRICS)])
     rows: list[dict[str, Any]] = []
+    notes = []
     for setting in plan.settings:
         comparable = paper_setup(plan, setting)
-        block = []
-        for method in setting_methods(plan, setting):
-            per_scene = scene_values(results, setting, method)
-            ours = over_scenes(per_scene, list(per_scene))
-            paper = paper_scene_mean(list(per_scene), setting, method) if comparable else None
-            block.append(ours)
+        methods = setting_methods(plan, setting)
+        scenes, means = shared_means(results, setting, methods)
+        papers = {}
+        for method in methods:
+            ours = means[method]
+            paper = papers[method] = paper_scene_mean(scenes, setting, method) if comparable and ours else None
+            used = len(scenes) if ours else 0
             table.rows.append([setting_label(setting), METHODS[method].label,
-                               f"{primitive_count(plan, setting, method):,}", f"{len(per_scene)}/{len(plan.scenes)}",
+                               f"{primitive_count(plan, setting, method):,}", f"{used}/{len(plan.scenes)}",
                                *(_with_paper(ours, paper, m) for m in TABLE_METRICS)])
-            rows.append(_csv_row(setting, method, primitive_count(plan, setting, method), len(per_scene), ours, paper))
-        _bold_best(table, len(table.rows) - len(block), block, 4)
-        if {"baseline", "cvqpg"} <= set(plan.methods):
-            delta, paper_delta, scenes = paired_delta(results, setting, "cvqpg", comparable)
-            table.rows.append([setting_label(setting), "Δ (CVQPG − Baseline)", "",
-                               f"{len(scenes)}/{len(plan.scenes)}",
+            rows.append(_csv_row(setting, method, primitive_count(plan, setting, method), used, ours, paper))
+        _bold_best(table, len(table.rows) - len(methods), list(means.values()), 4)
+        notes.append(waiting_note(results, setting, methods, scenes))
+        if {"baseline", "cvqpg"} <= set(methods):
+            delta, paper_delta = baseline_gain(means, "cvqpg"), baseline_gain(papers, "cvqpg")
+            used = len(scenes) if delta else 0
+            table.rows.append([setting_label(setting), "Δ (CVQPG − Baseline)", "", f"{used}/{len(plan.scenes)}",
                                *(_with_paper(delta, paper_delta, m, signed=True) for m in TABLE_METRICS)])
-            rows.append(_csv_row(setting, "delta cvqpg-baseline", None, len(scenes), delta, paper_delta))
+            rows.append(_csv_row(setting, "delta cvqpg-baseline", None, used, delta, paper_delta))
+    table.note = " ".join(note for note in notes if note)
     return table, rows
 
 
@@ -248,33 +279,35 @@ def _slashed(values: list[Metrics | None]) -> list[str]:
 
 def variant_tables(plan: BenchPlan, results: list[CellResult]) -> list[Table]:
     """For grids beyond Table 1's methods (ablation, chromatic), per setting: Δ PSNR of every method over
-    the baseline (scenes both finished) and the metrics; the paper's ablation values where they apply."""
+    the baseline and the metrics, all over the scenes every method has finished; the paper's ablation values
+    where they apply."""
     if set(plan.methods) <= set(TABLE1_METHODS):
         return []
     ablation = paper_numbers()["ablation"]
+    comparable_methods = bool(set(ABLATION_VARIANTS) & set(plan.methods))
     tables = []
     for setting in plan.settings:
-        comparable = paper_setup(plan, setting) and setting == ablation["setting"]
+        comparable = comparable_methods and paper_setup(plan, setting) and setting == ablation["setting"]
         table = Table(f"Variants against the baseline, {setting_label(setting)}",
                       ["Variant", "N", "Δ PSNR", "scenes", *(HEADINGS[m] for m in TABLE_METRICS)])
-        if comparable and set(ABLATION_VARIANTS) & set(plan.methods):
-            table.note = "In parentheses: the paper's ablation, five-scene means."
-        block = []
-        for method in setting_methods(plan, setting):
-            per_scene = scene_values(results, setting, method)
-            ours = over_scenes(per_scene, list(per_scene))
+        methods = setting_methods(plan, setting)
+        scenes, means = shared_means(results, setting, methods)
+        for method in methods:
+            ours = means[method]
             paper = ablation["methods"].get(method) if comparable else None
             delta_text = MISSING
-            if method != "baseline" and "baseline" in plan.methods:
-                delta, _, _ = paired_delta(results, setting, method, False)
+            if method != "baseline" and "baseline" in methods:
+                delta = baseline_gain(means, method)
                 paper_delta = None if paper is None else {
                     "psnr": paper["psnr"] - ablation["methods"]["baseline"]["psnr"]}
                 delta_text = _with_paper(delta, paper_delta, "psnr", signed=True)
-            block.append(ours)
             table.rows.append([METHODS[method].label, f"{primitive_count(plan, setting, method):,}", delta_text,
-                               f"{len(per_scene)}/{len(plan.scenes)}",
+                               f"{len(scenes) if ours else 0}/{len(plan.scenes)}",
                                *(_with_paper(ours, paper, m) for m in TABLE_METRICS)])
-        _bold_best(table, 0, block, 4)
+        _bold_best(table, 0, list(means.values()), 4)
+        table.note = " ".join(note for note in (waiting_note(results, setting, methods, scenes),
+                                                 "In parentheses: the paper's ablation, five-scene means."
+                                                 if comparable else "") if note)
         tables.append(table)
     return tables
 
@@ -591,8 +624,8 @@ def overview_lines(plan: BenchPlan, results: list[CellResult]) -> list[str]:
             (f"fits: {config.width}×{config.height} px, {config.steps} steps (warm-up {config.warmup}), "
              f"device {config.device}"),
             devices_line(results),
-            ("metrics that this machine cannot compute read n/a; cells not finished are left out of the means "
-             "(see the scenes column and the cell list)")]
+            ("metrics that this machine cannot compute read n/a; the means of a setting cover the scenes every "
+             "method has finished (see the scenes column, the notes and the cell list)")]
 
 
 def summary_markdown(plan: BenchPlan, overview: list[str], tables: list[Table], frequency: list[str],

@@ -13,15 +13,16 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from .bench import (DONE, FOLDER_SCENE_PLANES, METHODS, BenchPlan, BenchScene, Cell, cell_config, config_differences,
                     setting_label)
 from .config import FitConfig
-from .report import (DECIMALS, TABLE1_METHODS, CellResult, Metrics, Table, channel_frequency_curves, collect,
-                     frequency_curves, frequency_lines, over_scenes, paired_delta, paper_numbers, paper_scene_mean,
-                     primitive_count, scene_values, variant_tables)
+from .report import (DECIMALS, TABLE1_METHODS, CellResult, Metrics, Table, baseline_gain, channel_frequency_curves,
+                     collect, frequency_curves, frequency_lines, paired_delta, paper_numbers, paper_scene_mean,
+                     primitive_count, scene_values, setting_methods, shared_means, variant_tables, waiting_note)
 
 SCENES = ("bento", "dragon", "flower", "sushi", "tiger", "windmill")
 # The paper's ablation means match its per-scene rows of pencil, sushi, flower, tiger and burger; of
@@ -185,20 +186,22 @@ def table1(paper: GridResults) -> Table:
     """Table 1's rows over our scenes: ours, the paper's same-scene mean, and Δ, per metric."""
     table = Table("Table 1: mean over our scenes; each cell: ours (paper on the same scenes, Δ)",
                   ["Setting", "Method", "N", "scenes", "PSNR↑", "SSIM↑", "LPIPS↓", "FLIP↓", "CVVDP↑"])
+    notes = []
     for setting in SETTINGS:
+        scenes, means = shared_means(paper.results, setting, list(TABLE1_METHODS))
+        papers = {m: paper_scene_mean(scenes, setting, m) if means[m] else None for m in TABLE1_METHODS}
         for method in (*TABLE1_METHODS, "gain"):
-            label = "Δ (CVQPG − Baseline)" if method == "gain" else METHODS[method].label
             if method == "gain":
-                ours, paper_mean, scenes = paired_delta(paper.results, setting, "cvqpg", True)
-                n = ""
+                label, n = "Δ (CVQPG − Baseline)", ""
+                ours, paper_mean = baseline_gain(means, "cvqpg"), baseline_gain(papers, "cvqpg")
             else:
-                values = scene_values(paper.results, setting, method)
-                scenes = sorted(values)
-                ours = over_scenes(values, scenes)
-                paper_mean = paper_scene_mean(scenes, setting, method)
-                n = f"{primitive_count(paper.plan, setting, method):,}"
-            table.rows.append([setting_label(setting), label, n, f"{len(scenes)}/{len(paper.plan.scenes)}",
+                label, n = METHODS[method].label, f"{primitive_count(paper.plan, setting, method):,}"
+                ours, paper_mean = means[method], papers[method]
+            table.rows.append([setting_label(setting), label, n,
+                               f"{len(scenes) if ours else 0}/{len(paper.plan.scenes)}",
                                *(_with_delta(ours, paper_mean, m, method == "gain") for m in DECIMALS)])
+        notes.append(waiting_note(paper.results, setting, list(TABLE1_METHODS), scenes))
+    table.note = " ".join(note for note in notes if note)
     return table
 
 
@@ -356,32 +359,71 @@ def _paired(results: list[CellResult], setting: str, method: str, other: str) ->
     return (float(np.mean([ours[s] - theirs[s] for s in scenes])), len(scenes)) if scenes else None
 
 
-def runtime_table(paper: GridResults) -> Table:
-    """Fit time and peak memory per setting and method, beside the paper's supplementary table."""
+def runtime_table(grid: GridResults, with_paper: bool) -> Table:
+    """Fit time and peak memory per setting and method, with the machines they ran on; beside the paper's
+    supplementary table where `with_paper` (Table 1's settings and methods)."""
     runtime = paper_numbers()["runtime"]
-    table = Table(f"Time and peak memory per fit (ours: the fit loop and the process's peak RSS; paper: "
-                  f"{runtime['device']}, peak GPU memory); Δ against the Baseline",
-                  ["Setting", "Method", "N", "cells", "minutes", "Δ time", "GiB", "Δ memory", "load", "paper minutes",
-                   "paper Δ time", "paper GiB", "paper Δ memory"])
-    table.note = ("load: the machine's mean 15-minute load average at the cells' ends, over its core count (where "
-                  "recorded); above 1 the fits shared the cores with other work and took longer.")
-    for setting in SETTINGS:
-        base = _runtime(paper, setting, "baseline")
-        for method in TABLE1_METHODS:
-            ours, theirs = _runtime(paper, setting, method), runtime[setting][method]
-            table.rows.append([
-                setting_label(setting), METHODS[method].label, f"{primitive_count(paper.plan, setting, method):,}",
-                "0" if ours is None else str(ours["cells"]),
-                "–" if ours is None else f"{ours['minutes']:.1f}", _relative(ours, base, "minutes"),
-                "–" if ours is None else f"{ours['gib']:.2f}", _relative(ours, base, "gib"),
-                "–" if ours is None or ours["load"] is None else f"{ours['load']:.1f}",
-                f"{theirs['minutes']:.1f}", f"{theirs['delta_time_pct']:+.1f}%",
-                f"{theirs['memory_gib']:.1f}", f"{theirs['delta_memory_pct']:+.1f}%"])
+    header = ["Setting", "Method", "N", "cells", "machines", "minutes", "Δ time", "GiB", "Δ memory", "load"]
+    title = "Time and peak memory per fit (ours: the fit loop and the process's peak RSS"
+    if with_paper:
+        header += ["paper minutes", "paper Δ time", "paper GiB", "paper Δ memory"]
+        title += f"; paper: {runtime['device']}, peak GPU memory"
+    table = Table(f"{title}); Δ against the Baseline", header)
+    table.note = ("Δ: the method's total over the Baseline's, on the scenes whose two cells ran on the same machine "
+                  "and thread count (– where none did). load: the machine's mean 15-minute load average at the "
+                  "cells' ends, over its core count (where recorded); above 1 the fits shared the cores with other "
+                  "work and took longer.")
+    for setting in (s for s in SETTINGS if s in grid.plan.settings):
+        for method in setting_methods(grid.plan, setting):
+            ours = _runtime(grid, setting, method)
+            row = [setting_label(setting), METHODS[method].label, f"{primitive_count(grid.plan, setting, method):,}",
+                   "0" if ours is None else str(ours["cells"]), "–" if ours is None else ours["machines"],
+                   "–" if ours is None else f"{ours['minutes']:.1f}", _relative(grid, setting, method, "minutes"),
+                   "–" if ours is None else f"{ours['gib']:.2f}", _relative(grid, setting, method, "gib"),
+                   "–" if ours is None or ours["load"] is None else f"{ours['load']:.1f}"]
+            if with_paper:
+                theirs = runtime[setting][method]
+                row += [f"{theirs['minutes']:.1f}", f"{theirs['delta_time_pct']:+.1f}%", f"{theirs['memory_gib']:.1f}",
+                        f"{theirs['delta_memory_pct']:+.1f}%"]
+            table.rows.append(row)
     return table
 
 
-def _relative(ours: dict[str, float] | None, base: dict[str, float] | None, key: str) -> str:
-    return "–" if ours is None or base is None else f"{(ours[key] / base[key] - 1) * 100:+.1f}%"
+def _runs(grid: GridResults, setting: str, method: str) -> dict[str, dict[str, Any]]:
+    """Per scene, the run record of the method's finished cell in `setting`."""
+    return {r.cell.scene.name: r.metrics["run"] for r in grid.done
+            if (r.cell.setting, r.cell.method) == (setting, method) and r.metrics.get("run")}
+
+
+def _machine(run: dict[str, Any]) -> str:
+    """A run's device and thread count, short enough for a table cell."""
+    device = run["device"].replace("(R)", "").replace("(TM)", "").removeprefix("cpu: ")
+    threads = run["torch_threads"]
+    return f"{device}, {threads} thread{'s' * (threads != 1)}" if run["device"].startswith("cpu") else device
+
+
+def _quiet(run: dict[str, Any]) -> bool:
+    """Whether the fit had its cores to itself (the load at its end at most QUIET_LOAD_PER_CORE per core)."""
+    return run.get("load_average") is not None and run["load_average"] / run["machine_cores"] <= QUIET_LOAD_PER_CORE
+
+
+def _against_baseline(grid: GridResults, setting: str, method: str, key: str, quiet: bool = False
+                      ) -> tuple[float, int] | None:
+    """The method's total `key` (minutes or gib) over the Baseline's minus one, and the number of scenes, over
+    the scenes whose two cells ran on the same machine and thread count (and, with `quiet`, each with its
+    cores to itself): across machines a time says more about the machine than about the method."""
+    ours, base = _runs(grid, setting, method), _runs(grid, setting, "baseline")
+    pairs = [(ours[s], base[s]) for s in sorted(set(ours) & set(base)) if _machine(ours[s]) == _machine(base[s])
+             and (not quiet or (_quiet(ours[s]) and _quiet(base[s])))]
+    if not pairs:
+        return None
+    field = {"minutes": "loop_seconds", "gib": "peak_memory_bytes"}[key]
+    return sum(a[field] for a, _ in pairs) / sum(b[field] for _, b in pairs) - 1, len(pairs)
+
+
+def _relative(grid: GridResults, setting: str, method: str, key: str) -> str:
+    ratio = _against_baseline(grid, setting, method, key)
+    return "–" if ratio is None else f"{ratio[0] * 100:+.1f}%"
 
 
 def runtime_claims(paper: GridResults) -> list[str]:
@@ -389,28 +431,31 @@ def runtime_claims(paper: GridResults) -> list[str]:
     runtime = paper_numbers()["runtime"]
     lines = []
     for setting in SETTINGS:
-        ours, base = _runtime(paper, setting, "cvqpg"), _runtime(paper, setting, "baseline")
         claimed = runtime[setting]["cvqpg"]["delta_time_pct"]
         label = f"Time of CVQPG against the Baseline, {setting_label(setting)}: paper {claimed:+.1f}%"
-        if ours is None or base is None:
+        quiet = _against_baseline(paper, setting, "cvqpg", "minutes", quiet=True)
+        if not _runs(paper, setting, "cvqpg") or not _runs(paper, setting, "baseline"):
             lines.append(f"{label}; not measured yet.")
-        elif any(r["load"] is None or r["load"] > QUIET_LOAD_PER_CORE for r in (ours, base)):
-            lines.append(f"{label}; ours not comparable yet: its cells shared the machine with other work.")
+        elif quiet is None:
+            lines.append(f"{label}; ours not comparable yet: no scene has both cells fitted on the same machine, "
+                         "each with its cores to itself.")
         else:
-            lines.append(f"{label}, ours {_relative(ours, base, 'minutes')} ({ours['cells']} and {base['cells']} "
-                         "cells).")
+            lines.append(f"{label}, ours {quiet[0] * 100:+.1f}% on {_scenes(quiet[1])} whose two cells ran on the "
+                         "same machine, each with its cores to itself.")
     return lines
 
 
-def _runtime(grid: GridResults, setting: str, method: str) -> dict[str, float] | None:
-    runs = [r.metrics["run"] for r in grid.done if (r.cell.setting, r.cell.method) == (setting, method)
-            and r.metrics.get("run")]
+def _runtime(grid: GridResults, setting: str, method: str) -> dict[str, Any] | None:
+    """Mean minutes, GiB and load per core of the method's cells in `setting`, their count and machines."""
+    runs = list(_runs(grid, setting, method).values())
     if not runs:
         return None
     loads = [run["load_average"] / run["machine_cores"] for run in runs if run.get("load_average") is not None]
+    machines = Counter(_machine(run) for run in runs)
     return {"cells": len(runs), "minutes": float(np.mean([run["loop_seconds"] for run in runs])) / 60,
             "gib": float(np.mean([run["peak_memory_bytes"] for run in runs])) / GIB,
-            "load": float(np.mean(loads)) if loads else None}
+            "load": float(np.mean(loads)) if loads else None,
+            "machines": "; ".join(f"{count} × {machine}" for machine, count in sorted(machines.items()))}
 
 
 def document(root: Path) -> str:
@@ -440,6 +485,6 @@ def document(root: Path) -> str:
              "count (Baseline+pc, CVQPG+pc).", "",
              *(t.markdown() for t in variant_tables(chromatic.plan, chromatic.results)),
              *(f"- {line}" for line in frequency_lines(channel_frequency_curves(chromatic.plan, chromatic.results))
-               if chromatic.done),
-             "", "## Runtime", "", runtime_table(paper).markdown()]
+               if chromatic.done), "", runtime_table(chromatic, with_paper=False).markdown(),
+             "## Runtime", "", runtime_table(paper, with_paper=True).markdown()]
     return "\n".join(parts).rstrip() + "\n"

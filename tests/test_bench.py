@@ -223,6 +223,23 @@ def test_table_puts_the_papers_same_scene_means_beside_ours_and_na_for_unavailab
     assert missing.rows[0][4:] == ["–"] * 5
 
 
+def test_table_rows_are_means_over_the_scenes_every_method_has_finished(scenes_dir, tmp_path):
+    plan = make_plan("paper", tmp_path / "bench", Overrides(scenes_dir=scenes_dir, scene_names=["sushi", "tiger"],
+                                                            colors=["gray"], ratios=[0.1],
+                                                            methods=["baseline", "cvqpg"]))
+    psnr = {("sushi", "baseline"): 28.0, ("tiger", "baseline"): 30.0, ("sushi", "cvqpg"): 28.5}
+    results = [CellResult(c, DONE, {"mean": {"psnr": psnr[(c.scene.name, c.method)], "ssim": 0.8, "lpips": None,
+                                             "flip": 0.08, "cvvdp": None}}, None)
+               for c in plan.cells if (c.scene.name, c.method) in psnr]
+    table, rows = main_table(plan, results)
+    baseline, cvqpg, delta = table.rows
+    sushi = paper_numbers()["per_scene"]["sushi"]["gray-10"]
+    assert baseline[3:5] == ["1/2", f"28.000 ({sushi['baseline']['psnr']:.3f})"]  # tiger waits for its CVQPG cell
+    assert delta[3:5] == ["1/2", f"+0.500 ({sushi['cvqpg']['psnr'] - sushi['baseline']['psnr']:+.3f})"]
+    assert (1, 4) in table.bold and (0, 4) not in table.bold
+    assert "(sushi); 1 more finished cell joins them" in table.note and rows[0]["scenes"] == 1
+
+
 def test_seed_spread_table_pairs_methods_within_each_seed(tmp_path):
     plan = make_plan("quick", tmp_path / "bench", Overrides(seeds=[1, 2]))
     psnr = {("baseline", 1): 20.0, ("cvqpg", 1): 20.5, ("baseline", 2): 21.0, ("cvqpg", 2): 21.1}
