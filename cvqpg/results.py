@@ -280,7 +280,6 @@ def claim_lines(grids: dict[str, GridResults]) -> list[str]:
                      f"parameter count: {sum(w[3] for w in wins)} of {len(wins)}.")
     lines += frequency_claims(paper)
     lines += ablation_claims(grids["ablation"])
-    lines += chromatic_claims(grids["chromatic"])
     lines += runtime_claims(paper)
     return lines
 
@@ -331,25 +330,31 @@ def ablation_claims(ablation: GridResults) -> list[str]:
 
 
 def chromatic_claims(chromatic: GridResults) -> list[str]:
-    """Our own target for per-channel curvature: gain ≥ +0.30 dB over the baseline at equal N in RGB,
-    and ahead of the baseline at per-channel's parameter count."""
+    """Our own target for per-channel curvature, per variant and RGB setting: a PSNR gain of at least
+    CHROMATIC_TARGET_DB over the Baseline at equal N while ahead of the Baseline at the variant's parameter
+    count (Baseline+pc, in the grid at RGB 10% only). Met or not, or how it stands while cells are missing."""
     lines = []
+    scenes = len(chromatic.grid.scenes)
     for method in ("per-channel", "channel-bound"):
         for setting in ("rgb-10", "rgb-20"):
+            label = f"{METHODS[method].label}, {setting_label(setting)}"
             gain = _paired(chromatic.results, setting, method, "baseline")
-            label = (f"{METHODS[method].label} − Baseline PSNR at equal N, {setting_label(setting)} (our target "
-                     f"≥ {CHROMATIC_TARGET_DB:+.2f} dB)")
             if gain is None:
                 lines.append(f"{label}: not measured yet.")
                 continue
-            met = ("met" if gain[0] >= CHROMATIC_TARGET_DB else "not met") + (
-                "" if gain[1] == len(chromatic.grid.scenes) else " so far")
-            line = f"{label}: {gain[0]:+.3f} dB on {_scenes(gain[1])}: {met}"
-            ahead = _paired(chromatic.results, setting, method, "baseline+pc")
+            line = f"{label}: {gain[0]:+.3f} dB over the Baseline at equal N on {_scenes(gain[1])}"
+            equal_parameters = "baseline+pc" in setting_methods(chromatic.plan, setting)
+            ahead = _paired(chromatic.results, setting, method, "baseline+pc") if equal_parameters else None
             if ahead is not None:
-                line += (f"; against the Baseline at {METHODS[method].label}'s parameter count {ahead[0]:+.3f} dB "
-                         f"on {_scenes(ahead[1])}")
-            lines.append(line + ".")
+                line += f", {ahead[0]:+.3f} dB against the Baseline at its parameter count on {_scenes(ahead[1])}"
+            reached = gain[0] >= CHROMATIC_TARGET_DB and (ahead is None or ahead[0] > 0)
+            complete = gain[1] == scenes and (not equal_parameters or (ahead is not None and ahead[1] == scenes))
+            verdict = ("met" if reached else "not met") + ("" if complete else " so far")
+            if not equal_parameters:
+                verdict += " at equal N (the equal-parameter cells are fitted at RGB 10% only)"
+            elif ahead is None:
+                verdict += " at equal N (the Baseline at its parameter count is not fitted yet)"
+            lines.append(f"{line}: {verdict}.")
     return lines
 
 
@@ -482,7 +487,9 @@ def document(root: Path) -> str:
              "## Chromatic curvature (beyond the paper)", "",
              "Per-channel γ (`--curvature per-channel`, one γ per colour bounded by its own wavelength) and "
              "channel-bound γ against shared CVQPG and the Baseline at equal N, and at per-channel's parameter "
-             "count (Baseline+pc, CVQPG+pc).", "",
+             f"count (Baseline+pc, CVQPG+pc). Our target: at least {CHROMATIC_TARGET_DB:+.2f} dB over the Baseline at "
+             "equal N, while ahead of the Baseline at the variant's parameter count.", "",
+             *(f"- {line}" for line in chromatic_claims(chromatic)), "",
              *(t.markdown() for t in variant_tables(chromatic.plan, chromatic.results)),
              *(f"- {line}" for line in frequency_lines(channel_frequency_curves(chromatic.plan, chromatic.results))
                if chromatic.done), "", runtime_table(chromatic, with_paper=False).markdown(),

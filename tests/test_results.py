@@ -122,6 +122,26 @@ def test_the_chromatic_tables_compare_variants_on_the_same_scenes_with_their_tim
             "| 1.5 |") in chromatic
 
 
+def test_the_chromatic_target_needs_the_gain_and_the_lead_at_equal_parameter_count(tmp_path):
+    record_cell(tmp_path, "chromatic", "bento_rgb-10_baseline_s100", 27.0)
+    record_cell(tmp_path, "chromatic", "bento_rgb-10_per-channel_s100", 27.4)
+    record_cell(tmp_path, "chromatic", "bento_rgb-20_baseline_s100", 28.0)
+    record_cell(tmp_path, "chromatic", "bento_rgb-20_per-channel_s100", 28.35)
+
+    def verdicts() -> list[str]:
+        return [line for line in document(tmp_path).splitlines() if line.startswith("- CVQPG, γ per channel, RGB")]
+
+    assert verdicts() == [
+        "- CVQPG, γ per channel, RGB 10%: +0.400 dB over the Baseline at equal N on 1 scene: met so far at equal N "
+        "(the Baseline at its parameter count is not fitted yet).",
+        "- CVQPG, γ per channel, RGB 20%: +0.350 dB over the Baseline at equal N on 1 scene: met so far at equal N "
+        "(the equal-parameter cells are fitted at RGB 10% only)."]
+    record_cell(tmp_path, "chromatic", "bento_rgb-10_baseline-pluspc_s100", 27.5)
+    assert verdicts()[0].endswith(", -0.100 dB against the Baseline at its parameter count on 1 scene: not met so far.")
+    record_cell(tmp_path, "chromatic", "bento_rgb-10_baseline-pluspc_s100", 27.3)
+    assert verdicts()[0].endswith(", +0.100 dB against the Baseline at its parameter count on 1 scene: met so far.")
+
+
 def test_the_ablation_order_is_judged_once_every_cell_is_recorded(tmp_path):
     means = paper_numbers()["ablation"]["methods"]
     for scene in ABLATION_SCENES:
