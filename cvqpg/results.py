@@ -374,10 +374,12 @@ def runtime_table(grid: GridResults, with_paper: bool) -> Table:
         header += ["paper minutes", "paper Δ time", "paper GiB", "paper Δ memory"]
         title += f"; paper: {runtime['device']}, peak GPU memory"
     table = Table(f"{title}); Δ against the Baseline", header)
-    table.note = ("Δ: the method's total over the Baseline's, on the scenes whose two cells ran on the same machine "
-                  "and thread count (– where none did). load: the machine's mean 15-minute load average at the "
-                  "cells' ends, over its core count (where recorded); above 1 the fits shared the cores with other "
-                  "work and took longer.")
+    table.note = ("Δ: the method's total over the Baseline's (in parentheses: over how many scenes), on the scenes "
+                  "whose two cells ran on the same machine "
+                  f"and thread count, for time only where both fits had their cores to themselves (load at most "
+                  f"{QUIET_LOAD_PER_CORE} per core); – where no scene has such a pair. load: the machine's mean "
+                  "15-minute load average at the cells' ends, over its core count (where recorded); above 1 the fits "
+                  "shared the cores with other work and took longer.")
     for setting in (s for s in SETTINGS if s in grid.plan.settings):
         for method in setting_methods(grid.plan, setting):
             ours = _runtime(grid, setting, method)
@@ -427,8 +429,9 @@ def _against_baseline(grid: GridResults, setting: str, method: str, key: str, qu
 
 
 def _relative(grid: GridResults, setting: str, method: str, key: str) -> str:
-    ratio = _against_baseline(grid, setting, method, key)
-    return "–" if ratio is None else f"{ratio[0] * 100:+.1f}%"
+    """The table's Δ column: times only from fits that had their cores to themselves, memory from any."""
+    ratio = _against_baseline(grid, setting, method, key, quiet=key == "minutes")
+    return "–" if ratio is None else f"{ratio[0] * 100:+.1f}% ({ratio[1]})"
 
 
 def runtime_claims(paper: GridResults) -> list[str]:
