@@ -364,6 +364,21 @@ def _paired(results: list[CellResult], setting: str, method: str, other: str) ->
     return (float(np.mean([ours[s] - theirs[s] for s in scenes])), len(scenes)) if scenes else None
 
 
+def gain_per_scene_table(grid: GridResults, setting: str) -> Table:
+    """Per scene, every method's PSNR gain over the Baseline's cell of that scene: whether a mean gain holds
+    scene by scene."""
+    methods = [m for m in setting_methods(grid.plan, setting) if m != "baseline"]
+    table = Table(f"PSNR gain over the Baseline per scene (dB), {setting_label(setting)}",
+                  ["scene", *(METHODS[m].label for m in methods)])
+    base = _psnr(grid.results, setting, "baseline")
+    values = {m: _psnr(grid.results, setting, m) for m in methods}
+    for scene in grid.grid.scenes:
+        gains = [values[m][scene] - base[scene] if scene in base and scene in values[m] else None for m in methods]
+        if any(gain is not None for gain in gains):
+            table.rows.append([scene, *(_signed(gain) for gain in gains)])
+    return table
+
+
 def runtime_table(grid: GridResults, with_paper: bool) -> Table:
     """Fit time and peak memory per setting and method, with the machines they ran on; beside the paper's
     supplementary table where `with_paper` (Table 1's settings and methods)."""
@@ -486,6 +501,7 @@ def document(root: Path) -> str:
              f"Scenes: {', '.join(ABLATION_SCENES)}. The paper does not name its five; its means match its "
              f"per-scene rows of {', '.join(paper_numbers()['ablation']['scenes_matched'])}.", "",
              *(t.markdown() for t in variant_tables(ablation.plan, ablation.results)),
+             *(t.markdown() for t in (gain_per_scene_table(ablation, "rgb-10"),) if t.rows),
              "## Chromatic curvature (beyond the paper)", "",
              "Per-channel γ (`--curvature per-channel`, one γ per colour bounded by its own wavelength) and "
              "channel-bound γ against shared CVQPG and the Baseline at equal N, and at per-channel's parameter "
@@ -493,6 +509,7 @@ def document(root: Path) -> str:
              "equal N, while ahead of the Baseline at the variant's parameter count.", "",
              *(f"- {line}" for line in chromatic_claims(chromatic)), "",
              *(t.markdown() for t in variant_tables(chromatic.plan, chromatic.results)),
+             *(t.markdown() for t in (gain_per_scene_table(chromatic, s) for s in ("rgb-10", "rgb-20")) if t.rows),
              *(f"- {line}" for line in frequency_lines(channel_frequency_curves(chromatic.plan, chromatic.results))
                if chromatic.done), "", runtime_table(chromatic, with_paper=False).markdown(),
              "## Runtime", "", runtime_table(paper, with_paper=True).markdown()]

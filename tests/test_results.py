@@ -119,6 +119,9 @@ def test_the_chromatic_tables_compare_variants_on_the_same_scenes_with_their_tim
     assert "| CVQPG, γ per channel | 15,360 | +0.400 | 1/6 | **27.400** |" in chromatic
     assert ("RGB 10%: means over the scenes every method has finished (bento); 1 more finished cell joins them once "
             "the other methods finish their scenes.") in chromatic
+    assert "| scene | CVQPG | CVQPG, γ per channel | CVQPG, bound per λ |" in chromatic  # gains per scene
+    assert "| bento | – | +0.400 | – |" in chromatic and "| dragon |" not in chromatic
+    assert "PSNR gain over the Baseline per scene (dB), RGB 20%" not in chromatic  # nothing to show yet
     assert ("| RGB 10% | CVQPG, γ per channel | 15,360 | 1 | 1 × test CPU, 2 threads | 12.0 | +50.0% (1) | 1.00 | "
             "+0.0% (1) | 1.0 |") in chromatic
 
