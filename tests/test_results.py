@@ -144,6 +144,10 @@ def test_the_chromatic_target_needs_the_gain_and_the_lead_at_equal_parameter_cou
     assert verdicts()[0].endswith(", -0.100 dB against the Baseline at its parameter count on 1 scene: not met so far.")
     record_cell(tmp_path, "chromatic", "bento_rgb-10_baseline-pluspc_s100", 27.3)
     assert verdicts()[0].endswith(", +0.100 dB against the Baseline at its parameter count on 1 scene: met so far.")
+    record_cell(tmp_path, "chromatic", "bento_rgb-10_baseline-pluspc_s100", 27.42)
+    assert verdicts()[0].endswith(", -0.020 dB against the Baseline at its parameter count on 1 scene: undecided so "
+                                  "far: level with the Baseline at its parameter count (closer than 0.05 dB, one "
+                                  "fit's spread between machines).")
 
 
 def test_the_ablation_order_is_judged_once_every_cell_is_recorded(tmp_path):
