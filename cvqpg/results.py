@@ -398,7 +398,8 @@ def runtime_table(grid: GridResults, with_paper: bool) -> Table:
         title += f"; paper: {runtime['device']}, peak GPU memory"
     table = Table(f"{title}); Δ against the Baseline", header)
     table.note = ("Δ: the method's total over the Baseline's (in parentheses: over how many scenes), on the scenes "
-                  "whose two cells ran on the same machine and thread count, for time only where both fits had their "
+                  "whose two cells ran the same commit on the same machine and thread count, for time only where "
+                  "both fits had their "
                   f"cores to themselves (load at most {QUIET_LOAD_PER_CORE} per core); – where no scene has such a "
                   "pair. load: the machine's mean 15-minute load average at the cells' ends, over its core count "
                   "(where recorded); above 1 the fits shared the cores with other work and took longer.")
@@ -439,10 +440,11 @@ def _quiet(run: dict[str, Any]) -> bool:
 def _against_baseline(grid: GridResults, setting: str, method: str, key: str, quiet: bool = False
                       ) -> tuple[float, int] | None:
     """The method's total `key` (minutes or gib) over the Baseline's minus one, and the number of scenes, over
-    the scenes whose two cells ran on the same machine and thread count (and, with `quiet`, each with its
-    cores to itself): across machines a time says more about the machine than about the method."""
+    the scenes whose two cells ran the same code on the same machine and thread count (and, with `quiet`, each
+    with its cores to itself): across machines or commits a time says more about them than about the method."""
     ours, base = _runs(grid, setting, method), _runs(grid, setting, "baseline")
-    pairs = [(ours[s], base[s]) for s in sorted(set(ours) & set(base)) if _machine(ours[s]) == _machine(base[s])
+    pairs = [(ours[s], base[s]) for s in sorted(set(ours) & set(base))
+             if (_machine(ours[s]), ours[s]["commit"]) == (_machine(base[s]), base[s]["commit"])
              and (not quiet or (_quiet(ours[s]) and _quiet(base[s])))]
     if not pairs:
         return None
@@ -467,11 +469,11 @@ def runtime_claims(paper: GridResults) -> list[str]:
         if not _runs(paper, setting, "cvqpg") or not _runs(paper, setting, "baseline"):
             lines.append(f"{label}; not measured yet.")
         elif quiet is None:
-            lines.append(f"{label}; ours not comparable yet: no scene has both cells fitted on the same machine, "
-                         "each with its cores to itself.")
+            lines.append(f"{label}; ours not comparable yet: no scene has both cells fitted by the same commit on "
+                         "the same machine, each with its cores to itself.")
         else:
-            lines.append(f"{label}, ours {quiet[0] * 100:+.1f}% on {_scenes(quiet[1])} whose two cells ran on the "
-                         "same machine, each with its cores to itself.")
+            lines.append(f"{label}, ours {quiet[0] * 100:+.1f}% on {_scenes(quiet[1])} whose two cells ran the same "
+                         "commit on the same machine, each with its cores to itself.")
     return lines
 
 

@@ -101,11 +101,17 @@ def test_times_are_compared_only_between_cells_of_one_scene_on_the_same_machine(
     assert ("| Grayscale 10% | CVQPG | 7,680 | 2 | 1 × CPU A, 2 threads; 1 × CPU B, 2 threads | 7.0 | +25.0% (1) | "
             "1.00 | +0.0% (1) | 1.0 |") in text  # the mean time is over both cells, Δ over bento's pair only
     assert ("Time of CVQPG against the Baseline, Grayscale 10%: paper +3.4%, ours +25.0% on 1 scene whose two cells "
-            "ran on the same machine, each with its cores to itself.") in text
+            "ran the same commit on the same machine, each with its cores to itself.") in text
     record_cell(tmp_path, "paper", "bento_gray-10_cvqpg_s100", 24.3, device="cpu: CPU A",
                 run_changes={"load_average": 4.0, "loop_seconds": 600.0})
     assert ("Time of CVQPG against the Baseline, Grayscale 10%: paper +3.4%; ours not comparable yet: no scene has "
-            "both cells fitted on the same machine, each with its cores to itself.") in document(tmp_path)
+            "both cells fitted by the same commit on the same machine, each with its cores to itself."
+            ) in document(tmp_path)
+    record_cell(tmp_path, "paper", "bento_gray-10_cvqpg_s100", 24.3, device="cpu: CPU A",
+                run_changes={**quiet, "loop_seconds": 600.0, "commit": "1" * 40})
+    row = ("| Grayscale 10% | CVQPG | 7,680 | 2 | 1 × CPU A, 2 threads; 1 × CPU B, 2 threads | 7.0 | – | 1.00 | "
+           "– |")
+    assert row in document(tmp_path)  # other code: neither time nor memory compares
 
 
 def test_the_chromatic_tables_compare_variants_on_the_same_scenes_with_their_time(tmp_path):
@@ -115,7 +121,8 @@ def test_the_chromatic_tables_compare_variants_on_the_same_scenes_with_their_tim
                 run_changes={"loop_seconds": 720.0, "load_average": 2.0})
     text = document(tmp_path)
     chromatic = text[text.index("## Chromatic curvature"):text.index("## Runtime")]
-    assert "| Baseline | 15,360 | – | 1/6 | 27.000 | **0.8000** | n/a | **0.1000** | n/a |" in chromatic  # no paper values
+    # no paper values beside the chromatic grid's
+    assert "| Baseline | 15,360 | – | 1/6 | 27.000 | **0.8000** | n/a | **0.1000** | n/a |" in chromatic
     assert "| CVQPG, γ per channel | 15,360 | +0.400 | 1/6 | **27.400** |" in chromatic
     assert ("RGB 10%: means over the scenes every method has finished (bento); 1 more finished cell joins them once "
             "the other methods finish their scenes.") in chromatic
