@@ -157,14 +157,32 @@ def test_the_chromatic_target_needs_the_gain_and_the_lead_at_equal_parameter_cou
                                   "fit's spread between machines).")
 
 
-def test_the_ablation_order_is_judged_once_every_cell_is_recorded(tmp_path):
+def ablation_line(root: Path, shifts: dict[str, float]) -> str:
+    """The ablation's claim line once every cell holds the paper's mean PSNR plus the method's shift (dB)."""
     means = paper_numbers()["ablation"]["methods"]
     for scene in ABLATION_SCENES:
         for method in ("baseline", "cvqpg", "no-bound", "no-mahalanobis", "vanilla"):
-            record_cell(tmp_path, "ablation", f"{scene}_rgb-10_{method}_s100", means[method]["psnr"])
-    line = next(line for line in document(tmp_path).splitlines() if line.startswith("- Ablation order"))
-    assert line.endswith(": the same order.")
+            record_cell(root, "ablation", f"{scene}_rgb-10_{method}_s100", means[method]["psnr"] + shifts.get(method, 0))
+    return next(line for line in document(root).splitlines() if line.startswith("- Ablation order"))
+
+
+def test_the_ablation_order_is_judged_once_every_cell_is_recorded(tmp_path):
+    line = ablation_line(tmp_path, {})
+    assert line.endswith(": the paper's order.")
     assert "ours CVQPG ≈ w/o Mahalanobis QPF > w/o adaptive bound ≈ vanilla (neither) ≈ Baseline" in line
+    assert "w/o Mahalanobis QPF +0.149 (paper +0.149)" in line
+
+
+def test_the_ablation_names_the_pairs_that_break_the_papers_order(tmp_path):
+    # w/o adaptive bound 0.217 dB higher than the paper's: above both CVQPG and w/o Mahalanobis QPF
+    assert ablation_line(tmp_path / "reversed", {"no-bound": 0.217}).endswith(
+        ": differs from the paper's order (reversed by 0.05 dB or more: CVQPG − w/o adaptive bound -0.080 dB "
+        "(paper +0.137); w/o Mahalanobis QPF − w/o adaptive bound -0.116 dB (paper +0.101)).")
+    # 0.09 dB higher: level with both, which the paper separates from it by 0.1 dB or more
+    assert ablation_line(tmp_path / "level", {"no-bound": 0.09}).endswith(
+        ": differs from the paper's order (separated by the paper by 0.05 dB or more, by ours less: CVQPG − "
+        "w/o adaptive bound +0.047 dB (paper +0.137); w/o Mahalanobis QPF − w/o adaptive bound +0.011 dB "
+        "(paper +0.101)).")
 
 
 def test_a_cell_recorded_with_other_settings_is_refused(tmp_path, capsys):
