@@ -494,8 +494,9 @@ def runtime_claims(paper: GridResults) -> list[str]:
         if not _runs(paper, setting, "cvqpg") or not _runs(paper, setting, "baseline"):
             lines.append(f"{label}; not measured yet.")
         elif quiet is None:
-            lines.append(f"{label}; ours not comparable yet: no scene has both cells fitted by the same commit on "
-                         "the same machine, each with its cores to itself.")
+            lines.append(f"{label}; ours not comparable from these cells: no scene has both cells fitted by the same "
+                         "commit on the same machine, each with its cores to itself, and a recorded cell is not fitted "
+                         "again (`python benchmarks/step.py` times flat and curved steps side by side).")
         else:
             lines.append(f"{label}, ours {quiet[0] * 100:+.1f}% on {_scenes(quiet[1])} whose two cells ran the same "
                          "commit on the same machine, each with its cores to itself.")

@@ -70,7 +70,7 @@ def test_the_document_compares_gains_per_scene_and_states_each_claim(tmp_path):
     assert f"| tiger | RGB 10% | {values['baseline']:.3f} | {supplement['baseline']['psnr']:.3f} | +0.020 |" in text
     assert f"ours {gain:+.3f} dB on 1 scene, paper {paper_gain:+.3f} on the same scenes" in text
     assert f"outside the tolerance so far (Δ {gain - paper_gain:+.3f}" in text  # 0.23 dB apart: outside 0.1 dB
-    assert "Time of CVQPG against the Baseline, RGB 10%: paper +0.0%; ours not comparable yet" in text  # load 1.5
+    assert "Time of CVQPG against the Baseline, RGB 10%: paper +0.0%; ours not comparable from these cells" in text  # load 1.5
     assert "Per-scene PSNR within 0.3 dB of the supplementary table: 3 of 3 recorded values" in text
     assert "| Table 1 | `results/paper` | 3 | 72 | 69 |" in text
     assert "3 cells on cpu: test CPU, 2 torch / 2 Numba threads" in text
@@ -104,9 +104,9 @@ def test_times_are_compared_only_between_cells_of_one_scene_on_the_same_machine(
             "ran the same commit on the same machine, each with its cores to itself.") in text
     record_cell(tmp_path, "paper", "bento_gray-10_cvqpg_s100", 24.3, device="cpu: CPU A",
                 run_changes={"load_average": 4.0, "loop_seconds": 600.0})
-    assert ("Time of CVQPG against the Baseline, Grayscale 10%: paper +3.4%; ours not comparable yet: no scene has "
-            "both cells fitted by the same commit on the same machine, each with its cores to itself."
-            ) in document(tmp_path)
+    assert ("Time of CVQPG against the Baseline, Grayscale 10%: paper +3.4%; ours not comparable from these cells: "
+            "no scene has both cells fitted by the same commit on the same machine, each with its cores to itself, "
+            "and a recorded cell is not fitted again") in document(tmp_path)
     record_cell(tmp_path, "paper", "bento_gray-10_cvqpg_s100", 24.3, device="cpu: CPU A",
                 run_changes={**quiet, "loop_seconds": 600.0, "commit": "1" * 40})
     row = ("| Grayscale 10% | CVQPG | 7,680 | 2 | 1 × CPU A, 2 threads; 1 × CPU B, 2 threads | 7.0 | – | 1.00 | "
