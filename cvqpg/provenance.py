@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import datetime
 import functools
+import gc
 import os
 import platform
 import resource
@@ -17,6 +18,8 @@ from typing import Any
 
 import numba
 import torch
+
+from .allocator import release_freed_memory
 
 PACKAGE_ROOT = Path(__file__).resolve().parent
 PEAK_RESET_FILE = Path("/proc/self/clear_refs")
@@ -57,10 +60,13 @@ def cpu_model() -> str:
 
 
 def reset_peak_memory(device: torch.device) -> None:
-    """Start a new peak: the process's resident set (Linux) or the GPU's allocated bytes."""
+    """Start a new peak: the process's resident set (Linux) or the GPU's allocated bytes. On the CPU the
+    memory earlier work freed but the process kept is released first, so that it is not counted."""
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
         return
+    gc.collect()
+    release_freed_memory()
     try:
         PEAK_RESET_FILE.write_text("5")  # resets VmHWM to the current RSS (Linux ≥ 4.0)
     except OSError:

@@ -5,6 +5,9 @@ import csv
 import json
 import math
 import re
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -336,6 +339,28 @@ def test_every_cell_records_commit_machine_threads_time_and_peak_memory(tmp_path
     assert run["loop_seconds"] == metrics["seconds"] > 0
     # a process that imported torch and ran a fit holds well over 50 MB resident
     assert run["peak_memory_bytes"] > 50 * 2**20 and run["peak_memory_kind"] in ("rss", "rss-process")
+
+
+FREED_BEFORE_THE_FIT = """
+import torch
+from cvqpg.allocator import keep_freed_memory
+from cvqpg.provenance import peak_memory, reset_peak_memory
+cpu = torch.device("cpu")
+assert keep_freed_memory()
+reset_peak_memory(cpu)
+before = peak_memory(cpu)["peak_memory_bytes"]
+earlier_work = torch.ones(64 * 2**20)  # 256 MiB, freed but kept by the process
+del earlier_work
+reset_peak_memory(cpu)
+print((peak_memory(cpu)["peak_memory_bytes"] - before) / 2**20)
+"""
+
+
+@pytest.mark.skipif(not Path("/proc/self/clear_refs").exists(), reason="the peak RSS resets on Linux only")
+def test_memory_freed_before_a_fit_is_not_counted_in_its_peak():
+    # a bench process fits its cells one after another, and glibc keeps what each frees
+    done = subprocess.run([sys.executable, "-c", FREED_BEFORE_THE_FIT], capture_output=True, text=True, check=True)
+    assert float(done.stdout) < 64, done.stdout
 
 
 def test_a_recorded_folder_rebuilds_its_tables_without_run_folders_or_scene_files(scenes_dir, tmp_path, capsys):
