@@ -356,10 +356,13 @@ def config_differences(folder: Path, config: FitConfig) -> list[str]:
             if getattr(ours, f.name) != getattr(theirs, f.name)]
 
 
-def describe_cells(plan: BenchPlan, cells: tuple[Cell, ...]) -> list[str]:
-    """One line per cell: status, name, N, steps, size."""
-    return [f"{cell_status(plan.cell_dir(c), plan.done_file):>11}  {c.name}  N={c.config.primitive_count}  "
-            f"steps={c.config.steps}  "
+def describe_cells(plan: BenchPlan, cells: tuple[Cell, ...], reuse: Sequence[Path] = ()) -> list[str]:
+    """One line per cell: status (`reusable` where a folder of `reuse` has finished it), name, N, steps, size."""
+    def status(cell: Cell) -> str:
+        own = cell_status(plan.cell_dir(cell), plan.done_file)
+        return "reusable" if own != DONE and reusable_record(plan, cell, reuse) is not None else own
+
+    return [f"{status(c):>11}  {c.name}  N={c.config.primitive_count}  steps={c.config.steps}  "
             f"{c.config.width}×{c.config.height}" for c in cells]
 
 
@@ -408,18 +411,24 @@ def adopt_finished(plan: BenchPlan, cells: tuple[Cell, ...], others: Sequence[Pa
     adopted = []
     for cell in cells:
         folder = plan.cell_dir(cell)
-        if cell_status(folder, plan.done_file) == DONE:
+        source = reusable_record(plan, cell, others)
+        if cell_status(folder, plan.done_file) == DONE or source is None:
             continue
-        for other in others:
-            source = Path(other) / CELLS_DIR / cell.name
-            if cell_status(source, plan.done_file) == DONE and not config_differences(source, cell.config):
-                folder.mkdir(parents=True, exist_ok=True)
-                for name in RECORD_FILES:
-                    if (source / name).is_file():
-                        write_atomic(folder / name, (source / name).read_bytes())
-                adopted.append(cell)
-                break
+        folder.mkdir(parents=True, exist_ok=True)
+        for name in RECORD_FILES:
+            if (source / name).is_file():
+                write_atomic(folder / name, (source / name).read_bytes())
+        adopted.append(cell)
     return adopted
+
+
+def reusable_record(plan: BenchPlan, cell: Cell, others: Sequence[Path]) -> Path | None:
+    """The first cell folder among the bench folders `others` that has finished `cell` with its settings."""
+    for other in others:
+        source = Path(other) / CELLS_DIR / cell.name
+        if cell_status(source, plan.done_file) == DONE and not config_differences(source, cell.config):
+            return source
+    return None
 
 
 def _resume_state(folder: Path, cell: Cell) -> FitState | None:

@@ -395,8 +395,13 @@ def test_cells_finished_in_another_grid_are_reused_not_refitted(scenes_dir, tmp_
               "--colors", "rgb", "--scene-names", "tiger", "--quiet"]
     assert main(["bench", "--preset", "paper", "--out", str(table1), "--methods", "baseline", "cvqpg", *common]) == 0
     capsys.readouterr()
-    assert main(["bench", "--preset", "ablation", "--out", str(ablation), "--methods", "baseline", "cvqpg", "vanilla",
-                 "--reuse", str(table1), *common]) == 0
+    ablation_cells = ["bench", "--preset", "ablation", "--out", str(ablation), "--methods", "baseline", "cvqpg",
+                      "vanilla", "--reuse", str(table1), *common]
+    assert main([*ablation_cells, "--dry-run"]) == 0
+    listed = capsys.readouterr().out
+    assert "reusable  tiger_rgb-10_baseline_s100" in listed and "reusable  tiger_rgb-10_cvqpg_s100" in listed
+    assert "missing  tiger_rgb-10_vanilla_s100" in listed
+    assert main(ablation_cells) == 0
     assert "1 done, 0 skipped, 2 reused" in capsys.readouterr().out
     for method in ("baseline", "cvqpg"):
         name = f"tiger_rgb-10_{method}_s100"
