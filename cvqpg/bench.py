@@ -411,8 +411,10 @@ def adopt_finished(plan: BenchPlan, cells: tuple[Cell, ...], others: Sequence[Pa
     adopted = []
     for cell in cells:
         folder = plan.cell_dir(cell)
+        if cell_status(folder, plan.done_file) == DONE:
+            continue
         source = reusable_record(plan, cell, others)
-        if cell_status(folder, plan.done_file) == DONE or source is None:
+        if source is None:
             continue
         folder.mkdir(parents=True, exist_ok=True)
         for name in RECORD_FILES:

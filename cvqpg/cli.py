@@ -593,7 +593,8 @@ def run_bench(args: argparse.Namespace) -> int:
             raise UsageError(f"--fits {folder}: not a bench folder (no {CELLS_DIR}/ in it)")
     cells = plan.shard(*parse_shard(args.shard)) if args.shard else plan.cells
     if args.dry_run:
-        print("\n".join(describe_cells(plan, cells, [Path(d) for d in args.reuse]) + [f"{len(cells)} of {len(plan.cells)} cells, in {plan.folder}"]))
+        listing = describe_cells(plan, cells, [Path(d) for d in args.reuse])
+        print("\n".join(listing + [f"{len(cells)} of {len(plan.cells)} cells, in {plan.folder}"]))
         return 0
     code = 0
     if not args.summary_only:

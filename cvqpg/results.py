@@ -424,8 +424,7 @@ def runtime_table(grid: GridResults, with_paper: bool) -> Table:
     table = Table(f"{title}); Δ against the Baseline", header)
     table.note = ("Δ: the method's total over the Baseline's (in parentheses: over how many scenes), on the scenes "
                   "whose two cells ran the same commit on the same machine and thread count, for time only where "
-                  "both fits had their "
-                  f"cores to themselves (load at most {QUIET_LOAD_PER_CORE} per core); – where no scene has such a "
+                  f"both fits had their cores to themselves (load at most {QUIET_LOAD_PER_CORE} per core); – where no scene has such a "
                   "pair. load: the machine's mean 15-minute load average at the cells' ends, over its core count "
                   "(where recorded); above 1 the fits shared the cores with other work and took longer.")
     for setting in (s for s in SETTINGS if s in grid.plan.settings):
