@@ -16,7 +16,7 @@ import torch
 
 from . import __version__
 from .allocator import keep_freed_memory
-from .bench import (CELLS_DIR, METHODS, PRESETS, BenchError, Overrides, RateDistortionOptions, describe_cells,
+from .campaign.bench import (CELLS_DIR, METHODS, PRESETS, BenchError, Overrides, RateDistortionOptions, describe_cells,
                     make_plan, parse_shard, peak_bytes, run_plan)
 from .compilation import warmup
 from .compression import ASSUMED_FIT_PSNR_DB, SUFFIX, BitDepths, compress_model, decompress_file
@@ -25,8 +25,8 @@ from .depth import DEPTH_FILE, DEPTH_MODEL, estimate_depth, load_depth_model
 from .fitting import (CheckpointDeviceError, CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes,
                       fit_scene, state_from_payload)
 from .export import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
-from .report import write_summary
-from .results import RecordError, document
+from .campaign.report import write_summary
+from .campaign.results import RecordError, document
 from .runs import (CHECKPOINT_FILE, CONFIG_FILE, EXPORT_FOLDER, METRICS_FILE, MODEL_FILE, RENDER_FOLDER, evaluate_run,
                    export_run, half_precision_model, model_info, read_run, render_model, scene_from_source, start_run,
                    write_atomic, write_run)

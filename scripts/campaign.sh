@@ -4,7 +4,7 @@
 # running cells checkpoint, and the next run resumes them.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-.venv/bin/python -c "from cvqpg.results import CAMPAIGN; print('\n'.join(c for g in CAMPAIGN for c in g.commands))" |
+.venv/bin/python -c "from cvqpg.campaign.results import CAMPAIGN; print('\n'.join(c for g in CAMPAIGN for c in g.commands))" |
 while read -r command; do
     echo "== $command"
     .venv/bin/$command --quiet "$@" </dev/null

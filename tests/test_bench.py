@@ -14,11 +14,11 @@ import pytest
 import torch
 from PIL import Image
 
-from cvqpg.bench import (DONE, INTERRUPTED, BenchError, Overrides, cell_status, make_plan, parse_shard, run_cell,
+from cvqpg.campaign.bench import (DONE, INTERRUPTED, BenchError, Overrides, cell_status, make_plan, parse_shard, run_cell,
                          run_plan)
 from cvqpg.cli import main
 from cvqpg.metrics import radial_error_spectrum
-from cvqpg.report import CellResult, cells_table, devices_line, main_table, paper_numbers, seed_tables
+from cvqpg.campaign.report import CellResult, cells_table, devices_line, main_table, paper_numbers, seed_tables
 from cvqpg.runs import start_run
 from cvqpg.storage import load_checkpoint, save_checkpoint
 

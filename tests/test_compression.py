@@ -127,7 +127,7 @@ def test_finetune_is_kept_only_if_it_pays(fitted_run, tmp_path):
 def test_finetune_leaves_its_input_alone_and_trains_on_the_file_s_own_bins():
     from cvqpg.compression import quantise
     from cvqpg.finetune import finetune
-    from cvqpg.ratedistortion import Point, finetuned_points
+    from cvqpg.campaign.ratedistortion import Point, finetuned_points
     from cvqpg.targets import Scene
 
     config = FitConfig(width=48, height=32, color="gray", ratio=0.3, guard_band_px=32)
@@ -265,7 +265,7 @@ def test_periodic_attributes_wrap():
 
 def test_rate_distortion_points_and_bd_rate():
     pytest.importorskip("imagecodecs")
-    from cvqpg.ratedistortion import anchor_points, bd_rate, rd_points
+    from cvqpg.campaign.ratedistortion import anchor_points, bd_rate, rd_points
 
     config = FitConfig(width=48, height=32, color="gray", ratio=0.3, guard_band_px=32)
     primitives = random_primitives(config)

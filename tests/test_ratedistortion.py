@@ -8,7 +8,7 @@ import shutil
 import pytest
 
 from cvqpg.cli import main
-from cvqpg.ratedistortion import bd_rate, cell_summary, pareto
+from cvqpg.campaign.ratedistortion import bd_rate, cell_summary, pareto
 
 pytest.importorskip("imagecodecs", reason="the JPEG 2000 / JPEG XL anchors need the `compression` extra")
 

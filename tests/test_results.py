@@ -6,10 +6,10 @@ from pathlib import Path
 
 import pytest
 
-from cvqpg.bench import SPECTRUM_BINS
+from cvqpg.campaign.bench import SPECTRUM_BINS
 from cvqpg.cli import main
-from cvqpg.report import paper_numbers
-from cvqpg.results import ABLATION_METHODS, ABLATION_SCENES, CAMPAIGN, RecordError, campaign_plan, document
+from cvqpg.campaign.report import paper_numbers
+from cvqpg.campaign.results import ABLATION_METHODS, ABLATION_SCENES, CAMPAIGN, RecordError, campaign_plan, document
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 

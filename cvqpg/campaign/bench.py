@@ -5,7 +5,7 @@ A cell is a `cvqpg fit` run in `<bench>/cells/<cell name>/`. Its `metrics.json`,
 config, a checkpoint or partial files is not done and is resumed (from its checkpoint when the
 settings match) or restarted. Shards split the full cell list by position, whatever is done, so
 every node of a job array computes the same split. The tables, figures and report come from
-`cvqpg.report`.
+`cvqpg.campaign.report`.
 """
 
 from __future__ import annotations
@@ -27,17 +27,17 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from .allocator import keep_freed_memory
-from .config import FitConfig, default_warmup
-from .fitting import (CheckpointDeviceError, CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes,
+from ..allocator import keep_freed_memory
+from ..config import FitConfig, default_warmup
+from ..fitting import (CheckpointDeviceError, CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes,
                       fit_scene, state_from_payload)
-from .metrics import radial_error_spectrum
-from .provenance import available_cores
-from .runs import (CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, MODEL_FILE, read_run, scene_from_source, start_run,
+from ..metrics import radial_error_spectrum
+from ..provenance import available_cores
+from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, MODEL_FILE, read_run, scene_from_source, start_run,
                    write_atomic, write_json, write_run)
-from .scenes import SCENES
-from .storage import ModelFileError, load_checkpoint, save_checkpoint
-from .targets import check_depth_geometry, load_picture
+from ..scenes import SCENES
+from ..storage import ModelFileError, load_checkpoint, save_checkpoint
+from ..targets import check_depth_geometry, load_picture
 
 log = logging.getLogger("cvqpg")
 

@@ -13,10 +13,10 @@ import numpy as np
 import torch
 from PIL import Image
 
-from .runs import write_atomic
-from .config import FitConfig
-from .fitting import render_hologram
-from .primitives import Gaussians
+from ..runs import write_atomic
+from ..config import FitConfig
+from ..fitting import render_hologram
+from ..primitives import Gaussians
 
 CROP_FRACTION = 4  # crops are 1/4 of each side
 CROP_COLOR = "#ffd400"

@@ -24,8 +24,8 @@ import numpy as np
 from . import figures
 from .bench import (CELLS_DIR, DONE, METHODS, METRICS_FILE, PRESETS, RD_FILE, SPECTRUM_FILE, BenchPlan, Cell,
                     cell_status, read_json, setting_label)
-from .runs import write_atomic
-from .view import VIEW_FILE
+from ..runs import write_atomic
+from ..view import VIEW_FILE
 
 TABLE_METRICS = ("psnr", "ssim", "lpips", "flip", "cvvdp")
 HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "lpips": False, "flip": False, "cvvdp": True}
@@ -87,8 +87,8 @@ class Table:
 
 @functools.lru_cache(maxsize=1)
 def paper_numbers() -> dict[str, Any]:
-    """The paper's published numbers (`cvqpg/paper_numbers.json`)."""
-    return json.loads(resources.files("cvqpg").joinpath("paper_numbers.json").read_text())
+    """The paper's published numbers (`cvqpg/campaign/paper_numbers.json`)."""
+    return json.loads(resources.files("cvqpg.campaign").joinpath("paper_numbers.json").read_text())
 
 
 def collect(plan: BenchPlan) -> list[CellResult]:

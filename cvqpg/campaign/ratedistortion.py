@@ -18,16 +18,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .compression import LADDER, BitDepths, Reference, choose_bits, decode, encode, prune
-from .config import FitConfig
-from .finetune import finetune
-from .fitting import hologram
-from .metrics import mean_psnr, mean_ssim
-from .optics import reconstruct
-from .primitives import Primitives
-from .provenance import machine_record
-from .storage import load_model, save_model
-from .targets import Scene
+from ..compression import LADDER, BitDepths, Reference, choose_bits, decode, encode, prune
+from ..config import FitConfig
+from ..finetune import finetune
+from ..fitting import hologram
+from ..metrics import mean_psnr, mean_ssim
+from ..optics import reconstruct
+from ..primitives import Primitives
+from ..provenance import machine_record
+from ..storage import load_model, save_model
+from ..targets import Scene
 
 JPEG2K_PSNRS = (35, 40, 43, 46, 50, 55, 60, 70)  # OpenJPEG's quality layer, the planes' own PSNR in dB
 JPEGXL_DISTANCES = (8.0, 4.0, 3.0, 2.0, 1.5, 1.0, 0.7, 0.5, 0.25)  # butteraugli distances, smaller is finer
