@@ -59,7 +59,7 @@ def process_cpu_seconds() -> tuple[float, float]:
 
 def measure(color: str, planes: int, alongside: bool) -> None:
     """Compile a fit's kernels in this process (its cache must be empty) and print the breakdown."""
-    from cvqpg.compilation import compile_kernels
+    from cvqpg.app.compilation import compile_kernels
     from cvqpg.config import FitConfig
 
     times = CompileTimes()

@@ -20,7 +20,7 @@ import statistics
 import torch
 
 from cvqpg import FitConfig
-from cvqpg.allocator import keep_freed_memory
+from cvqpg.app.allocator import keep_freed_memory
 from cvqpg.compression import BitDepths, decode, encode
 from cvqpg.fitting import hologram
 from cvqpg.optics import reconstruct

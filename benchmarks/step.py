@@ -41,13 +41,13 @@ import torch
 import cvqpg
 from cvqpg import FitConfig
 from cvqpg.config import PROPAGATIONS, default_warmup
-from cvqpg.allocator import keep_freed_memory
+from cvqpg.app.allocator import keep_freed_memory
 from cvqpg.fitting import apply_gradients, fit_scene, initial_state, optimisation_step, render_hologram
 from cvqpg.ops.loss import multiplane_loss, noisy_targets, standard_normal
 from cvqpg.optics import Grid, reconstruct
 from cvqpg.primitives import MIN_SCALE_PX, Gaussians, Primitives, curvature_bound
 from cvqpg.runs import model_path
-from cvqpg.scenes import builtin_scene
+from cvqpg.scenes import builtin_pictures
 from cvqpg.storage import load_model
 from cvqpg.targets import Scene, load_scene
 
@@ -130,7 +130,7 @@ def load_raw_parameters(gaussians: Gaussians, primitives: Primitives, config: Fi
 
 def demo_scene(config: FitConfig) -> Scene:
     """The built-in demo scene at `config`'s size, its tensors on `config`'s device."""
-    builtin = builtin_scene("demo", config.width, config.height)
+    builtin = builtin_pictures("demo", config.width, config.height)
     scene = load_scene(builtin.image, builtin.depth, config)
     return Scene(*(t.to(config.device) for t in (scene.image, scene.masks, scene.targets)))
 
@@ -190,7 +190,7 @@ def peak_rss_gib(config: FitConfig, steps: int) -> float:
     report at least the parent's size at the fork. The child starts in the folder that holds this
     process's `cvqpg`, so that it imports the same code (a worktree on PYTHONPATH, for instance)."""
     arguments = ["fit", "--size", str(config.width), str(config.height), "--color", config.color, "--ratio",
-                 str(config.ratio), "--steps", str(steps), "--warmup", "1",
+                 str(config.ratio), "--steps", str(steps), "--curvature-warmup", "1",
                  "--out", f"/tmp/cvqpg-bench-rss-{config.color}", "--overwrite", "--quiet"]
     program = ("import sys; from cvqpg.cli import main; main(sys.argv[1:]); "
                "print(next(line.split()[1] for line in open('/proc/self/status') if line.startswith('VmHWM:')))")

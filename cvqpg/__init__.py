@@ -13,14 +13,15 @@ __version__ = "0.1.0"
 
 _API_MODULES = {
     "config": ("FitConfig", "LearningRates"),
+    "errors": ("CvqpgError", "ConfigError", "InputError", "ModelFileError"),
     "depth": ("estimate_depth", "load_depth_model"),
-    "fitting": ("FitResult", "fit", "fit_scene", "render", "render_hologram"),
+    "fitting": ("FitResult", "fit", "fit_scene", "hologram", "render", "render_hologram"),
     "metrics": ("MetricReport", "evaluate"),
     "optics": ("Grid", "propagate", "reconstruct", "transfer_function"),
     "primitives": ("Gaussians", "Primitives", "activate", "init_gaussians"),
     "ops.rasterize": ("rasterize",),
     "runs": ("evaluate_run", "write_run"),
-    "scenes": ("builtin_scene",),
+    "scenes": ("builtin_pictures", "builtin_scene"),
     "storage": ("load_model", "save_model"),
     "targets": ("Scene", "build_scene", "load_scene"),
 }

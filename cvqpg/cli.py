@@ -1,11 +1,13 @@
 """Command line: `cvqpg fit`, `eval`, `export`, `info`, `render`, `view`, `compress`, `decompress`,
-`bench`, `results` and `warmup`, thin wrappers over the library API."""
+`bench`, `results` and `compile`, thin wrappers over the library API."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import logging
+import os
+import re
 import signal
 import sys
 import time
@@ -15,35 +17,46 @@ from typing import Sequence
 import torch
 
 from . import __version__
-from .allocator import keep_freed_memory
-from .campaign.bench import (CELLS_DIR, METHODS, PRESETS, BenchError, Overrides, RateDistortionOptions, describe_cells,
-                    make_plan, parse_shard, peak_bytes, run_plan)
-from .compilation import warmup
-from .compression import ASSUMED_FIT_PSNR_DB, SUFFIX, BitDepths, compress_model, decompress_file
-from .config import CURVATURES, PROPAGATIONS, ConfigError, FitConfig, default_warmup
-from .depth import DEPTH_FILE, DEPTH_MODEL, estimate_depth, load_depth_model
-from .fitting import (CheckpointDeviceError, CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes,
-                      fit_scene, state_from_payload)
-from .export import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
+from .app.allocator import keep_freed_memory
+from .app.compilation import compile_all
+from .app.runner import CHECKPOINT_SECONDS, fit_in_folder, resumed_state, write_fitted_run
+from .campaign.bench import (CELLS_DIR, METHODS, PRESETS, Overrides, RateDistortionOptions, describe_cells, make_plan,
+                             parse_shard, peak_bytes, run_plan)
 from .campaign.report import write_summary
-from .campaign.results import RecordError, document
-from .runs import (CHECKPOINT_FILE, CONFIG_FILE, EXPORT_FOLDER, METRICS_FILE, MODEL_FILE, RENDER_FOLDER, evaluate_run,
-                   export_run, half_precision_model, model_info, read_run, render_model, scene_from_source, start_run,
-                   write_atomic, write_run)
+from .campaign.results import document
+from .compression import ASSUMED_FIT_PSNR_DB, SUFFIX, BitDepths, compress_model, decompress_file
+from .config import BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITIVES, QPFS, FitConfig
+from .depth import DEPTH_FILE, DEPTH_MODEL, estimate_depth, load_depth_model
+from .errors import CvqpgError
+from .export import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
+from .fitting import FitInterrupted, FitState, estimated_peak_bytes
+from .runs import (CONFIG_FILE, EXPORT_FOLDER, METRICS_FILE, MODEL_FILE, RENDER_FOLDER, evaluate_run, export_run,
+                   half_precision_model, model_info, read_run, render_model, scene_from_source, start_run,
+                   write_atomic)
 from .scenes import SCENES
-from .storage import ModelFileError, load_checkpoint, save_checkpoint
-from .targets import InputError, Scene, check_file, load_scene
-from .view import DEFAULT_SWEEP, VIEW_FILE, ViewError, ViewRecord, write_view
+from .targets import Scene, check_file, load_scene
+from .view import DEFAULT_SWEEP, VIEW_FILE, ViewRecord, write_view
 
 DEFAULTS = FitConfig()
-CHECKPOINT_SECONDS = 180.0
+
+# The library's parameter names (in backticks in its messages) as the command line spells them.
+FLAGS = {"width": "--size", "height": "--size", "num_planes": "--planes", "pixel_pitch": "--pitch",
+         "wavelengths_m": "--wavelengths", "num_gaussians": "--num-gaussians", "curvature_warmup": "--curvature-warmup",
+         "plane_center": "--plane-center", "plane_span": "--plane-span", "resize_depth": "--resize-depth",
+         **{name: f"--{name.replace('_', '-')}" for name in (
+             "color", "primitive", "ratio", "steps", "seed", "bound", "qpf", "curvature", "device", "backend",
+             "depth", "image", "max_drop", "bits", "prune", "finetune", "levels", "aperture", "slm", "distance",
+             "encoding")},
+         "finetune_steps": "--finetune", "prune_fraction": "--prune"}
 
 
-class UsageError(Exception):
-    """Bad input: printed as one line, exit code 2."""
+class UsageError(CvqpgError):
+    """Bad command-line input: printed as one line, exit code 2."""
 
 
-USER_ERRORS = (UsageError, ConfigError, InputError, ModelFileError, BenchError, CheckpointDeviceError, ViewError)
+def flag_message(message: str) -> str:
+    """A library message with its backticked parameter names replaced by the command line's flags."""
+    return re.sub(r"`([\w.\[\]]+)`", lambda m: FLAGS.get(m.group(1), m.group(1)), message)
 
 
 def _fit_parser(sub: argparse._SubParsersAction) -> None:
@@ -59,9 +72,9 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", choices=sorted(SCENES), help="built-in scene, generated at --size: "
                    "'demo' (RGB, 2 planes; the default without IMAGE) or 'star' (grayscale Siemens "
                    "star, single plane)")
-    p.add_argument("--color", choices=["rgb", "gray"], help="colour mode: RGB at 639/532/473 nm or "
+    p.add_argument("--color", choices=COLORS, help="colour mode: RGB at 639/532/473 nm or "
                    "grayscale at 639 nm [default: rgb; gray for --scene star]")
-    p.add_argument("--primitive", choices=["flat", "cvqpg"], default=DEFAULTS.primitive,
+    p.add_argument("--primitive", choices=PRIMITIVES, default=DEFAULTS.primitive,
                    help="flat-phase baseline or CVQPG with learnable curvature")
     count = p.add_mutually_exclusive_group()
     count.add_argument("--ratio", type=float, default=DEFAULTS.ratio,
@@ -69,24 +82,21 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
     count.add_argument("--num-gaussians", type=int, metavar="N", help="explicit primitive count N")
     p.add_argument("--steps", type=int, default=DEFAULTS.steps,
                    help="optimisation steps (the loop runs indices 0..steps, as the reference)")
-    p.add_argument("--warmup", type=int,
+    p.add_argument("--curvature-warmup", type=int, metavar="W",
                    help="steps with curvature frozen at 0 (CVQPG only) [default: steps/5, as 400 of 2000]")
     p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"),
                    default=(DEFAULTS.width, DEFAULTS.height), help="hologram size in px")
     p.add_argument("--planes", type=int, metavar="M", help="depth planes at linspace(1 mm, 5 mm, M) "
                    "[default: 2; 1 for --scene star]")
     p.add_argument("--seed", type=int, default=DEFAULTS.seed, help="random seed")
-    p.add_argument("--device", default=DEFAULTS.device, choices=["cpu", "cuda"], help="torch device")
-    p.add_argument("--backend", default=DEFAULTS.backend, choices=["auto", "numba", "triton", "torch"],
-                   help="rasterizer: fused Numba kernels (CPU), Triton kernels (GPU), the PyTorch reference, "
+    p.add_argument("--device", default=DEFAULTS.device, choices=DEVICE_TYPES, help="torch device")
+    p.add_argument("--backend", default=DEFAULTS.backend, choices=BACKENDS,
+                   help="kernels: Numba (CPU), Triton (GPU), PyTorch only (the reference, everywhere), "
                    "or auto (Numba on CPU, Triton on GPU)")
-    p.add_argument("--propagation", default=DEFAULTS.propagation, choices=PROPAGATIONS,
-                   help="propagation transforms: pruned 1D passes (the CPU's), full-grid 2D FFTs, or auto "
-                   "(pruned on CPU, full-grid on GPU)")
-    p.add_argument("--bound", choices=["adaptive", "global"], default=DEFAULTS.bound,
+    p.add_argument("--bound", choices=BOUNDS, default=DEFAULTS.bound,
                    help="curvature bound: per-primitive Nyquist (γ_max = ηλ/(6σΔx²)) or global "
                    f"{DEFAULTS.global_bound:g} 1/m (ablation)")
-    p.add_argument("--qpf", choices=["mahalanobis", "standard"], default=DEFAULTS.qpf,
+    p.add_argument("--qpf", choices=QPFS, default=DEFAULTS.qpf,
                    help="quadratic phase: follows the Gaussian's ellipse, or circular (ablation)")
     p.add_argument("--curvature", choices=CURVATURES, default=DEFAULTS.curvature,
                    help="CVQPG curvature in colour: one γ for all channels bounded by the shortest "
@@ -115,7 +125,7 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _device_argument(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--device", default=DEFAULTS.device, choices=["cpu", "cuda"], help="torch device to render on "
+    p.add_argument("--device", default=DEFAULTS.device, choices=DEVICE_TYPES, help="torch device to render on "
                    f"[default: {DEFAULTS.device}]")
 
 
@@ -218,11 +228,12 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
     seeds.add_argument("--seeds", type=int, nargs="+", metavar="SEED", help="several seeds: every cell once "
                        "per seed (seed spread)")
     p.add_argument("--steps", type=int, help="optimisation steps [default: the preset's]")
-    p.add_argument("--warmup", type=int, help="curvature warm-up steps [default: steps/5, as 400 of 2000]")
+    p.add_argument("--curvature-warmup", type=int, metavar="W",
+                   help="curvature warm-up steps [default: steps/5, as 400 of 2000]")
     p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="hologram size in px [default: the "
                    "preset's]")
-    p.add_argument("--device", choices=["cpu", "cuda"], help="torch device [default: cpu]")
-    p.add_argument("--backend", choices=["auto", "numba", "triton", "torch"], help="rasterizer [default: auto]")
+    p.add_argument("--device", choices=DEVICE_TYPES, help="torch device [default: cpu]")
+    p.add_argument("--backend", choices=BACKENDS, help="kernels [default: auto]")
     p.add_argument("--shard", metavar="I/N", help="fit only cells I, I+N, I+2N, ... of the grid (1 ≤ I ≤ N), "
                    "e.g. ${SLURM_ARRAY_TASK_ID}/${SLURM_ARRAY_TASK_COUNT} in a job array")
     p.add_argument("--jobs", type=int, default=1, metavar="K", help="cells fitted at once, each on cores/K "
@@ -264,7 +275,7 @@ def build_parser() -> argparse.ArgumentParser:
     _display_parsers(sub)
     _view_parser(sub)
     _compression_parsers(sub)
-    sub.add_parser("warmup", help="compile the CPU kernels ahead of the first fit (for clusters and images)",
+    sub.add_parser("compile", help="compile the CPU kernels ahead of the first fit (for clusters and images)",
                    description="Compile the Numba CPU kernels that fits call (with 1 or 2 planes, the defaults) into "
                    "Numba's on-disk cache (next to the package, or NUMBA_CACHE_DIR), so that the first fit "
                    "starts at once.")
@@ -280,10 +291,11 @@ def _config_and_source(args: argparse.Namespace) -> tuple[FitConfig, dict]:
         if args.depth is not None:
             raise UsageError(f"--depth applies to an IMAGE; the built-in scene {name!r} has its own")
         recipe = SCENES[name]
-        color, planes = args.color or recipe.color, args.planes or recipe.planes
+        color = args.color or recipe.color
+        planes = recipe.planes if args.planes is None else args.planes
         source, has_depth = {"scene": name}, recipe.planes > 1
     else:
-        color, planes = args.color or "rgb", args.planes or 2
+        color, planes = args.color or "rgb", 2 if args.planes is None else args.planes
         source = {"image": str(check_file(args.image, "image").resolve())}
         if args.depth == "auto":
             source["depth_model"] = DEPTH_MODEL
@@ -297,10 +309,9 @@ def _config_and_source(args: argparse.Namespace) -> tuple[FitConfig, dict]:
         source["resize_depth"] = True
     config = FitConfig(width=width, height=height, color=color, primitive=args.primitive,
                        ratio=args.ratio, num_gaussians=args.num_gaussians, steps=args.steps,
-                       warmup=default_warmup(args.steps) if args.warmup is None else args.warmup,
+                       curvature_warmup=args.curvature_warmup,
                        seed=args.seed, num_planes=planes, bound=args.bound,
                        qpf=args.qpf, curvature=args.curvature, device=args.device, backend=args.backend,
-                       propagation=args.propagation,
                        pixel_pitch=args.pitch,
                        plane_center=args.plane_center, plane_span=args.plane_span,
                        wavelengths_m=tuple(args.wavelengths) if args.wavelengths else None)
@@ -382,11 +393,10 @@ def _prepare(args: argparse.Namespace) -> tuple[Path, FitConfig, dict, Scene, Fi
         if not (folder / CONFIG_FILE).is_file():
             raise UsageError(f"--resume {folder}: not a run folder (no {CONFIG_FILE})")
         config, source = read_run(folder)
+        config.validate()
         check_device(config.device)
         scene = scene_from_source(source, config)
-        checkpoint = folder / CHECKPOINT_FILE
-        state = state_from_payload(load_checkpoint(checkpoint), config) if checkpoint.is_file() else None
-        return folder, config, source, scene, state
+        return folder, config, source, scene, resumed_state(folder, config)
     config, source = _config_and_source(args)
     check_device(config.device)
     folder = Path(args.out) if args.out else _default_out(source, config)
@@ -413,21 +423,18 @@ def run_fit(args: argparse.Namespace) -> int:
         print(f"{args.resume}: this run is finished; nothing to resume")
         return 0
     folder, config, source, scene, state = _prepare(args)
-    checkpoint_file = folder / CHECKPOINT_FILE
     every = args.checkpoint_every
-    policy = CheckpointPolicy(save=lambda s: save_checkpoint(checkpoint_file, s.to_payload()),
-                              every_steps=every if every else None,
-                              every_seconds=None if every == 0 else CHECKPOINT_SECONDS)
     with StopRequest() as stop_requested:
         try:
-            result = fit_scene(scene, config, progress=not args.quiet, state=state, checkpoint=policy,
-                               stop_requested=stop_requested)
+            result = fit_in_folder(folder, scene, config, state, progress=not args.quiet,
+                                   checkpoint_every_steps=every if every else None,
+                                   checkpoint_every_seconds=None if every == 0 else CHECKPOINT_SECONDS,
+                                   stop_requested=stop_requested)
         except FitInterrupted as stop:
             print(f"cvqpg fit: stopped before step {stop.step}; checkpoint saved. Continue with: "
                   f"cvqpg fit --resume {folder}", file=sys.stderr)
             return 128 + stop_requested.signals[0]
-    write_run(folder, result, scene, source)
-    checkpoint_file.unlink(missing_ok=True)
+    write_fitted_run(folder, result, scene, source)
     if not args.quiet:
         record = json.loads((folder / METRICS_FILE).read_text())
         print(f"{folder}: {_summary(record)}")
@@ -543,9 +550,9 @@ def run_eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_warmup(_args: argparse.Namespace) -> int:
-    seconds = warmup()
-    print(f"cvqpg warmup: CPU kernels compiled and cached in {seconds:.0f} s")
+def run_compile(_args: argparse.Namespace) -> int:
+    seconds = compile_all()
+    print(f"cvqpg compile: CPU kernels compiled and cached in {seconds:.0f} s")
     return 0
 
 
@@ -580,7 +587,7 @@ def run_bench(args: argparse.Namespace) -> int:
     seeds = [args.seed] if args.seed is not None else args.seeds
     overrides = Overrides(scenes_dir=args.scenes, scene_names=args.scene_names, colors=args.colors,
                           ratios=args.ratios, methods=args.methods, seeds=seeds, size=args.size, steps=args.steps,
-                          warmup=args.warmup, device=args.device, backend=args.backend)
+                          curvature_warmup=args.curvature_warmup, device=args.device, backend=args.backend)
     plan = make_plan(args.preset, args.out, overrides)
     for option, given in (("--fits", bool(args.fits)), ("--finetune", args.finetune != 0)):
         if given and not PRESETS[args.preset].rate_distortion:
@@ -616,10 +623,7 @@ def run_bench(args: argparse.Namespace) -> int:
 
 
 def run_results(args: argparse.Namespace) -> int:
-    try:
-        text = document(Path(args.root))
-    except RecordError as error:
-        raise UsageError(str(error)) from error
+    text = document(Path(args.root))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     write_atomic(Path(args.out), text)
     print(f"cvqpg results: {args.out}")
@@ -647,11 +651,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return {"fit": run_fit, "eval": run_eval, "export": run_export, "info": run_info,
                 "render": run_render, "bench": run_bench, "results": run_results,
-                "warmup": run_warmup, "view": run_view, "compress": run_compress,
+                "compile": run_compile, "view": run_view, "compress": run_compress,
                 "decompress": run_decompress}[args.command](args)
-    except USER_ERRORS as error:
-        print(f"cvqpg {args.command}: error: {error}", file=sys.stderr)
+    except CvqpgError as error:
+        print(f"cvqpg {args.command}: error: {flag_message(str(error))}", file=sys.stderr)
         return 2
+    except Exception as error:  # a bug: one line and where to report it, the traceback on request
+        if os.environ.get("CVQPG_TRACEBACK") == "1":
+            raise
+        print(f"cvqpg {args.command}: internal error ({type(error).__name__}: {error}); this is a bug in cvqpg: "
+              "please report it with the command you ran (CVQPG_TRACEBACK=1 shows the traceback)", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"cvqpg {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -5,15 +5,23 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, get_args
+
+from .errors import ConfigError, choices_error
 
 Color = Literal["rgb", "gray"]
 Primitive = Literal["flat", "cvqpg"]
 Bound = Literal["adaptive", "global"]
 Qpf = Literal["mahalanobis", "standard"]
 Curvature = Literal["shared", "per-channel", "channel-bound"]
-CURVATURES = ("shared", "per-channel", "channel-bound")
-PROPAGATIONS = ("auto", "pruned", "full")
+Backend = Literal["auto", "numba", "triton", "torch"]
+COLORS: tuple[str, ...] = get_args(Color)
+PRIMITIVES: tuple[str, ...] = get_args(Primitive)
+BOUNDS: tuple[str, ...] = get_args(Bound)
+QPFS: tuple[str, ...] = get_args(Qpf)
+CURVATURES: tuple[str, ...] = get_args(Curvature)
+BACKENDS: tuple[str, ...] = get_args(Backend)
+DEVICE_TYPES = ("cpu", "cuda")
 
 RGB_WAVELENGTHS_M = (639e-9, 532e-9, 473e-9)
 GRAY_WAVELENGTH_M = 639e-9
@@ -26,19 +34,24 @@ class LearningRates:
     position: float = 0.01
     position_final: float = 1e-3
     scale: float = 0.005
-    color: float = 0.0025
+    amplitude: float = 0.0025
     phase: float = 0.0025
     opacity: float = 0.025
     rotation: float = 0.001
     curvature: float = 0.001
 
 
-WARMUP_FRACTION = 400 / 2000  # the paper's curvature warm-up share of the steps
+CURVATURE_WARMUP_SHARE = 400 / 2000  # the paper's curvature warm-up share of the steps
 
 
-def default_warmup(steps: int) -> int:
-    """The curvature warm-up for a run of `steps` steps: the paper's 400 of 2000, in proportion."""
-    return round(steps * WARMUP_FRACTION)
+def default_curvature_warmup(steps: int) -> int:
+    """The curvature warm-up (steps) of a run of `steps` steps: the paper's 400 of 2000, in proportion."""
+    return round(steps * CURVATURE_WARMUP_SHARE)
+
+
+# Names that recorded configurations (config.json, model metadata) used before a rename, and their names now.
+RENAMED_FIELDS = {"warmup": "curvature_warmup"}
+RENAMED_LEARNING_RATES = {"color": "amplitude"}
 
 
 @dataclass(frozen=True)
@@ -52,7 +65,7 @@ class FitConfig:
     ratio: float = 0.2
     num_gaussians: int | None = None
     steps: int = 2000
-    warmup: int = 400
+    curvature_warmup: int | None = None  # steps with γ frozen at 0; None: default_curvature_warmup(steps)
     seed: int = 100
     pixel_pitch: float = 3.74e-6
     num_planes: int = 2
@@ -74,9 +87,15 @@ class FitConfig:
     defocus_sigma_px: float = 8.0
     depth_exponent: float = 1.0
     device: str = "cpu"
-    backend: str = "auto"
-    propagation: str = "auto"  # PROPAGATIONS; optics.resolve_propagation
+    backend: Backend = "auto"
     wavelengths_m: tuple[float, ...] | None = None
+
+    @property
+    def curvature_warmup_steps(self) -> int:
+        """Steps with the curvature frozen at γ = 0: `curvature_warmup`, or the paper's share of `steps`."""
+        if self.curvature_warmup is None:
+            return default_curvature_warmup(self.steps)
+        return self.curvature_warmup
 
     @property
     def channels(self) -> int:
@@ -120,14 +139,26 @@ class FitConfig:
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """Every setting as JSON-ready values, with the curvature warm-up resolved to its steps: what
+        a record says is what the fit ran."""
+        return {**dataclasses.asdict(self), "curvature_warmup": self.curvature_warmup_steps}
+
+    def on_device(self, device: str) -> "FitConfig":
+        """The same fit rendered on `device`: a backend that cannot run there (`numba` off the CPU,
+        `triton` off CUDA) becomes `auto`, which changes the last bits of a render only."""
+        kind = device.split(":")[0]
+        runs_there = {"numba": kind == "cpu", "triton": kind == "cuda"}.get(self.backend, True)
+        return self.replace(device=device, backend=self.backend if runs_there else "auto")
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "FitConfig":
+        """The configuration a `to_dict` recorded, also under the names of earlier versions; other keys
+        (a run's `source`, settings that no longer exist) are ignored."""
         known = {f.name for f in dataclasses.fields(cls)}
+        data = {RENAMED_FIELDS.get(k, k): v for k, v in data.items()}
         values = {k: v for k, v in data.items() if k in known}
         if isinstance(values.get("lr"), dict):
-            values["lr"] = LearningRates(**values["lr"])
+            values["lr"] = LearningRates(**{RENAMED_LEARNING_RATES.get(k, k): v for k, v in values["lr"].items()})
         for name in ("betas", "wavelengths_m"):
             if isinstance(values.get(name), list):
                 values[name] = tuple(values[name])
@@ -135,42 +166,65 @@ class FitConfig:
 
     def validate(self) -> "FitConfig":
         """Raise `ConfigError` naming the first setting that cannot work, and what to do."""
+        for name, choices in (("color", COLORS), ("primitive", PRIMITIVES), ("bound", BOUNDS), ("qpf", QPFS),
+                              ("curvature", CURVATURES), ("backend", BACKENDS)):
+            if getattr(self, name) not in choices:
+                raise choices_error(name, getattr(self, name), choices)
+        if not isinstance(self.device, str) or self.device.split(":")[0] not in DEVICE_TYPES:
+            raise choices_error("device", self.device, DEVICE_TYPES)
+        for name in ("width", "height", "steps", "seed", "num_planes", "guard_band_px", "pad_multiple_px"):
+            if not _is_integer(getattr(self, name)):
+                raise ConfigError(f"`{name}` must be a whole number, got {getattr(self, name)!r}")
+        for name in ("num_gaussians", "curvature_warmup"):
+            if getattr(self, name) is not None and not _is_integer(getattr(self, name)):
+                raise ConfigError(f"`{name}` must be a whole number or None, got {getattr(self, name)!r}")
+        numbers = {"ratio": self.ratio, "pixel_pitch": self.pixel_pitch, "plane_center": self.plane_center,
+                   "plane_span": self.plane_span, "eta": self.eta, "global_bound": self.global_bound,
+                   "adan_eps": self.adan_eps, "grad_clip_norm": self.grad_clip_norm,
+                   "ssim_weight": self.ssim_weight, "target_noise": self.target_noise,
+                   "defocus_sigma_px": self.defocus_sigma_px, "depth_exponent": self.depth_exponent,
+                   **{f"lr.{k}": v for k, v in dataclasses.asdict(self.lr).items()},
+                   **{f"betas[{i}]": b for i, b in enumerate(self.betas)},
+                   **{f"wavelengths_m[{i}]": w for i, w in enumerate(self.wavelengths_m or ())}}
+        for name, value in numbers.items():
+            if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
+                raise ConfigError(f"`{name}` must be a finite number, got {value!r}")
         positive = {"steps": self.steps, "ratio": self.ratio, "pixel_pitch": self.pixel_pitch,
                     "plane_span": self.plane_span if self.num_planes > 1 else 1.0,
-                    "num_planes": self.num_planes, "eta": self.eta}
+                    "num_planes": self.num_planes, "eta": self.eta, "pad_multiple_px": self.pad_multiple_px}
         for name, value in positive.items():
             if not value > 0:
-                raise ConfigError(f"{name} must be positive, got {value}")
+                raise ConfigError(f"`{name}` must be positive, got {value}")
+        if self.guard_band_px < 0:
+            raise ConfigError(f"`guard_band_px` must be 0 or more, got {self.guard_band_px}")
         if self.width < MIN_SIZE_PX or self.height < MIN_SIZE_PX:
-            raise ConfigError(f"size {self.width}×{self.height} px is too small: both sides need at least "
-                              f"{MIN_SIZE_PX} px (the SSIM window)")
+            raise ConfigError(f"size {self.width}×{self.height} px is too small: `width` and `height` need at "
+                              f"least {MIN_SIZE_PX} px (the SSIM window)")
         if any(not d > 0 for d in self.plane_distances):
             raise ConfigError(f"plane distances {', '.join(f'{d:g}' for d in self.plane_distances)} m must all "
-                              "be positive: raise plane_center or shrink plane_span")
+                              "be positive: raise `plane_center` or shrink `plane_span`")
         if len(self.wavelengths) != self.channels or any(not w > 0 for w in self.wavelengths):
-            raise ConfigError(f"wavelengths {self.wavelengths} m: need {self.channels} positive value(s) "
-                              f"for colour mode {self.color!r}")
-        if self.curvature not in CURVATURES:
-            raise ConfigError(f"curvature {self.curvature!r}: choose one of {', '.join(CURVATURES)}")
-        if self.backend == "numba" and self.device != "cpu":
-            raise ConfigError(f"backend 'numba' runs on the CPU only, not on {self.device}; use --backend auto "
-                              "(or torch) with --device cuda")
-        if self.backend == "triton" and self.device == "cpu":
-            raise ConfigError("backend 'triton' runs on the GPU only; use --backend auto (or numba, torch) with "
-                              "--device cpu")
-        if self.propagation not in PROPAGATIONS:
-            raise ConfigError(f"propagation {self.propagation!r}: choose one of {', '.join(PROPAGATIONS)}")
-        if self.warmup < 0 or self.warmup > self.steps:
-            raise ConfigError(f"warmup {self.warmup} must lie in 0..steps ({self.steps})")
+            raise ConfigError(f"`wavelengths_m` {self.wavelengths}: need {self.channels} positive value(s) "
+                              f"for `color` {self.color!r}")
+        kind = self.device.split(":")[0]
+        if self.backend == "numba" and kind != "cpu":
+            raise ConfigError(f"`backend` 'numba' runs on the CPU only, not on {self.device}; use `backend` auto "
+                              "(or torch) with `device` cuda")
+        if self.backend == "triton" and kind == "cpu":
+            raise ConfigError("`backend` 'triton' runs on the GPU only; use `backend` auto (or numba, torch) with "
+                              "`device` cpu")
+        if not 0 <= self.curvature_warmup_steps <= self.steps:
+            raise ConfigError(f"`curvature_warmup` {self.curvature_warmup_steps} must lie in 0..`steps` "
+                              f"({self.steps})")
         count, pixels = self.primitive_count, self.width * self.height
         if not 0 < count <= pixels:
             raise ConfigError(f"{count} Gaussians for {pixels} pixels: need between 1 and the pixel count; "
-                              "change --ratio or --num-gaussians")
+                              "change `ratio` or `num_gaussians`")
         return self
 
 
-class ConfigError(ValueError):
-    """A setting that cannot work; the message names it."""
+def _is_integer(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
 MIN_SIZE_PX = 16

@@ -19,7 +19,8 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from .targets import InputError, load_picture
+from .errors import InputError
+from .targets import load_picture
 
 DEPTH_MODEL = "depth-anything/Depth-Anything-V2-Small-hf"
 DEPTH_FILE = "depth.png"
@@ -52,15 +53,15 @@ def load_depth_model(name: str = DEPTH_MODEL) -> DepthModel:
     try:
         from transformers import AutoImageProcessor, AutoModelForDepthEstimation
     except ImportError:
-        raise DepthModelError("--depth auto needs transformers: pip install 'cvqpg[depth]', or give a depth map "
-                              "with --depth PATH") from None
+        raise DepthModelError("depth estimation needs transformers: pip install 'cvqpg[depth]', or give "
+                              "a `depth` map") from None
     try:
         processor = AutoImageProcessor.from_pretrained(name, use_fast=False)
         network = AutoModelForDepthEstimation.from_pretrained(name)
     except OSError:
-        raise DepthModelError(f"--depth auto: the weights of {name} are not in the Hugging Face cache "
+        raise DepthModelError(f"depth estimation: the weights of {name} are not in the Hugging Face cache "
                               f"({hub_cache()}) and could not be downloaded; run once online with the depth "
-                              "extra (pip install 'cvqpg[depth]'), or give a depth map with --depth PATH") from None
+                              "extra (pip install 'cvqpg[depth]'), or give a `depth` map") from None
     return DepthModel(network.eval(), processor, name)
 
 

@@ -1,4 +1,7 @@
-"""Fitting: the optimisation loop of SPEC §6 and rendering of a fitted model."""
+"""Fitting: the optimisation loop of SPEC §6 and rendering of a fitted model.
+
+A library call here computes and returns: it compiles nothing ahead, prints nothing but its
+progress bar, and measures no memory; the command line (`cvqpg.app`) does those around it."""
 
 from __future__ import annotations
 
@@ -6,27 +9,26 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import torch
 from PIL import Image
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from .compilation import prepare_kernels
 from .config import FitConfig
-from .ops.loss import multiplane_loss, noisy_targets, standard_normal
+from .errors import InputError, ModelFileError
 from .metrics import MetricReport, evaluate
+from .ops.loss import multiplane_loss, noisy_targets, standard_normal
+from .ops.rasterize import rasterize
 from .optics import reconstruct
 from .primitives import Gaussians, Primitives, activate, init_gaussians
-from .provenance import peak_memory, reset_peak_memory
-from .ops.rasterize import rasterize
 from .targets import Scene, load_scene
 
 if TYPE_CHECKING:
     from pytorch_optimizer import Adan
 
-LEARNING_RATE_GROUPS = ("position", "scale", "rotation", "color", "phase", "opacity", "curvature")
+LEARNING_RATE_GROUPS = ("position", "scale", "rotation", "amplitude", "phase", "opacity", "curvature")
 
 
 @dataclass
@@ -42,8 +44,8 @@ class FitResult:
     seconds: float = 0.0
     skipped_steps: int = 0
     sanitised_steps: int = 0
-    peak_memory: dict[str, Any] = field(default_factory=dict)  # provenance.peak_memory of the fit
-    compile_seconds: float = 0.0  # compiling or loading the CPU kernels before the first step (not in `seconds`)
+    peak_memory: dict[str, Any] = field(default_factory=dict)  # what the caller noted in the state (FitState)
+    compile_seconds: float = 0.0  # what the caller noted: kernel compilation outside `seconds`
 
     @property
     def primitives(self) -> Primitives:
@@ -62,11 +64,13 @@ def render_hologram(gaussians: Gaussians, config: FitConfig) -> Tensor:
     return hologram(activate(gaussians, config), config)
 
 
-def render(primitives: Primitives, config: FitConfig) -> tuple[Tensor, Tensor]:
-    """Hologram [C, H, W] and clamped reconstructions [M, C, H, W], without gradients."""
+def render(primitives: Primitives, config: FitConfig, distances_m: Sequence[float] | None = None
+           ) -> tuple[Tensor, Tensor]:
+    """Hologram [C, H, W] and clamped reconstructions [M, C, H, W] at `config`'s planes (or at
+    `distances_m`, m), without gradients."""
     with torch.no_grad():
         field = hologram(primitives, config)
-        return field, reconstruct(field, config)
+        return field, reconstruct(field, config, distances_m)
 
 
 def trainable_groups(config: FitConfig) -> tuple[str, ...]:
@@ -111,12 +115,14 @@ class FitState:
     seconds: float = 0.0
     skipped_steps: int = 0
     sanitised_steps: int = 0
-    peak_memory: dict[str, Any] = field(default_factory=dict)  # the largest peak of the segments run so far
-    compile_seconds: float = 0.0  # kernel compilation before the segments' first steps, outside `seconds`
+    # Noted by the caller, kept in checkpoints: the largest peak memory of the segments run so far (a
+    # resumed fit runs in several), and kernel compilation before their first steps, outside `seconds`.
+    peak_memory: dict[str, Any] = field(default_factory=dict)
+    compile_seconds: float = 0.0
 
-    def note_peak_memory(self, device: torch.device) -> None:
-        """Keep the larger of the recorded peak and this segment's (a resumed fit runs in several)."""
-        self.peak_memory = max(self.peak_memory, peak_memory(device), key=lambda p: p.get("peak_memory_bytes", -1))
+    def note_peak_memory(self, peak: dict[str, Any]) -> None:
+        """Keep the larger of the recorded peak and `peak` (`{"peak_memory_bytes": ..., ...}`)."""
+        self.peak_memory = max(self.peak_memory, peak, key=lambda p: p.get("peak_memory_bytes", -1))
 
     def settle(self, outcomes: list[StepOutcome]) -> list[tuple[float, float]]:
         """Read queued steps back in one transfer: append their loss and PSNR to the history and count
@@ -170,12 +176,12 @@ def initial_state(config: FitConfig) -> FitState:
 
 def state_from_payload(payload: dict, config: FitConfig) -> FitState:
     """Inverse of `FitState.to_payload` on `config.device`. A checkpoint from another device type is
-    refused (`CheckpointDeviceError`): CPU and CUDA noise generators have different states."""
+    refused (`ModelFileError`): CPU and CUDA noise generators have different states."""
     written_on = payload.get("device", "cpu")
     if written_on != torch.device(config.device).type:
-        raise CheckpointDeviceError(f"the checkpoint was written on {written_on}, this run is on {config.device}: "
-                                    f"resume it with --device {written_on}, or delete checkpoint.pt to restart "
-                                    "from step 0")
+        raise ModelFileError(f"the checkpoint was written on {written_on}, this run is on {config.device}: "
+                             f"resume it with `device` {written_on}, or delete the checkpoint to restart from "
+                             "step 0")
     state = initial_state(config)
     with torch.no_grad():
         for name, tensor in state.gaussians.tensors().items():
@@ -220,7 +226,7 @@ def update(state: FitState, scene: Scene, config: FitConfig) -> StepOutcome:
     the host.
     """
     gaussians, step = state.gaussians, state.step
-    gaussians.curvature.requires_grad_(config.primitive == "cvqpg" and step >= config.warmup)
+    gaussians.curvature.requires_grad_(config.primitive == "cvqpg" and step >= config.curvature_warmup_steps)
     loss, mse = hologram_loss(render_hologram(gaussians, config), scene, config, state.generator)
     optimizer = state.optimizer
     optimizer.zero_grad(set_to_none=True)
@@ -318,10 +324,6 @@ class CheckpointPolicy:
         return self.every_seconds is not None and seconds_since_save >= self.every_seconds
 
 
-class CheckpointDeviceError(ValueError):
-    """A checkpoint whose loop state belongs to another device type."""
-
-
 class FitInterrupted(Exception):
     """The loop stopped on request after saving a checkpoint at `step`."""
 
@@ -344,24 +346,24 @@ def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = Tr
     """Fit N primitives to a scene's targets; returns the fitted model and its final metrics.
 
     Runs the reference loop's `config.steps + 1` updates (indices 0..steps); curvature is frozen at
-    γ = 0 for the first `config.warmup` of them. Pass a `state` (from a checkpoint) to continue a
-    run: the result is bit-identical to an uninterrupted one on CPU. When `stop_requested()` turns
-    true the loop saves a checkpoint between two steps and raises `FitInterrupted`. The CPU kernels
-    are compiled (first run) or loaded before the first step, with a status line when `progress`;
-    that time is `compile_seconds`, outside the fit's `seconds`.
+    γ = 0 for the first `config.curvature_warmup_steps` of them. Pass a `state` (from a checkpoint)
+    to continue a run: the result is bit-identical to an uninterrupted one on CPU. When
+    `stop_requested()` turns true the loop saves a checkpoint between two steps and raises
+    `FitInterrupted`. The CPU kernels compile on their first call (Numba caches them on disk);
+    `cvqpg.app.compilation` compiles them ahead with a status line.
 
     The steps run without host synchronisations; the loop reads their losses back (`readback_due`:
     after every step on the CPU, every `READBACK_SECONDS` on CUDA, and before a checkpoint and at
     the end), and calls `on_step(step, loss, psnr)` for each step as it reads it back.
     """
     config.validate()
+    expected = (config.num_planes, config.channels, config.height, config.width)
+    if tuple(scene.targets.shape) != expected:
+        raise InputError(f"the scene's targets are {tuple(scene.targets.shape)} (planes, channels, height, width) "
+                         f"but the configuration fits {expected}; build the scene with the same configuration")
     device = torch.device(config.device)
     scene = Scene(*(t.to(device) for t in (scene.image, scene.masks, scene.targets)))
-    # The kernels first: a cold compile starts its second process before this one imports the optimiser.
-    compile_seconds = prepare_kernels(config, show_status=progress)
     state = state or initial_state(config)
-    state.compile_seconds += compile_seconds
-    reset_peak_memory(device)
     last_save, clock = time.perf_counter(), time.perf_counter()
     bar = tqdm(range(state.step, config.steps + 1), initial=state.step, total=config.steps + 1,
                disable=not progress, desc=f"fit {config.primitive}", unit="step", dynamic_ncols=True)
@@ -384,7 +386,6 @@ def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = Tr
         if stop_requested is not None and stop_requested():
             read_back()
             if checkpoint is not None:
-                state.note_peak_memory(device)
                 checkpoint.save(state)
             raise FitInterrupted(step)
         pending.append(update(state, scene, config))
@@ -395,12 +396,10 @@ def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = Tr
         if saving or state.step > config.steps or readback_due(device, now - clock):
             read_back()
         if saving:
-            state.note_peak_memory(device)
             checkpoint.save(state)
             last_save = time.perf_counter()
     fitted = state.gaussians.detached()
     hologram, recon = render(activate(fitted, config), config)
     metrics = evaluate(recon, scene.targets)
-    state.note_peak_memory(device)
     return FitResult(fitted, config, metrics, hologram, recon, state.history, state.seconds,
                      state.skipped_steps, state.sanitised_steps, state.peak_memory, state.compile_seconds)

@@ -331,7 +331,7 @@ def reconstruct(hologram: Tensor, config: FitConfig, distances_m: Sequence[float
     grid = Grid.for_config(config)
     field = guarded_field(hologram, grid, config.backend)
     distances = config.plane_distances if distances_m is None else tuple(distances_m)
-    if resolve_propagation(config.propagation, field.device) == "full":
+    if resolve_propagation("auto", field.device) == "full":
         planes = grid.crop(propagate(field, distances, config.wavelengths, config.pixel_pitch))
     else:
         planes = propagate_content(field, grid, distances, config.wavelengths, config.pixel_pitch)

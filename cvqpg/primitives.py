@@ -47,14 +47,14 @@ class Gaussians(TensorFields):
     position: Tensor  # [N, 2] → px via (tanh+1)/2·(W, H)
     scale: Tensor  # [N, 2] → px via exp + 0.1
     rotation: Tensor  # [N] rad
-    color: Tensor  # [N, C] amplitude
+    amplitude: Tensor  # [N, C], unitless (used as is)
     phase: Tensor  # [N, C] → rad via mod 2π
     opacity: Tensor  # [N] → sigmoid
     curvature: Tensor  # [N], or [N, C] per channel → 1/m via γ_max·tanh
 
     @property
     def channels(self) -> int:
-        return self.color.shape[1]
+        return self.amplitude.shape[1]
 
 
 @dataclass
@@ -82,7 +82,7 @@ def init_gaussians(count: int, channels: int, width: int, height: int, seed: int
     """
     generator = torch.Generator().manual_seed(seed)
     u_position = torch.rand(count, 2, generator=generator)
-    u_color = torch.rand(count, channels, generator=generator)
+    u_amplitude = torch.rand(count, channels, generator=generator)
     u_scale = torch.rand(count, 2, generator=generator)
     u_rotation = torch.rand(count, generator=generator)
     low, high = INIT_SCALE_RANGE_PX
@@ -90,7 +90,7 @@ def init_gaussians(count: int, channels: int, width: int, height: int, seed: int
         position=torch.atanh(torch.clamp(2 * u_position - 1, -POSITION_CLAMP, POSITION_CLAMP)),
         scale=torch.log(low + (high - low) * u_scale),
         rotation=(2 * u_rotation - 1) * math.pi,
-        color=u_color,
+        amplitude=u_amplitude,
         phase=torch.zeros(count, channels),
         opacity=torch.full((count,), INIT_OPACITY_RAW),
         curvature=torch.zeros((count, channels) if per_channel_curvature else (count,)),
@@ -147,7 +147,7 @@ def activate(raw: Gaussians, config: FitConfig) -> Primitives:
         position_px=positions_px(raw.position, config.width, config.height),
         scale_px=scale,
         rotation_rad=raw.rotation,
-        amplitude=raw.color,
+        amplitude=raw.amplitude,
         phase_rad=torch.remainder(raw.phase, 2 * math.pi),
         opacity=torch.sigmoid(raw.opacity),
         curvature_per_m=bound * share,

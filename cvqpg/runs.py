@@ -19,12 +19,10 @@ from .config import ConfigError, FitConfig
 from .files import write_atomic
 from .export import (DEFAULT_APERTURE, DEFAULT_LEVELS, Display, Encoding, PhasePattern, phase_pattern, place_on_canvas,
                      simulate_display)
-from .fitting import FitResult, hologram, render
+from .fitting import FitResult, render
 from .metrics import MetricReport, evaluate, mean_psnr
 from .ops.field import slm_field
-from .optics import reconstruct
 from .primitives import Primitives
-from .provenance import run_record
 from .scenes import builtin_scene
 from .storage import load_model, save_model
 from .targets import Scene, load_scene
@@ -117,8 +115,10 @@ def read_run(folder: str | Path) -> tuple[FitConfig, dict[str, Any]]:
     return FitConfig.from_dict(recorded), recorded["source"]
 
 
-def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[str, Any]) -> Path:
-    """Save config, metrics, model, per-plane targets and reconstructions, hologram and curve.
+def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[str, Any],
+              run: dict[str, Any] | None = None) -> Path:
+    """Save config, metrics, model, per-plane targets and reconstructions, hologram and curve; `run`
+    is what `metrics.json` records about the code and machine (`cvqpg.app.provenance.run_record`).
 
     The checkpoint goes only once `metrics.json`, the mark of a finished run, is written: a run
     killed while its files are written resumes from the checkpoint instead of starting over."""
@@ -135,8 +135,7 @@ def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[
         result.metrics, config, result.seconds,
         {"updates": len(history), "initial_psnr": history[0] if history else None,
          "skipped_steps": result.skipped_steps, "sanitised_steps": result.sanitised_steps,
-         "run": run_record(torch.device(config.device), result.seconds, result.compile_seconds,
-                           result.peak_memory)}))
+         **({} if run is None else {"run": run})}))
     (folder / CHECKPOINT_FILE).unlink(missing_ok=True)
     return folder
 
@@ -144,17 +143,14 @@ def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[
 def scene_from_source(source: dict[str, Any], config: FitConfig) -> Scene:
     """Rebuild a run's scene from what `config.json` recorded about its inputs."""
     if "scene" in source:
-        builtin = builtin_scene(source["scene"], config.width, config.height)
-        return load_scene(builtin.image, builtin.depth, config)
+        return builtin_scene(source["scene"], config)
     return load_scene(source["image"], source.get("depth"), config, source.get("resize_depth", False))
 
 
 def load_model_on(path: str | Path, device: str) -> tuple[Primitives, FitConfig]:
-    """A model file's primitives and settings, to render on `device`: a rasterizer backend that runs on
-    the CPU only (`numba`) becomes `auto` elsewhere."""
+    """A model file's primitives and settings, to render on `device` (`FitConfig.on_device`)."""
     primitives, config = load_model(path, device)
-    backend = "auto" if config.backend == "numba" and torch.device(device).type != "cpu" else config.backend
-    return primitives, config.replace(device=device, backend=backend)
+    return primitives, config.on_device(device)
 
 
 def evaluate_run(folder: str | Path, model: str | Path | None = None, device: str = "cpu") -> dict[str, Any]:
@@ -287,8 +283,8 @@ def rescaled(primitives: Primitives, config: FitConfig, width: int, height: int)
     the pixel pitch shrinks by as much, curvature (1/m) stays. Refuses another aspect ratio."""
     factor = width / config.width
     if abs(height / config.height - factor) > 0.01 * factor:
-        raise ConfigError(f"--size {width} {height} changes the aspect ratio of the {config.width}×"
-                         f"{config.height} model; keep W/H = {config.width / config.height:.4f}")
+        raise ConfigError(f"size {width}×{height} changes the aspect ratio of the {config.width}×"
+                          f"{config.height} model; keep `width`/`height` = {config.width / config.height:.4f}")
     values = primitives.tensors()
     values["position_px"] = (values["position_px"] + 0.5) * factor - 0.5
     values["scale_px"] = values["scale_px"] * factor
@@ -306,9 +302,7 @@ def render_model(target: str | Path, out: str | Path, size: tuple[int, int] | No
     if size is not None:
         primitives, config = rescaled(primitives, config, *size)
     distances = config.plane_distances if distances_m is None else tuple(distances_m)
-    with torch.no_grad():
-        field = hologram(primitives, config)
-        recon = reconstruct(field, config, distances)
+    field, recon = render(primitives, config, distances)
     save_hologram_images(field, out)
     files = ["amplitude.png", "phase.png"]
     for distance, image in zip(distances, recon):

@@ -9,6 +9,10 @@ from typing import Callable
 import numpy as np
 from PIL import Image
 
+from .config import FitConfig
+from .errors import InputError
+from .targets import Scene, load_scene
+
 SUPERSAMPLING = 2
 
 
@@ -87,8 +91,14 @@ def siemens_star(width: int, height: int, spokes: int = 36) -> BuiltinScene:
 SCENES = {"demo": SceneRecipe(demo_scene, "rgb", 2), "star": SceneRecipe(siemens_star, "gray", 1)}
 
 
-def builtin_scene(name: str, width: int, height: int) -> BuiltinScene:
-    """Generate the named built-in scene at W×H px."""
+def builtin_pictures(name: str, width: int, height: int) -> BuiltinScene:
+    """The named built-in scene's image and depth map at W×H px, as files would give them."""
     if name not in SCENES:
-        raise ValueError(f"unknown scene {name!r}; built-in scenes are {', '.join(sorted(SCENES))}")
+        raise InputError(f"unknown scene {name!r}; built-in scenes are {', '.join(sorted(SCENES))}")
     return SCENES[name].generate(width, height)
+
+
+def builtin_scene(name: str, config: FitConfig) -> Scene:
+    """The named built-in scene with its targets for `config` (size, colour, planes): what `fit_scene` takes."""
+    pictures = builtin_pictures(name, config.width, config.height)
+    return load_scene(pictures.image, pictures.depth, config)

@@ -11,6 +11,7 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save
 
 from .config import FitConfig
+from .errors import ModelFileError
 from .files import atomic_file, write_atomic
 from .primitives import Primitives
 
@@ -20,10 +21,6 @@ STORED_DTYPES = {"float32": torch.float32, "float16": torch.float16}
 UNITS = {"position_px": "px (x, y), pixel centres at integers", "scale_px": "px (σ along the Gaussian's axes)",
          "rotation_rad": "rad", "amplitude": "per channel, unitless", "phase_rad": "rad in [0, 2π), per channel",
          "opacity": "in (0, 1)", "curvature_per_m": "1/m (γ of the quadratic phase)"}
-
-
-class ModelFileError(ValueError):
-    """A model file that this version cannot read; the message says what is wrong."""
 
 
 def model_metadata(primitives: Primitives, config: FitConfig, dtype: str) -> dict[str, str]:

@@ -13,6 +13,7 @@ from PIL import Image, UnidentifiedImageError
 from torch import Tensor
 
 from .config import FitConfig
+from .errors import InputError
 
 BLUR_KERNEL_PX = 21
 BLUR_SAMPLE_EXTENT = 10.5
@@ -33,10 +34,6 @@ log = logging.getLogger("cvqpg")
 ALPHA_MODES = ("RGBA", "LA", "PA", "RGBa", "La")
 HIGH_DEPTH_MODES = ("I;16", "I;16B", "I;16L", "I;16N", "I", "F")
 ASPECT_TOLERANCE = 0.01
-
-
-class InputError(ValueError):
-    """An input file or image that cannot be used; the message names it and the fix."""
 
 
 def to_tensor(picture: Image.Image) -> Tensor:
@@ -108,7 +105,7 @@ def check_depth_geometry(image: Image.Image, depth: Image.Image, resize_depth: b
     if abs(image_aspect - depth_aspect) > ASPECT_TOLERANCE * image_aspect and not resize_depth:
         raise InputError(f"depth map is {depth.size[0]}×{depth.size[1]} but the image is "
                          f"{image.size[0]}×{image.size[1]}: another aspect ratio, so the depth would be "
-                         "distorted; pass --resize-depth to stretch it anyway")
+                         "distorted; set `resize_depth` to stretch it anyway")
     log.warning(f"depth map is {depth.size[0]}×{depth.size[1]}, the image {image.size[0]}×{image.size[1]}; "
                 "the depth map is resized to match")
 
@@ -155,17 +152,27 @@ def build_scene(image: Tensor, depth: Tensor | None, config: FitConfig) -> Scene
     """Scene from a prepared image [C, H, W] and optional depth [H, W] (needed for M > 1)."""
     planes = config.num_planes
     if depth is None and planes > 1:
-        raise InputError(f"{planes} planes need a depth map (--depth PATH), or use --planes 1")
+        raise InputError(f"{planes} planes need a depth map (`depth`), or set `num_planes` to 1")
     if depth is not None and planes > 1 and float(depth.max() - depth.min()) < 1e-6:
         raise InputError(f"the depth map is constant ({float(depth.min()):.3g}), so it cannot separate "
-                         f"{planes} planes; use --planes 1")
+                         f"{planes} planes; set `num_planes` to 1")
     masks = plane_masks(depth, planes, config.depth_exponent, tuple(image.shape[1:]))
     empty = [m for m in range(planes) if not masks[m].any()]
     if empty:
         raise InputError(f"the depth map puts no pixel on plane(s) {', '.join(map(str, empty))} of {planes}: "
-                         f"it separates only {planes - len(empty)}; use fewer --planes")
+                         f"it separates only {planes - len(empty)}; lower `num_planes`")
     targets = defocus_targets(image, masks, config.defocus_sigma_px)
     return Scene(image=image, masks=masks, targets=targets)
+
+
+def check_tensor(values: Tensor, name: str, shape: tuple[int, ...]) -> None:
+    """An image or depth given as a tensor must already have the fit's shape and finite values in [0, 1]."""
+    if tuple(values.shape) != shape:
+        raise InputError(f"`{name}` tensor has shape {tuple(values.shape)}, the configuration needs {shape} "
+                         "(channels, height, width as `color`, `height` and `width` say); resize it, or give a "
+                         "file or PIL image, which are resized")
+    if not bool(torch.isfinite(values).all()) or float(values.min()) < 0 or float(values.max()) > 1:
+        raise InputError(f"`{name}` tensor must hold finite values in [0, 1]")
 
 
 def _as_picture(source: str | Path | Image.Image, role: str) -> Image.Image:
@@ -184,6 +191,10 @@ def load_scene(image: str | Path | Image.Image | Tensor, depth: str | Path | Ima
         check_depth_geometry(picture, depth_picture, resize_depth)
     if picture is not None:
         image = prepare_image(picture, config.width, config.height, config.color)
+    else:
+        check_tensor(image, "image", (config.channels, config.height, config.width))
     if depth_picture is not None:
         depth = prepare_depth(depth_picture, config.width, config.height)
+    elif depth is not None:
+        check_tensor(depth, "depth", (config.height, config.width))
     return build_scene(image.float(), None if depth is None else depth.float(), config)

@@ -22,11 +22,12 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from .config import FitConfig
+from .errors import InputError
 from .fitting import hologram
 from .metrics import METRIC_NAMES, psnr
 from .optics import reconstruct, release_transfer_functions
-from .runs import EXPORT_FOLDER, METRICS_FILE, MODEL_FILE, hologram_images, read_run, to_8bit, write_atomic
-from .storage import load_model
+from .runs import (EXPORT_FOLDER, METRICS_FILE, MODEL_FILE, hologram_images, load_model_on, read_run, to_8bit,
+                   write_atomic)
 
 VIEW_FILE = "view.html"
 DEFAULT_SWEEP = (0.5e-3, 6e-3, 41)  # START (m), STOP (m), COUNT
@@ -37,10 +38,6 @@ SAME_DISTANCE_M = 1e-9
 TEMPLATE = "view_page.html"
 
 log = logging.getLogger("cvqpg")
-
-
-class ViewError(ValueError):
-    """Input the page cannot be built from; the message names the problem and the fix."""
 
 
 @dataclass
@@ -74,14 +71,14 @@ class Run:
 
 
 def check_sweep(start_m: float, stop_m: float, count: int) -> None:
-    """Raise `ViewError` unless START ≤ STOP are positive distances in m below `MAX_DISTANCE_M` and COUNT ≥ 1."""
+    """Raise `InputError` unless START ≤ STOP are positive distances in m below `MAX_DISTANCE_M` and COUNT ≥ 1."""
     given = f"--distances {start_m:g} {stop_m:g} {count}"
     if count < 1:
-        raise ViewError(f"{given}: COUNT must be at least 1")
+        raise InputError(f"{given}: COUNT must be at least 1")
     if not 0 < start_m <= stop_m:
-        raise ViewError(f"{given}: give 0 < START ≤ STOP in m (e.g. 0.0005 0.006 41 for 0.5–6 mm)")
+        raise InputError(f"{given}: give 0 < START ≤ STOP in m (e.g. 0.0005 0.006 41 for 0.5–6 mm)")
     if stop_m > MAX_DISTANCE_M:
-        raise ViewError(f"{given}: distances are in m and STOP is over {MAX_DISTANCE_M:g} m; for 0.5–6 mm give "
+        raise InputError(f"{given}: distances are in m and STOP is over {MAX_DISTANCE_M:g} m; for 0.5–6 mm give "
                         "0.0005 0.006 41")
 
 
@@ -101,29 +98,27 @@ def optics_label(config: FitConfig) -> str:
 
 
 def check_comparable(folders: Sequence[Path], configs: Sequence[FitConfig]) -> None:
-    """Raise `ViewError` unless the runs share size, pixel pitch and wavelengths (side by side and the zoom
+    """Raise `InputError` unless the runs share size, pixel pitch and wavelengths (side by side and the zoom
     need the same pixels)."""
     for folder, config in zip(folders[1:], configs[1:]):
         if optics_label(config) != optics_label(configs[0]):
-            raise ViewError(f"{folder} is {optics_label(config)} but {folders[0]} is {optics_label(configs[0])}; "
+            raise InputError(f"{folder} is {optics_label(config)} but {folders[0]} is {optics_label(configs[0])}; "
                             "compare runs of the same size and optics (e.g. the baseline and the CVQPG fit of one "
                             "scene)")
 
 
-def run_device(config: FitConfig) -> torch.device:
+def run_device(config: FitConfig) -> str:
     """The device the run was fitted on, or the CPU (with a note) where that GPU is absent."""
     if config.device.startswith("cuda") and not torch.cuda.is_available():
         log.warning(f"the run was fitted on {config.device}, which is not available; rendering on the CPU")
-        return torch.device("cpu")
-    return torch.device(config.device)
+        return "cpu"
+    return config.device
 
 
 def load_run(folder: Path) -> Run:
     """Read a finished run folder and render its hologram."""
     config, source = read_run(folder)
-    device = run_device(config)
-    primitives, config = load_model(folder / MODEL_FILE, device)
-    config = config.replace(device=device.type)
+    primitives, config = load_model_on(folder / MODEL_FILE, run_device(config))
     metrics_file = folder / METRICS_FILE
     metrics = json.loads(metrics_file.read_text()) if metrics_file.is_file() else None
     with torch.no_grad():
@@ -214,7 +209,7 @@ def settings_rows(run: Run) -> dict[str, str]:
             "planes": ", ".join(f"{d * 1e3:g} mm" for d in run.planes),
             "N primitives": f"{config.primitive_count:,}",
             "parameters": f"{config.primitive_count * config.params_per_primitive:,}",
-            "steps (warm-up)": f"{config.steps} ({config.warmup})",
+            "steps (warm-up)": f"{config.steps} ({config.curvature_warmup_steps})",
             "curvature": f"{config.curvature}, {config.bound} bound, {config.qpf} QPF"
             if config.primitive == "cvqpg" else "–",
             "seed": str(config.seed)}
@@ -280,11 +275,11 @@ def write_view(folders: Sequence[str | Path], out: str | Path | None = None,
     written when the input is refused."""
     clock = time.perf_counter()
     if not 1 <= len(folders) <= 2:
-        raise ViewError(f"give one or two run folders, not {len(folders)}")
+        raise InputError(f"give one or two run folders, not {len(folders)}")
     check_sweep(*sweep)
     out = Path(out) if out is not None else default_page(folders)
     if out.is_dir():
-        raise ViewError(f"--out {out} is a folder; give a file name such as {out / VIEW_FILE}")
+        raise InputError(f"--out {out} is a folder; give a file name such as {out / VIEW_FILE}")
     folders = [Path(folder) for folder in folders]
     check_comparable(folders, [read_run(folder)[0] for folder in folders])
     runs = [load_run(folder) for folder in folders]

@@ -121,7 +121,7 @@ def test_methods_map_to_the_papers_configurations(scenes_dir, tmp_path):
         "global", "standard", "cvqpg")
     star = make_plan("star").cells
     assert {(c.config.num_planes, c.config.color, c.config.primitive_count) for c in star} == {(1, "gray", 7680)}
-    assert make_plan("quick", overrides=Overrides(steps=50)).cells[0].config.warmup == 10
+    assert make_plan("quick", overrides=Overrides(steps=50)).cells[0].config.curvature_warmup == 10
 
 
 def test_chromatic_preset_compares_at_equal_n_and_at_per_channel_parameter_count(scenes_dir, tmp_path):
@@ -172,7 +172,7 @@ def test_partial_files_do_not_mark_a_cell_done_and_it_restarts(tmp_path):
 
 
 def test_interrupted_cell_resumes_from_its_checkpoint_to_the_same_result(tmp_path):
-    overrides = Overrides(size=(48, 36), steps=8, warmup=2, methods=["cvqpg"])
+    overrides = Overrides(size=(48, 36), steps=8, curvature_warmup=2, methods=["cvqpg"])
     plan, reference = (make_plan("star", tmp_path / name, overrides) for name in ("bench", "reference"))
     cell = plan.cells[0]
     folder = plan.cell_dir(cell)
@@ -323,7 +323,7 @@ def test_scene_folder_without_depth_is_refused(scenes_dir, capsys, tmp_path):
     assert "scene tiger" in error and "depth.png is missing" in error and error.count("\n") == 1
 
 
-TINY_PAPER = {"size": (48, 36), "steps": 2, "warmup": 1, "colors": ["gray"], "ratios": [0.1],
+TINY_PAPER = {"size": (48, 36), "steps": 2, "curvature_warmup": 1, "colors": ["gray"], "ratios": [0.1],
               "scene_names": ["sushi", "tiger"]}
 
 
@@ -343,8 +343,8 @@ def test_every_cell_records_commit_machine_threads_time_and_peak_memory(tmp_path
 
 FREED_BEFORE_THE_FIT = """
 import torch
-from cvqpg.allocator import keep_freed_memory
-from cvqpg.provenance import peak_memory, reset_peak_memory
+from cvqpg.app.allocator import keep_freed_memory
+from cvqpg.app.provenance import peak_memory, reset_peak_memory
 cpu = torch.device("cpu")
 assert keep_freed_memory()
 reset_peak_memory(cpu)
@@ -366,7 +366,7 @@ def test_memory_freed_before_a_fit_is_not_counted_in_its_peak():
 def test_a_recorded_folder_rebuilds_its_tables_without_run_folders_or_scene_files(scenes_dir, tmp_path, capsys):
     fitted = tmp_path / "fitted"
     arguments = ["--preset", "paper", "--methods", "baseline", "cvqpg", "--size", "48", "36", "--steps", "2",
-                 "--warmup", "1", "--colors", "gray", "--ratios", "0.1", "--scene-names", "sushi", "tiger", "--quiet"]
+                 "--curvature-warmup", "1", "--colors", "gray", "--ratios", "0.1", "--scene-names", "sushi", "tiger", "--quiet"]
     assert main(["bench", "--scenes", str(scenes_dir), "--out", str(fitted), *arguments]) == 0
     recorded = tmp_path / "results" / "paper"
     for metrics in fitted.glob("cells/*/metrics.json"):
@@ -391,7 +391,7 @@ def test_a_recorded_folder_rebuilds_its_tables_without_run_folders_or_scene_file
 
 def test_cells_finished_in_another_grid_are_reused_not_refitted(scenes_dir, tmp_path, capsys):
     table1, ablation = tmp_path / "paper", tmp_path / "ablation"
-    common = ["--scenes", str(scenes_dir), "--size", "48", "36", "--steps", "2", "--warmup", "1", "--ratios", "0.1",
+    common = ["--scenes", str(scenes_dir), "--size", "48", "36", "--steps", "2", "--curvature-warmup", "1", "--ratios", "0.1",
               "--colors", "rgb", "--scene-names", "tiger", "--quiet"]
     assert main(["bench", "--preset", "paper", "--out", str(table1), "--methods", "baseline", "cvqpg", *common]) == 0
     capsys.readouterr()

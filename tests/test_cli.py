@@ -12,7 +12,7 @@ from cvqpg.fitting import initial_state
 from cvqpg.runs import read_run
 from cvqpg.storage import load_checkpoint, save_checkpoint
 
-SMALL = ["--size", "48", "36", "--steps", "3", "--warmup", "1", "--quiet"]
+SMALL = ["--size", "48", "36", "--steps", "3", "--curvature-warmup", "1", "--quiet"]
 RUN_FILES = {"config.json", "metrics.json", "model.safetensors", "target_plane0.png", "target_plane1.png",
              "recon_plane0.png", "recon_plane1.png", "amplitude.png", "phase.png", "curve.png"}
 
@@ -44,7 +44,7 @@ def test_fewer_steps_scale_the_warm_up_as_the_paper_does(tmp_path):
     """The README's demo command sets --steps alone: the warm-up follows (400 of 2000 → steps/5)."""
     out = tmp_path / "short"
     assert main(["fit", "--size", "48", "36", "--steps", "10", "--quiet", "--out", str(out)]) == 0
-    assert json.loads((out / "config.json").read_text())["warmup"] == 2
+    assert json.loads((out / "config.json").read_text())["curvature_warmup"] == 2
 
 
 def test_eval_recomputes_the_saved_metrics(demo_run, capsys):
@@ -122,12 +122,12 @@ def test_help_explains_options_with_units_and_defaults(capsys):
     with pytest.raises(SystemExit):
         main(["fit", "--help"])
     text = capsys.readouterr().out
-    for expected in ("--primitive", "--bound", "--qpf", "px", "default: 2000", "1 mm", "--warmup"):
+    for expected in ("--primitive", "--bound", "--qpf", "px", "default: 2000", "1 mm", "--curvature-warmup"):
         assert expected in text, expected
 
 
 @pytest.mark.parametrize("command", ["fit", "eval", "render", "export", "info", "view", "compress", "decompress",
-                                     "bench", "results", "warmup"])
+                                     "bench", "results", "compile"])
 def test_every_command_prints_its_help(command, capsys):
     with pytest.raises(SystemExit) as exit_:
         main([command, "--help"])

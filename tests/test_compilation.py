@@ -17,11 +17,11 @@ from cvqpg.ops.loss import cpu as loss_kernels
 from cvqpg.ops.propagation import cpu as propagation_kernels
 from cvqpg.ops.rasterize import cpu as rasterize_kernels
 from cvqpg.cli import main
-from cvqpg.compilation import CompileAlongside, CompileStatus, compile_kernels
+from cvqpg.app.compilation import CompileAlongside, CompileStatus, compile_kernels
 from cvqpg.config import FitConfig
 from cvqpg.fitting import fit_scene
 from cvqpg.ops.rasterize import KERNEL_TYPES
-from cvqpg.scenes import builtin_scene
+from cvqpg.scenes import builtin_pictures
 from cvqpg.targets import load_scene
 
 
@@ -33,10 +33,10 @@ def kernel_signatures():
             for signature in function.signatures}
 
 
-KINDS = pytest.mark.parametrize("config", [FitConfig(width=48, height=36, steps=2, warmup=1),
-                                           FitConfig(width=40, height=30, steps=2, warmup=1, color="gray",
+KINDS = pytest.mark.parametrize("config", [FitConfig(width=48, height=36, steps=2, curvature_warmup=1),
+                                           FitConfig(width=40, height=30, steps=2, curvature_warmup=1, color="gray",
                                                      num_planes=1, primitive="flat", qpf="standard"),
-                                           FitConfig(width=48, height=36, steps=2, warmup=1, curvature="per-channel")],
+                                           FitConfig(width=48, height=36, steps=2, curvature_warmup=1, curvature="per-channel")],
                                 ids=["demo", "gray-flat-one-plane", "per-channel"])
 
 
@@ -44,7 +44,7 @@ KINDS = pytest.mark.parametrize("config", [FitConfig(width=48, height=36, steps=
 def test_after_the_probe_a_fit_needs_no_other_kernel_specialisation(config):
     compile_kernels(config)
     probed = kernel_signatures()
-    demo = builtin_scene("demo", config.width, config.height)
+    demo = builtin_pictures("demo", config.width, config.height)
     scene = load_scene(demo.image, demo.depth if config.num_planes > 1 else None, config)
     fit_scene(scene, config, progress=False)
     assert kernel_signatures() == probed
@@ -116,7 +116,7 @@ def test_a_slow_cache_load_shows_nothing():
 
 
 def test_warmup_command_compiles_every_kind(capsys):
-    assert main(["warmup"]) == 0
+    assert main(["compile"]) == 0
     assert "CPU kernels compiled and cached" in capsys.readouterr().out
 
 

@@ -17,7 +17,7 @@ from cvqpg.metrics import mean_psnr
 from cvqpg.primitives import activate, init_gaussians
 from cvqpg.runs import read_run, scene_from_source
 
-SMALL_FIT = ["fit", "--size", "40", "30", "--steps", "30", "--warmup", "10", "--quiet"]
+SMALL_FIT = ["fit", "--size", "40", "30", "--steps", "30", "--curvature-warmup", "10", "--quiet"]
 FINE = BitDepths(position=8, scale=16, rotation=16, amplitude=16, phase=16, curvature=16)
 
 
@@ -25,7 +25,7 @@ def random_primitives(config: FitConfig, seed: int = 3):
     """Initialised primitives with signed amplitudes, wrapped phases and curvature near its bounds."""
     raw = init_gaussians(config.primitive_count, config.channels, config.width, config.height, seed)
     g = torch.Generator().manual_seed(seed)
-    raw.color.uniform_(-1, 1, generator=g)
+    raw.amplitude.uniform_(-1, 1, generator=g)
     raw.phase.uniform_(-7, 14, generator=g)
     raw.rotation.uniform_(-7, 7, generator=g)
     raw.curvature.uniform_(-3, 3, generator=g)

@@ -17,7 +17,7 @@ from cvqpg.fitting import render
 from cvqpg.primitives import Primitives
 from cvqpg.runs import rescaled
 
-SMALL_FIT = ["fit", "--size", "40", "30", "--steps", "30", "--warmup", "10", "--quiet"]
+SMALL_FIT = ["fit", "--size", "40", "30", "--steps", "30", "--curvature-warmup", "10", "--quiet"]
 
 
 def random_field(channels: int, height: int, width: int, seed: int) -> torch.Tensor:

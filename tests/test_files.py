@@ -27,7 +27,7 @@ def modes(folder):
 
 def test_every_file_of_a_run_follows_the_umask(tmp_path, umask):
     out = tmp_path / "run"
-    assert main(["fit", "--size", "48", "36", "--steps", "2", "--warmup", "1", "--quiet", "--out", str(out),
+    assert main(["fit", "--size", "48", "36", "--steps", "2", "--curvature-warmup", "1", "--quiet", "--out", str(out),
                  "--checkpoint-every", "1"]) == 0
     assert main(["info", str(out), "--half"]) == 0
     written = modes(out)

@@ -1,10 +1,13 @@
 """End-to-end fitting: quality rises, runs are deterministic, saved models render identically."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import torch
 
-from cvqpg import FitConfig, builtin_scene, fit, load_model, render, save_model
+from cvqpg import FitConfig, builtin_pictures, fit, load_model, render, save_model
 from cvqpg.scenes import SCENES
 from cvqpg.targets import load_scene
 
@@ -12,9 +15,9 @@ from cvqpg.targets import load_scene
 @pytest.mark.parametrize("color", ["rgb", "gray"])
 @pytest.mark.parametrize("primitive", ["flat", "cvqpg"])
 def test_short_demo_fit_raises_psnr_by_several_db(color, primitive):
-    config = FitConfig(width=64, height=48, color=color, primitive=primitive, steps=200, warmup=60,
+    config = FitConfig(width=64, height=48, color=color, primitive=primitive, steps=200, curvature_warmup=60,
                        guard_band_px=32)
-    scene = builtin_scene("demo", config.width, config.height)
+    scene = builtin_pictures("demo", config.width, config.height)
     result = fit(scene.image, scene.depth, config, progress=False)
     initial, final = result.history["psnr"][0], result.metrics.mean["psnr"]
     assert len(result.history["psnr"]) == config.steps + 1
@@ -27,9 +30,9 @@ def test_short_demo_fit_raises_psnr_by_several_db(color, primitive):
 
 
 def test_per_channel_curvature_learns_one_curvature_per_colour():
-    config = FitConfig(width=64, height=48, curvature="per-channel", steps=120, warmup=30, guard_band_px=32)
+    config = FitConfig(width=64, height=48, curvature="per-channel", steps=120, curvature_warmup=30, guard_band_px=32)
     assert config.params_per_primitive == 15 and config.replace(curvature="shared").params_per_primitive == 13
-    scene = builtin_scene("demo", config.width, config.height)
+    scene = builtin_pictures("demo", config.width, config.height)
     result = fit(scene.image, scene.depth, config, progress=False)
     raw = result.gaussians.curvature
     assert raw.shape == (config.primitive_count, 3)
@@ -38,7 +41,7 @@ def test_per_channel_curvature_learns_one_curvature_per_colour():
 
 
 def test_same_seed_gives_bit_identical_parameters(tiny_config):
-    scene = builtin_scene("demo", tiny_config.width, tiny_config.height)
+    scene = builtin_pictures("demo", tiny_config.width, tiny_config.height)
     first = fit(scene.image, scene.depth, tiny_config, progress=False)
     second = fit(scene.image, scene.depth, tiny_config, progress=False)
     for name, tensor in first.gaussians.tensors().items():
@@ -50,7 +53,7 @@ def test_same_seed_gives_bit_identical_parameters(tiny_config):
 @pytest.mark.parametrize("curvature", ["shared", "per-channel", "channel-bound"])
 def test_saved_model_loads_and_renders_bit_identically(tiny_config, tmp_path, curvature):
     tiny_config = tiny_config.replace(curvature=curvature)
-    scene = builtin_scene("demo", tiny_config.width, tiny_config.height)
+    scene = builtin_pictures("demo", tiny_config.width, tiny_config.height)
     result = fit(scene.image, scene.depth, tiny_config, progress=False)
     shape = (tiny_config.primitive_count,) + (() if curvature == "shared" else (3,))
     assert tuple(result.primitives.curvature_per_m.shape) == shape
@@ -65,17 +68,57 @@ def test_saved_model_loads_and_renders_bit_identically(tiny_config, tmp_path, cu
 
 def test_demo_scene_puts_different_content_on_each_plane():
     config = FitConfig(width=96, height=72)
-    builtin = builtin_scene("demo", config.width, config.height)
+    builtin = builtin_pictures("demo", config.width, config.height)
     scene = load_scene(builtin.image, builtin.depth, config)
     assert scene.masks.sum(dim=(1, 2)).min() > 0.2 * config.width * config.height
     difference = (scene.targets[0] - scene.targets[1]).abs().mean()
     assert difference > 0.05
-    again = builtin_scene("demo", config.width, config.height)
+    again = builtin_pictures("demo", config.width, config.height)
     assert np.array_equal(np.asarray(again.image), np.asarray(builtin.image))
 
 
 def test_star_scene_is_a_single_plane_grayscale_star():
-    star = builtin_scene("star", 80, 60)
+    star = builtin_pictures("star", 80, 60)
     assert star.image.mode == "L" and star.depth is None and SCENES["star"].planes == 1
     values = np.asarray(star.image)
     assert values.min() < 10 and values.max() > 245
+
+
+LIBRARY_CALL = r"""
+import gc, importlib, pkgutil, subprocess, sys, pathlib
+calls = []
+original_popen = subprocess.Popen.__init__
+def popen(self, *args, **kwargs):
+    command = args[0] if args else kwargs.get("args")
+    if "ldconfig" not in str(command):  # Triton's import asks ldconfig where libcuda is: not ours
+        calls.append(("subprocess", command))
+    return original_popen(self, *args, **kwargs)
+subprocess.Popen.__init__ = popen
+gc.collect = lambda *args: calls.append(("gc.collect",)) or 0
+original_write = pathlib.Path.write_text
+def write_text(self, *args, **kwargs):
+    if str(self).startswith("/proc"):
+        calls.append(("write", str(self)))
+    return original_write(self, *args, **kwargs)
+pathlib.Path.write_text = write_text
+def import_below(package):
+    for module in pkgutil.iter_modules(package.__path__, package.__name__ + "."):
+        if not module.name.startswith(("cvqpg.app", "cvqpg.campaign", "cvqpg.cli")):
+            imported = importlib.import_module(module.name)
+            if module.ispkg:
+                import_below(imported)
+import cvqpg
+import_below(cvqpg)
+from cvqpg import FitConfig, builtin_scene, fit_scene
+config = FitConfig(width=32, height=24, num_gaussians=20, steps=2, guard_band_px=8)
+fit_scene(builtin_scene("demo", config), config, progress=False)
+assert not [name for name in sys.modules if name.startswith(("cvqpg.app", "cvqpg.campaign", "cvqpg.cli"))]
+print(calls)
+"""
+
+
+def test_importing_the_library_and_fitting_has_no_process_wide_side_effects():
+    """No subprocess (git, compile helpers), no gc or /proc writes, nothing printed, no app-layer import."""
+    done = subprocess.run([sys.executable, "-c", LIBRARY_CALL], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"

@@ -8,7 +8,7 @@ import pytest
 import torch
 from numba.core.errors import TypingError
 
-from cvqpg import FitConfig, builtin_scene, fit
+from cvqpg import FitConfig, builtin_pictures, fit
 from cvqpg.ops.rasterize import cpu as kernels, vectors
 from cvqpg.ops.rasterize import rasterize, resolve_backend, splat_fused, wavenumbers_for
 from cvqpg.ops.rasterize.reference import FOOTPRINT_SIGMAS, splat_reference, splats
@@ -26,7 +26,7 @@ def random_gaussians(count: int, channels: int, seed: int, per_channel: bool = F
     g.scale[:3] = torch.tensor([[-4.0, -4.0], [3.6, 3.2], [2.5, -3.0]])  # tiny, huge, needle
     g.position[3:5] = torch.tensor([[2.5, 0.0], [-1.2, -3.0]])  # centres at the image edge
     g.curvature = 2.0 * torch.randn(g.curvature.shape, generator=gen)
-    g.color = g.color - 0.2
+    g.amplitude = g.amplitude - 0.2
     g.phase = 3.0 * torch.randn(count, channels, generator=gen)
     return Gaussians.from_tensors({k: v.double() for k, v in g.tensors().items()})
 
@@ -227,8 +227,8 @@ def test_auto_backend_picks_fused_kernels_on_cpu():
 
 
 def test_fit_with_fused_kernels_matches_the_reference_fit():
-    config = FitConfig(width=48, height=36, steps=100, warmup=30, guard_band_px=32)
-    builtin = builtin_scene("demo", config.width, config.height)
+    config = FitConfig(width=48, height=36, steps=100, curvature_warmup=30, guard_band_px=32)
+    builtin = builtin_pictures("demo", config.width, config.height)
     psnr = {backend: fit(builtin.image, builtin.depth, config.replace(backend=backend), progress=False)
             .metrics.mean["psnr"] for backend in ("numba", "torch")}
     assert abs(psnr["numba"] - psnr["torch"]) < 0.01, psnr

@@ -12,7 +12,7 @@ from cvqpg.fitting import initial_state, make_optimizer, optimisation_step, posi
 from cvqpg.primitives import Gaussians
 from cvqpg.targets import build_scene
 
-GROUPS = ("position", "scale", "rotation", "color", "phase", "opacity", "curvature")
+GROUPS = ("position", "scale", "rotation", "amplitude", "phase", "opacity", "curvature")
 
 
 class HandAdan:
@@ -58,7 +58,7 @@ class HandAdan:
 def toy_gaussians(count: int = 3, channels: int = 2) -> Gaussians:
     g = torch.Generator().manual_seed(0)
     r = lambda *s: torch.randn(*s, generator=g, dtype=torch.float64)  # noqa: E731
-    return Gaussians(position=r(count, 2), scale=r(count, 2), rotation=r(count), color=r(count, channels),
+    return Gaussians(position=r(count, 2), scale=r(count, 2), rotation=r(count), amplitude=r(count, channels),
                      phase=r(count, channels), opacity=r(count), curvature=r(count))
 
 
@@ -79,7 +79,7 @@ def test_make_optimizer_is_adan_with_spec_betas_and_group_rates(primitive):
     names = [group["name"] for group in optimizer.param_groups]
     assert tuple(names) == trainable_groups(config)
     assert ("curvature" in names) == (primitive == "cvqpg")
-    expected_lr = {"position": 0.01, "scale": 0.005, "color": 0.0025, "phase": 0.0025, "opacity": 0.025,
+    expected_lr = {"position": 0.01, "scale": 0.005, "amplitude": 0.0025, "phase": 0.0025, "opacity": 0.025,
                    "rotation": 0.001, "curvature": 0.001}
     for group in optimizer.param_groups:
         assert group["lr"] == expected_lr[group["name"]]
@@ -150,8 +150,8 @@ def test_position_learning_rate_is_torch_cosine_annealing():
     assert [position_learning_rate(s, short) for s in range(11)] == pytest.approx(closed, rel=1e-12)
 
 
-def tiny_setup(warmup: int = 3):
-    config = FitConfig(width=32, height=24, steps=10, warmup=warmup, guard_band_px=16, num_gaussians=48,
+def tiny_setup(curvature_warmup: int = 3):
+    config = FitConfig(width=32, height=24, steps=10, curvature_warmup=curvature_warmup, guard_band_px=16, num_gaussians=48,
                        color="rgb", primitive="cvqpg")
     g = torch.Generator().manual_seed(5)
     image = torch.rand(3, 24, 32, generator=g) * 0.8
@@ -167,16 +167,16 @@ def run_step(state, scene, config):
 
 
 def test_curvature_frozen_during_warmup_then_trained():
-    config, scene, state = tiny_setup(warmup=3)
+    config, scene, state = tiny_setup(curvature_warmup=3)
     gaussians = state.gaussians
     initial = {name: t.detach().clone() for name, t in gaussians.tensors().items()}
-    for step in range(config.warmup):
+    for step in range(config.curvature_warmup_steps):
         loss, psnr = run_step(state, scene, config)
         assert math.isfinite(loss) and math.isfinite(psnr)
         assert not gaussians.curvature.requires_grad
         assert torch.equal(gaussians.curvature.detach(), torch.zeros_like(gaussians.curvature)), step
     # everything else did train during the warm-up
-    for name in ("position", "scale", "color", "opacity"):
+    for name in ("position", "scale", "amplitude", "opacity"):
         assert not torch.equal(getattr(gaussians, name).detach(), initial[name]), name
     run_step(state, scene, config)
     assert gaussians.curvature.requires_grad
@@ -187,7 +187,7 @@ def test_curvature_frozen_during_warmup_then_trained():
 
 
 def test_optimisation_step_sets_position_learning_rate():
-    config, scene, state = tiny_setup(warmup=1)
+    config, scene, state = tiny_setup(curvature_warmup=1)
     optimizer = state.optimizer
     for step in range(3):
         run_step(state, scene, config)

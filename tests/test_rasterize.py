@@ -362,7 +362,7 @@ def test_adaptive_bound_keeps_edge_frequency_below_nyquist(scale_px):
     # a primitive whose raw curvature saturates tanh reaches the bound
     config = FitConfig(color="rgb")
     raw = Gaussians(position=torch.zeros(1, 2, dtype=F64), scale=torch.tensor([[math.log(scale_px - 0.1)] * 2], dtype=F64),
-                    rotation=torch.zeros(1, dtype=F64), color=torch.ones(1, 3, dtype=F64),
+                    rotation=torch.zeros(1, dtype=F64), amplitude=torch.ones(1, 3, dtype=F64),
                     phase=torch.zeros(1, 3, dtype=F64), opacity=torch.zeros(1, dtype=F64),
                     curvature=torch.tensor([40.0], dtype=F64))
     assert float(activate(raw, config).curvature_per_m[0]) == pytest.approx(gamma_max, rel=1e-12)
@@ -384,7 +384,7 @@ def test_per_channel_bounds_put_every_channel_at_the_same_edge_frequency(curvatu
     saturated = torch.full((1, 3) if curvature == "per-channel" else (1,), 40.0, dtype=F64)
     raw = Gaussians(position=torch.zeros(1, 2, dtype=F64),
                     scale=torch.tensor([[math.log(scale_px - 0.1)] * 2], dtype=F64),
-                    rotation=torch.zeros(1, dtype=F64), color=torch.ones(1, 3, dtype=F64),
+                    rotation=torch.zeros(1, dtype=F64), amplitude=torch.ones(1, 3, dtype=F64),
                     phase=torch.zeros(1, 3, dtype=F64), opacity=torch.zeros(1, dtype=F64), curvature=saturated)
     np.testing.assert_allclose(activate(raw, config).curvature_per_m[0].numpy(), bound.numpy(), rtol=1e-12)
 
@@ -395,7 +395,7 @@ def test_channel_bound_curvature_gives_every_channel_the_same_phase():
     raw = init_gaussians(30, 3, 24, 18, seed=3)
     raw.curvature = torch.linspace(-2.0, 2.0, 30)
     raw.phase = torch.zeros(30, 3)
-    raw.color = torch.ones(30, 3)
+    raw.amplitude = torch.ones(30, 3)
     hologram = render_hologram(raw, config)
     np.testing.assert_allclose(hologram[0].numpy(), hologram[2].numpy(), rtol=1e-5, atol=1e-6)
     shared = render_hologram(raw, config.replace(curvature="shared"))

@@ -12,7 +12,7 @@ from cvqpg.campaign.ratedistortion import bd_rate, cell_summary, pareto
 
 pytest.importorskip("imagecodecs", reason="the JPEG 2000 / JPEG XL anchors need the `compression` extra")
 
-TINY = ["--size", "48", "36", "--steps", "2", "--warmup", "1", "--colors", "gray", "--scene-names", "sushi",
+TINY = ["--size", "48", "36", "--steps", "2", "--curvature-warmup", "1", "--colors", "gray", "--scene-names", "sushi",
         "--quiet"]
 CELL = "sushi_gray-10_cvqpg_s100"
 RECORDS = ("config.json", "spectrum.json", "metrics.json", "rd.json")

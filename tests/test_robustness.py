@@ -17,7 +17,7 @@ from PIL import Image
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from cvqpg import FitConfig, builtin_scene, fit
+from cvqpg import FitConfig, builtin_pictures, fit
 from cvqpg.cli import main
 from cvqpg import fitting
 from cvqpg.fitting import fit_scene, initial_state, optimisation_step, readback_due
@@ -27,7 +27,7 @@ from cvqpg.ops.rasterize import rasterize
 from cvqpg.runs import write_run
 from cvqpg.targets import build_scene, load_scene, prepare_depth
 
-SMALL = ["--size", "48", "36", "--steps", "4", "--warmup", "1", "--quiet"]
+SMALL = ["--size", "48", "36", "--steps", "4", "--curvature-warmup", "1", "--quiet"]
 
 
 @pytest.fixture
@@ -137,10 +137,10 @@ def test_more_planes_than_the_depth_separates(tmp_path, photo, capsys):
     (["--plane-span", "-0.004"], "plane_span must be positive"),
     (["--wavelengths", "639e-9", "0", "473e-9"], "positive value"),
     (["--wavelengths", "639e-9"], "need 3 positive value(s)"),
-    (["--warmup", "50", "--steps", "10"], "warmup 50 must lie in 0..steps"),
+    (["--curvature-warmup", "50", "--steps", "10"], "warmup 50 must lie in 0..steps"),
 ])
 def test_bad_options_fail_cleanly(arguments, message, capsys, tmp_path):
-    base = ["fit", "--size", "48", "36", "--steps", "4", "--warmup", "1", "--quiet"]
+    base = ["fit", "--size", "48", "36", "--steps", "4", "--curvature-warmup", "1", "--quiet"]
     fails_cleanly(base + arguments, message, capsys, tmp_path / "r")
 
 
@@ -182,7 +182,7 @@ def test_eval_refuses_damaged_models(finished_run, tmp_path, damage, message, ca
 
 
 def cli_command(out: Path, *extra: str) -> list[str]:
-    return [sys.executable, "-m", "cvqpg.cli", "fit", "--size", "48", "36", "--steps", "40", "--warmup", "10",
+    return [sys.executable, "-m", "cvqpg.cli", "fit", "--size", "48", "36", "--steps", "40", "--curvature-warmup", "10",
             "--quiet", "--out", str(out), *extra]
 
 
@@ -253,7 +253,7 @@ def tiny_scene(config):
 
 
 def test_non_finite_loss_skips_the_step():
-    config = FitConfig(width=24, height=20, steps=5, warmup=1, num_gaussians=30, guard_band_px=8)
+    config = FitConfig(width=24, height=20, steps=5, curvature_warmup=1, num_gaussians=30, guard_band_px=8)
     scene = tiny_scene(config)
     scene.targets[0, 0, 0, 0] = float("nan")
     state = initial_state(config)
@@ -284,7 +284,7 @@ def assert_same_snapshot(before, after):
 @pytest.mark.parametrize("ordinary_steps", [0, 2])
 def test_a_nan_step_leaves_parameters_and_optimiser_state_as_they_were(ordinary_steps):
     """On the first step (no optimiser state yet) and after two ordinary ones (moments and counters)."""
-    config = FitConfig(width=24, height=20, steps=5, warmup=1, num_gaussians=30, guard_band_px=8)
+    config = FitConfig(width=24, height=20, steps=5, curvature_warmup=1, num_gaussians=30, guard_band_px=8)
     scene = tiny_scene(config)
     state = initial_state(config)
     for _ in range(ordinary_steps):
@@ -298,7 +298,7 @@ def test_a_nan_step_leaves_parameters_and_optimiser_state_as_they_were(ordinary_
 
 
 def test_an_update_that_leaves_a_parameter_non_finite_is_undone_with_the_optimiser_state(monkeypatch):
-    config = FitConfig(width=24, height=20, steps=5, warmup=1, num_gaussians=30, guard_band_px=8)
+    config = FitConfig(width=24, height=20, steps=5, curvature_warmup=1, num_gaussians=30, guard_band_px=8)
     scene = tiny_scene(config)
     state = initial_state(config)
     optimisation_step(state, scene, config)
@@ -320,7 +320,7 @@ def test_reading_steps_back_in_batches_gives_the_same_fit_and_counts(monkeypatch
     """The CUDA cadence (steps queued, read back now and then) on the CPU, with a skipped step (non-finite
     loss) read back right after it: the same history, counts, parameters and `on_step` calls as reading
     back after every step."""
-    config = FitConfig(width=24, height=20, steps=7, warmup=2, num_gaussians=30, guard_band_px=8)
+    config = FitConfig(width=24, height=20, steps=7, curvature_warmup=2, num_gaussians=30, guard_band_px=8)
     scene = tiny_scene(config)
     loss_of = fitting.multiplane_loss
     results, calls = [], []
@@ -354,7 +354,7 @@ def test_steps_are_read_back_after_each_on_the_cpu_and_every_half_second_on_cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 def test_propagation_loss_and_update_read_nothing_back_on_cuda():
     """Everything of a step after the rasterizer, under CUDA's sync debug mode set to fail on a host read."""
-    config = FitConfig(width=24, height=20, steps=5, warmup=0, num_gaussians=30, guard_band_px=8, device="cuda")
+    config = FitConfig(width=24, height=20, steps=5, curvature_warmup=0, num_gaussians=30, guard_band_px=8, device="cuda")
     state = initial_state(config)
     with torch.no_grad():
         hologram = fitting.render_hologram(state.gaussians, config).requires_grad_(True)
@@ -379,12 +379,12 @@ def test_propagation_loss_and_update_read_nothing_back_on_cuda():
 
 
 def test_non_finite_gradient_entries_are_zeroed_and_counted():
-    config = FitConfig(width=24, height=20, steps=5, warmup=1, num_gaussians=30, guard_band_px=8)
+    config = FitConfig(width=24, height=20, steps=5, curvature_warmup=1, num_gaussians=30, guard_band_px=8)
     scene = tiny_scene(config)
     state = initial_state(config)
     poison = torch.zeros(30, 3)
     poison[4, 1] = float("inf")
-    state.gaussians.color.register_hook(lambda grad: grad + poison)
+    state.gaussians.amplitude.register_hook(lambda grad: grad + poison)
     optimisation_step(state, scene, config)
     assert state.sanitised_steps == 1 and state.skipped_steps == 0
     assert all(torch.isfinite(t).all() for t in state.gaussians.tensors().values())
@@ -405,7 +405,7 @@ def test_extreme_primitives_render_finite_fields_and_gradients(data, backend, qp
         return torch.tensor(values, dtype=torch.float32).clamp(-bound, bound).reshape(shape).requires_grad_(True)
 
     raw = Gaussians(position=tensor(count, 2), scale=tensor(count, 2), rotation=tensor(count),
-                    color=tensor(count, 3, bound=100), phase=tensor(count, 3), opacity=tensor(count),
+                    amplitude=tensor(count, 3, bound=100), phase=tensor(count, 3), opacity=tensor(count),
                     curvature=tensor(count))
     hologram = rasterize(activate(raw, config), width, height, config.wavelengths, config.pixel_pitch, qpf, backend)
     recon = reconstruct(hologram, config)
@@ -417,7 +417,7 @@ def test_extreme_primitives_render_finite_fields_and_gradients(data, backend, qp
 
 def test_checkpoint_stays_until_the_finished_run_is_marked(tiny_config, tmp_path, monkeypatch):
     """A run killed while its files are written must resume, not restart: the checkpoint goes last."""
-    builtin = builtin_scene("demo", tiny_config.width, tiny_config.height)
+    builtin = builtin_pictures("demo", tiny_config.width, tiny_config.height)
     result = fit(builtin.image, builtin.depth, tiny_config, progress=False)
     scene = load_scene(builtin.image, builtin.depth, tiny_config)
     folder = tmp_path / "run"
@@ -443,7 +443,7 @@ def test_needle_thousands_of_pixels_long_stays_finite(backend):
     the exact determinant (found by the test above)."""
     config = FitConfig(width=20, height=16, num_gaussians=1, backend=backend, guard_band_px=8)
     raw = Gaussians(position=torch.zeros(1, 2), scale=torch.tensor([[0.0, 9.0]]),
-                    rotation=torch.tensor([1415.6461917095712]), color=torch.full((1, 3), 0.5),
+                    rotation=torch.tensor([1415.6461917095712]), amplitude=torch.full((1, 3), 0.5),
                     phase=torch.zeros(1, 3), opacity=torch.zeros(1), curvature=torch.zeros(1))
     prims = activate(raw, config)
     a, b, c = inverse_covariance(prims.scale_px, prims.rotation_rad)

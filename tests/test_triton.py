@@ -33,7 +33,7 @@ def gaussians(channels: int, curvature: str, seed: int) -> Gaussians:
     g.scale = g.scale + 0.8 * torch.randn(COUNT, 2, generator=gen)
     g.scale[:3] = torch.tensor([[-3.0, -3.0], [3.4, 3.0], [2.2, -2.5]])  # tiny, reach ≫ image, needle
     g.curvature = 0.0 * g.curvature if curvature == "flat" else 2.0 * torch.randn(g.curvature.shape, generator=gen)
-    g.color = g.color - 0.2
+    g.amplitude = g.amplitude - 0.2
     g.phase = 3.0 * torch.randn(COUNT, channels, generator=gen)
     return Gaussians.from_tensors({k: v.double().to(DEVICE) for k, v in g.tensors().items()})
 

@@ -7,9 +7,10 @@ import re
 import pytest
 
 from cvqpg.cli import main
-from cvqpg.view import DEFAULT_SWEEP, ViewError, check_sweep, sweep_distances, write_view
+from cvqpg.errors import InputError
+from cvqpg.view import DEFAULT_SWEEP, check_sweep, sweep_distances, write_view
 
-SMALL = ["--size", "48", "36", "--steps", "3", "--warmup", "1", "--quiet"]
+SMALL = ["--size", "48", "36", "--steps", "3", "--curvature-warmup", "1", "--quiet"]
 SWEEP = ["--distances", "0.0005", "0.006", "6"]  # 0.5, 1.6, 2.7, 3.8, 4.9, 6 mm and the planes at 1 and 5 mm
 
 
@@ -45,7 +46,7 @@ def test_the_sweep_holds_count_distances_and_the_training_planes_exactly():
     ((0.5, 6, 41), "distances are in m"),
 ])
 def test_bad_sweeps_are_refused(sweep, message):
-    with pytest.raises(ViewError, match=message):
+    with pytest.raises(InputError, match=message):
         check_sweep(*sweep)
 
 

@@ -22,7 +22,7 @@ pytestmark = pytest.mark.skipif(
     reason="no browser: needs Debian's chromium and chromium-driver (apt-get install chromium chromium-driver, "
            "as .ci/run does)")
 
-SMALL = ["--size", "64", "48", "--steps", "3", "--warmup", "1", "--quiet"]
+SMALL = ["--size", "64", "48", "--steps", "3", "--curvature-warmup", "1", "--quiet"]
 # Frame 1 is the plane at 1 mm, frame 6 the plane at 5 mm; 8 frames in all.
 DISTANCES = ["0.500 mm", "1.000 mm", "1.600 mm", "2.700 mm", "3.800 mm", "4.900 mm", "5.000 mm", "6.000 mm"]
 

@@ -27,16 +27,16 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from ..allocator import keep_freed_memory
-from ..config import FitConfig, default_warmup
-from ..fitting import (CheckpointDeviceError, CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes,
-                      fit_scene, state_from_payload)
+from ..app.allocator import keep_freed_memory
+from ..app.provenance import available_cores
+from ..app.runner import fit_in_folder, resumed_state, write_fitted_run
+from ..config import FitConfig, default_curvature_warmup
+from ..errors import CvqpgError
+from ..fitting import FitInterrupted, FitState, estimated_peak_bytes
 from ..metrics import radial_error_spectrum
-from ..provenance import available_cores
 from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, MODEL_FILE, read_run, scene_from_source, start_run,
-                   write_atomic, write_json, write_run)
+                    write_atomic, write_json)
 from ..scenes import SCENES
-from ..storage import ModelFileError, load_checkpoint, save_checkpoint
 from ..targets import check_depth_geometry, load_picture
 
 log = logging.getLogger("cvqpg")
@@ -58,7 +58,7 @@ RECORD_FILES = (CONFIG_FILE, SPECTRUM_FILE, RD_FILE, METRICS_FILE)
 STARTED, MISSING = "started", "missing"
 
 
-class BenchError(ValueError):
+class BenchError(CvqpgError):
     """A benchmark request that cannot work; the message names the option and the fix."""
 
 
@@ -160,7 +160,7 @@ class Overrides:
     seeds: Sequence[int] | None = None
     size: Sequence[int] | None = None
     steps: int | None = None
-    warmup: int | None = None
+    curvature_warmup: int | None = None
     device: str | None = None
     backend: str | None = None
 
@@ -297,8 +297,8 @@ def make_plan(preset: str, folder: str | Path | None = None, overrides: Override
         raise BenchError("--device cuda: no CUDA GPU is visible to PyTorch; use --device cpu")
     steps = spec.steps if overrides.steps is None else overrides.steps
     width, height = spec.size if overrides.size is None else tuple(overrides.size)
-    warmup = default_warmup(steps) if overrides.warmup is None else overrides.warmup
-    base = FitConfig(width=width, height=height, steps=steps, warmup=warmup)
+    warmup = default_curvature_warmup(steps) if overrides.curvature_warmup is None else overrides.curvature_warmup
+    base = FitConfig(width=width, height=height, steps=steps, curvature_warmup=warmup)
     base = base.replace(**{k: v for k, v in (("device", overrides.device), ("backend", overrides.backend))
                            if v is not None})
     scenes = tuple(available[name] for name in names)
@@ -343,9 +343,8 @@ def cell_status(folder: Path, done_file: str = METRICS_FILE) -> str:
 
 
 def _comparable(config: FitConfig) -> FitConfig:
-    """Device, rasterizer backend and propagation transforms change the last bits only; a resumed or finished
-    cell may differ in them."""
-    return config.replace(device="cpu", backend="auto", propagation="auto")
+    """Device and backend change the last bits only; a resumed or finished cell may differ in them."""
+    return config.replace(device="cpu", backend="auto")
 
 
 def config_differences(folder: Path, config: FitConfig) -> list[str]:
@@ -435,12 +434,14 @@ def reusable_record(plan: BenchPlan, cell: Cell, others: Sequence[Path]) -> Path
 
 def _resume_state(folder: Path, cell: Cell) -> FitState | None:
     """The checkpoint's loop state when the folder holds one of this cell's settings; else a fresh run folder."""
-    checkpoint = folder / CHECKPOINT_FILE
-    if checkpoint.is_file() and (folder / CONFIG_FILE).is_file() and not config_differences(folder, cell.config):
+    if (folder / CONFIG_FILE).is_file() and not config_differences(folder, cell.config):
         try:
-            return state_from_payload(load_checkpoint(checkpoint), cell.config)
-        except (ModelFileError, CheckpointDeviceError) as error:
+            state = resumed_state(folder, cell.config)
+        except CvqpgError as error:
             log.warning(f"{error}; cell {cell.name} restarts from step 0")
+        else:
+            if state is not None:
+                return state
     start_run(folder, cell.config, cell.scene.source)
     return None
 
@@ -459,14 +460,13 @@ def run_cell(cell: Cell, folder: Path, stop_requested: Callable[[], bool] | None
     scene = scene_from_source(cell.scene.source, config)
     state = _resume_state(folder, cell)
     (folder / ERROR_FILE).unlink(missing_ok=True)
-    policy = CheckpointPolicy(save=lambda s: save_checkpoint(folder / CHECKPOINT_FILE, s.to_payload()))
     try:
-        result = fit_scene(scene, config, progress=False, state=state, checkpoint=policy, stop_requested=stop_requested)
+        result = fit_in_folder(folder, scene, config, state, progress=False, stop_requested=stop_requested)
     except FitInterrupted:
         return INTERRUPTED
     recon = result.reconstructions
     write_json(folder / SPECTRUM_FILE, spectrum_record(recon, scene.targets.to(recon.device)))
-    write_run(folder, result, scene, cell.scene.source)
+    write_fitted_run(folder, result, scene, cell.scene.source)
     return DONE
 
 

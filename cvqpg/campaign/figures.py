@@ -105,7 +105,7 @@ def qpf_fields(canvas_px: int = QPF_CANVAS_PX) -> tuple[np.ndarray, dict[str, np
     envelope's 3σ ellipse) under each QPF, rendered by the project's own rasterizer at γ = 0.5·γ_max."""
     centre = torch.zeros(1, 2)  # tanh(0) puts the primitive at the canvas centre
     raw = Gaussians(position=centre, scale=torch.log(torch.tensor([QPF_SCALES_PX]) - 0.1),
-                    rotation=torch.tensor([QPF_ROTATION_RAD]), color=torch.ones(1, 1), phase=torch.zeros(1, 1),
+                    rotation=torch.tensor([QPF_ROTATION_RAD]), amplitude=torch.ones(1, 1), phase=torch.zeros(1, 1),
                     opacity=torch.tensor([SATURATED_RAW]),
                     curvature=torch.atanh(torch.tensor([QPF_CURVATURE_SHARE])))
     phases, amplitude = {}, None

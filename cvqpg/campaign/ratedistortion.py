@@ -21,11 +21,11 @@ from torch import Tensor
 from ..compression import LADDER, BitDepths, Reference, choose_bits, decode, encode, prune
 from ..config import FitConfig
 from ..finetune import finetune
-from ..fitting import hologram
+from ..fitting import hologram, render
 from ..metrics import mean_psnr, mean_ssim
 from ..optics import reconstruct
 from ..primitives import Primitives
-from ..provenance import machine_record
+from ..app.provenance import machine_record
 from ..storage import load_model, save_model
 from ..targets import Scene
 
@@ -67,16 +67,11 @@ def _point(codec: str, setting: str, size: int, config: FitConfig, recon: Tensor
                  encode_s, decode_s)
 
 
-def _render(primitives: Primitives, config: FitConfig) -> Tensor:
-    with torch.no_grad():
-        return reconstruct(hologram(primitives, config), config)
-
-
 def _decoded_point(codec: str, setting: str, data: bytes, config: FitConfig, targets: Tensor,
                    encode_s: float) -> Point:
     """The point of a `.cvq` file's bytes, decoded and rendered as a reader would (timed)."""
     started = time.perf_counter()
-    recon = _render(decode(data).primitives, config)
+    recon = render(decode(data).primitives, config)[1]
     return _point(codec, setting, len(data), config, recon, targets, encode_s, time.perf_counter() - started)
 
 
@@ -141,7 +136,7 @@ def model_file_points(primitives: Primitives, config: FitConfig, targets: Tensor
             save_model(path, primitives, config, dtype)
             encoded = time.perf_counter()
             loaded, _ = load_model(path)
-            recon = _render(loaded, config)
+            recon = render(loaded, config)[1]
             points.append(_point(FLOAT32 if dtype == "float32" else FLOAT16, "safetensors", path.stat().st_size,
                                  config, recon, targets, encoded - started, time.perf_counter() - encoded))
     return points
@@ -212,8 +207,8 @@ def cell_record(model_file: Path, scene: Scene, ladder: Sequence[BitDepths] = LA
     primitives, config = load_model(model_file)
     targets = scene.targets
     started, cpu_started = time.perf_counter(), time.process_time()
-    _render(primitives, config)  # compiles the kernels, so that no point's decode time includes it
-    fit_psnr = mean_psnr(_render(primitives, config), targets)
+    render(primitives, config)  # compiles the kernels, so that no point's decode time includes it
+    fit_psnr = mean_psnr(render(primitives, config)[1], targets)
     ladder_points = codec_points(primitives, config, targets, ladder)
     points = [*model_file_points(primitives, config, targets), *ladder_points,
               *anchor_points(primitives, config, targets),

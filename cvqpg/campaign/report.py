@@ -621,7 +621,7 @@ def overview_lines(plan: BenchPlan, results: list[CellResult]) -> list[str]:
     return [f"cells: {counts.get(DONE, 0)} of {len(results)} done"
             + "".join(f", {n} {status}" for status, n in sorted(counts.items()) if status != DONE),
             f"scenes: {', '.join(s.name for s in plan.scenes)}; seeds: {', '.join(map(str, plan.seeds))}",
-            (f"fits: {config.width}×{config.height} px, {config.steps} steps (warm-up {config.warmup}), "
+            (f"fits: {config.width}×{config.height} px, {config.steps} steps (warm-up {config.curvature_warmup_steps}), "
              f"device {config.device}"),
             devices_line(results),
             ("metrics that this machine cannot compute read n/a; the means of a setting cover the scenes every "

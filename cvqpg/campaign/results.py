@@ -20,6 +20,7 @@ import numpy as np
 from .bench import (DONE, FOLDER_SCENE_PLANES, METHODS, BenchPlan, BenchScene, Cell, cell_config, config_differences,
                     setting_label)
 from ..config import FitConfig
+from ..errors import CvqpgError
 from .report import (DECIMALS, TABLE1_METHODS, CellResult, Metrics, Table, baseline_gain, channel_frequency_curves,
                      collect, frequency_curves, frequency_lines, paired_delta, paper_numbers, paper_scene_mean,
                      primitive_count, scene_values, setting_methods, shared_means, variant_tables, waiting_note)
@@ -79,7 +80,7 @@ CAMPAIGN = (
 )
 
 
-class RecordError(ValueError):
+class RecordError(CvqpgError):
     """A recorded cell that does not belong to the campaign as defined here."""
 
 

@@ -7,7 +7,7 @@ the CPU therefore starts with one optimisation step of a tiny scene with the sam
 the fit calls, before the progress bar and the fit's clock start. Cold, the fit compiles most of the
 rasterizer's kernels while another process compiles the rest into the cache (`CompileAlongside`,
 `ALONGSIDE_PARTS`). When Numba compiles (rather than loads from its cache), a status line says so
-and counts the seconds. `warmup` does the same ahead of time for every kind of fit (`cvqpg warmup`,
+and counts the seconds. `compile_all` does the same ahead of time for every kind of fit (`cvqpg compile`,
 run by `scripts/install.sh`).
 """
 
@@ -25,11 +25,11 @@ import torch
 from numba.core import event
 from PIL import Image
 
-from .config import FitConfig
-from .optics import SPECTRUM_BLOCK_ROWS
+from ..config import FitConfig
+from ..optics import SPECTRUM_BLOCK_ROWS
 
 if TYPE_CHECKING:
-    from .targets import Scene
+    from ..targets import Scene
 
 # A demo fit's cold compile on 2 idle cores, the rasterizer's loops here and the rest alongside (docs/performance.md)
 COMPILE_ESTIMATE_SECONDS = 23
@@ -44,7 +44,7 @@ PROBE_GUARD_BAND_PX = SPECTRUM_BLOCK_ROWS // 4
 # propagation takes one array per plane; colour, primitive, curvature and QPF change values, not
 # types). One probe each covers the built-in scenes, the bench presets and every default; another
 # --planes compiles its few propagation kernels on its first run.
-WARMUP_KINDS = tuple(FitConfig(num_planes=planes) for planes in (1, 2))
+PRECOMPILED_KINDS = tuple(FitConfig(num_planes=planes) for planes in (1, 2))
 
 
 def uses_cpu_kernels(config: FitConfig) -> bool:
@@ -57,16 +57,16 @@ def probe_config(config: FitConfig) -> FitConfig:
     kernel specialisations, a few milliseconds per step once compiled."""
     width, height = PROBE_SIZE_PX
     return config.replace(width=width, height=height, num_gaussians=PROBE_PRIMITIVES, steps=1,
-                          warmup=0, guard_band_px=PROBE_GUARD_BAND_PX, device="cpu").validate()
+                          curvature_warmup=0, guard_band_px=PROBE_GUARD_BAND_PX, device="cpu").validate()
 
 
 def probe_scene(probe: FitConfig) -> Scene:
     """The demo scene at the probe's size, with a depth ramp over all pixels that puts some on every
     plane, however many --planes asks for."""
-    from .scenes import builtin_scene
-    from .targets import load_scene
+    from ..scenes import builtin_pictures
+    from ..targets import load_scene
 
-    demo = builtin_scene("demo", probe.width, probe.height)
+    demo = builtin_pictures("demo", probe.width, probe.height)
     ramp = Image.fromarray(np.linspace(0.0, 1.0, probe.width * probe.height, dtype=np.float32)
                            .reshape(probe.height, probe.width), "F")
     return load_scene(demo.image, ramp if probe.num_planes > 1 else None, probe)
@@ -77,8 +77,8 @@ def compile_rasterizer_kernels(probe: FitConfig, per_primitive: bool = False) ->
     running them: its kernels other than the two loops over the primitives, or only those loops
     (`per_primitive`, `PER_PRIMITIVE_KERNELS`: about half of a cold fit's compile). Nothing where
     `probe`'s rasterizer is not the Numba one."""
-    from .ops import resolve_backend
-    from .ops.rasterize import KERNEL_TYPES, PER_PRIMITIVE_KERNELS
+    from ..ops import resolve_backend
+    from ..ops.rasterize import KERNEL_TYPES, PER_PRIMITIVE_KERNELS
 
     if resolve_backend(probe.backend, probe.device) == "numba":
         for kernel, types in KERNEL_TYPES.items():
@@ -89,7 +89,7 @@ def compile_rasterizer_kernels(probe: FitConfig, per_primitive: bool = False) ->
 def compile_propagation_and_loss(probe: FitConfig) -> None:
     """Compile (or load) the propagation's and the loss's kernels for fits of `probe`'s kind: the
     loss of a random hologram, and its gradient."""
-    from .fitting import hologram_loss
+    from ..fitting import hologram_loss
 
     generator = torch.Generator().manual_seed(0)
     field = torch.randn(probe.channels, probe.height, probe.width, dtype=torch.complex64, generator=generator)
@@ -114,7 +114,7 @@ def compile_alongside(probe_json: str) -> None:
 def alongside_command(probe: FitConfig) -> list[str]:
     """The command of the process that compiles `ALONGSIDE_PARTS` for fits of `probe`'s kind. A fresh
     interpreter imports only the modules the parts need (not the CLI, as a multiprocessing child would)."""
-    return [sys.executable, "-c", "import sys; from cvqpg.compilation import compile_alongside; "
+    return [sys.executable, "-c", "import sys; from cvqpg.app.compilation import compile_alongside; "
             "compile_alongside(sys.argv[1])", json.dumps(probe.to_dict())]
 
 
@@ -156,8 +156,8 @@ def compile_kernels(config: FitConfig, alongside: bool = True) -> None:
     The rasterizer's loops over the primitives compile first, from their types; cold and `alongside`,
     another process compiles the other kernels meanwhile (`ALONGSIDE_PARTS`), and the step waits for
     it and loads them from the cache. Otherwise the step compiles them."""
-    from .fitting import initial_state, optimisation_step, render
-    from .primitives import activate
+    from ..fitting import initial_state, optimisation_step, render
+    from ..primitives import activate
 
     probe = probe_config(config)
     with CompileAlongside([alongside_command(probe)] if alongside else []):
@@ -230,10 +230,10 @@ def prepare_kernels(config: FitConfig, show_status: bool = True) -> float:
     return status.seconds
 
 
-def warmup(show_status: bool = True) -> float:
-    """Compile the kernel specialisations of every default fit (`WARMUP_KINDS`) into Numba's cache,
+def compile_all(show_status: bool = True) -> float:
+    """Compile the kernel specialisations of every default fit (`PRECOMPILED_KINDS`) into Numba's cache,
     ahead of the first fit; returns the seconds it took."""
     with CompileStatus(enabled=show_status) as status:
-        for kind in WARMUP_KINDS:
+        for kind in PRECOMPILED_KINDS:
             compile_kernels(kind)
     return status.seconds

@@ -11,6 +11,7 @@ import functools
 import gc
 import os
 import platform
+import re
 import resource
 import subprocess
 from pathlib import Path
@@ -19,32 +20,47 @@ from typing import Any
 import numba
 import torch
 
+from .. import __version__
 from .allocator import release_freed_memory
 
-PACKAGE_ROOT = Path(__file__).resolve().parent
+PACKAGE_ROOT = Path(__file__).resolve().parents[1]
 PEAK_RESET_FILE = Path("/proc/self/clear_refs")
 STATUS_FILE = Path("/proc/self/status")
 
 
-def checkout_commit() -> str | None:
-    """The git commit of the package's checkout, with `+dirty` when tracked files under the package
-    differ from it; None outside a git checkout (an installed wheel)."""
-    def git(*args: str) -> str | None:
-        try:
-            done = subprocess.run(["git", "-C", str(PACKAGE_ROOT), *args], capture_output=True, text=True, timeout=10)
-        except (OSError, subprocess.SubprocessError):
-            return None
-        return done.stdout.strip() if done.returncode == 0 else None
+def _git(*args: str) -> str | None:
+    try:
+        done = subprocess.run(["git", "-C", str(PACKAGE_ROOT), *args], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout.strip() if done.returncode == 0 else None
 
-    commit = git("rev-parse", "HEAD")
+
+def is_own_checkout(top_level: Path, package_root: Path = PACKAGE_ROOT) -> bool:
+    """Whether the git work tree at `top_level` is cvqpg's own: the package sits at its top, beside a
+    `pyproject.toml` that names the project cvqpg (an install inside a user's git project is not)."""
+    project = top_level / "pyproject.toml"
+    if package_root.parent != top_level or not project.is_file():
+        return False
+    try:
+        return re.search(r'^name\s*=\s*"cvqpg"\s*$', project.read_text(), re.MULTILINE) is not None
+    except OSError:
+        return False
+
+
+@functools.cache
+def code_commit() -> str | None:
+    """The git commit of cvqpg's own checkout that this process runs, with `+dirty` when tracked files
+    under the package differ from it; None for an installed package. Asked once per process (the first
+    run record): the code a process runs is what it imported, whatever is committed later."""
+    top_level = _git("rev-parse", "--show-toplevel")
+    if not top_level or not is_own_checkout(Path(top_level)):
+        return None
+    commit = _git("rev-parse", "HEAD")
     if not commit:
         return None
-    changed = git("status", "--porcelain", "--untracked-files=no", "--", str(PACKAGE_ROOT))
+    changed = _git("status", "--porcelain", "--untracked-files=no", "--", str(PACKAGE_ROOT))
     return f"{commit}+dirty" if changed else commit
-
-
-# Taken at import: the code a process runs is the code it imported, whatever is committed later.
-IMPORTED_COMMIT = checkout_commit()
 
 
 @functools.cache
@@ -122,6 +138,6 @@ def machine_record(device: torch.device) -> dict[str, Any]:
     """Code commit, date, device, threads and the machine's load: what any timed record needs beside
     its seconds."""
     now = datetime.datetime.now(datetime.timezone.utc)
-    return {"commit": IMPORTED_COMMIT, "date": now.isoformat(timespec="seconds"), "device": device_name(device),
+    return {"cvqpg_version": __version__, "commit": code_commit(), "date": now.isoformat(timespec="seconds"), "device": device_name(device),
             "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
             "numba_threads": numba.get_num_threads(), "load_average": _load_average(), "machine_cores": os.cpu_count()}

@@ -1,0 +1,7 @@
+"""The application layer, above the library: what a command does around a library call.
+
+Compiling the CPU kernels ahead of a fit with a status line (`compilation`), what a run record says
+about the code and the machine (`provenance`), keeping or releasing the heap's freed memory and
+measuring peak memory (`allocator`, `provenance`), and fitting into a run folder with checkpoints
+(`runner`). The command line and the campaign use it; the library never imports it.
+"""
