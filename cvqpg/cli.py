@@ -46,7 +46,7 @@ FLAGS = {"width": "--size", "height": "--size", "num_planes": "--planes", "pixel
          **{name: f"--{name.replace('_', '-')}" for name in (
              "color", "primitive", "ratio", "steps", "seed", "bound", "qpf", "curvature", "device", "backend",
              "depth", "image", "max_drop", "bits", "prune", "finetune", "levels", "aperture", "slm", "distance",
-             "encoding")},
+             "encoding", "distances", "out")},
          "finetune_steps": "--finetune", "prune_fraction": "--prune"}
 
 

@@ -10,7 +10,8 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from .config import ConfigError, FitConfig, padded_size
+from .config import FitConfig, padded_size
+from .errors import ConfigError, choices_error
 from .ops.field import Grid, slm_field
 from .optics import propagate_content
 
@@ -44,13 +45,13 @@ def encode(field: Tensor, encoding: Encoding) -> Tensor:
         return double_phase(field)
     if encoding == "phase":
         return torch.remainder(field.angle(), TWO_PI)
-    raise ConfigError(f"unknown encoding {encoding!r}; choose one of {', '.join(ENCODINGS)}")
+    raise choices_error("encoding", encoding, ENCODINGS)
 
 
 def quantise(phase: Tensor, levels: int = DEFAULT_LEVELS) -> Tensor:
     """Gray levels g ∈ {0, …, levels−1} (int64) with g ↔ phase 2πg/levels, nearest level, wrapping at 2π."""
     if not 2 <= levels <= MAX_LEVELS:
-        raise ConfigError(f"--levels {levels}: an SLM has between 2 and {MAX_LEVELS} phase levels")
+        raise ConfigError(f"`levels` {levels}: an SLM has between 2 and {MAX_LEVELS} phase levels")
     return torch.remainder(torch.round(phase / TWO_PI * levels), levels).to(torch.int64)
 
 

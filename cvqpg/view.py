@@ -72,7 +72,7 @@ class Run:
 
 def check_sweep(start_m: float, stop_m: float, count: int) -> None:
     """Raise `InputError` unless START ≤ STOP are positive distances in m below `MAX_DISTANCE_M` and COUNT ≥ 1."""
-    given = f"--distances {start_m:g} {stop_m:g} {count}"
+    given = f"`distances` {start_m:g} {stop_m:g} {count}"
     if count < 1:
         raise InputError(f"{given}: COUNT must be at least 1")
     if not 0 < start_m <= stop_m:
@@ -279,7 +279,7 @@ def write_view(folders: Sequence[str | Path], out: str | Path | None = None,
     check_sweep(*sweep)
     out = Path(out) if out is not None else default_page(folders)
     if out.is_dir():
-        raise InputError(f"--out {out} is a folder; give a file name such as {out / VIEW_FILE}")
+        raise InputError(f"`out` {out} is a folder; give a file name such as {out / VIEW_FILE}")
     folders = [Path(folder) for folder in folders]
     check_comparable(folders, [read_run(folder)[0] for folder in folders])
     runs = [load_run(folder) for folder in folders]
