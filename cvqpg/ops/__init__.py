@@ -11,7 +11,8 @@ GPU kernels side by side, under the same names.
 A package's `__init__` holds its public op and the autograd boundaries around the kernels; the tests
 hold every kernel against its reference. One backend name picks all of them (`resolve_backend`):
 `numba` (CPU kernels), `triton` (the GPU rasterizer; the other ops use their references there), or
-`torch` (the references everywhere); `auto` is `numba` on the CPU and `triton` on CUDA.
+`torch` (the references everywhere); `auto` is `numba` on the CPU and `triton` on CUDA. `cpu.py`
+here holds what the ops' CPU kernels share.
 """
 
 from __future__ import annotations
@@ -25,12 +26,6 @@ import torch
 from torch import Tensor
 
 BACKEND_NAMES = ("numba", "torch", "triton")
-
-# Numba options for the CPU kernels' functions that only other kernels call: without the CPython and C
-# wrappers that Numba otherwise compiles for every function, which nothing calls. Their machine code is
-# the same; a cold compile takes 7% less CPU time (docs/performance.md, "First run"). Python cannot call
-# such a function.
-CALLED_BY_KERNELS_ONLY = {"no_cpython_wrapper": True, "no_cfunc_wrapper": True}
 
 
 def cpu_array(tensor: Tensor) -> np.ndarray:

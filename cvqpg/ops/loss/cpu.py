@@ -24,8 +24,7 @@ import math
 import numba as nb
 import numpy as np
 
-from .. import CALLED_BY_KERNELS_ONLY
-from ..rasterize.cpu import _cosines_and_sines
+from ..cpu import CALLED_BY_KERNELS_ONLY, cosines_and_sines
 
 
 def gaussian_taps(size_px: int, sigma_px: float) -> np.ndarray:
@@ -77,7 +76,7 @@ def _normal_pairs(seed, first, count, out):
         angles[p] = np.float64(np.int32(bits & np.uint64(2**UNIFORM_BITS - 1))) * (2.0 * math.pi * scale)
     for p in range(count):
         radii[p] = math.sqrt(np.float32(-2.0) * _logarithm(radii[p]))
-    _cosines_and_sines(angles, cosines, sines)
+    cosines_and_sines(angles, cosines, sines)
     for p in range(count):
         out[2 * p] = radii[p] * cosines[p]
         out[2 * p + 1] = radii[p] * sines[p]
