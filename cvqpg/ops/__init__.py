@@ -11,8 +11,10 @@ GPU kernels side by side, under the same names.
 A package's `__init__` holds its public op and the autograd boundaries around the kernels; the tests
 hold every kernel against its reference. One backend name picks all of them (`resolve_backend`):
 `numba` (CPU kernels), `triton` (the GPU rasterizer; the other ops use their references there), or
-`torch` (the references everywhere); `auto` is `numba` on the CPU and `triton` on CUDA. `cpu.py`
-here holds what the ops' CPU kernels share.
+`torch` (the references everywhere); `auto` is `numba` on the CPU and `triton` on CUDA.
+
+`cpu.py` here holds what the ops' CPU kernels share; `kernel_cache` keys Numba's disk cache of all of
+them on all their sources.
 """
 
 from __future__ import annotations
@@ -24,6 +26,10 @@ import os
 import numpy as np
 import torch
 from torch import Tensor
+
+from . import kernel_cache
+
+kernel_cache.register()  # before any kernel module defines its functions
 
 BACKEND_NAMES = ("numba", "torch", "triton")
 
