@@ -343,9 +343,8 @@ def cell_status(folder: Path, done_file: str = METRICS_FILE) -> str:
 
 
 def _comparable(config: FitConfig) -> FitConfig:
-    """Device, rasterizer backend and propagation transforms change the last bits only; a resumed or finished
-    cell may differ in them."""
-    return config.replace(device="cpu", backend="auto", propagation="auto")
+    """Device and backend change the last bits only; a resumed or finished cell may differ in them."""
+    return config.replace(device="cpu", backend="auto")
 
 
 def config_differences(folder: Path, config: FitConfig) -> list[str]:

@@ -20,7 +20,7 @@ from .bench import (CELLS_DIR, METHODS, PRESETS, BenchError, Overrides, RateDist
                     make_plan, parse_shard, peak_bytes, run_plan)
 from .compilation import warmup
 from .compression import ASSUMED_FIT_PSNR_DB, SUFFIX, BitDepths, compress_model, decompress_file
-from .config import CURVATURES, PROPAGATIONS, ConfigError, FitConfig, default_warmup
+from .config import CURVATURES, ConfigError, FitConfig, default_warmup
 from .depth import DEPTH_FILE, DEPTH_MODEL, estimate_depth, load_depth_model
 from .fitting import (CheckpointDeviceError, CheckpointPolicy, FitInterrupted, FitState, estimated_peak_bytes,
                       fit_scene, state_from_payload)
@@ -80,9 +80,6 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--backend", default=DEFAULTS.backend, choices=["auto", "numba", "triton", "torch"],
                    help="rasterizer: fused Numba kernels (CPU), Triton kernels (GPU), the PyTorch reference, "
                    "or auto (Numba on CPU, Triton on GPU)")
-    p.add_argument("--propagation", default=DEFAULTS.propagation, choices=PROPAGATIONS,
-                   help="propagation transforms: pruned 1D passes (the CPU's), full-grid 2D FFTs, or auto "
-                   "(pruned on CPU, full-grid on GPU)")
     p.add_argument("--bound", choices=["adaptive", "global"], default=DEFAULTS.bound,
                    help="curvature bound: per-primitive Nyquist (γ_max = ηλ/(6σΔx²)) or global "
                    f"{DEFAULTS.global_bound:g} 1/m (ablation)")
@@ -300,7 +297,6 @@ def _config_and_source(args: argparse.Namespace) -> tuple[FitConfig, dict]:
                        warmup=default_warmup(args.steps) if args.warmup is None else args.warmup,
                        seed=args.seed, num_planes=planes, bound=args.bound,
                        qpf=args.qpf, curvature=args.curvature, device=args.device, backend=args.backend,
-                       propagation=args.propagation,
                        pixel_pitch=args.pitch,
                        plane_center=args.plane_center, plane_span=args.plane_span,
                        wavelengths_m=tuple(args.wavelengths) if args.wavelengths else None)

@@ -26,7 +26,7 @@ from numba.core import event
 from PIL import Image
 
 from .config import FitConfig
-from .optics import SPECTRUM_BLOCK_ROWS
+from .ops.propagation import SPECTRUM_BLOCK_ROWS
 
 if TYPE_CHECKING:
     from .targets import Scene

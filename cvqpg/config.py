@@ -13,7 +13,6 @@ Bound = Literal["adaptive", "global"]
 Qpf = Literal["mahalanobis", "standard"]
 Curvature = Literal["shared", "per-channel", "channel-bound"]
 CURVATURES = ("shared", "per-channel", "channel-bound")
-PROPAGATIONS = ("auto", "pruned", "full")
 
 RGB_WAVELENGTHS_M = (639e-9, 532e-9, 473e-9)
 GRAY_WAVELENGTH_M = 639e-9
@@ -75,7 +74,6 @@ class FitConfig:
     depth_exponent: float = 1.0
     device: str = "cpu"
     backend: str = "auto"
-    propagation: str = "auto"  # PROPAGATIONS; optics.resolve_propagation
     wavelengths_m: tuple[float, ...] | None = None
 
     @property
@@ -158,8 +156,6 @@ class FitConfig:
         if self.backend == "triton" and self.device == "cpu":
             raise ConfigError("backend 'triton' runs on the GPU only; use --backend auto (or numba, torch) with "
                               "--device cpu")
-        if self.propagation not in PROPAGATIONS:
-            raise ConfigError(f"propagation {self.propagation!r}: choose one of {', '.join(PROPAGATIONS)}")
         if self.warmup < 0 or self.warmup > self.steps:
             raise ConfigError(f"warmup {self.warmup} must lie in 0..steps ({self.steps})")
         count, pixels = self.primitive_count, self.width * self.height

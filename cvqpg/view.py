@@ -24,7 +24,8 @@ from tqdm.auto import tqdm
 from .config import FitConfig
 from .fitting import hologram
 from .metrics import METRIC_NAMES, psnr
-from .optics import reconstruct, release_transfer_functions
+from .ops.propagation import release_transfer_functions
+from .optics import reconstruct
 from .runs import EXPORT_FOLDER, METRICS_FILE, MODEL_FILE, hologram_images, read_run, to_8bit, write_atomic
 from .storage import load_model
 

@@ -1,12 +1,12 @@
-"""Operations with fast kernels: each a package holding its PyTorch reference, its CPU kernels and its
-GPU kernels side by side, under the same names.
+"""Operations with fast kernels: each a package holding its PyTorch reference (`reference.py`), its CPU
+kernels (`cpu.py`, Numba) and its GPU kernels (`gpu.py`, Triton) side by side, under the same names.
 
-| op (package)  | public functions                      | reference.py | cpu.py (Numba) | gpu.py (Triton) |
-|---------------|---------------------------------------|--------------|----------------|-----------------|
-| `rasterize`   | `rasterize`                           | yes          | yes            | yes             |
-| `field`       | `guarded_field`, `clamped_intensity`  | yes          | yes            | —               |
-| `loss`        | `multiplane_loss`, `ssim_per_plane`   | yes          | yes            | —               |
-| `propagation` | (`cvqpg.optics.propagate_content`)    | (`cvqpg.optics.propagate`) | yes | —          |
+| op (package)  | public functions                                       | reference.py | cpu.py | gpu.py |
+|---------------|--------------------------------------------------------|--------------|--------|--------|
+| `rasterize`   | `rasterize`                                            | yes          | yes    | yes    |
+| `field`       | `guarded_field`, `clamped_intensity`                   | yes          | yes    | —      |
+| `propagation` | `propagate_planes`, `propagate_content`                | yes          | yes    | —      |
+| `loss`        | `multiplane_loss`, `ssim_per_plane`, `standard_normal` | yes          | yes    | —      |
 
 A package's `__init__` holds its public op and the autograd boundaries around the kernels; the tests
 hold every kernel against its reference. One backend name picks all of them (`resolve_backend`):
