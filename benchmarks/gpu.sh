@@ -6,8 +6,8 @@
 # Writes into OUT (8 files at most, so that they all come back from a lent machine):
 #   env.txt          GPU, driver, torch, CPU cores
 #   stage.txt/.json  benchmarks/step.py --device cuda: the stage table against the GPU FFT floor, full-grid
-#                    propagation (auto's choice on CUDA), with one round of the PyTorch reference rasterizer
-#   stage_pruned.txt the same table with --propagation pruned: full-grid cuFFT against the pruned transforms
+#                    propagation (auto's choice on CUDA) and a stage with the pruned transforms in its place,
+#                    with one round of the PyTorch reference rasterizer
 #   fits.txt         whole 2000-step fits of RGB 20% and grayscale 10% at 640×480: warm-up apart, fit
 #                    loop, peak torch.cuda.max_memory_allocated, PSNR
 #   fits4k.txt       the same for RGB 20% at 3840×2160
@@ -42,10 +42,6 @@ part_env() {
 
 part_stage() {
     "$python" benchmarks/step.py --device cuda --reference-rounds 1 --json "$out/stage.json"
-}
-
-part_stage_pruned() {
-    "$python" benchmarks/step.py --device cuda --propagation pruned --reference-rounds 0
 }
 
 part_fits() {
@@ -89,8 +85,7 @@ part_bench() {
 for part in "${parts[@]}"; do
     case $part in
         env) files=(env) ;;
-        stage) files=(stage stage_pruned) ;;
-        fits|fits4k|bento|bench) files=("$part") ;;
+        stage|fits|fits4k|bento|bench) files=("$part") ;;
         *) echo "unknown part $part: choose env, stage, fits, fits4k, bento or bench" >&2; exit 2 ;;
     esac
     for name in "${files[@]}"; do

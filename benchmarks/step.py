@@ -19,10 +19,12 @@ The stages and the floor take turns round by round, and the ratios are the media
 ratios: the machine is shared and has slow spells, and only ratios of the same round are meaningful.
 
 With `--device cuda` everything runs on the GPU, each timed region between two `torch.cuda.synchronize`
-calls, and the floor is the same transforms (cuFFT) timed alone on the GPU. `--whole-fit` also times
-whole fits (RGB 20% and grayscale 10% at 640×480, RGB 20% at 3840×2160) on the device: the fit loop's
-seconds, the warm-up apart (a 2-step fit of the same configuration first: kernel compilation, FFT plans,
-allocator growth), and the peak memory (`torch.cuda.max_memory_allocated` on CUDA, RSS on the CPU).
+calls, and the floor is the same transforms (cuFFT) timed alone on the GPU. The step's propagation
+there is full-grid; one more stage times the pruned transforms in its place, through PyTorch's
+operations. `--whole-fit` also times whole fits (RGB 20% and grayscale 10% at 640×480, RGB 20% at
+3840×2160) on the device: the fit loop's seconds, the warm-up apart (a 2-step fit of the same
+configuration first: kernel compilation, FFT plans, allocator growth), and the peak memory
+(`torch.cuda.max_memory_allocated` on CUDA, RSS on the CPU).
 """
 
 from __future__ import annotations
@@ -40,11 +42,14 @@ import torch
 
 import cvqpg
 from cvqpg import FitConfig
-from cvqpg.config import PROPAGATIONS, default_warmup
 from cvqpg.app.allocator import keep_freed_memory
+from cvqpg.config import default_curvature_warmup
 from cvqpg.fitting import apply_gradients, fit_scene, initial_state, optimisation_step, render_hologram
+from cvqpg.ops import resolve_backend
+from cvqpg.ops.field import Grid, clamped_intensity, guarded_field
 from cvqpg.ops.loss import multiplane_loss, noisy_targets, standard_normal
-from cvqpg.optics import Grid, reconstruct
+from cvqpg.ops.propagation import propagate_content
+from cvqpg.optics import reconstruct
 from cvqpg.primitives import MIN_SCALE_PX, Gaussians, Primitives, curvature_bound
 from cvqpg.runs import model_path
 from cvqpg.scenes import builtin_pictures
@@ -52,6 +57,7 @@ from cvqpg.storage import load_model
 from cvqpg.targets import Scene, load_scene
 
 OPEN_INTERVAL_MARGIN = 1e-6  # keeps atanh and logit finite at saturated values
+PRUNED_STAGE = "pruned propagation f+b"  # where the step's propagation is full-grid
 
 
 def synchronize(device: torch.device) -> None:
@@ -141,7 +147,7 @@ def stage_actions(config: FitConfig, primitives: Primitives | None = None,
     a random fraction of its bound); otherwise it stays frozen at zero, as in the warm-up, through the
     whole steps too."""
     scene = demo_scene(config)
-    config = config.replace(warmup=0 if curved else 10**9)
+    config = config.replace(curvature_warmup=0 if curved else 10**9)
     state = initial_state(config)
     if primitives is not None:
         load_raw_parameters(state.gaussians, primitives, config)
@@ -167,20 +173,30 @@ def stage_actions(config: FitConfig, primitives: Primitives | None = None,
     def propagation():
         reconstruct(leaf, config).backward(recon_grad)
 
+    def pruned_propagation():  # the step's propagation with the pruned transforms, through PyTorch's operations
+        grid = Grid.for_config(config)
+        field = guarded_field(leaf, grid, config.backend)
+        planes = propagate_content(field, grid, config.plane_distances, config.wavelengths, config.pixel_pitch,
+                                   fused=False)
+        clamped_intensity(planes, config.backend).backward(recon_grad)
+
     recon = reconstruct(leaf, config).detach().requires_grad_(True)
 
     def loss():
-        noise = standard_normal(scene.targets.shape, generator)
+        noise = standard_normal(scene.targets.shape, generator, config.backend)
         value, _ = multiplane_loss(recon, scene.targets, scene.masks,
                                    noisy_targets(scene.targets, noise, config.target_noise), config.ssim_weight,
                                    config.backend)
         value.backward()
 
     render_hologram(gaussians, config).backward(hologram_grad)
-    return {"raster forward": raster_forward, "raster forward+backward": raster_forward_backward,
-            "propagation forward+backward": propagation, "loss forward+backward": loss,
-            "optimizer": lambda: apply_gradients(optimizer, config, state.step),
-            "whole step": lambda: optimisation_step(state, scene, config)}
+    actions = {"raster forward": raster_forward, "raster forward+backward": raster_forward_backward,
+               "propagation forward+backward": propagation, "loss forward+backward": loss,
+               "optimizer": lambda: apply_gradients(optimizer, config, state.step),
+               "whole step": lambda: optimisation_step(state, scene, config)}
+    if resolve_backend(config.backend, config.device) != "numba":  # the numba step's propagation is the pruned one
+        actions[PRUNED_STAGE] = pruned_propagation
+    return actions
 
 
 def peak_rss_gib(config: FitConfig, steps: int) -> float:
@@ -207,7 +223,7 @@ def whole_fit(config: FitConfig) -> dict[str, float]:
     device = torch.device(config.device)
     synchronize(device)
     started = time.perf_counter()
-    fit_scene(scene, config.replace(steps=2, warmup=min(config.warmup, 1)), progress=False)
+    fit_scene(scene, config.replace(steps=2, curvature_warmup=min(config.curvature_warmup_steps, 1)), progress=False)
     synchronize(device)
     warmup = time.perf_counter() - started
     started = time.perf_counter()
@@ -249,9 +265,10 @@ def report(label: str, config: FitConfig, rounds: int, reference_rounds: int,
     where = f"{torch.get_num_threads()} threads" if device.type == "cpu" else torch.cuda.get_device_name(device)
     print(f"\n## {label}: {config.width}×{config.height}, N = {count}, "
           f"{config.num_planes} planes, {config.device} ({where}), medians of {rounds} rounds")
-    for name in ("raster forward", "raster backward", "propagation forward+backward", "loss forward+backward",
-                 "optimizer", "whole step", "FFT floor"):
-        print(f"{name:>30}: {1000 * median[name]:9.1f} ms")
+    for name in ("raster forward", "raster backward", "propagation forward+backward", PRUNED_STAGE,
+                 "loss forward+backward", "optimizer", "whole step", "FFT floor"):
+        if name in median:
+            print(f"{name:>30}: {1000 * median[name]:9.1f} ms")
     print(f"{'step / floor':>30}: {ratios['step / floor']:9.2f}")
     print(f"{'pruned transforms alone':>30}: {1000 * median['pruned transforms']:9.1f} ms = "
           f"{ratios['pruned / floor']:.2f} × floor")
@@ -275,11 +292,11 @@ def print_whole_fits(base: FitConfig, big: tuple[int, int], steps: int, which: s
     if which in ("big", "all"):
         fits[f"RGB 20%, {big[0]}×{big[1]}"] = base.replace(color="rgb", ratio=0.2, width=big[0], height=big[1])
     print(f"\n## whole fits of the demo scene on {base.device}, {steps} steps (indices 0..{steps}), "
-          f"warm-up {default_warmup(steps)}, 2 planes")
+          f"warm-up {default_curvature_warmup(steps)}, 2 planes")
     print(f"{'fit':>28}  {'warm-up':>9}  {'fit loop':>9}  {'whole call':>10}  {'peak':>9}  {'PSNR':>9}")
     results = {}
     for label, config in fits.items():
-        numbers = whole_fit(config.replace(steps=steps, warmup=default_warmup(steps)))
+        numbers = whole_fit(config.replace(steps=steps, curvature_warmup=default_curvature_warmup(steps)))
         results[label] = numbers
         print(f"{label:>28}  {numbers['warm-up s']:8.1f}s  {numbers['fit loop s']:8.1f}s  "
               f"{numbers['fit call s']:9.1f}s  {numbers['peak GiB']:5.2f} GiB  {numbers['psnr dB']:6.2f} dB"
@@ -292,8 +309,6 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="320×240, for a smoke test")
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where everything runs")
-    parser.add_argument("--propagation", default="auto", choices=PROPAGATIONS, help="the fit's propagation "
-                        "transforms (auto: pruned on the CPU, full-grid on CUDA)")
     parser.add_argument("--rounds", type=int, default=7, help="rounds in which every stage and the floor take turns")
     parser.add_argument("--reference-rounds", type=int, default=1, help="rounds of the torch backend (slow)")
     parser.add_argument("--rss-steps", type=int, default=5, help="steps of the fit whose peak RSS is measured (CPU)")
@@ -311,15 +326,13 @@ def main() -> None:
     if args.device == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda: no CUDA GPU is visible to PyTorch")
     width, height = (320, 240) if args.quick else (640, 480)
-    rgb = FitConfig(width=width, height=height, color="rgb", ratio=0.2, device=args.device,
-                    propagation=args.propagation)
+    rgb = FitConfig(width=width, height=height, color="rgb", ratio=0.2, device=args.device)
     if args.model and args.quick:
         parser.error("--quick sets the size, --model brings its own; pass one of them")
     gray = rgb.replace(color="gray", ratio=0.1)
     if args.model:
         primitives, config = load_model(model_path(args.model))
-        settings = {f"fitted model {args.model}": (config.replace(device=args.device, propagation=args.propagation),
-                                                     primitives, True)}
+        settings = {f"fitted model {args.model}": (config.replace(device=args.device), primitives, True)}
     else:
         settings = {"RGB 20%, at initialisation, flat (warm-up)": (rgb, None, False),
                     "RGB 20%, at initialisation, curved": (rgb, None, True),

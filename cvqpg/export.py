@@ -13,7 +13,7 @@ from torch import Tensor
 from .config import FitConfig, padded_size
 from .errors import ConfigError, choices_error
 from .ops.field import Grid, slm_field
-from .optics import propagate_content
+from .ops.propagation import propagate_planes
 
 Encoding = Literal["dpac", "phase"]
 ENCODINGS: tuple[str, ...] = ("dpac", "phase")
@@ -110,7 +110,8 @@ def simulate_display(canvas_field: Tensor, display: Display, config: FitConfig) 
     if display.aperture is not None:
         aperture = fourier_aperture(grid.padded_height, grid.padded_width, display.aperture, padded.device)
         padded = torch.fft.ifft2(torch.fft.fft2(padded) * aperture)
-    planes = propagate_content(padded, grid, config.plane_distances, config.wavelengths, config.pixel_pitch)
+    planes = propagate_planes(padded, grid, config.plane_distances, config.wavelengths, config.pixel_pitch,
+                              config.backend)
     return torch.clamp(planes.abs() ** 2, 0.0, 1.0)
 
 

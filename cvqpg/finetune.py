@@ -72,7 +72,7 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
     for _ in range(steps):
         quantised = _quantised(params, steps_of, scale_range, amplitude_max, config)
         recon = reconstruct(hologram(quantised, config), config)
-        noise = standard_normal(scene.targets.shape, generator)
+        noise = standard_normal(scene.targets.shape, generator, config.backend)
         loss, _ = multiplane_loss(recon, scene.targets, scene.masks,
                                   noisy_targets(scene.targets, noise, config.target_noise),
                                   config.ssim_weight, config.backend)

@@ -199,7 +199,7 @@ def hologram_loss(field: Tensor, scene: Scene, config: FitConfig,
                   generator: torch.Generator) -> tuple[Tensor, Tensor]:
     """SPEC §6's training loss of a complex hologram [C, H, W]: propagated to the scene's planes and
     compared with its targets under fresh noise drawn from `generator`; returns it and the plain MSE."""
-    noise = standard_normal(scene.targets.shape, generator)
+    noise = standard_normal(scene.targets.shape, generator, config.backend)
     return multiplane_loss(reconstruct(field, config), scene.targets, scene.masks,
                            noisy_targets(scene.targets, noise, config.target_noise), config.ssim_weight,
                            config.backend)

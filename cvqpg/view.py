@@ -25,7 +25,8 @@ from .config import FitConfig
 from .errors import InputError
 from .fitting import hologram
 from .metrics import METRIC_NAMES, psnr
-from .optics import reconstruct, release_transfer_functions
+from .ops.propagation import release_transfer_functions
+from .optics import reconstruct
 from .runs import (EXPORT_FOLDER, METRICS_FILE, MODEL_FILE, hologram_images, load_model_on, read_run, to_8bit,
                    write_atomic)
 

@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from cvqpg.config import ConfigError, FitConfig
-from cvqpg import optics
+from cvqpg.config import FitConfig
+from cvqpg.ops import propagation
 from cvqpg.ops.field import Grid, clamped_intensity, guard_window, guarded_field, pad_with_guard_band, slm_field
-from cvqpg.ops.propagation import cpu as propagation_kernels
-from cvqpg.optics import TransferBank, propagate, propagate_content, reconstruct, transfer_function
+from cvqpg.ops.propagation import TransferBank, propagate, propagate_content, propagate_planes, transfer_function
+from cvqpg.ops.propagation import cpu as propagation_kernels, reference as propagation_reference
+from cvqpg.optics import reconstruct
 
 CPU = torch.device("cpu")
 PITCH = 3.74e-6
@@ -182,13 +183,12 @@ def test_pruned_content_propagation_and_its_adjoint_match_the_full_transforms(ke
     numbers. With the kernels switched off the transposes are the PyTorch copies that other devices
     (CUDA) run; transfer functions are kept in memory or rebuilt on demand (large grids), once per
     pass."""
-    monkeypatch.setattr(optics, "_uses_cpu_kernels", lambda tensor: kernels)
     builds = []
     if not cached:
-        monkeypatch.setattr(optics, "TRANSFER_CACHE_BYTES", 0)
+        monkeypatch.setattr(propagation_reference, "TRANSFER_CACHE_BYTES", 0)
         build_half = TransferBank.build_half
         monkeypatch.setattr(TransferBank, "build_half", lambda bank, *key: builds.append(key) or build_half(bank, *key))
-    monkeypatch.setattr(optics, "SPECTRUM_BLOCK_ROWS", 48)
+    monkeypatch.setattr(propagation, "SPECTRUM_BLOCK_ROWS", 48)
     grid = Grid(height=30, width=44, padded_height=64, padded_width=80)
     generator = torch.Generator().manual_seed(12)
     field = torch.complex(torch.randn(3, 64, 80, generator=generator), torch.randn(3, 64, 80, generator=generator))
@@ -198,7 +198,7 @@ def test_pruned_content_propagation_and_its_adjoint_match_the_full_transforms(ke
     runs = []
     for _ in range(2):
         leaf = field.clone().requires_grad_(True)
-        content = propagate_content(leaf, grid, distances, wavelengths, PITCH)
+        content = propagate_content(leaf, grid, distances, wavelengths, PITCH, fused=kernels)
         (content * upstream.conj()).real.sum().backward()
         runs.append((content.detach(), leaf.grad))
     built_in_runs = len(builds)
@@ -216,31 +216,39 @@ def test_pruned_content_propagation_and_its_adjoint_match_the_full_transforms(ke
     assert built_in_runs == (0 if cached else 2 * 2 * len(distances) * len(wavelengths))
 
 
-def test_full_grid_and_pruned_propagation_give_the_same_reconstruction_and_gradient():
-    """`reconstruct` through the full-grid transforms (`--propagation full`, auto's choice on CUDA) and
-    through the pruned ones (the CPU's): the same intensities and hologram gradient to float32 noise."""
+def test_the_torch_and_numba_backends_give_the_same_reconstruction_and_gradient():
+    """`reconstruct` through the full-grid transforms and the PyTorch formulas (`--backend torch`, the
+    transforms of CUDA too) and through the pruned transforms and the CPU kernels (`numba`): the same
+    intensities and hologram gradient to float32 noise."""
     config = FitConfig(width=40, height=28, guard_band_px=8, pad_multiple_px=8)
     generator = torch.Generator().manual_seed(4)
     hologram = 0.6 * torch.complex(torch.randn(3, 28, 40, generator=generator), torch.randn(3, 28, 40, generator=generator))
     upstream = torch.rand(2, 3, 28, 40, generator=generator)
     results = {}
-    for propagation in ("full", "pruned"):
+    for backend in ("torch", "numba"):
         leaf = hologram.clone().requires_grad_(True)
-        recon = reconstruct(leaf, config.replace(propagation=propagation))
+        recon = reconstruct(leaf, config.replace(backend=backend))
         (recon * upstream).sum().backward()
-        results[propagation] = recon.detach(), leaf.grad
-    (full, full_grad), (pruned, pruned_grad) = results["full"], results["pruned"]
+        results[backend] = recon.detach(), leaf.grad
+    (full, full_grad), (pruned, pruned_grad) = results["torch"], results["numba"]
     assert full.shape == pruned.shape == (2, 3, 28, 40) and full.max() > 0.01
     assert float((full - pruned).abs().max()) < 1e-5 * float(full.abs().max()) + 1e-7
     assert float((full_grad - pruned_grad).abs().max()) < 1e-4 * float(full_grad.abs().max())
 
 
-def test_auto_propagation_is_pruned_on_the_cpu_and_full_grid_on_cuda():
-    assert optics.resolve_propagation("auto", "cpu") == "pruned"
-    assert optics.resolve_propagation("auto", torch.device("cuda")) == "full"
-    assert optics.resolve_propagation("pruned", torch.device("cuda")) == "pruned"
-    with pytest.raises(ConfigError, match="propagation 'fft'"):
-        FitConfig(propagation="fft").validate()
+def test_the_backend_picks_the_pruned_transforms_with_the_cpu_kernels_and_else_the_full_grid_reference():
+    grid = Grid(height=12, width=20, padded_height=32, padded_width=40)
+    generator = torch.Generator().manual_seed(5)
+    field = torch.complex(torch.randn(2, 32, 40, generator=generator), torch.randn(2, 32, 40, generator=generator))
+    optics = ([1e-3, 5e-3], [RED, BLUE], PITCH)
+    pruned = propagate_content(field, grid, *optics, fused=True)
+    assert torch.equal(propagate_planes(field, grid, *optics, "numba"), pruned)
+    assert torch.equal(propagate_planes(field, grid, *optics), pruned)  # auto, on the CPU
+    assert torch.equal(propagate_planes(field, grid, *optics, "torch"), grid.crop(propagate(field, *optics)))
+
+
+def test_a_recorded_config_with_the_former_propagation_setting_still_loads():
+    assert FitConfig.from_dict({**FitConfig().to_dict(), "propagation": "pruned"}) == FitConfig()
 
 
 def test_energy_conserved_equals_band_limited_input_energy():

@@ -26,7 +26,7 @@ from numba.core import event
 from PIL import Image
 
 from ..config import FitConfig
-from ..optics import SPECTRUM_BLOCK_ROWS
+from ..ops.propagation import SPECTRUM_BLOCK_ROWS
 
 if TYPE_CHECKING:
     from ..targets import Scene
@@ -48,8 +48,10 @@ PRECOMPILED_KINDS = tuple(FitConfig(num_planes=planes) for planes in (1, 2))
 
 
 def uses_cpu_kernels(config: FitConfig) -> bool:
-    """Whether a fit of `config` runs Numba kernels (the optics and noise ones run on the CPU with any backend)."""
-    return torch.device(config.device).type == "cpu"
+    """Whether a fit of `config` runs Numba kernels: with the `numba` backend, every op's."""
+    from .ops import resolve_backend
+
+    return resolve_backend(config.backend, config.device) == "numba"
 
 
 def probe_config(config: FitConfig) -> FitConfig:

@@ -1,17 +1,20 @@
-"""Operations with fast kernels: each a package holding its PyTorch reference, its CPU kernels and its
-GPU kernels side by side, under the same names.
+"""Operations with fast kernels: each a package holding its PyTorch reference (`reference.py`), its CPU
+kernels (`cpu.py`, Numba) and its GPU kernels (`gpu.py`, Triton) side by side, under the same names.
 
-| op (package)  | public functions                      | reference.py | cpu.py (Numba) | gpu.py (Triton) |
-|---------------|---------------------------------------|--------------|----------------|-----------------|
-| `rasterize`   | `rasterize`                           | yes          | yes            | yes             |
-| `field`       | `guarded_field`, `clamped_intensity`  | yes          | yes            | —               |
-| `loss`        | `multiplane_loss`, `ssim_per_plane`   | yes          | yes            | —               |
-| `propagation` | (`cvqpg.optics.propagate_content`)    | (`cvqpg.optics.propagate`) | yes | —          |
+| op (package)  | public functions                                       | reference.py | cpu.py | gpu.py |
+|---------------|--------------------------------------------------------|--------------|--------|--------|
+| `rasterize`   | `rasterize`                                            | yes          | yes    | yes    |
+| `field`       | `guarded_field`, `clamped_intensity`                   | yes          | yes    | —      |
+| `propagation` | `propagate_planes`, `propagate_content`                | yes          | yes    | —      |
+| `loss`        | `multiplane_loss`, `ssim_per_plane`, `standard_normal` | yes          | yes    | —      |
 
 A package's `__init__` holds its public op and the autograd boundaries around the kernels; the tests
 hold every kernel against its reference. One backend name picks all of them (`resolve_backend`):
 `numba` (CPU kernels), `triton` (the GPU rasterizer; the other ops use their references there), or
 `torch` (the references everywhere); `auto` is `numba` on the CPU and `triton` on CUDA.
+
+`cpu.py` here holds what the ops' CPU kernels share; `kernel_cache` keys Numba's disk cache of all of
+them on all their sources.
 """
 
 from __future__ import annotations
@@ -24,13 +27,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-BACKEND_NAMES = ("numba", "torch", "triton")
+from . import kernel_cache
 
-# Numba options for the CPU kernels' functions that only other kernels call: without the CPython and C
-# wrappers that Numba otherwise compiles for every function, which nothing calls. Their machine code is
-# the same; a cold compile takes 7% less CPU time (docs/performance.md, "First run"). Python cannot call
-# such a function.
-CALLED_BY_KERNELS_ONLY = {"no_cpython_wrapper": True, "no_cfunc_wrapper": True}
+kernel_cache.register()  # before any kernel module defines its functions
+
+BACKEND_NAMES = ("numba", "torch", "triton")
 
 
 def cpu_array(tensor: Tensor) -> np.ndarray:

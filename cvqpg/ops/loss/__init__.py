@@ -4,12 +4,12 @@
 |------------------|-----------------------------|------------------------------------------|
 | `multiplane_loss`| `reference.pixel_terms`     | `cpu.pixel_terms`                        |
 | `ssim_per_plane` | `reference.ssim_per_plane`  | `cpu.ssim_forward`, `cpu.ssim_backward`  |
-| `standard_normal`| `torch.randn`               | `cpu.standard_normals`                   |
+| `standard_normal`| `reference.standard_normals`| `cpu.standard_normals`                   |
 
 The reference (`--backend torch`, and CUDA) is plain PyTorch with pytorch-msssim's SSIM,
-differentiated by autograd. With `numba` the pixel-wise parts run as the CPU kernels behind two
-autograd Functions whose backward passes are written out; the tests hold them against the
-reference in value and gradient.
+differentiated by autograd; on CUDA the noise is `torch.randn`'s. With `numba` the pixel-wise parts
+run as the CPU kernels behind two autograd Functions whose backward passes are written out; the
+tests hold them against the reference in value and gradient.
 """
 
 from __future__ import annotations
@@ -26,19 +26,24 @@ from . import cpu, reference
 from .reference import SSIM_K1, SSIM_K2, SSIM_SIGMA_PX, SSIM_WINDOW_PX
 
 
-def standard_normal(shape: Sequence[int], generator: torch.Generator) -> Tensor:
+def standard_normal(shape: Sequence[int], generator: torch.Generator, backend: str = "auto") -> Tensor:
     """Standard normal draws [shape] (float32) on the generator's device, for the targets' noise.
 
-    On the CPU they are `cpu.standard_normals` of one seed drawn from `generator`: a pure
-    function of that seed, vectorised and threaded, about 3.5× faster than `torch.randn`, which
-    draws from one sequential generator. Elsewhere they are `torch.randn`'s.
+    On the CPU they are counter-based draws from one seed drawn from `generator`, a pure function of
+    that seed: with `numba` the kernel `cpu.standard_normals`, vectorised and threaded, about 3.5×
+    faster than `torch.randn`, which draws from one sequential generator; otherwise its reference,
+    the same numbers to float32 rounding. Elsewhere they are `torch.randn`'s.
     """
     if generator.device.type != "cpu":
         return torch.randn(tuple(shape), generator=generator, device=generator.device)
     seed = int(torch.randint(0, 2**63 - 1, (), generator=generator))
     count = math.prod(shape)
-    draws = torch.empty(count + count % 2)  # the kernel fills whole pairs
-    cpu.standard_normals(seed, draws.numpy())
+    even = count + count % 2  # the draws come in pairs
+    if resolve_backend(backend, generator.device) == "numba":
+        draws = torch.empty(even)
+        cpu.standard_normals(seed, draws.numpy())
+    else:
+        draws = reference.standard_normals(seed, even)
     return draws[:count].view(tuple(shape))
 
 

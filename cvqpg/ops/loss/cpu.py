@@ -24,8 +24,7 @@ import math
 import numba as nb
 import numpy as np
 
-from .. import CALLED_BY_KERNELS_ONLY
-from ..rasterize.cpu import _cosines_and_sines
+from ..cpu import CALLED_BY_KERNELS_ONLY, cosines_and_sines
 
 
 def gaussian_taps(size_px: int, sigma_px: float) -> np.ndarray:
@@ -36,6 +35,9 @@ def gaussian_taps(size_px: int, sigma_px: float) -> np.ndarray:
 
 
 GOLDEN_GAMMA = np.uint64(0x9E3779B97F4A7C15)  # SplitMix64's increment: 2⁶⁴ over the golden ratio
+# SplitMix64's output function: x ^= x >> s, x *= m for each (shift, multiplier), then x ^= x >> last shift
+MIX_SHIFTS = (np.uint64(30), np.uint64(27), np.uint64(31))
+MIX_MULTIPLIERS = (np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB))
 NORMAL_PAIRS_PER_TASK = 4096
 UNIFORM_BITS = 23  # a float32 holds k + ½ exactly for k < 2²³: no uniform rounds to 0 or 1
 
@@ -43,9 +45,9 @@ UNIFORM_BITS = 23  # a float32 holds k + ½ exactly for k < 2²³: no uniform ro
 @nb.njit(cache=True, nogil=True, inline="always")
 def _mixed(state):
     """SplitMix64's output function: 64 well-mixed bits from a counter state."""
-    state = (state ^ (state >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    state = (state ^ (state >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    return state ^ (state >> np.uint64(31))
+    state = (state ^ (state >> MIX_SHIFTS[0])) * MIX_MULTIPLIERS[0]
+    state = (state ^ (state >> MIX_SHIFTS[1])) * MIX_MULTIPLIERS[1]
+    return state ^ (state >> MIX_SHIFTS[2])
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, error_model="numpy", inline="always")
@@ -77,7 +79,7 @@ def _normal_pairs(seed, first, count, out):
         angles[p] = np.float64(np.int32(bits & np.uint64(2**UNIFORM_BITS - 1))) * (2.0 * math.pi * scale)
     for p in range(count):
         radii[p] = math.sqrt(np.float32(-2.0) * _logarithm(radii[p]))
-    _cosines_and_sines(angles, cosines, sines)
+    cosines_and_sines(angles, cosines, sines)
     for p in range(count):
         out[2 * p] = radii[p] * cosines[p]
         out[2 * p + 1] = radii[p] * sines[p]

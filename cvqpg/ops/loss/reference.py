@@ -1,10 +1,11 @@
 """The training loss's PyTorch reference (SPEC §6): the pixel-wise terms and pytorch-msssim's SSIM,
-differentiated by autograd."""
+differentiated by autograd, and the targets' noise as counter-based draws."""
 
 from __future__ import annotations
 
 import functools
 import inspect
+import math
 from typing import ContextManager
 
 import torch
@@ -12,7 +13,7 @@ from pytorch_msssim import ssim
 from pytorch_msssim.ssim import _fspecial_gauss_1d
 from torch import Tensor
 
-from .cpu import SSIM_TAPS
+from .cpu import GOLDEN_GAMMA, MIX_MULTIPLIERS, MIX_SHIFTS, SSIM_TAPS, UNIFORM_BITS
 
 SSIM_WINDOW_PX = SSIM_TAPS  # 11, the CPU kernels' constant window
 SSIM_SIGMA_PX = 1.5
@@ -55,3 +56,37 @@ def ssim_per_plane(recon: Tensor, targets: Tensor) -> Tensor:
     with _without_onednn():
         return ssim(recon, targets, data_range=1.0, size_average=False,
                     win=ssim_window(recon.shape[1], recon.dtype, recon.device))
+
+
+def _as_int64(bits: int) -> int:
+    """The int64 with the same 64 bits as an unsigned value: PyTorch has no uint64 arithmetic, and its
+    int64 products and sums wrap as uint64's do."""
+    return bits - (1 << 64) if bits >= 1 << 63 else bits
+
+
+def _shifted_right(values: Tensor, bits: int) -> Tensor:
+    """values >> bits for int64 values read as unsigned: PyTorch shifts arithmetically, so the copies
+    of the sign bit are masked off."""
+    return (values >> bits) & ((1 << (64 - bits)) - 1)
+
+
+def _mixed(states: Tensor) -> Tensor:
+    """SplitMix64's output function of counter states (int64 holding uint64 bits)."""
+    for shift, multiplier in zip(MIX_SHIFTS, MIX_MULTIPLIERS):
+        states = (states ^ _shifted_right(states, int(shift))) * _as_int64(int(multiplier))
+    return states ^ _shifted_right(states, int(MIX_SHIFTS[-1]))
+
+
+def standard_normals(seed: int, count: int) -> Tensor:
+    """[count] standard normal draws (float32, count even) as `cpu.standard_normals` makes them: values
+    2p and 2p + 1 from the counter p, SplitMix64's 64 bits of seed + (p + 1)·γ giving two 23-bit
+    uniforms u = (k + ½)·2⁻²³ (the top bits) and v (the low bits), and Box–Muller
+    √(−2 ln u)·(cos 2πv, sin 2πv). With PyTorch's ln, cos and sin, which the kernel replaces with its
+    vectorised own: the same numbers up to their rounding."""
+    counters = torch.arange(1, count // 2 + 1, dtype=torch.int64)
+    bits = _mixed(seed + counters * _as_int64(int(GOLDEN_GAMMA)))
+    scale = 2.0**-UNIFORM_BITS
+    uniforms = (_shifted_right(bits, 64 - UNIFORM_BITS).float() + 0.5) * scale  # exact in float32
+    angles = (bits & (2**UNIFORM_BITS - 1)).double() * (2 * math.pi * scale)
+    radii = torch.sqrt(-2 * torch.log(uniforms)).double()  # float32 like the kernel's, its product float64
+    return torch.stack([radii * torch.cos(angles), radii * torch.sin(angles)], dim=1).flatten().float()

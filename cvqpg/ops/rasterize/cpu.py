@@ -21,7 +21,7 @@ overlap the image, stores them back on every row and takes 13–24% more time). 
 walks two vectors at once, so that their chains of complex products overlap. The lanes start on
 the box's first row from six exponentials per channel, walked along the row in float64, four
 channels at a time as vectors (`_walk_along_row`); the channels share their magnitudes, and their
-angles go through one vectorised cos/sin (`_cosines_and_sines`).
+angles go through one vectorised cos/sin (`cosines_and_sines`).
 Lanes hold primitives whose values stay inside float32's range over the box, ½D² ≤
 `TABLE_EXPONENT_LIMIT` at its top corners: at initialisation all of them, and 98% of a fitted
 model's.
@@ -59,7 +59,7 @@ import math
 import numba as nb
 import numpy as np
 
-from .. import CALLED_BY_KERNELS_ONLY
+from ..cpu import CALLED_BY_KERNELS_ONLY, cosines_and_sines
 from . import vectors
 
 FLOOR_MAHALANOBIS2 = 100.0  # D² where the envelope exponent −½D² reaches SPEC's floor of −50
@@ -204,7 +204,7 @@ def splat_geometry(scale, rotation, curvature, regulariser, sigmas, half_pitch2,
     for task in nb.prange((count + GEOMETRY_CHUNK - 1) // GEOMETRY_CHUNK):
         low, high = task * GEOMETRY_CHUNK, min(count, (task + 1) * GEOMETRY_CHUNK)
         cosines, sines = terms[0, low:high], terms[1, low:high]
-        _cosines_and_sines(rotation[low:high], cosines, sines)
+        cosines_and_sines(rotation[low:high], cosines, sines)
         for n in range(low, high):
             sx, sy = np.float64(scale[n, 0]), np.float64(scale[n, 1])
             along, across = 1.0 / (sx * sx + regulariser), 1.0 / (sy * sy + regulariser)
@@ -241,38 +241,6 @@ def geometry_gradients(scale, curvature, half_pitch2, mahalanobis, terms, g_coni
                 g_sx += g_product * sy
                 g_sy += g_product * sx
         g_scale[n, 0], g_scale[n, 1] = g_sx, g_sy
-
-
-# π/2 in three parts (the first two with trailing zero bits), and the Taylor-minimax coefficients of
-# sin and cos on [−π/4, π/4] that fdlibm uses.
-HALF_PI_PARTS = (1.57079632673412561417e+00, 6.07710050630396597660e-11, 2.02226624879595063154e-21)
-SIN_COEFFICIENTS = (-1.66666666666666324348e-01, 8.33333333332248946124e-03, -1.98412698298579493134e-04,
-                    2.75573137070700676789e-06, -2.50507602534068634195e-08, 1.58969099521155010221e-10)
-COS_COEFFICIENTS = (4.16666666666666019037e-02, -1.38888888888741095749e-03, 2.48015872894767294178e-05,
-                    -2.75573143513906633035e-07, 2.08757232129817482790e-09, -1.13596475577881948265e-11)
-
-
-@nb.njit(cache=True, nogil=True, fastmath={"contract"})
-def _cosines_and_sines(angles, cosines, sines):
-    """cos and sin of every angle (rad, |angle| ≲ 1e5) to about 1e-16 relative, in a branch-free loop
-    that LLVM vectorises: libm's sin and cos cost 15 ns per pair here, and each primitive needs
-    six per channel. The angle is reduced by the nearest multiple n of π/2 (three-part π/2, exact
-    products by fused multiply-adds; no reassociation allowed here), the polynomials are taken at the
-    remainder, and n mod 4 swaps them and sets their signs."""
-    p1, p2, p3 = HALF_PI_PARTS
-    s1, s2, s3, s4, s5, s6 = SIN_COEFFICIENTS
-    c1, c2, c3, c4, c5, c6 = COS_COEFFICIENTS
-    for i in range(angles.shape[0]):
-        n = np.floor(angles[i] * (2.0 / math.pi) + 0.5)
-        r = ((angles[i] - n * p1) - n * p2) - n * p3
-        z = r * r
-        sine = r + r * z * (s1 + z * (s2 + z * (s3 + z * (s4 + z * (s5 + z * s6)))))
-        cosine = 1.0 - 0.5 * z + z * z * (c1 + z * (c2 + z * (c3 + z * (c4 + z * (c5 + z * c6)))))
-        quadrant = n - 4.0 * np.floor(0.25 * n)  # 0 to 3: (sin, cos) is (s, c), (c, −s), (−s, −c), (−c, s)
-        odd = quadrant - 2.0 * np.floor(0.5 * quadrant)
-        after = quadrant + 1.0 - 4.0 * np.floor(0.25 * (quadrant + 1.0))
-        sines[i] = ((1.0 - odd) * sine + odd * cosine) * (1.0 - 2.0 * np.floor(0.5 * quadrant))
-        cosines[i] = ((1.0 - odd) * cosine + odd * sine) * (1.0 - 2.0 * np.floor(0.5 * after))
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -365,7 +333,7 @@ def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumb
         for j in range(6):
             angles[6 * ch + j] = k_chirp * quadratic[j]
         angles[6 * ch] += phase[n, ch]
-    _cosines_and_sines(angles[:6 * channels], cosines, sines)
+    cosines_and_sines(angles[:6 * channels], cosines, sines)
     for ch in range(channels):
         g, ratio, step, h, h_step, q = _lane_exponentials(magnitudes, cosines, sines, ch)
         for j in range(ch, LANES * channels, channels):
@@ -464,7 +432,7 @@ def _amplitude_pattern(n, color, opacity, patterns):
 def _rotation_pattern(n, phase, color, opacity, with_amplitude, patterns):
     """e^{iφ} of primitive n's channels, times the amplitude αc if `with_amplitude`, into the lane
     patterns (real and imaginary parts, `_pattern_index`): what real lanes are multiplied by. libm's
-    cos and sin, one pair per channel, cost less here than a call to `_cosines_and_sines` for so few."""
+    cos and sin, one pair per channel, cost less here than a call to `cosines_and_sines` for so few."""
     channels = phase.shape[1]
     for ch in range(channels):
         scale = opacity[n] * color[n, ch] if with_amplitude else 1.0

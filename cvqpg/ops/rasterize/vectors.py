@@ -12,8 +12,6 @@ float64, by the array's type), `load_float64` and `store_float32` (four float32 
 to a Float64x4, and back, rounded), `splat` and `splat_float64` (one value in every lane), `ramp`
 (start, start + 1, ..., start + 7, float32), `+`, `-` and `*` between vectors of one type, and
 `where_between` (a mask on float32 lane positions).
-
-Numba's disk cache of `cpu.py` tracks that file only: after editing this one, touch it.
 """
 
 from __future__ import annotations
