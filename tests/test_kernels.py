@@ -8,7 +8,7 @@ import pytest
 import torch
 from numba.core.errors import TypingError
 
-from cvqpg import FitConfig, builtin_pictures, fit
+from cvqpg import ConfigError, FitConfig, builtin_pictures, fit
 from cvqpg.ops.cpu import cosines_and_sines
 from cvqpg.ops.rasterize import cpu as kernels, vectors
 from cvqpg.ops.rasterize import rasterize, resolve_backend, splat_fused, wavenumbers_for
@@ -223,7 +223,7 @@ def test_auto_backend_picks_fused_kernels_on_cpu():
     assert resolve_backend("auto", "cpu") == "numba"
     with pytest.raises(ValueError, match="runs on the CPU"):
         resolve_backend("numba", "cuda")
-    with pytest.raises(ValueError, match="unknown rasterizer backend"):
+    with pytest.raises(ConfigError, match="`backend`"):
         resolve_backend("opengl", "cpu")
 
 

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..errors import ConfigError, choices_error
 from . import kernel_cache
 
 kernel_cache.register()  # before any kernel module defines its functions
@@ -59,13 +60,12 @@ def resolve_backend(backend: str, device: torch.device | str) -> str:
             return "numba"
         return "triton" if kind == "cuda" and triton_installed() else "torch"
     if backend not in BACKEND_NAMES:
-        raise ValueError(f"unknown rasterizer backend {backend!r}; choose auto or one of "
-                         f"{', '.join(BACKEND_NAMES)}")
+        raise choices_error("backend", backend, ("auto", *BACKEND_NAMES))
     if backend == "numba" and kind != "cpu":
-        raise ValueError("the numba backend runs on the CPU; use --backend torch with --device cuda")
+        raise ConfigError("`backend` numba runs on the CPU; use `backend` torch (or auto) with `device` cuda")
     if backend == "triton" and not triton_installed():
-        raise ValueError("the triton backend needs the triton package: pip install triton, or use --backend torch")
+        raise ConfigError("`backend` triton needs the triton package: pip install triton, or use `backend` torch")
     if backend == "triton" and kind != "cuda" and not (kind == "cpu" and triton_interpreting()):
-        raise ValueError(f"the triton backend runs on CUDA, not on {kind}; use --backend numba or torch "
-                         "with --device cpu")
+        raise ConfigError(f"`backend` triton runs on CUDA, not on {kind}; use `backend` numba or torch "
+                          "with `device` cpu")
     return backend
