@@ -297,14 +297,15 @@ def readback_due(device: torch.device, seconds_since_readback: float) -> bool:
     return device.type == "cpu" or seconds_since_readback >= READBACK_SECONDS
 
 
+# Set above the peak RSS that `cvqpg fit --scene demo --size W H` reaches from 640×480 to 3840×2160
+# (docs/performance.md, "Display resolutions", which has the command and the peaks).
 BASE_BYTES = 2**30
 BYTES_PER_PLANE_PIXEL = 165
 
 
 def estimated_peak_bytes(config: FitConfig) -> int:
     """Rough peak memory (bytes) of a fit on the CPU: a fixed base plus a cost per pixel of every
-    plane and channel, 23–40% above measured peaks (RGB, 2 planes: 640×480 0.91 GiB,
-    1920×1080 2.2 GiB, 3840×2160 7.0 GiB; docs/performance.md)."""
+    plane and channel, above the peaks measured at display resolutions."""
     plane_pixels = config.num_planes * config.channels * config.width * config.height
     return int(BASE_BYTES + BYTES_PER_PLANE_PIXEL * plane_pixels)
 

@@ -2,7 +2,7 @@
 
 A fitting step creates and frees tensors of tens of MB. glibc serves blocks that large with fresh
 `mmap` calls and returns them to the system when freed, so every step pays the kernel to zero and
-map the same memory again: about 20 ms per 70 MB tensor here, 20% of a 640×480 RGB step.
+map the same memory again (`benchmarks/choices.py` times it; docs/performance.md, "Measured choices").
 Keeping freed memory in the process removes that cost without raising the peak of one fit; between
 fits, `release_freed_memory` hands it back, so that the next fit's peak is its own.
 """

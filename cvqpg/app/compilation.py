@@ -31,7 +31,8 @@ from ..ops.propagation import SPECTRUM_BLOCK_ROWS
 if TYPE_CHECKING:
     from ..targets import Scene
 
-# A demo fit's cold compile on 2 idle cores, the rasterizer's loops here and the rest alongside (docs/performance.md)
+# Shown on the status line: a demo fit's cold compile on 2 idle cores, the rasterizer's loops here and the
+# rest alongside, as `benchmarks/first_step.py` measures it (docs/performance.md, "First run")
 COMPILE_ESTIMATE_SECONDS = 23
 PROBE_SIZE_PX = (32, 24)  # above the SSIM window (11 px), so that every loss kernel runs
 PROBE_PRIMITIVES = 24
@@ -77,8 +78,8 @@ def probe_scene(probe: FitConfig) -> Scene:
 def compile_rasterizer_kernels(probe: FitConfig, per_primitive: bool = False) -> None:
     """Compile (or load) the fused rasterizer's kernels from their types (`KERNEL_TYPES`), without
     running them: its kernels other than the two loops over the primitives, or only those loops
-    (`per_primitive`, `PER_PRIMITIVE_KERNELS`: about half of a cold fit's compile). Nothing where
-    `probe`'s rasterizer is not the Numba one."""
+    (`per_primitive`, `PER_PRIMITIVE_KERNELS`: the fit's own process's share of a cold compile).
+    Nothing where `probe`'s rasterizer is not the Numba one."""
     from ..ops import resolve_backend
     from ..ops.rasterize import KERNEL_TYPES, PER_PRIMITIVE_KERNELS
 

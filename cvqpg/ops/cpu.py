@@ -11,7 +11,7 @@ import numpy as np
 
 # Numba options for the CPU kernels' functions that only other kernels call: without the CPython and C
 # wrappers that Numba otherwise compiles for every function, which nothing calls. Their machine code is
-# the same; a cold compile takes 7% less CPU time (docs/performance.md, "First run"). Python cannot call
+# the same and a cold compile takes less CPU time (docs/performance.md, "First run"). Python cannot call
 # such a function.
 CALLED_BY_KERNELS_ONLY = {"no_cpython_wrapper": True, "no_cfunc_wrapper": True}
 
@@ -28,10 +28,10 @@ COS_COEFFICIENTS = (4.16666666666666019037e-02, -1.38888888888741095749e-03, 2.4
 @nb.njit(cache=True, nogil=True, fastmath={"contract"})
 def cosines_and_sines(angles, cosines, sines):
     """cos and sin of every angle (rad, |angle| ≲ 1e5) to about 1e-16 relative, in a branch-free loop
-    that LLVM vectorises: libm's sin and cos cost 15 ns per pair here, and each primitive needs
-    six per channel. The angle is reduced by the nearest multiple n of π/2 (three-part π/2, exact
-    products by fused multiply-adds; no reassociation allowed here), the polynomials are taken at the
-    remainder, and n mod 4 swaps them and sets their signs."""
+    that LLVM vectorises, where libm's sin and cos are a call per value and each primitive needs six
+    per channel (docs/performance.md, "Measured choices"). The angle is reduced by the nearest
+    multiple n of π/2 (three-part π/2, exact products by fused multiply-adds; no reassociation allowed
+    here), the polynomials are taken at the remainder, and n mod 4 swaps them and sets their signs."""
     p1, p2, p3 = HALF_PI_PARTS
     s1, s2, s3, s4, s5, s6 = SIN_COEFFICIENTS
     c1, c2, c3, c4, c5, c6 = COS_COEFFICIENTS

@@ -30,9 +30,10 @@ def standard_normal(shape: Sequence[int], generator: torch.Generator, backend: s
     """Standard normal draws [shape] (float32) on the generator's device, for the targets' noise.
 
     On the CPU they are counter-based draws from one seed drawn from `generator`, a pure function of
-    that seed: with `numba` the kernel `cpu.standard_normals`, vectorised and threaded, about 3.5×
-    faster than `torch.randn`, which draws from one sequential generator; otherwise its reference,
-    the same numbers to float32 rounding. Elsewhere they are `torch.randn`'s.
+    that seed: with `numba` the kernel `cpu.standard_normals`, vectorised and threaded, faster than
+    `torch.randn`, which draws from one sequential generator (docs/performance.md, "Measured
+    choices"); otherwise its reference, the same numbers to float32 rounding. Elsewhere they are
+    `torch.randn`'s.
     """
     if generator.device.type != "cpu":
         return torch.randn(tuple(shape), generator=generator, device=generator.device)
@@ -50,7 +51,7 @@ def standard_normal(shape: Sequence[int], generator: torch.Generator, backend: s
 def noisy_targets(targets: Tensor, standard_normal: Tensor, level: float) -> Tensor:
     """`T̃ = T + level·(max T − min T)·N(0,1)`, range taken per plane over [C, H, W]."""
     planes = targets.flatten(1)
-    spread = planes.amax(dim=1) - planes.amin(dim=1)  # 10× faster here than torch.aminmax along a dim
+    spread = planes.amax(dim=1) - planes.amin(dim=1)  # faster than torch.aminmax along a dim (docs/performance.md)
     return torch.addcmul(targets, (level * spread).view(-1, 1, 1, 1), standard_normal)
 
 

@@ -102,8 +102,8 @@ def standard_normals(seed, out):
 def _run_sums(rows, runs):
     """Sums [runs, K] (float64) of rows [runs·n, K] over each run of n consecutive rows, each added in
     the order of its rows, as `rows.reshape(runs, n, K).sum(axis=1)` adds them. Without fastmath, so
-    LLVM keeps that order. (NumPy's sum over an axis compiles 2.7 s of Numba's library functions,
-    most of them for the error messages of its axis check.)"""
+    LLVM keeps that order. (NumPy's sum over an axis compiles many of Numba's library functions,
+    most of them for the error messages of its axis check; docs/performance.md, "First run".)"""
     length = rows.shape[0] // runs
     sums = np.zeros((runs, rows.shape[1]))
     for run in range(runs):
@@ -208,7 +208,7 @@ def ssim_forward(x, y, taps, c1, c2, d_mean_x, d_mean_xx, d_mean_xy):
     positions [h, w] = [H − K + 1, W − K + 1] of the K-tap separable blur (K = SSIM_TAPS).
 
     Each of SSIM_TASKS tasks takes a run of output rows (`_task_rows`), with its row buffers allocated
-    once (per row, the allocations cost about a tenth of the kernel). For one row it sums
+    once: allocations per row slowed the kernel (docs/performance.md). For one row it sums
     the K input rows under the window into one row of column sums per moment (x, y, x², y², xy,
     formed on the fly), filters those along x, and turns the five blurred moments into the map
     (`_ssim_row`): SSIM = a1·a2 / (b1·b2) with a1 = 2μxμy + c1, b1 = μx² + μy² + c1,

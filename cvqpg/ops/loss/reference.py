@@ -52,7 +52,7 @@ def ssim_window(channels: int, dtype: torch.dtype, device: torch.device) -> Tens
 
 def ssim_per_plane(recon: Tensor, targets: Tensor) -> Tensor:
     """SSIM [M] of [M, C, H, W] images (pytorch-msssim), Gaussian window 11 px, σ 1.5 px, data range 1."""
-    # oneDNN's depthwise 1×11 convolutions cost 3× PyTorch's own on one channel.
+    # oneDNN's depthwise 1×11 convolutions are slower than PyTorch's own (docs/performance.md, "Measured choices").
     with _without_onednn():
         return ssim(recon, targets, data_range=1.0, size_average=False,
                     win=ssim_window(recon.shape[1], recon.dtype, recon.device))

@@ -47,7 +47,7 @@ def _placed(values: Tensor, length: int, offset: int, fused: bool, conjugate: bo
 
 def _copy(values: Tensor, out: Tensor, fused: bool, conjugate: bool = False) -> None:
     """out = values, or their conjugates, for [R, N] arrays either of which may be a view into a wider
-    array (PyTorch copies such views on one thread: 1 ms for a 768×960 field here)."""
+    array (PyTorch copies such views on one thread; docs/performance.md, "Measured choices")."""
     if fused:
         cpu.copy_rows(values.numpy(), out.numpy(), conjugate)
     else:
@@ -125,8 +125,9 @@ class _ContentPropagation(torch.autograd.Function):
     needs: the forward transform's x pass runs over the P_H rows that hold the field (of 2P_H), each
     inverse's x pass only over the H content rows it returns, and the same holds for the adjoint,
     whose input is the content and whose output the field. The y passes run over all 2P_W columns.
-    That is about 0.4 of the 2D transforms' arithmetic (0.6 of their time on the development machine,
-    docs/performance.md), and the result is the same to float32 rounding.
+    That is about 0.4 of the 2D transforms' arithmetic (their share of the time is the "pruned
+    transforms alone" line of `benchmarks/step.py`, docs/performance.md), and the result is the same
+    to float32 rounding.
 
     Between the two x passes everything works on blocks of `SPECTRUM_BLOCK_ROWS` spectrum rows (f_x):
     transpose in, y transform, transfer product, inverse y transform, transpose out, while the block
@@ -156,7 +157,7 @@ class _ContentPropagation(torch.autograd.Function):
                 for plane in range(planes):
                     _transpose(torch.fft.ifft(filtered[plane])[:, top:top + grid.height], along_y[plane, :, block],
                                fused)
-            for plane in range(planes):  # one 2D batch each: MKL runs a 3D batch several times slower
+            for plane in range(planes):  # one 2D batch each: MKL runs a 3D batch slower (docs/performance.md)
                 _copy(torch.fft.ifft(along_y[plane])[:, left:left + grid.width], content[plane, channel], fused)
         ctx.grid, ctx.bank, ctx.field_shape, ctx.fused = grid, bank, field.shape, fused
         return content

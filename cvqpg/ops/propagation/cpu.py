@@ -1,9 +1,9 @@
 """The pruned propagation's CPU kernels (Numba): copies, transposes and transfer products (SPEC §3).
 
 `propagate_content` calls them with `fused` on (the `numba` backend), and PyTorch's operations
-otherwise. The transpose moves the propagation's arrays between row and column layout (PyTorch's
-strided copies take about twice as long), and the products apply transfer functions kept as half of
-their rows.
+otherwise. The transpose moves the propagation's arrays between row and column layout (in less time
+than PyTorch's strided copies: docs/performance.md, "Measured choices"), and the products apply
+transfer functions kept as half of their rows.
 """
 
 from __future__ import annotations

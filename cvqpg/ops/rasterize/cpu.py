@@ -17,9 +17,9 @@ keep G and H for every column of the footprint's bounding box and every channel 
 (`vectors.Float32x8`), and a strip of them walks down the box's rows with G and H in registers: add
 G masked to the row's span, then G ← G·H and H ← H + H·(Q − 1) (`_stepped_down`). Per row only the
 image is read and written (in loops over lane arrays LLVM cannot prove that G and H do not
-overlap the image, stores them back on every row and takes 13–24% more time). The forward pass
-walks two vectors at once, so that their chains of complex products overlap. The lanes start on
-the box's first row from six exponentials per channel, walked along the row in float64, four
+overlap the image and stores them back on every row, which takes longer; docs/performance.md). The
+forward pass walks two vectors at once, so that their chains of complex products overlap. The lanes
+start on the box's first row from six exponentials per channel, walked along the row in float64, four
 channels at a time as vectors (`_walk_along_row`); the channels share their magnitudes, and their
 angles go through one vectorised cos/sin (`cosines_and_sines`).
 Lanes hold primitives whose values stay inside float32's range over the box, ½D² ≤
@@ -47,8 +47,8 @@ and each primitive's gradients are written by that thread alone. Both compile wi
 their loops over the primitives without Numba's reference counting (`WITHOUT_REFERENCE_COUNTS`).
 The small helpers that run once per primitive are inlined into those loops (`inline="always"`): a
 call hands over every array argument field by field, through memory. The table builders and the
-walks stay calls: inlining them too takes the kernels' first compilation from 39 s to 52–59 s here,
-more than a first fit would save.
+walks stay calls: inlining them too lengthens the kernels' first compilation by more than a first
+fit would save (docs/performance.md, "Tried and not kept").
 """
 
 from __future__ import annotations
@@ -170,7 +170,7 @@ LOCALITY_BAND_PX = 16
 def locality_order(position, height, width):
     """An order of the primitives by bands of LOCALITY_BAND_PX rows, then by column (a counting sort on
     the centre's band and nearest column, both clamped around the image): primitives that follow one
-    another touch nearby memory, which takes a sixth off both kernels' time at 640×480."""
+    another touch nearby memory, which shortens both kernels' time (docs/performance.md)."""
     bands, columns = height // LOCALITY_BAND_PX + 3, 3 * width + 1
     keys = np.empty(position.shape[0], np.int64)
     counts = np.zeros(bands * columns + 1, np.int64)
@@ -752,9 +752,10 @@ def _splat_share(t, threads, order, position, conic, reach, chirp, color, phase,
 
 
 # Numba's runtime counts the references to every array that enters an inlined function, with an
-# atomic increment and decrement per array and call: about 50 per primitive, which cost 15–20% of
-# either kernel's time. The loops over the primitives compile without it (Numba 0.68's `_nrt` option),
-# which leaves those counts out; such a function cannot allocate, so its caller passes in its arrays.
+# atomic increment and decrement per array and call: about 50 per primitive, which slow either kernel
+# (docs/performance.md, "Around the kernels"). The loops over the primitives compile without it (Numba
+# 0.68's `_nrt` option), which leaves those counts out; such a function cannot allocate, so its caller
+# passes in its arrays.
 WITHOUT_REFERENCE_COUNTS = {"_nrt": False}
 
 
@@ -762,17 +763,18 @@ WITHOUT_REFERENCE_COUNTS = {"_nrt": False}
 def _splat_loop(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                 out_re, out_im, image_re, image_im, lefts, rights, spans, lanes, scratch):
     """`_splat_share`'s loop: a plain loop into which each primitive's work is inlined (a call per
-    primitive cost about a tenth of the kernels' time, and Numba 0.68 miscompiles that work inlined
-    into the parallel loop). `image_re`, `image_im` are `out_re`, `out_im` as flat arrays, which the
-    strips index: reshaped once here, not per primitive (a call into Numba's helper library each)."""
+    primitive would hand over every array field by field, docs/performance.md, and Numba 0.68
+    miscompiles that work inlined into the parallel loop). `image_re`, `image_im` are `out_re`,
+    `out_im` as flat arrays, which the strips index: reshaped once here, not per primitive (a call
+    into Numba's helper library each)."""
     for i in range(t, position.shape[0], threads):
         _splat_one(order[i], position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
                    out_re, out_im, image_re, image_im, lefts, rights, spans, lanes, scratch)
 
 
 # A prange index is int64 where Numba first types a parallel function and uint64 in the loop body it
-# compiles from it: a function called with the bare index compiles twice (for the rasterizer's loops,
-# an eighth of a fit's first compilation). The parallel loops hand it on as np.int64.
+# compiles from it: a function called with the bare index compiles twice (the rasterizer's loops did:
+# docs/performance.md, "First run"). The parallel loops hand it on as np.int64.
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
