@@ -14,6 +14,7 @@ from types import SimpleNamespace
 import pytest
 from numba.core import event
 from numba.core.dispatcher import Dispatcher
+from numba.core.types import UniTuple
 
 from cvqpg import compilation
 from cvqpg.ops.field import cpu as field_kernels
@@ -66,7 +67,19 @@ def test_the_rasterizer_kernels_are_compiled_from_the_types_a_fit_calls_them_wit
 
 
 def test_the_probe_serves_more_planes_than_the_demo_depth_separates():
-    compile_kernels(FitConfig(num_planes=5, color="gray"))  # the demo's depth at the probe's size separates 3
+    config = FitConfig(num_planes=5, color="gray")
+    probe = compilation.probe_config(config)
+    demo = builtin_scene("demo", probe.width, probe.height)
+    with pytest.raises(ValueError, match="separates only 3"):  # the demo's own depth at the probe's size
+        load_scene(demo.image, demo.depth, probe)
+    scene = compilation.probe_scene(probe)
+    assert scene.masks.shape[0] == 5 and all(mask.any() for mask in scene.masks)
+    compile_kernels(config)
+    # The propagation takes a tuple of one array per plane: the probe compiled the five-plane kernels.
+    mirrored = (propagation_kernels.mirrored_products, propagation_kernels.mirrored_sum)
+    planes_held = {argument.count for kernel in mirrored for signature in kernel.signatures
+                   for argument in signature if isinstance(argument, UniTuple)}
+    assert 5 in planes_held, planes_held
 
 
 class SkippingClock:
