@@ -45,6 +45,7 @@ KINDS = pytest.mark.parametrize("config", [FitConfig(width=48, height=36, steps=
                                 ids=["demo", "gray-flat-one-plane", "per-channel"])
 
 
+@pytest.mark.slow
 @KINDS
 def test_after_the_probe_a_fit_needs_no_other_kernel_specialisation(config):
     compile_kernels(config)
@@ -275,6 +276,7 @@ def test_an_interrupted_block_stops_the_helper_processes_instead_of_waiting(tmp_
     assert alongside.processes[0].returncode == -signal.SIGTERM
 
 
+@pytest.mark.slow
 def test_the_alongside_process_compiles_its_parts():
     probe = compilation.probe_config(FitConfig(width=48, height=36))
     done = subprocess.run(compilation.alongside_command(probe), capture_output=True, text=True, timeout=600)

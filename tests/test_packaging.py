@@ -60,6 +60,7 @@ def resolve(python: Path, requirements: list[str], links: Path) -> list[tuple[st
     return [(item["metadata"]["name"], item["metadata"]["version"]) for item in json.loads(done.stdout)["install"]]
 
 
+@pytest.mark.slow
 def test_installing_beside_another_supported_torch_keeps_that_torch(tmp_path):
     python = environment_with_torch(tmp_path / "env", OTHER_TORCH)
     links = torch_wheel(tmp_path / "links", NEWER_TORCH)  # a newer torch on offer, as on PyPI
