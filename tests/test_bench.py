@@ -17,6 +17,7 @@ from PIL import Image
 from cvqpg.campaign.bench import (DONE, INTERRUPTED, BenchError, Overrides, cell_status, make_plan, parse_shard, run_cell,
                          run_plan)
 from cvqpg.cli import main
+from cvqpg import provenance
 from cvqpg.metrics import radial_error_spectrum
 from cvqpg.campaign.report import CellResult, cells_table, devices_line, main_table, paper_numbers, seed_tables
 from cvqpg.runs import start_run
@@ -32,6 +33,7 @@ def quick_bench(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_quick_preset_writes_tables_figures_and_report(quick_bench):
     plan = make_plan("quick", quick_bench)
     assert len(plan.cells) == 4 and {c.method for c in plan.cells} == {"baseline", "cvqpg"}
@@ -62,6 +64,7 @@ def test_quick_preset_writes_tables_figures_and_report(quick_bench):
     assert all((quick_bench / image).is_file() for image in images) and report.count("<table>") >= 3
 
 
+@pytest.mark.slow
 def test_rerun_skips_finished_cells_and_summary_only_fits_nothing(quick_bench, capsys):
     stamps = {p: p.stat().st_mtime_ns for p in quick_bench.glob("cells/*/metrics.json")}
     assert len(stamps) == 4
@@ -73,12 +76,14 @@ def test_rerun_skips_finished_cells_and_summary_only_fits_nothing(quick_bench, c
     assert {p: p.stat().st_mtime_ns for p in quick_bench.glob("cells/*/metrics.json")} == stamps
 
 
+@pytest.mark.slow
 def test_finished_cells_with_other_settings_are_refused(quick_bench, capsys):
     assert main(["bench", "--preset", "quick", "--out", str(quick_bench), "--steps", "5", "--quiet"]) == 2
     error = capsys.readouterr().err
     assert "fitted with other settings" in error and "steps=60" in error and error.count("\n") == 1
 
 
+@pytest.mark.slow
 def test_report_links_cells_that_have_a_view_page(quick_bench):
     plan = make_plan("quick", quick_bench)
     viewed, *others = plan.cells
@@ -138,6 +143,7 @@ def test_chromatic_preset_compares_at_equal_n_and_at_per_channel_parameter_count
     assert curvatures["cvqpg+pc"] == ("cvqpg", "shared") and curvatures["baseline+pc"][0] == "flat"
 
 
+@pytest.mark.slow
 def test_chromatic_bench_reports_variants_and_per_channel_spectra(tmp_path):
     root = tmp_path / "scenes" / "noise"
     root.mkdir(parents=True)
@@ -158,6 +164,7 @@ def test_chromatic_bench_reports_variants_and_per_channel_spectra(tmp_path):
     assert "blue: peak ΔMSE of CVQPG, γ per channel over CVQPG" in summary
 
 
+@pytest.mark.slow
 def test_partial_files_do_not_mark_a_cell_done_and_it_restarts(tmp_path):
     plan = make_plan("star", tmp_path / "bench", Overrides(**TINY_STAR))
     cell = plan.cells[0]
@@ -171,6 +178,7 @@ def test_partial_files_do_not_mark_a_cell_done_and_it_restarts(tmp_path):
     assert json.loads((folder / "metrics.json").read_text())["updates"] == 4
 
 
+@pytest.mark.slow
 def test_interrupted_cell_resumes_from_its_checkpoint_to_the_same_result(tmp_path):
     overrides = Overrides(size=(48, 36), steps=8, curvature_warmup=2, methods=["cvqpg"])
     plan, reference = (make_plan("star", tmp_path / name, overrides) for name in ("bench", "reference"))
@@ -186,6 +194,7 @@ def test_interrupted_cell_resumes_from_its_checkpoint_to_the_same_result(tmp_pat
     assert resumed["mean"] == fresh["mean"] and resumed["updates"] == 9
 
 
+@pytest.mark.slow
 def test_a_cell_checkpointed_on_another_device_restarts_from_step_0(tmp_path, caplog):
     plan = make_plan("star", tmp_path / "bench", Overrides(**TINY_STAR))
     cell = plan.cells[0]
@@ -200,6 +209,7 @@ def test_a_cell_checkpointed_on_another_device_restarts_from_step_0(tmp_path, ca
     assert "written on cuda" in caplog.text and "restarts from step 0" in caplog.text
 
 
+@pytest.mark.slow
 def test_jobs_run_cells_in_worker_processes(tmp_path):
     plan = make_plan("quick", tmp_path / "bench", Overrides(size=(48, 36), steps=2))
     outcome = run_plan(plan, jobs=2, progress=False)
@@ -327,18 +337,45 @@ TINY_PAPER = {"size": (48, 36), "steps": 2, "curvature_warmup": 1, "colors": ["g
               "scene_names": ["sushi", "tiger"]}
 
 
+@pytest.mark.slow
 def test_every_cell_records_commit_machine_threads_time_and_peak_memory(tmp_path):
     plan = make_plan("star", tmp_path / "bench", Overrides(**TINY_STAR))
     run_plan(plan, progress=False)
     metrics = json.loads((plan.cell_dir(plan.cells[0]) / "metrics.json").read_text())
     run = metrics["run"]
-    assert run["commit"] is None or re.fullmatch(r"[0-9a-f]{40}(\+dirty)?", run["commit"])
+    assert run["commit"] == provenance.IMPORTED_COMMIT  # the code this process imported (see the next test)
     assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\+00:00", run["date"])
     assert run["device"].startswith("cpu: ") and len(run["device"]) > 5
     assert run["torch_threads"] >= 1 and run["numba_threads"] >= 1 and run["torch"] == torch.__version__
     assert run["loop_seconds"] == metrics["seconds"] > 0
     # a process that imported torch and ran a fit holds well over 50 MB resident
     assert run["peak_memory_bytes"] > 50 * 2**20 and run["peak_memory_kind"] in ("rss", "rss-process")
+
+
+def git(folder: Path, *args: str) -> str:
+    return subprocess.run(["git", "-C", str(folder), "-c", "user.name=test", "-c", "user.email=test@example.org",
+                           *args], capture_output=True, text=True, check=True).stdout.strip()
+
+
+def test_the_commit_is_head_dirty_after_changes_to_the_package_and_none_outside_git(tmp_path, monkeypatch):
+    package = tmp_path / "checkout" / "cvqpg"
+    package.mkdir(parents=True)
+    (package / "code.py").write_text("one = 1\n")
+    (package.parent / "README.md").write_text("notes\n")
+    git(package.parent, "init", "--quiet")
+    git(package.parent, "add", ".")
+    git(package.parent, "commit", "--quiet", "-m", "first")
+    head = git(package.parent, "rev-parse", "HEAD")
+    monkeypatch.setattr(provenance, "PACKAGE_ROOT", package)
+    assert re.fullmatch(r"[0-9a-f]{40}", head) and provenance.checkout_commit() == head
+    (package.parent / "README.md").write_text("other notes\n")  # outside the package
+    (package / "new.py").write_text("")  # untracked
+    assert provenance.checkout_commit() == head
+    (package / "code.py").write_text("one = 2\n")
+    assert provenance.checkout_commit() == f"{head}+dirty"
+    monkeypatch.setattr(provenance, "PACKAGE_ROOT", tmp_path / "installed" / "cvqpg")  # a wheel's: no git
+    provenance.PACKAGE_ROOT.mkdir(parents=True)
+    assert provenance.checkout_commit() is None
 
 
 FREED_BEFORE_THE_FIT = """
@@ -356,6 +393,7 @@ print((peak_memory(cpu)["peak_memory_bytes"] - before) / 2**20)
 """
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/clear_refs").exists(), reason="the peak RSS resets on Linux only")
 def test_memory_freed_before_a_fit_is_not_counted_in_its_peak():
     # a bench process fits its cells one after another, and glibc keeps what each frees
@@ -363,6 +401,7 @@ def test_memory_freed_before_a_fit_is_not_counted_in_its_peak():
     assert float(done.stdout) < 64, done.stdout
 
 
+@pytest.mark.slow
 def test_a_recorded_folder_rebuilds_its_tables_without_run_folders_or_scene_files(scenes_dir, tmp_path, capsys):
     fitted = tmp_path / "fitted"
     arguments = ["--preset", "paper", "--methods", "baseline", "cvqpg", "--size", "48", "36", "--steps", "2",
@@ -389,6 +428,7 @@ def test_a_recorded_folder_rebuilds_its_tables_without_run_folders_or_scene_file
     assert "compare_" not in (recorded / "report.html").read_text()
 
 
+@pytest.mark.slow
 def test_cells_finished_in_another_grid_are_reused_not_refitted(scenes_dir, tmp_path, capsys):
     table1, ablation = tmp_path / "paper", tmp_path / "ablation"
     common = ["--scenes", str(scenes_dir), "--size", "48", "36", "--steps", "2", "--curvature-warmup", "1", "--ratios", "0.1",

@@ -40,6 +40,7 @@ def test_fit_writes_the_whole_run_folder(demo_run):
     assert Image.open(demo_run / "recon_plane1.png").size == (48, 36)
 
 
+@pytest.mark.slow
 def test_fewer_steps_scale_the_warm_up_as_the_paper_does(tmp_path):
     """The README's demo command sets --steps alone: the warm-up follows (400 of 2000 → steps/5)."""
     out = tmp_path / "short"
@@ -56,6 +57,7 @@ def test_eval_recomputes_the_saved_metrics(demo_run, capsys):
     assert "PSNR" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_fit_on_image_and_depth_files(tmp_path):
     rng = np.random.default_rng(0)
     Image.fromarray(rng.integers(0, 256, (30, 40, 3), dtype=np.uint8)).save(tmp_path / "photo.jpg")
@@ -69,6 +71,7 @@ def test_fit_on_image_and_depth_files(tmp_path):
     assert config["source"]["depth"].endswith("d.png")
 
 
+@pytest.mark.slow
 def test_per_channel_curvature_is_a_fit_option_and_counts_its_parameters(tmp_path, capsys):
     out = tmp_path / "chromatic"
     assert main(["fit", "--curvature", "per-channel", *SMALL, "--out", str(out)]) == 0
@@ -83,6 +86,7 @@ def test_per_channel_curvature_is_a_fit_option_and_counts_its_parameters(tmp_pat
     assert exited.value.code == 2 and "invalid choice: 'rainbow'" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_star_scene_runs_single_plane_grayscale(tmp_path):
     out = tmp_path / "star"
     assert main(["fit", "--scene", "star", *SMALL, "--out", str(out)]) == 0
@@ -135,6 +139,7 @@ def test_every_command_prints_its_help(command, capsys):
     assert f"usage: cvqpg {command}" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_resume_checks_the_recorded_device_before_writing(tmp_path, capsys, monkeypatch):
     out = tmp_path / "run"
     assert main(["fit", *SMALL, "--checkpoint-every", "1", "--out", str(out)]) == 0
@@ -149,6 +154,7 @@ def test_resume_checks_the_recorded_device_before_writing(tmp_path, capsys, monk
     assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
 
 
+@pytest.mark.slow
 def test_a_checkpoint_from_another_device_is_refused_with_its_device_named(tmp_path, capsys):
     out = tmp_path / "run"
     assert main(["fit", *SMALL, "--out", str(out)]) == 0

@@ -3,13 +3,18 @@ the fit's, and a compile that takes a while shows a status line."""
 
 import io
 import json
+import signal
 import subprocess
 import sys
+import threading
 import time
+from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from numba.core import event
 from numba.core.dispatcher import Dispatcher
+from numba.core.types import UniTuple
 
 from cvqpg import compilation
 from cvqpg.ops.field import cpu as field_kernels
@@ -40,6 +45,7 @@ KINDS = pytest.mark.parametrize("config", [FitConfig(width=48, height=36, steps=
                                 ids=["demo", "gray-flat-one-plane", "per-channel"])
 
 
+@pytest.mark.slow
 @KINDS
 def test_after_the_probe_a_fit_needs_no_other_kernel_specialisation(config):
     compile_kernels(config)
@@ -62,15 +68,43 @@ def test_the_rasterizer_kernels_are_compiled_from_the_types_a_fit_calls_them_wit
 
 
 def test_the_probe_serves_more_planes_than_the_demo_depth_separates():
-    compile_kernels(FitConfig(num_planes=5, color="gray"))  # the demo's depth at the probe's size separates 3
+    config = FitConfig(num_planes=5, color="gray")
+    probe = compilation.probe_config(config)
+    demo = builtin_scene("demo", probe.width, probe.height)
+    with pytest.raises(ValueError, match="separates only 3"):  # the demo's own depth at the probe's size
+        load_scene(demo.image, demo.depth, probe)
+    scene = compilation.probe_scene(probe)
+    assert scene.masks.shape[0] == 5 and all(mask.any() for mask in scene.masks)
+    compile_kernels(config)
+    # The propagation takes a tuple of one array per plane: the probe compiled the five-plane kernels.
+    mirrored = (propagation_kernels.mirrored_products, propagation_kernels.mirrored_sum)
+    planes_held = {argument.count for kernel in mirrored for signature in kernel.signatures
+                   for argument in signature if isinstance(argument, UniTuple)}
+    assert 5 in planes_held, planes_held
+
+
+class SkippingClock:
+    """`time.perf_counter` that a test can move forward at once, as if that much time had passed."""
+
+    def __init__(self, clock=time.perf_counter) -> None:
+        self.clock = clock
+        self.skipped = 0.0
+
+    def __call__(self) -> float:
+        return self.clock() + self.skipped
+
+
+COMPILE_SECONDS = 1000.0  # far longer than the fit below, however slow the machine
 
 
 def test_compile_time_is_reported_apart_from_the_fit(tmp_path, monkeypatch):
+    clock = SkippingClock()
+    monkeypatch.setattr(time, "perf_counter", clock)  # every module's clock, the fit's included
     compiled_at = []
 
     def slow_compile(config):
         compile_kernels(config)
-        time.sleep(2.0)
+        clock.skipped += COMPILE_SECONDS
         compiled_at.append(time.perf_counter())
 
     monkeypatch.setattr(compilation, "compile_kernels", slow_compile)
@@ -78,41 +112,120 @@ def test_compile_time_is_reported_apart_from_the_fit(tmp_path, monkeypatch):
     assert main(["fit", "--size", "48", "36", "--steps", "1", "--quiet", "--out", str(out)]) == 0
     after_fit = time.perf_counter()
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["run"]["compile_seconds"] >= 2.0
-    assert metrics["seconds"] == metrics["run"]["loop_seconds"] <= after_fit - compiled_at[0]
+    assert len(compiled_at) == 1 and metrics["run"]["compile_seconds"] >= COMPILE_SECONDS
+    assert metrics["seconds"] == metrics["run"]["loop_seconds"] <= after_fit - compiled_at[0] < COMPILE_SECONDS
 
 
-class Terminal(io.StringIO):
+class FrozenClock:
+    """The clock `CompileStatus` reads, standing still until the test moves it."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def perf_counter(self) -> float:
+        return self.now
+
+
+class Stream(io.StringIO):
+    """A status stream that lets the test wait for its `count`-th write; `on_write` runs after each."""
+
+    def __init__(self, on_write=lambda: None) -> None:
+        super().__init__()
+        self.on_write = on_write
+        self.writes = 0
+        self.changed = threading.Condition()
+
+    def write(self, text: str) -> int:
+        written = super().write(text)
+        self.on_write()
+        with self.changed:
+            self.writes += 1
+            self.changed.notify_all()
+        return written
+
+    def wait_for_writes(self, count: int) -> None:
+        with self.changed:
+            assert self.changed.wait_for(lambda: self.writes >= count, timeout=60), self.getvalue()
+
+
+class Terminal(Stream):
     def isatty(self):
         return True
 
 
-def compile_for(seconds, stream):
-    with CompileStatus(stream) as status:
+def compilation_line(seconds: float) -> str:
+    return (f"compiling CPU kernels (first run only, about {compilation.COMPILE_ESTIMATE_SECONDS} s on 2 cores): "
+            f"{seconds:.0f} s")
+
+
+@pytest.fixture
+def frozen_clock(monkeypatch) -> FrozenClock:
+    clock = FrozenClock()
+    monkeypatch.setattr(compilation, "time", clock)
+    return clock
+
+
+def test_a_compile_shows_a_status_line_counting_the_seconds_on_a_terminal(frozen_clock):
+    def second_passes():  # one second between the redraws, on the status line's clock
+        frozen_clock.now += 1.0
+
+    terminal = Terminal(on_write=second_passes)
+    with CompileStatus(terminal) as status:
         with event.trigger_event("numba:compile", data={}):
-            time.sleep(seconds)
-    return status, stream.getvalue()
+            terminal.wait_for_writes(3)
+    redrawn = terminal.getvalue().split("\r")[1:]
+    *counting, last = redrawn
+    assert len(counting) >= 3 and counting == [compilation_line(seconds) for seconds in range(len(counting))]
+    assert status.seconds >= 3 and last == f"{compilation_line(status.seconds)}, done\n"
 
 
-def test_a_compile_shows_a_status_line_counting_the_seconds_on_a_terminal():
-    status, shown = compile_for(2.5, Terminal())
-    redrawn = shown.split("\r")[1:]
-    assert len(redrawn) >= 3 and all(line.startswith("compiling CPU kernels (first run only, about") for line in redrawn)
-    assert shown.endswith(f"{status.seconds:.0f} s, done\n")
+def test_a_log_file_gets_the_status_once_and_the_total(frozen_clock):
+    log = Stream()
+    with CompileStatus(log) as status:
+        with event.trigger_event("numba:compile", data={}):
+            log.wait_for_writes(1)
+            frozen_clock.now += 7.0  # the compile goes on for 7 s after the line was written
+    assert status.seconds == 7.0
+    assert log.getvalue() == f"{compilation_line(0)}\n{compilation_line(7)}, done\n"
 
 
-def test_a_log_file_gets_the_status_once_and_the_total():
-    status, shown = compile_for(2.5, io.StringIO())
-    first, last = shown.splitlines()
-    assert first.startswith("compiling CPU kernels (first run only, about") and first.endswith(": 0 s")
-    assert last.endswith(f"{status.seconds:.0f} s, done") and "\r" not in shown
+class Polls:
+    """`threading.Event`s (`event`) that count the waits that ended unset, so that a test can wait
+    until a thread has looked at them a given number of times and found them unset."""
+
+    def __init__(self) -> None:
+        self.unset = 0
+        self.changed = threading.Condition()
+
+    def event(self) -> threading.Event:
+        polls = self
+
+        class PolledEvent(threading.Event):
+            def wait(self, timeout=None) -> bool:
+                is_set = super().wait(timeout)
+                if not is_set:
+                    with polls.changed:
+                        polls.unset += 1
+                        polls.changed.notify_all()
+                return is_set
+
+        return PolledEvent()
+
+    def wait_for(self, count: int) -> None:
+        with self.changed:
+            assert self.changed.wait_for(lambda: self.unset >= count, timeout=60), self.unset
 
 
-def test_a_slow_cache_load_shows_nothing():
-    stream = io.StringIO()
-    with CompileStatus(stream):
-        time.sleep(1.5)
-    assert stream.getvalue() == ""
+@pytest.mark.parametrize("stream", [Terminal, Stream], ids=["terminal", "log file"])
+def test_a_slow_cache_load_shows_nothing(stream, frozen_clock, monkeypatch):
+    """A load from Numba's cache raises no compile event: however long it takes, no line appears."""
+    polls = Polls()
+    monkeypatch.setattr(compilation, "threading", SimpleNamespace(Event=polls.event, Thread=threading.Thread))
+    shown = stream()
+    with CompileStatus(shown) as status:
+        frozen_clock.now += 60.0  # a minute of loading, on the status line's clock
+        polls.wait_for(3)  # the status thread looked for a compile three times since, and saw none
+    assert status.seconds == 60.0 and shown.writes == 0 and shown.getvalue() == ""
 
 
 def test_warmup_command_compiles_every_kind(capsys):
@@ -120,37 +233,50 @@ def test_warmup_command_compiles_every_kind(capsys):
     assert "CPU kernels compiled and cached" in capsys.readouterr().out
 
 
-def sleeping(seconds: float) -> list[str]:
-    return [sys.executable, "-c", f"import time; time.sleep({seconds})"]
+def held_at(gate: Path, give_up_seconds: float | None = None) -> list[str]:
+    """A helper process that waits until the test creates `gate`, then exits 0; with `give_up_seconds`,
+    one that exits 3 after that long without the gate (so that a block that wrongly waits ends)."""
+    return [sys.executable, "-c", "import os, sys, time\n"
+            "deadline = None if sys.argv[2] == 'None' else time.monotonic() + float(sys.argv[2])\n"
+            "while not os.path.exists(sys.argv[1]):\n"
+            "    if deadline is not None and time.monotonic() > deadline:\n"
+            "        sys.exit(3)\n"
+            "    time.sleep(0.01)\n", str(gate), str(give_up_seconds)]
 
 
-def test_a_compile_starts_the_helper_processes_and_the_block_waits_for_them():
-    with CompileAlongside([sleeping(1.0), sleeping(0.5)]) as alongside:
+def test_a_compile_starts_the_helper_processes_and_the_block_waits_for_them(tmp_path):
+    gate = tmp_path / "gate"
+    with CompileAlongside([held_at(gate), held_at(gate)]) as alongside:
+        assert alongside.processes == []
         with event.trigger_event("numba:compile", data={}):
             pass
         with event.trigger_event("numba:compile", data={}):
             pass  # a second compile starts no more processes
         started = list(alongside.processes)
-    assert len(started) == 2 and all(process.returncode == 0 for process in started)
+        assert len(started) == 2 and all(process.poll() is None for process in started)  # held at the gate
+        gate.touch()
+    # Only `wait` (or `poll`) sets a Popen's returncode: the block's end reaped both, let through the gate.
+    assert [process.returncode for process in started] == [0, 0]
 
 
 def test_without_a_compile_no_helper_process_starts():
     compile_kernels(FitConfig(width=48, height=36))
-    with CompileAlongside([sleeping(1.0)]) as alongside:
+    with CompileAlongside([[sys.executable, "-c", "pass"]]) as alongside:
         compile_kernels(FitConfig(width=48, height=36), alongside=False)  # now loads from the cache
     assert alongside.processes == []
 
 
-def test_an_interrupted_block_stops_the_helper_processes_instead_of_waiting():
-    started = time.perf_counter()
+def test_an_interrupted_block_stops_the_helper_processes_instead_of_waiting(tmp_path):
     with pytest.raises(KeyboardInterrupt):
-        with CompileAlongside([sleeping(60.0)]) as alongside:
+        with CompileAlongside([held_at(tmp_path / "never", give_up_seconds=60)]) as alongside:
             with event.trigger_event("numba:compile", data={}):
                 pass
             raise KeyboardInterrupt
-    assert alongside.processes[0].returncode is not None and time.perf_counter() - started < 30.0
+    # Terminated at the gate: waiting would have let it run to its own end (status 3).
+    assert alongside.processes[0].returncode == -signal.SIGTERM
 
 
+@pytest.mark.slow
 def test_the_alongside_process_compiles_its_parts():
     probe = compilation.probe_config(FitConfig(width=48, height=36))
     done = subprocess.run(compilation.alongside_command(probe), capture_output=True, text=True, timeout=600)

@@ -67,6 +67,7 @@ def test_map_has_the_image_size_spans_the_range_and_puts_the_largest_disparity_a
     assert values.flat[resized.argmax()] == 0 and values.flat[resized.argmin()] == DEPTH_LEVELS
 
 
+@pytest.mark.slow
 def test_fit_with_depth_auto_saves_the_map_and_repeats_with_it(model, photo, tmp_path, monkeypatch):
     monkeypatch.setattr(cli, "load_depth_model", lambda name: model)
     small = ["--size", "48", "36", "--steps", "1", "--quiet"]
@@ -87,6 +88,7 @@ def test_without_transformers_the_error_names_the_extra(monkeypatch):
         load_depth_model()
 
 
+@pytest.mark.slow
 def test_offline_without_cached_weights_fails_in_one_line_and_writes_nothing(photo, tmp_path):
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_HOME": str(tmp_path / "hf"), "PYTHONPATH": str(REPO)}
     out = tmp_path / "run"

@@ -25,6 +25,7 @@ def modes(folder):
     return {p.name: stat.S_IMODE(p.stat().st_mode) for p in folder.rglob("*") if p.is_file()}
 
 
+@pytest.mark.slow
 def test_every_file_of_a_run_follows_the_umask(tmp_path, umask):
     out = tmp_path / "run"
     assert main(["fit", "--size", "48", "36", "--steps", "2", "--curvature-warmup", "1", "--quiet", "--out", str(out),

@@ -16,6 +16,7 @@ from cvqpg.scenes import SCENES
 from cvqpg.targets import load_scene
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("color", ["rgb", "gray"])
 @pytest.mark.parametrize("primitive", ["flat", "cvqpg"])
 def test_short_demo_fit_raises_psnr_by_several_db(color, primitive):
@@ -33,6 +34,7 @@ def test_short_demo_fit_raises_psnr_by_several_db(color, primitive):
         assert torch.count_nonzero(result.gaussians.curvature) == 0
 
 
+@pytest.mark.slow
 def test_per_channel_curvature_learns_one_curvature_per_colour():
     config = FitConfig(width=64, height=48, curvature="per-channel", steps=120, curvature_warmup=30, guard_band_px=32)
     assert config.params_per_primitive == 15 and config.replace(curvature="shared").params_per_primitive == 13
@@ -44,6 +46,7 @@ def test_per_channel_curvature_learns_one_curvature_per_colour():
     assert result.history["psnr"][-1] - result.history["psnr"][0] > 3.0
 
 
+@pytest.mark.slow
 def test_same_seed_gives_bit_identical_parameters(tiny_config):
     scene = builtin_pictures("demo", tiny_config.width, tiny_config.height)
     first = fit(scene.image, scene.depth, tiny_config, progress=False)
@@ -54,7 +57,8 @@ def test_same_seed_gives_bit_identical_parameters(tiny_config):
     assert not torch.equal(first.gaussians.position, other.gaussians.position)
 
 
-@pytest.mark.parametrize("curvature", ["shared", "per-channel", "channel-bound"])
+@pytest.mark.parametrize("curvature", ["shared", pytest.param("per-channel", marks=pytest.mark.slow),
+                                       pytest.param("channel-bound", marks=pytest.mark.slow)])
 def test_saved_model_loads_and_renders_bit_identically(tiny_config, tmp_path, curvature):
     tiny_config = tiny_config.replace(curvature=curvature)
     scene = builtin_pictures("demo", tiny_config.width, tiny_config.height)

@@ -133,6 +133,7 @@ def test_needles_walked_from_each_rows_maximum_match_reference(qpf):
     assert_fused_matches_reference(prims, wavenumbers_for(config.wavelengths), qpf)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("curvature", ["shared", "per-channel", "channel-bound"])
 def test_parameter_gradients_through_activations_match(curvature):
     config = FitConfig(width=WIDTH, height=HEIGHT, curvature=curvature)
@@ -148,6 +149,7 @@ def test_parameter_gradients_through_activations_match(curvature):
         assert relative(got, want) < 1e-4, name
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
 @pytest.mark.parametrize("curvature", ["shared", "per-channel", "zero"])
 def test_fused_gradient_matches_finite_differences(curvature, qpf):
@@ -227,6 +229,7 @@ def test_auto_backend_picks_fused_kernels_on_cpu():
         resolve_backend("opengl", "cpu")
 
 
+@pytest.mark.slow
 def test_fit_with_fused_kernels_matches_the_reference_fit():
     config = FitConfig(width=48, height=36, steps=100, curvature_warmup=30, guard_band_px=32)
     builtin = builtin_pictures("demo", config.width, config.height)

@@ -30,6 +30,7 @@ def grids(module_scenes_dir, tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_a_compression_cell_takes_the_fit_from_another_grid_and_records_its_points(grids):
     fitted, cell = grids / "paper" / "cells" / CELL, grids / "rd" / "cells" / CELL
     assert not (cell / "model.safetensors").exists()  # not refitted
@@ -56,6 +57,7 @@ def test_a_compression_cell_takes_the_fit_from_another_grid_and_records_its_poin
         cell_summary(record)["fraction"])
 
 
+@pytest.mark.slow
 def test_summary_only_rebuilds_the_tables_from_the_records_alone(grids, tmp_path, capsys):
     recorded = tmp_path / "results" / "compression"
     (recorded / "cells" / CELL).mkdir(parents=True)
@@ -69,6 +71,7 @@ def test_summary_only_rebuilds_the_tables_from_the_records_alone(grids, tmp_path
     assert "0 done, 1 skipped" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_a_compression_cell_without_a_kept_fit_fits_it_first(module_scenes_dir, tmp_path):
     out = tmp_path / "rd"
     assert main(["bench", "--preset", "compression", "--scenes", str(module_scenes_dir), "--out", str(out),

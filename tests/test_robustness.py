@@ -70,12 +70,14 @@ def test_folder_instead_of_depth_file(tmp_path, photo, capsys):
     fails_cleanly(["fit", str(photo), "--depth", str(tmp_path), *SMALL], "is a folder", capsys, tmp_path / "r")
 
 
+@pytest.mark.slow
 def test_depth_of_other_size_is_resized_with_a_note(tmp_path, photo, capsys):
     depth = gradient_depth(tmp_path / "d.png", size=(96, 72))
     assert main(["fit", str(photo), "--depth", str(depth), *SMALL, "--out", str(tmp_path / "r")]) == 0
     assert "resized to match" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_depth_of_other_aspect_ratio_needs_resize_depth(tmp_path, photo, capsys):
     depth = gradient_depth(tmp_path / "d.png", size=(40, 40))
     fails_cleanly(["fit", str(photo), "--depth", str(depth), *SMALL], "--resize-depth", capsys, tmp_path / "r")
@@ -102,6 +104,7 @@ def test_float_depth_is_normalised(tmp_path):
     assert depth.min() == pytest.approx(0.0, abs=1e-3) and depth.max() == pytest.approx(1.0, abs=1e-3)
 
 
+@pytest.mark.slow
 def test_alpha_is_dropped_with_a_note(tmp_path, capsys):
     rgba = np.random.default_rng(0).integers(0, 256, (36, 48, 4), dtype=np.uint8)
     Image.fromarray(rgba, "RGBA").save(tmp_path / "a.png")
@@ -151,6 +154,7 @@ def finished_run(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damage, message", [
     ("version", "format version 2"),
     ("missing", "missing tensors curvature_per_m"),
@@ -209,6 +213,7 @@ def assert_same_model(run: Path, expected: dict) -> None:
     assert not (run / "checkpoint.pt").exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("signum, code", [(signal.SIGTERM, 128 + signal.SIGTERM),
                                           (signal.SIGINT, 128 + signal.SIGINT)])
 def test_signal_saves_a_checkpoint_and_resume_ends_bit_identical(tmp_path, uninterrupted, signum, code):
@@ -226,6 +231,7 @@ def test_signal_saves_a_checkpoint_and_resume_ends_bit_identical(tmp_path, unint
     assert_same_model(out, uninterrupted)
 
 
+@pytest.mark.slow
 def test_sigkill_leaves_the_previous_checkpoint_and_resume_ends_bit_identical(tmp_path, uninterrupted):
     out = tmp_path / "run"
     process = subprocess.Popen(cli_command(out, "--checkpoint-every", "1"), stderr=subprocess.PIPE, text=True)
@@ -239,6 +245,7 @@ def test_sigkill_leaves_the_previous_checkpoint_and_resume_ends_bit_identical(tm
     assert_same_model(out, uninterrupted)
 
 
+@pytest.mark.slow
 def test_resume_of_a_finished_run_changes_nothing(finished_run, capsys):
     before = (finished_run / "model.safetensors").read_bytes()
     assert main(["fit", "--resume", str(finished_run)]) == 0
@@ -316,6 +323,7 @@ def test_an_update_that_leaves_a_parameter_non_finite_is_undone_with_the_optimis
     assert_same_snapshot(before, optimiser_snapshot(state))
 
 
+@pytest.mark.slow
 def test_reading_steps_back_in_batches_gives_the_same_fit_and_counts(monkeypatch):
     """The CUDA cadence (steps queued, read back now and then) on the CPU, with a skipped step (non-finite
     loss) read back right after it: the same history, counts, parameters and `on_step` calls as reading
@@ -393,6 +401,7 @@ def test_non_finite_gradient_entries_are_zeroed_and_counted():
 extreme = st.floats(min_value=-1e4, max_value=1e4, allow_nan=False) | st.sampled_from([-80.0, 0.0, 80.0])
 
 
+@pytest.mark.slow
 @settings(max_examples=40, deadline=None)
 @given(data=st.data(), backend=st.sampled_from(["numba", "torch"]), qpf=st.sampled_from(["mahalanobis", "standard"]))
 def test_extreme_primitives_render_finite_fields_and_gradients(data, backend, qpf):
@@ -415,6 +424,7 @@ def test_extreme_primitives_render_finite_fields_and_gradients(data, backend, qp
         assert leaf.grad is not None and torch.isfinite(leaf.grad).all(), name
 
 
+@pytest.mark.slow
 def test_checkpoint_stays_until_the_finished_run_is_marked(tiny_config, tmp_path, monkeypatch):
     """A run killed while its files are written must resume, not restart: the checkpoint goes last."""
     builtin = builtin_pictures("demo", tiny_config.width, tiny_config.height)

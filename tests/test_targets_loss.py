@@ -318,6 +318,7 @@ def test_fast_ssim_matches_pytorch_msssim_in_value_and_gradient():
     assert float((grads["numba"] - grads["torch"]).abs().max()) <= 1e-4 * scale
 
 
+@pytest.mark.slow
 def test_fast_ssim_gradient_matches_finite_differences():
     generator = torch.Generator().manual_seed(13)
     recon = torch.rand(2, 1, 13, 15, dtype=torch.float64, generator=generator, requires_grad=True)
@@ -343,6 +344,7 @@ def test_fused_loss_matches_reference_in_value_and_gradient(seed):
     assert float((fused[2] - reference[2]).abs().max()) <= 1e-4 * scale
 
 
+@pytest.mark.slow
 def test_fused_loss_gradient_matches_finite_differences():
     recon, targets, masks, normal = (t.double() for t in loss_inputs(17))
     noisy = noisy_targets(targets, normal, 1e-3)

@@ -64,6 +64,7 @@ def relative(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).abs().norm() / b.abs().norm().clamp(min=1e-30))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
 @pytest.mark.parametrize("color", ["rgb", "gray"])
 @pytest.mark.parametrize("curvature", KINDS)
@@ -154,6 +155,7 @@ for kernel, pointers in ((gpu.splat_forward, 7), (gpu.splat_backward, 12)):
 """
 
 
+@pytest.mark.slow
 def test_kernels_compile_for_a_gpu():
     """Both kernels compile to an sm_90 binary; no GPU needed."""
     environment = {name: value for name, value in os.environ.items() if name != "TRITON_INTERPRET"}

@@ -50,6 +50,7 @@ def test_bad_sweeps_are_refused(sweep, message):
         check_sweep(*sweep)
 
 
+@pytest.mark.slow
 def test_one_run_page_is_self_contained_with_a_frame_per_distance(runs, capsys):
     run = runs / "cvqpg"
     assert main(["view", str(run), *SWEEP, "--quiet"]) == 0
@@ -75,6 +76,7 @@ def test_one_run_page_is_self_contained_with_a_frame_per_distance(runs, capsys):
     assert "<table id='settings'>" in page and "<th>N primitives</th><td>173</td>" in page
 
 
+@pytest.mark.slow
 def test_two_runs_side_by_side(runs):
     record = write_view([runs / "cvqpg", runs / "flat"], sweep=(1e-3, 5e-3, 2), progress=False)
     assert record.path == runs / "cvqpg" / "view_vs_flat.html" and record.frames == 2
@@ -88,6 +90,7 @@ def test_two_runs_side_by_side(runs):
     assert "<th></th><th>cvqpg</th><th>flat</th>" in page and "cvqpg view: cvqpg vs flat" in page
 
 
+@pytest.mark.slow
 def test_fit_with_view_writes_the_page_into_the_run(tmp_path):
     out = tmp_path / "run"
     assert main(["fit", *SMALL, "--view", "--out", str(out)]) == 0
@@ -95,6 +98,7 @@ def test_fit_with_view_writes_the_page_into_the_run(tmp_path):
     assert len(data["runs"][0]["frames"]) == 43
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("arguments, message", [
     (["{larger}", "{cvqpg}"], "is 48×36 px, 3.74 µm pitch, 639/532/473 nm but {larger} is 64×48 px"),
     (["{cvqpg}", "{flat}", "{larger}"], "3 run folders: give one or two"),

@@ -17,10 +17,10 @@ _spec = importlib.util.spec_from_file_location(
 shots = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(shots)
 
-pytestmark = pytest.mark.skipif(
+pytestmark = [pytest.mark.slow, pytest.mark.skipif(
     not (shots.CHROMIUM and shots.CHROMEDRIVER),
     reason="no browser: needs Debian's chromium and chromium-driver (apt-get install chromium chromium-driver, "
-           "as .ci/run does)")
+           "as .ci/run does)")]
 
 SMALL = ["--size", "64", "48", "--steps", "3", "--curvature-warmup", "1", "--quiet"]
 # Frame 1 is the plane at 1 mm, frame 6 the plane at 5 mm; 8 frames in all.
