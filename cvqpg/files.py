@@ -9,6 +9,7 @@ safetensors writer does), would keep that mode through the rename.
 from __future__ import annotations
 
 import os
+import shutil
 from contextlib import contextmanager
 from pathlib import Path
 from typing import BinaryIO, Iterator
@@ -38,3 +39,38 @@ def write_atomic(path: str | Path, data: bytes | str) -> None:
     """Write `data` (text as UTF-8) to `path` atomically (see `atomic_file`)."""
     with atomic_file(path) as handle:
         handle.write(data.encode() if isinstance(data, str) else data)
+
+
+def replace_folder(staged: Path, final: Path) -> None:
+    """Put the finished folder `staged` at `final` (a sibling), replacing what was there as a whole: the
+    old folder is renamed aside first and deleted only once `staged` is in its place."""
+    staged, final = Path(staged), Path(final)
+    if not final.exists():
+        os.replace(staged, final)
+        return
+    aside = final.with_name(f".{final.name}.replaced-{os.getpid()}")
+    os.replace(final, aside)
+    try:
+        os.replace(staged, final)
+    except OSError:
+        os.replace(aside, final)
+        raise
+    shutil.rmtree(aside)
+
+
+@contextmanager
+def staged_folder(final: str | Path, overwrite: bool = False) -> Iterator[Path]:
+    """A fresh temporary folder beside `final` to write a command's outputs into; when the block ends
+    without an error it becomes `final` (replacing an existing one only with `overwrite`), and on an
+    error it is deleted, so `final` is never half-written and nothing is left behind."""
+    final = Path(final)
+    staged = final.with_name(f".{final.name}.partial-{os.getpid()}")
+    shutil.rmtree(staged, ignore_errors=True)
+    staged.mkdir()
+    try:
+        yield staged
+        if final.exists() and not overwrite:
+            raise FileExistsError(f"{final} appeared while the command ran")
+        replace_folder(staged, final)
+    finally:
+        shutil.rmtree(staged, ignore_errors=True)

@@ -17,7 +17,7 @@ from PIL import Image
 from cvqpg.campaign.bench import (DONE, INTERRUPTED, BenchError, Overrides, cell_status, make_plan, parse_shard, run_cell,
                          run_plan)
 from cvqpg.cli import main
-from cvqpg import provenance
+from cvqpg.app import provenance
 from cvqpg.metrics import radial_error_spectrum
 from cvqpg.campaign.report import CellResult, cells_table, devices_line, main_table, paper_numbers, seed_tables
 from cvqpg.runs import start_run
@@ -343,39 +343,13 @@ def test_every_cell_records_commit_machine_threads_time_and_peak_memory(tmp_path
     run_plan(plan, progress=False)
     metrics = json.loads((plan.cell_dir(plan.cells[0]) / "metrics.json").read_text())
     run = metrics["run"]
-    assert run["commit"] == provenance.IMPORTED_COMMIT  # the code this process imported (see the next test)
+    assert run["commit"] == provenance.code_commit() and run["cvqpg_version"]  # tests/test_app_provenance.py
     assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\+00:00", run["date"])
     assert run["device"].startswith("cpu: ") and len(run["device"]) > 5
     assert run["torch_threads"] >= 1 and run["numba_threads"] >= 1 and run["torch"] == torch.__version__
     assert run["loop_seconds"] == metrics["seconds"] > 0
     # a process that imported torch and ran a fit holds well over 50 MB resident
     assert run["peak_memory_bytes"] > 50 * 2**20 and run["peak_memory_kind"] in ("rss", "rss-process")
-
-
-def git(folder: Path, *args: str) -> str:
-    return subprocess.run(["git", "-C", str(folder), "-c", "user.name=test", "-c", "user.email=test@example.org",
-                           *args], capture_output=True, text=True, check=True).stdout.strip()
-
-
-def test_the_commit_is_head_dirty_after_changes_to_the_package_and_none_outside_git(tmp_path, monkeypatch):
-    package = tmp_path / "checkout" / "cvqpg"
-    package.mkdir(parents=True)
-    (package / "code.py").write_text("one = 1\n")
-    (package.parent / "README.md").write_text("notes\n")
-    git(package.parent, "init", "--quiet")
-    git(package.parent, "add", ".")
-    git(package.parent, "commit", "--quiet", "-m", "first")
-    head = git(package.parent, "rev-parse", "HEAD")
-    monkeypatch.setattr(provenance, "PACKAGE_ROOT", package)
-    assert re.fullmatch(r"[0-9a-f]{40}", head) and provenance.checkout_commit() == head
-    (package.parent / "README.md").write_text("other notes\n")  # outside the package
-    (package / "new.py").write_text("")  # untracked
-    assert provenance.checkout_commit() == head
-    (package / "code.py").write_text("one = 2\n")
-    assert provenance.checkout_commit() == f"{head}+dirty"
-    monkeypatch.setattr(provenance, "PACKAGE_ROOT", tmp_path / "installed" / "cvqpg")  # a wheel's: no git
-    provenance.PACKAGE_ROOT.mkdir(parents=True)
-    assert provenance.checkout_commit() is None
 
 
 FREED_BEFORE_THE_FIT = """

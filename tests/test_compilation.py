@@ -16,7 +16,7 @@ from numba.core import event
 from numba.core.dispatcher import Dispatcher
 from numba.core.types import UniTuple
 
-from cvqpg import compilation
+from cvqpg.app import compilation
 from cvqpg.ops.field import cpu as field_kernels
 from cvqpg.ops.loss import cpu as loss_kernels
 from cvqpg.ops.propagation import cpu as propagation_kernels
@@ -70,7 +70,7 @@ def test_the_rasterizer_kernels_are_compiled_from_the_types_a_fit_calls_them_wit
 def test_the_probe_serves_more_planes_than_the_demo_depth_separates():
     config = FitConfig(num_planes=5, color="gray")
     probe = compilation.probe_config(config)
-    demo = builtin_scene("demo", probe.width, probe.height)
+    demo = builtin_pictures("demo", probe.width, probe.height)
     with pytest.raises(ValueError, match="separates only 3"):  # the demo's own depth at the probe's size
         load_scene(demo.image, demo.depth, probe)
     scene = compilation.probe_scene(probe)

@@ -54,7 +54,7 @@ def code_commit() -> str | None:
     under the package differ from it; None for an installed package. Asked once per process (the first
     run record): the code a process runs is what it imported, whatever is committed later."""
     top_level = _git("rev-parse", "--show-toplevel")
-    if not top_level or not is_own_checkout(Path(top_level)):
+    if not top_level or not is_own_checkout(Path(top_level), PACKAGE_ROOT):
         return None
     commit = _git("rev-parse", "HEAD")
     if not commit:
