@@ -139,9 +139,7 @@ class FitConfig:
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict[str, Any]:
-        """Every setting as JSON-ready values, with the curvature warm-up resolved to its steps: what
-        a record says is what the fit ran."""
-        return {**dataclasses.asdict(self), "curvature_warmup": self.curvature_warmup_steps}
+        return dataclasses.asdict(self)
 
     def on_device(self, device: str) -> "FitConfig":
         """The same fit rendered on `device`: a backend that cannot run there (`numba` off the CPU,

@@ -8,6 +8,7 @@ import torch
 from PIL import Image
 
 from cvqpg.cli import main
+from cvqpg.config import FitConfig
 from cvqpg.fitting import initial_state
 from cvqpg.runs import read_run
 from cvqpg.storage import load_checkpoint, save_checkpoint
@@ -45,7 +46,8 @@ def test_fewer_steps_scale_the_warm_up_as_the_paper_does(tmp_path):
     """The README's demo command sets --steps alone: the warm-up follows (400 of 2000 → steps/5)."""
     out = tmp_path / "short"
     assert main(["fit", "--size", "48", "36", "--steps", "10", "--quiet", "--out", str(out)]) == 0
-    assert json.loads((out / "config.json").read_text())["curvature_warmup"] == 2
+    recorded = json.loads((out / "config.json").read_text())
+    assert recorded["curvature_warmup"] is None and FitConfig.from_dict(recorded).curvature_warmup_steps == 2
 
 
 def test_eval_recomputes_the_saved_metrics(demo_run, capsys):

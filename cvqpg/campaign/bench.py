@@ -343,8 +343,9 @@ def cell_status(folder: Path, done_file: str = METRICS_FILE) -> str:
 
 
 def _comparable(config: FitConfig) -> FitConfig:
-    """Device and backend change the last bits only; a resumed or finished cell may differ in them."""
-    return config.replace(device="cpu", backend="auto")
+    """Device and backend change the last bits only; a resumed or finished cell may differ in them. A
+    default curvature warm-up is compared as the steps it resolves to."""
+    return config.replace(device="cpu", backend="auto", curvature_warmup=config.curvature_warmup_steps)
 
 
 def config_differences(folder: Path, config: FitConfig) -> list[str]:
