@@ -9,7 +9,7 @@ import math
 import torch
 from torch import Tensor
 
-from .compression import BitDepths, outward_range
+from .codec import BitDepths, outward_range
 from .config import FitConfig
 from .fitting import hologram
 from .ops.loss import multiplane_loss, noisy_targets, standard_normal

@@ -10,12 +10,15 @@ import torch
 
 from cvqpg import FitConfig, load_model
 from cvqpg.cli import main
-from cvqpg.compression import (CHECKSUM, FORMAT_VERSION, MAGIC, BitDepths, compress_model, decode, decode_stream,
-                               encode, encode_stream, read_compressed)
+from cvqpg.codec import (CHECKSUM, FORMAT_VERSION, MAGIC, BitDepths, decode, decode_stream, encode, encode_stream,
+                         quantise)
+from cvqpg.compression import compress_model
+from cvqpg.errors import ConfigError
 from cvqpg.fitting import render
 from cvqpg.metrics import mean_psnr
 from cvqpg.primitives import activate, init_gaussians
 from cvqpg.runs import read_run, scene_from_source
+from cvqpg.storage import read_compressed
 
 SMALL_FIT = ["fit", "--size", "40", "30", "--steps", "30", "--curvature-warmup", "10", "--quiet"]
 FINE = BitDepths(position=8, scale=16, rotation=16, amplitude=16, phase=16, curvature=16)
@@ -125,7 +128,6 @@ def test_finetune_is_kept_only_if_it_pays(fitted_run, tmp_path):
 
 
 def test_finetune_leaves_its_input_alone_and_trains_on_the_file_s_own_bins():
-    from cvqpg.compression import quantise
     from cvqpg.finetune import finetune
     from cvqpg.campaign.ratedistortion import Point, finetuned_points
     from cvqpg.targets import Scene
@@ -168,7 +170,7 @@ def test_pruning_removes_the_primitives_of_least_field_energy_and_the_file_round
     assert field_energy(pruned).min() >= field_energy(primitives).sort().values[-kept]
     decoded = decode(encode(pruned, config, BitDepths())).primitives
     assert decoded.count == kept and prune(primitives, 0.0).count == primitives.count
-    with pytest.raises(ValueError, match="0 ≤ FRACTION < 1"):
+    with pytest.raises(ConfigError, match="`prune_fraction` 1: give the fraction"):
         prune(primitives, 1.0)
 
 
@@ -183,7 +185,7 @@ def test_prune_with_finetune_writes_fewer_primitives_where_it_pays(fitted_run, t
 @pytest.mark.parametrize("arguments, message", [
     (["--prune", "1.5", "--finetune", "2"], "--prune 1.5: give the fraction of primitives to remove"),
     (["--prune", "-0.1", "--finetune", "2"], "--prune -0.1: give the fraction"),
-    (["--prune", "0.2"], "--prune 0.2 needs --finetune STEPS"),
+    (["--prune", "0.2"], "--prune 0.2 needs --finetune > 0"),
 ])
 def test_bad_prune_is_one_line_exit_2_and_writes_nothing(fitted_run, tmp_path, arguments, message, capsys):
     out = tmp_path / "x.cvq"
@@ -233,7 +235,7 @@ def test_bad_files_fail_cleanly_and_write_nothing(fitted_run, tmp_path, kind, co
 
 
 @pytest.mark.parametrize("arguments, message", [
-    (["compress", "{run}", "--bits", "phase=1"], "--bits phase=1"),
+    (["compress", "{run}", "--bits", "phase=1"], "--bits phase=1: give 2..16 bits"),
     (["compress", "{run}", "--bits", "colour=8"], "--bits colour=8"),
     (["compress", "{run}", "--max-drop", "-1"], "--max-drop"),
     (["compress", "{run}/model.cvq6"], "no such"),
