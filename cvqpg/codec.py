@@ -144,7 +144,7 @@ def _short(value: float, digits: int = 4) -> float:
     return float(f"{value:.{digits}g}")
 
 
-def outward_range(low: float, high: float) -> list[float]:
+def _outward_range(low: float, high: float) -> list[float]:
     """[low, high] widened to short values (see `_short`) that still contain it: a margin of 1e-3 of
     the larger magnitude outweighs `_short`'s rounding error of at most 5e-4."""
     margin = 1e-3 * max(abs(low), abs(high), 1e-12)
@@ -191,8 +191,8 @@ def coding(primitives: Primitives, config: FitConfig, bits: BitDepths) -> Coding
     weight = p["amplitude"] * p["opacity"][:, None]
     values = {"position": p["position_px"], "scale": torch.log(p["scale_px"]), "rotation": p["rotation_rad"],
               "amplitude": weight, "phase": p["phase_rad"]}
-    ranges = {"scale": outward_range(float(values["scale"].min()), float(values["scale"].max())),
-              "amplitude": [0.0, outward_range(0.0, float(weight.abs().max()))[1]]}
+    ranges = {"scale": _outward_range(float(values["scale"].min()), float(values["scale"].max())),
+              "amplitude": [0.0, _outward_range(0.0, float(weight.abs().max()))[1]]}
     chosen = quantisers(ranges, bits)
     if config.primitive == "cvqpg":
         # the decoder knows only the decoded scale, so the share is of the bound at that scale

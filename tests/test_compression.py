@@ -10,10 +10,11 @@ import torch
 
 from cvqpg import FitConfig, load_model
 from cvqpg.cli import main
-from cvqpg.codec import (CHECKSUM, FORMAT_VERSION, MAGIC, BitDepths, decode, decode_stream, encode, encode_stream,
-                         quantise)
+from cvqpg.codec import (CHECKSUM, FORMAT_VERSION, MAGIC, BitDepths, coding, decode, decode_stream, dequantise, encode,
+                         encode_stream, morton_order, quantise)
 from cvqpg.compression import compress_model
 from cvqpg.errors import ConfigError
+from cvqpg.finetune import quantised
 from cvqpg.fitting import render
 from cvqpg.metrics import mean_psnr
 from cvqpg.primitives import activate, init_gaussians
@@ -86,6 +87,29 @@ def test_long_tailed_streams_take_the_bit_length_coding():
     descriptor, data = encode_stream(gaps)
     assert descriptor["coding"] == "bitlength" and len(data) < 0.6 * 4000 * 23 / 8
     assert (decode_stream(descriptor, data) == gaps).all()
+
+
+@pytest.mark.parametrize("bits", [BitDepths(), BitDepths().shifted(-3), FINE,
+                                  BitDepths(position=0, scale=2, rotation=2, amplitude=2, phase=2, curvature=2)])
+@pytest.mark.parametrize("color, curvature, primitive", [("gray", "shared", "cvqpg"), ("rgb", "per-channel", "cvqpg"),
+                                                         ("rgb", "channel-bound", "cvqpg"), ("rgb", "shared", "flat")])
+def test_finetune_rounds_through_the_codec_s_own_quantisers(bits, color, curvature, primitive):
+    config = FitConfig(width=48, height=32, color=color, ratio=0.3, curvature=curvature, primitive=primitive)
+    primitives = random_primitives(config)
+    coded = coding(primitives, config, bits)
+    values = {name: value.clone().requires_grad_(True) for name, value in coded.values.items()}
+    forward = quantised(values, coded.quantisers, config)
+    decoded = dequantise(quantise(primitives, config, bits), config, bits).tensors()
+    order = morton_order(coded.quantisers["position"].codes(coded.values["position"]))
+    tuned = {name: tensor.detach()[order] for name, tensor in forward.tensors().items()}
+    for name in ("position_px", "rotation_rad", "amplitude", "phase_rad", "opacity"):
+        assert torch.equal(tuned[name], decoded[name]), name
+    # the same bins; the scale then goes through torch's float32 exp, the file's through numpy's, which
+    # differ in the last bit, and the curvature bound of that scale (float32) by a few
+    for name in ("scale_px", "curvature_per_m"):
+        torch.testing.assert_close(tuned[name], decoded[name], rtol=5e-7, atol=0, msg=name)
+    forward.position_px.sum().backward()
+    assert torch.equal(values["position"].grad, torch.ones_like(values["position"]))
 
 
 @pytest.fixture(scope="module")
