@@ -111,12 +111,16 @@ def field_energy(primitives: Primitives) -> torch.Tensor:
     return (weight**2).sum(dim=1) * primitives.scale_px.prod(dim=1)
 
 
-def prune(primitives: Primitives, fraction: float) -> Primitives:
-    """The primitives without the `fraction` (0 ≤ fraction < 1) of least field energy (`field_energy`),
-    the others in their order. The rest only regain the PSNR lost with fine-tuning (`finetune`)."""
+def _check_prune_fraction(fraction: float) -> None:
     if not 0 <= fraction < 1:
         raise ConfigError(f"`prune_fraction` {fraction:g}: give the fraction of primitives to remove, "
                           "0 ≤ fraction < 1")
+
+
+def prune(primitives: Primitives, fraction: float) -> Primitives:
+    """The primitives without the `fraction` (0 ≤ fraction < 1) of least field energy (`field_energy`),
+    the others in their order. The rest only regain the PSNR lost with fine-tuning (`finetune`)."""
+    _check_prune_fraction(fraction)
     kept = round((1 - fraction) * primitives.count)
     order = torch.argsort(field_energy(primitives), descending=True, stable=True)
     chosen = order[:kept].sort().values
@@ -134,6 +138,14 @@ def compress_model(target: str | Path, out: str | Path | None = None, bits: BitD
     after removing the `prune_fraction` of its primitives of least field energy (`prune`; it needs
     fine-tuning, and like it is kept only where it pays).
     """
+    if max_drop is not None and max_drop < 0:
+        raise ConfigError(f"`max_drop` {max_drop:g}: give a drop in dB ≥ 0")
+    if finetune_steps < 0:
+        raise ConfigError(f"`finetune_steps` {finetune_steps}: give a number of steps ≥ 0")
+    _check_prune_fraction(prune_fraction)
+    if prune_fraction and not finetune_steps:
+        raise ConfigError(f"`prune_fraction` {prune_fraction:g} needs `finetune_steps` > 0: pruned primitives "
+                          "cost PSNR that only fine-tuning regains")
     model_file = model_path(target)
     if not model_file.is_file():
         raise ModelFileError(f"{target}: no such run folder or model file")
@@ -143,9 +155,6 @@ def compress_model(target: str | Path, out: str | Path | None = None, bits: BitD
     folder = model_file.parent if (model_file.parent / CONFIG_FILE).is_file() else None
     if finetune_steps and folder is None:
         raise ConfigError(f"`finetune_steps` needs the run folder's inputs; {model_file} is not in a run folder")
-    if prune_fraction and not finetune_steps:
-        raise ConfigError(f"`prune_fraction` {prune_fraction:g} needs `finetune_steps` > 0: pruned primitives "
-                          "cost PSNR that only fine-tuning regains")
     scene = scene_from_source(read_run(folder)[1], config) if folder is not None else None
     out = Path(out) if out is not None else model_file.with_suffix(SUFFIX)
     started = time.perf_counter()
