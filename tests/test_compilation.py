@@ -11,7 +11,7 @@ import pytest
 from numba.core import event
 from numba.core.dispatcher import Dispatcher
 
-from cvqpg import compilation
+from cvqpg.app import compilation
 from cvqpg.ops.field import cpu as field_kernels
 from cvqpg.ops.loss import cpu as loss_kernels
 from cvqpg.ops.propagation import cpu as propagation_kernels
