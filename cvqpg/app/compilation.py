@@ -49,7 +49,7 @@ PRECOMPILED_KINDS = tuple(FitConfig(num_planes=planes) for planes in (1, 2))
 
 def uses_cpu_kernels(config: FitConfig) -> bool:
     """Whether a fit of `config` runs Numba kernels: with the `numba` backend, every op's."""
-    from .ops import resolve_backend
+    from ..ops import resolve_backend
 
     return resolve_backend(config.backend, config.device) == "numba"
 
