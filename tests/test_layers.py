@@ -22,8 +22,8 @@ MODULES = {module_name(path): path for path in sorted(ROOT.rglob("*.py"))}
 
 
 def imported_modules(name: str, path: Path) -> set[str]:
-    """The package's modules that `name` imports anywhere in its source, relative imports resolved;
-    `from P import x` counts as importing the module P.x where there is one, else P."""
+    """The modules that `name` imports anywhere in its source, relative imports resolved; `from P import x`
+    counts as importing the module P.x where the package has one, else P."""
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
@@ -36,10 +36,11 @@ def imported_modules(name: str, path: Path) -> set[str]:
                 base = ".".join(parts[:len(parts) - node.level + 1] + ([base] if base else []))
             for alias in node.names:
                 found.add(f"{base}.{alias.name}" if f"{base}.{alias.name}" in MODULES else base)
-    return {module for module in found if module in MODULES and module != name}
+    return found - {name}
 
 
-GRAPH = {name: imported_modules(name, path) for name, path in MODULES.items()}
+IMPORTS = {name: imported_modules(name, path) for name, path in MODULES.items()}
+GRAPH = {name: imported & set(MODULES) for name, imported in IMPORTS.items()}
 
 
 def reachable(graph: dict[str, set[str]], start: str) -> set[str]:
@@ -61,6 +62,12 @@ def test_the_import_graph_is_found():
     assert {"cvqpg.codec", "cvqpg.storage", "cvqpg.ops.rasterize", "cvqpg.campaign.bench"} <= set(MODULES)
     assert "cvqpg.codec" in GRAPH["cvqpg.storage"] and "cvqpg.ops" in GRAPH["cvqpg.ops.field"]
     assert "cvqpg.ops.rasterize.gpu" in GRAPH["cvqpg.ops.rasterize"]  # imported inside a function
+
+
+def test_every_import_within_the_package_names_one_of_its_modules():
+    missing = {(name, module) for name, imported in IMPORTS.items() for module in imported
+               if module.split(".")[0] == "cvqpg" and module not in MODULES}
+    assert missing == set(), "(importer, missing module)"
 
 
 def test_no_import_cycles():
