@@ -21,7 +21,7 @@ import torch
 
 from cvqpg import FitConfig
 from cvqpg.app.allocator import keep_freed_memory
-from cvqpg.compression import BitDepths, decode, encode
+from cvqpg.codec import BitDepths, decode, encode
 from cvqpg.fitting import hologram
 from cvqpg.optics import reconstruct
 from cvqpg.primitives import activate, init_gaussians

@@ -24,16 +24,18 @@ from .campaign.bench import (CELLS_DIR, METHODS, PRESETS, Overrides, RateDistort
                              parse_shard, peak_bytes, run_plan)
 from .campaign.report import write_summary
 from .campaign.results import document
-from .compression import ASSUMED_FIT_PSNR_DB, SUFFIX, BitDepths, compress_model, decompress_file
+from .codec import SUFFIX, BitDepths
+from .compression import ASSUMED_FIT_PSNR_DB, compress_model, decompress_file
 from .config import BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITIVES, QPFS, FitConfig
 from .depth import DEPTH_FILE, DEPTH_MODEL, estimate_depth, load_depth_model
 from .errors import CvqpgError
 from .export import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
 from .fitting import FitInterrupted, FitState, estimated_peak_bytes
 from .runs import (CONFIG_FILE, EXPORT_FOLDER, METRICS_FILE, MODEL_FILE, RENDER_FOLDER, evaluate_run, export_run,
-                   half_precision_model, model_info, read_run, render_model, scene_from_source, start_run,
+                   half_precision_model, read_run, render_model, scene_from_source, start_run,
                    write_atomic)
 from .scenes import SCENES
+from .storage import model_info
 from .targets import Scene, check_file, load_scene
 from .view import DEFAULT_SWEEP, VIEW_FILE, ViewRecord, write_view
 

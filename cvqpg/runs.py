@@ -4,14 +4,12 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 import torch
 from PIL import Image
-from safetensors import safe_open
 from torch import Tensor
 
 from . import __version__
@@ -24,7 +22,7 @@ from .metrics import MetricReport, evaluate, mean_psnr
 from .ops.field import slm_field
 from .primitives import Primitives
 from .scenes import builtin_scene
-from .storage import load_model, save_model
+from .storage import load_model, model_info, save_model
 from .targets import Scene, load_scene
 
 CONFIG_FILE = "config.json"
@@ -238,30 +236,6 @@ def model_path(target: str | Path) -> Path:
     """A model file, or the model of a run folder."""
     target = Path(target)
     return target / MODEL_FILE if target.is_dir() else target
-
-
-def model_info(path: str | Path) -> dict[str, Any]:
-    """Size accounting of a model file: primitives, parameters, bytes and bits per hologram pixel
-    (all channels together); for a compressed file also the bits per attribute and each stream's coding."""
-    from .compression import is_compressed, read_compressed  # compression imports this module
-
-    path = model_path(path)
-    primitives, config = load_model(path)
-    file_bytes = path.stat().st_size
-    extra: dict[str, Any] = {}
-    if is_compressed(path):
-        compressed = read_compressed(path)
-        dtype = "compressed"
-        extra = {"bits": asdict(compressed.bits),
-                 "streams": {s["name"]: {"coding": s["coding"], "bytes": s["bytes"]} for s in compressed.streams}}
-    else:
-        with safe_open(str(path), framework="pt") as handle:
-            dtype = (handle.metadata() or {}).get("dtype", "float32")
-    return {"file": str(path), "num_primitives": primitives.count, "primitive": config.primitive,
-            "learnable_params": primitives.count * config.params_per_primitive,
-            "stored_values": sum(t.numel() for t in primitives.tensors().values()), "dtype": dtype,
-            "file_bytes": file_bytes, "hologram_px": [config.width, config.height],
-            "channels": config.channels, "bits_per_pixel": 8 * file_bytes / (config.width * config.height), **extra}
 
 
 def half_precision_model(folder: str | Path) -> dict[str, Any]:

@@ -1,17 +1,21 @@
-"""The fitted representation on disk: `model.safetensors` holds the activated primitives in physical
-units, with the configuration and optics as metadata; checkpoints hold the loop state."""
+"""The fitted representation on disk, and the one place that decides a model file's format:
+`model.safetensors` holds the activated primitives in physical units, with the configuration and optics
+as metadata; a `.cvq` file holds them compressed (`codec`); checkpoints hold the loop state."""
 
 from __future__ import annotations
 
 import json
+from dataclasses import asdict
 from pathlib import Path
+from typing import Any
 
 import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save
 
+from .codec import MAGIC, SUFFIX, Compressed, decode
 from .config import FitConfig
-from .errors import ModelFileError
+from .errors import ModelFileError, choices_error
 from .files import atomic_file, write_atomic
 from .primitives import Primitives
 
@@ -41,22 +45,35 @@ def save_model(path: str | Path, primitives: Primitives, config: FitConfig, dtyp
     back to float32.
     """
     if dtype not in STORED_DTYPES:
-        raise ModelFileError(f"cannot store a model as {dtype!r}; choose one of {', '.join(STORED_DTYPES)}")
+        raise choices_error("dtype", dtype, tuple(STORED_DTYPES))
     tensors = {name: t.detach().to("cpu", torch.float32 if name == "position_px" else STORED_DTYPES[dtype])
                .contiguous() for name, t in primitives.tensors().items()}
     write_atomic(path, save(tensors, metadata=model_metadata(primitives, config, dtype)))
 
 
-def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Primitives, FitConfig]:
-    """Read a model written by `save_model`, or a compressed `.cvq` file, as float32 primitives on `device`."""
+def is_compressed(path: str | Path) -> bool:
+    """Whether the file is read as a `.cvq` file: it starts with the magic number, or it is named `*.cvq`
+    (so that a damaged one is reported as such, not as an unreadable safetensors file)."""
+    path = Path(path)
+    with open(path, "rb") as handle:
+        return handle.read(len(MAGIC)) == MAGIC or path.suffix == SUFFIX
+
+
+def read_compressed(path: str | Path) -> Compressed:
+    """Decode a `.cvq` file."""
+    path = Path(path)
+    return decode(path.read_bytes(), str(path))
+
+
+def _model_file(path: str | Path) -> Path:
     path = Path(path)
     if not path.is_file():
         raise ModelFileError(f"{path}: no such model file")
-    from .compression import SUFFIX, is_compressed, read_compressed  # compression imports this module
+    return path
 
-    if is_compressed(path) or path.suffix == SUFFIX:
-        compressed = read_compressed(path)
-        return compressed.primitives.to(device), compressed.config
+
+def _read_safetensors(path: Path, device: str | torch.device = "cpu") -> tuple[Primitives, FitConfig, dict[str, str]]:
+    """A model written by `save_model`, as float32 primitives on `device`, with the file's metadata."""
     try:
         with safe_open(str(path), framework="pt") as handle:
             metadata = handle.metadata() or {}
@@ -79,7 +96,38 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Pr
         if tuple(tensors[name].shape) != shape:
             raise ModelFileError(f"{path}: tensor {name!r} has shape {tuple(tensors[name].shape)}, "
                                  f"expected {shape}")
-    return Primitives.from_tensors({name: t.float() for name, t in tensors.items()}), config
+    return Primitives.from_tensors({name: t.float() for name, t in tensors.items()}), config, metadata
+
+
+def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Primitives, FitConfig]:
+    """Read a model written by `save_model`, or a compressed `.cvq` file, as float32 primitives on `device`."""
+    path = _model_file(path)
+    if is_compressed(path):
+        compressed = read_compressed(path)
+        return compressed.primitives.to(device), compressed.config
+    primitives, config, _ = _read_safetensors(path, device)
+    return primitives, config
+
+
+def model_info(path: str | Path) -> dict[str, Any]:
+    """Size accounting of a model file: primitives, parameters, bytes and bits per hologram pixel
+    (all channels together); for a compressed file also the bits per attribute and each stream's coding."""
+    path = _model_file(path)
+    extra: dict[str, Any] = {}
+    if is_compressed(path):
+        compressed = read_compressed(path)
+        primitives, config, dtype = compressed.primitives, compressed.config, "compressed"
+        extra = {"bits": asdict(compressed.bits),
+                 "streams": {s["name"]: {"coding": s["coding"], "bytes": s["bytes"]} for s in compressed.streams}}
+    else:
+        primitives, config, metadata = _read_safetensors(path)
+        dtype = metadata.get("dtype", "float32")
+    file_bytes = path.stat().st_size
+    return {"file": str(path), "num_primitives": primitives.count, "primitive": config.primitive,
+            "learnable_params": primitives.count * config.params_per_primitive,
+            "stored_values": sum(t.numel() for t in primitives.tensors().values()), "dtype": dtype,
+            "file_bytes": file_bytes, "hologram_px": [config.width, config.height],
+            "channels": config.channels, "bits_per_pixel": 8 * file_bytes / (config.width * config.height), **extra}
 
 
 def save_checkpoint(path: str | Path, payload: dict) -> None:

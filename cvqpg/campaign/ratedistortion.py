@@ -18,7 +18,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..compression import LADDER, BitDepths, Reference, choose_bits, decode, encode, prune
+from ..codec import BitDepths, decode, encode
+from ..compression import LADDER, Reference, choose_bits, prune
 from ..config import FitConfig
 from ..finetune import finetune
 from ..fitting import hologram, render

@@ -1,0 +1,484 @@
+"""The compressed model file (`.cvq`, docs/format.md) as a pure codec: bytes ↔ (primitives, configuration).
+
+Quantised primitives in a spatial order, entropy-coded with `constriction`'s ANS coder, behind a magic
+number, a format version and a CRC32. A primitive is coded as: position on a grid of 2^-b px, sorted in
+Morton order and coded as gaps between consecutive Morton codes; log scale over the model's own range;
+rotation modulo π (an ellipse turned by π is the same ellipse); amplitude × opacity as a magnitude, its
+sign folded into the phase (+π); phase modulo 2π; curvature as a fraction of the primitive's own bound
+γ_max (SPEC §4), computed from the decoded scale so that encoder and decoder agree.
+
+Each attribute's quantiser is written once, in torch (`Quantiser`; `coding` derives them from a model):
+the encoder takes their integer codes, quantisation-aware fine-tuning (`finetune`) rounds through them
+in its forward pass.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+import zlib
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any
+
+import constriction
+import numpy as np
+import torch
+from torch import Tensor
+
+from .config import FitConfig
+from .errors import ConfigError, ModelFileError
+from .primitives import Primitives, curvature_bound
+
+MAGIC = b"\x89CVQ\r\n\x1a\n"
+FORMAT_VERSION = 2  # 2 added the `bitlength` coding; a version 1 file reads unchanged
+SUFFIX = ".cvq"
+PREFIX = struct.Struct("<8sHI")  # magic, format version, header length (bytes)
+CHECKSUM = struct.Struct("<I")
+MAX_POSITION_BITS = 8
+MAX_BITS = 16
+
+
+def _limits(name: str) -> tuple[int, int]:
+    """Valid bit depths of an attribute: positions from whole pixels (0) to 1/256 px; the others 2..16."""
+    return (0, MAX_POSITION_BITS) if name == "position" else (2, MAX_BITS)
+
+# Stream codings; each stream takes the smallest that applies, so a coding that does not pay is never used.
+RAW, LAPLACE, GAUSSIAN, CATEGORICAL, BIT_LENGTH = "raw", "laplace", "gaussian", "categorical", "bitlength"
+
+
+@dataclass(frozen=True)
+class BitDepths:
+    """Bits per attribute. `position` counts fractional bits (grid of 2^-b px); the others count
+    levels over the attribute's range: log scale over the model's range, rotation over [0, π),
+    |amplitude·opacity| over [0, max], phase over [0, 2π), curvature over [−γ_max, γ_max]."""
+
+    position: int = 3
+    scale: int = 8
+    rotation: int = 7
+    amplitude: int = 8
+    phase: int = 7
+    curvature: int = 8
+
+    def validate(self) -> "BitDepths":
+        for name, value in asdict(self).items():
+            low, top = _limits(name)
+            if not low <= value <= top:
+                raise ConfigError(f"`bits` {name}={value}: give {low}..{top} bits")
+        return self
+
+    def shifted(self, delta: int) -> "BitDepths":
+        """Every attribute `delta` bits finer (coarser when negative), kept within the valid ranges."""
+        return BitDepths(**{name: min(max(value + delta, _limits(name)[0]), _limits(name)[1])
+                            for name, value in asdict(self).items()})
+
+    def names(self) -> list[str]:
+        return [f.name for f in fields(self)]
+
+    def shifted_one(self, name: str) -> "BitDepths | None":
+        """One bit coarser in attribute `name`, or None at its lowest depth."""
+        value = getattr(self, name) - 1
+        return replace(self, **{name: value}) if value >= _limits(name)[0] else None
+
+    @classmethod
+    def parse(cls, items: list[str]) -> "BitDepths":
+        """`["position=3", "phase=6"]` or `["8"]` (8 bits for every attribute but position)."""
+        if len(items) == 1 and items[0].isdigit():
+            value = int(items[0])
+            return cls(**{f.name: value for f in fields(cls) if f.name != "position"}).validate()
+        known, values = {f.name for f in fields(cls)}, {}
+        for item in items:
+            name, _, value = item.partition("=")
+            if name not in known or not value.isdigit():
+                raise ConfigError(f"`bits` {item}: give ATTRIBUTE=BITS with ATTRIBUTE one of "
+                                  f"{', '.join(sorted(known))}, or one number for all but position")
+            values[name] = int(value)
+        return cls(**values).validate()
+
+
+@dataclass(frozen=True)
+class Quantiser:
+    """One attribute's uniform scalar quantiser: code k stands for `low + k·span/levels`.
+
+    Codes are clipped to `lowest..highest` (None: unbounded) or, for a periodic attribute whose period
+    is `span`, taken modulo `levels`. Values are float64, ties round to even. The arithmetic keeps the
+    order of operations every file so far was written with, (v − low)/span·levels and not (v − low)/step,
+    since a different rounding would move values that lie on a bin edge.
+    """
+
+    low: float
+    span: float
+    levels: int
+    lowest: int | None = 0
+    highest: int | None = None
+    periodic: bool = False
+
+    @property
+    def step(self) -> float:
+        """The distance between the values of neighbouring codes."""
+        return self.span / self.levels
+
+    def codes(self, values: Tensor) -> Tensor:
+        """The code (int64) nearest each value."""
+        if self.periodic:
+            turns = torch.remainder(values - self.low, self.span) / self.span
+            return torch.round(turns * self.levels).long() % self.levels
+        return torch.round((values - self.low) / self.span * self.levels).clamp(self.lowest, self.highest).long()
+
+    def values(self, codes: Tensor) -> Tensor:
+        """The value (float64) each code stands for."""
+        return self.low + codes.double() * (self.span / self.levels)
+
+
+class ShareQuantiser(Quantiser):
+    """Curvature as a share of γ_max: codes −h..h, code k standing for k/h (h = `levels`), divided and
+    not multiplied by 1/h as in every file so far."""
+
+    def values(self, codes: Tensor) -> Tensor:
+        return codes.double() / self.levels
+
+
+def _short(value: float, digits: int = 4) -> float:
+    """`value` to a few significant digits: the header stores it in few bytes, and encoder and
+    decoder both use the stored value."""
+    return float(f"{value:.{digits}g}")
+
+
+def _outward_range(low: float, high: float) -> list[float]:
+    """[low, high] widened to short values (see `_short`) that still contain it: a margin of 1e-3 of
+    the larger magnitude outweighs `_short`'s rounding error of at most 5e-4."""
+    margin = 1e-3 * max(abs(low), abs(high), 1e-12)
+    return [_short(low) if _short(low) <= low else _short(low - margin),
+            _short(high) if _short(high) >= high else _short(high + margin)]
+
+
+def quantisers(ranges: dict[str, list[float]], bits: BitDepths) -> dict[str, Quantiser]:
+    """Each attribute's quantiser at `bits`, given the header's ranges of log scale and |amplitude·opacity|."""
+
+    def over(low: float, high: float, depth: int) -> Quantiser:
+        return Quantiser(low, high - low if high > low else 1.0, 2**depth - 1, 0, 2**depth - 1)
+
+    half = 2 ** (bits.curvature - 1) - 1
+    return {"position": Quantiser(0.0, 1.0, 2**bits.position),
+            "scale": over(*ranges["scale"], bits.scale),
+            "rotation": Quantiser(0.0, math.pi, 2**bits.rotation, periodic=True),
+            "amplitude": over(*ranges["amplitude"], bits.amplitude),
+            "phase": Quantiser(0.0, 2 * math.pi, 2**bits.phase, periodic=True),
+            "curvature": ShareQuantiser(0.0, 1.0, half, -half, half)}
+
+
+def decoded_scale(log_scale: Tensor) -> Tensor:
+    """Scale (px, float32) from dequantised log scale, with numpy's float32 exp: every file so far was
+    decoded with it, and torch's differs from it in the last bit for many values."""
+    return torch.from_numpy(np.exp(log_scale.float().numpy()))
+
+
+@dataclass
+class Coding:
+    """What the encoder codes, and how. `values`, float64 on the CPU in the primitives' order: position
+    (px), log scale (ln px), rotation (rad), the signed weight amplitude·opacity, phase (rad) and, for
+    `cvqpg` primitives, curvature as a share of γ_max at the decoded scale; `ranges`, the header's; and
+    each attribute's quantiser."""
+
+    values: dict[str, Tensor]
+    ranges: dict[str, list[float]]
+    quantisers: dict[str, Quantiser]
+
+
+def coding(primitives: Primitives, config: FitConfig, bits: BitDepths) -> Coding:
+    """The attributes of `primitives`, their ranges, and the quantisers at `bits` (see `Coding`)."""
+    p = {name: t.detach().cpu().double() for name, t in primitives.tensors().items()}
+    weight = p["amplitude"] * p["opacity"][:, None]
+    values = {"position": p["position_px"], "scale": torch.log(p["scale_px"]), "rotation": p["rotation_rad"],
+              "amplitude": weight, "phase": p["phase_rad"]}
+    ranges = {"scale": _outward_range(float(values["scale"].min()), float(values["scale"].max())),
+              "amplitude": [0.0, _outward_range(0.0, float(weight.abs().max()))[1]]}
+    chosen = quantisers(ranges, bits)
+    if config.primitive == "cvqpg":
+        # the decoder knows only the decoded scale, so the share is of the bound at that scale
+        scale = decoded_scale(chosen["scale"].values(chosen["scale"].codes(values["scale"])))
+        bound = curvature_bound(scale, config).double()
+        values["curvature"] = p["curvature_per_m"] / torch.where(bound > 0, bound, 1.0)
+    return Coding(values, ranges, chosen)
+
+
+def folded(values: dict[str, Tensor]) -> dict[str, Tensor]:
+    """The values the quantisers take: the weight's sign folded into the phase, a negative weight
+    being a positive one at φ + π."""
+    weight, phase = values["amplitude"], values["phase"]
+    return {**values, "amplitude": weight.abs(), "phase": torch.where(weight < 0, phase + math.pi, phase)}
+
+
+def primitives_from(values: dict[str, Tensor], scale_px: Tensor, config: FitConfig) -> Primitives:
+    """float32 primitives from dequantised, folded values and the scale (px) decoded from them; opacity is
+    1, folded into the amplitude, and the curvature its share of γ_max at that scale (0 without one)."""
+    count, device = scale_px.shape[0], scale_px.device
+    if "curvature" in values:
+        # γ_max follows the decoded scale and is not trained: fine-tuning moves the share alone
+        curvature = (values["curvature"] * curvature_bound(scale_px.detach(), config).double()).float()
+    else:
+        curvature = torch.zeros((count,) if config.curvature == "shared" else (count, config.channels), device=device)
+    return Primitives(position_px=values["position"].float(), scale_px=scale_px,
+                      rotation_rad=values["rotation"].float(), amplitude=values["amplitude"].float(),
+                      phase_rad=values["phase"].float(), opacity=torch.ones(count, device=device),
+                      curvature_per_m=curvature)
+
+
+def _interleave(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    code = np.zeros(x.shape, np.uint64)
+    for bit in range(32):
+        code |= ((x >> np.uint64(bit)) & np.uint64(1)) << np.uint64(2 * bit)
+        code |= ((y >> np.uint64(bit)) & np.uint64(1)) << np.uint64(2 * bit + 1)
+    return code
+
+
+def _deinterleave(code: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    x, y = np.zeros(code.shape, np.uint64), np.zeros(code.shape, np.uint64)
+    for bit in range(32):
+        x |= ((code >> np.uint64(2 * bit)) & np.uint64(1)) << np.uint64(bit)
+        y |= ((code >> np.uint64(2 * bit + 1)) & np.uint64(1)) << np.uint64(bit)
+    return x, y
+
+
+def morton_order(grid: Tensor) -> Tensor:
+    """The order the file stores primitives in: by the Morton code of their grid positions (codes
+    [N, 2]), ties in their given order."""
+    cells = grid.numpy().astype(np.uint64)
+    return torch.from_numpy(np.argsort(_interleave(cells[:, 0], cells[:, 1]), kind="stable"))
+
+
+@dataclass
+class Encoded:
+    """One model's integer symbols per stream, and the side information to dequantise them."""
+
+    streams: dict[str, np.ndarray]
+    ranges: dict[str, list[float]]
+
+
+def quantise(primitives: Primitives, config: FitConfig, bits: BitDepths) -> Encoded:
+    """Integer symbols of every attribute, primitives in Morton order (see the module docstring)."""
+    coded = coding(primitives, config, bits)
+    codes = {name: coded.quantisers[name].codes(values) for name, values in folded(coded.values).items()}
+    order = morton_order(codes["position"])
+    grid = codes.pop("position")[order].numpy().astype(np.uint64)
+    morton = _interleave(grid[:, 0], grid[:, 1])
+    return Encoded({"position": np.diff(morton, prepend=np.uint64(0)).astype(np.int64),
+                    **{name: symbols[order].numpy() for name, symbols in codes.items()}}, coded.ranges)
+
+
+def dequantise(encoded: Encoded, config: FitConfig, bits: BitDepths) -> Primitives:
+    """Primitives (float32, Morton order) from `quantise`'s symbols; opacity is 1, folded into amplitude."""
+    chosen = quantisers(encoded.ranges, bits)
+    x, y = _deinterleave(np.cumsum(encoded.streams["position"].astype(np.uint64), dtype=np.uint64))
+    codes = {name: torch.from_numpy(symbols) for name, symbols in encoded.streams.items() if name != "position"}
+    codes["position"] = torch.from_numpy(np.stack([x, y], axis=1).astype(np.int64))
+    values = {name: chosen[name].values(symbols) for name, symbols in codes.items()}
+    return primitives_from(values, decoded_scale(values["scale"]), config)
+
+
+def _model(coding: str, low: int, high: int, params: list[float]):
+    model = constriction.stream.model
+    if coding == LAPLACE:
+        return model.QuantizedLaplace(low, high, *params)
+    if coding == GAUSSIAN:
+        return model.QuantizedGaussian(low, high, *params)
+    return model.Categorical(np.asarray(params, np.float64), perfect=False)
+
+
+def _ans(symbols: np.ndarray, model) -> bytes:
+    coder = constriction.stream.stack.AnsCoder()
+    coder.encode_reverse(symbols.astype(np.int32), model)
+    return coder.get_compressed().astype("<u4").tobytes()
+
+
+def _raw_bits(values: np.ndarray, width: int) -> bytes:
+    bits = (values[:, None].astype(np.uint64) >> np.arange(width, dtype=np.uint64)) & np.uint64(1)
+    return np.packbits(bits.astype(np.uint8).ravel(), bitorder="little").tobytes()
+
+
+def _from_raw_bits(data: bytes, count: int, width: int) -> np.ndarray:
+    bits = np.unpackbits(np.frombuffer(data, np.uint8), bitorder="little")[:count * width]
+    weights = np.uint64(1) << np.arange(width, dtype=np.uint64)
+    return (bits.reshape(count, width).astype(np.uint64) * weights).sum(axis=1, dtype=np.uint64).astype(np.int64)
+
+
+def encode_stream(values: np.ndarray) -> tuple[dict[str, Any], bytes]:
+    """The smallest coding for one stream of integers: its descriptor (JSON) and bytes.
+
+    Symbols are offset by their minimum. `raw` packs fixed-width bits; the parametric models carry
+    two short parameters; `categorical` carries the histogram, which pays only for skewed streams.
+    """
+    flat = values.ravel()
+    low = int(flat.min(initial=0))
+    shifted = flat - low
+    top = int(shifted.max(initial=0))
+    width = max(top.bit_length(), 1)
+    candidates = [({"coding": RAW, "width": width}, _raw_bits(shifted, width))]
+    if flat.size and top > 0 and top < 2**20:
+        mean, spread, median = float(shifted.mean()), float(shifted.std()), float(np.median(shifted))
+        # Laplace centred on the median, or at 0 with the mean as scale: a geometric law, as gaps
+        # between consecutive Morton codes roughly follow.
+        for coding, params in ((LAPLACE, [_short(median), _short(max(np.abs(shifted - median).mean(), 0.1))]),
+                               (LAPLACE, [0.0, _short(max(mean, 0.1))]),
+                               (GAUSSIAN, [_short(mean), _short(max(spread, 0.1))])):
+            candidates.append(({"coding": coding, "params": params}, _ans(shifted, _model(coding, 0, top, params))))
+        if top < 2**12:
+            counts = np.bincount(shifted, minlength=top + 1)
+            histogram = zlib.compress(_varints(counts), 9)
+            candidates.append(({"coding": CATEGORICAL, "histogram_bytes": len(histogram)},
+                               histogram + _ans(shifted, _model(CATEGORICAL, 0, top, counts.tolist()))))
+    if top > 2:  # then the lengths' largest symbol is smaller than `top`, so the recursion ends
+        candidates.append(_bit_length_coded(shifted))
+    descriptor, data = min(candidates, key=lambda c: len(c[1]))
+    return {**descriptor, "min": low, "max": top + low, "shape": list(values.shape), "bytes": len(data)}, data
+
+
+def _bit_length_coded(shifted: np.ndarray) -> tuple[dict[str, Any], bytes]:
+    """Elias-gamma-like coding of non-negative symbols: each symbol's bit length as a stream of its own
+    (coded by `encode_stream`), then the bits below each leading one, raw, grouped by length. It
+    serves long-tailed streams, such as the Morton gaps, whose largest symbol is too large for the
+    parametric models and costs `raw` its full width on every symbol."""
+    lengths = _bit_lengths(shifted)
+    descriptor, data = encode_stream(lengths)
+    mantissas = b"".join(_raw_bits(shifted[lengths == length] - (1 << (length - 1)), length - 1)
+                         for length in range(2, int(lengths.max(initial=0)) + 1))
+    return {"coding": BIT_LENGTH, "lengths": descriptor}, data + mantissas
+
+
+def _bit_lengths(values: np.ndarray) -> np.ndarray:
+    lengths = np.zeros(values.shape, np.int64)
+    remaining = values.astype(np.uint64)
+    while remaining.any():
+        lengths += remaining > 0
+        remaining >>= np.uint64(1)
+    return lengths
+
+
+def _from_bit_length_coded(descriptor: dict[str, Any], data: bytes, count: int) -> np.ndarray:
+    lengths_descriptor = descriptor["lengths"]
+    lengths = decode_stream(lengths_descriptor, data[:lengths_descriptor["bytes"]]).ravel()
+    values = np.where(lengths > 0, 1, 0).astype(np.int64) << np.maximum(lengths - 1, 0)
+    offset = lengths_descriptor["bytes"]
+    for length in range(2, int(lengths.max(initial=0)) + 1):
+        chosen = lengths == length
+        size = (int(chosen.sum()) * (length - 1) + 7) // 8
+        values[chosen] += _from_raw_bits(data[offset:offset + size], int(chosen.sum()), length - 1)
+        offset += size
+    return values
+
+
+def _varints(counts: np.ndarray) -> bytes:
+    out = bytearray()
+    for count in counts.tolist():
+        while count >= 0x80:
+            out.append(count & 0x7F | 0x80)
+            count >>= 7
+        out.append(count)
+    return bytes(out)
+
+
+def _from_varints(data: bytes, count: int) -> list[int]:
+    values, value, shift = [], 0, 0
+    for byte in data:
+        value |= (byte & 0x7F) << shift
+        shift += 7
+        if not byte & 0x80:
+            values.append(value)
+            value, shift = 0, 0
+    if len(values) != count:
+        raise ModelFileError(f"a categorical stream's histogram holds {len(values)} counts, not {count}")
+    return values
+
+
+def decode_stream(descriptor: dict[str, Any], data: bytes) -> np.ndarray:
+    """Inverse of `encode_stream`."""
+    shape, low, top = descriptor["shape"], descriptor["min"], descriptor["max"] - descriptor["min"]
+    count = int(np.prod(shape))
+    coding = descriptor["coding"]
+    if coding == RAW:
+        shifted = _from_raw_bits(data, count, descriptor["width"])
+    elif coding == BIT_LENGTH:
+        shifted = _from_bit_length_coded(descriptor, data, count)
+    else:
+        if coding == CATEGORICAL:
+            split = descriptor["histogram_bytes"]
+            params = _from_varints(zlib.decompress(data[:split]), top + 1)
+            data = data[split:]
+        else:
+            params = descriptor["params"]
+        words = np.frombuffer(data, "<u4").astype(np.uint32)
+        decoder = constriction.stream.stack.AnsCoder(words)
+        shifted = decoder.decode(_model(coding, 0, top, params), count).astype(np.int64)
+    return (shifted + low).reshape(shape)
+
+
+def encode(primitives: Primitives, config: FitConfig, bits: BitDepths) -> bytes:
+    """The whole `.cvq` file (docs/format.md) of `primitives` at `bits`."""
+    encoded = quantise(primitives, config, bits)
+    descriptors, payload = [], []
+    for name, values in encoded.streams.items():
+        descriptor, data = encode_stream(values)
+        descriptors.append({"name": name, **descriptor})
+        payload.append(data)
+    header = zlib.compress(json.dumps({"optics": optics(config), "num_primitives": primitives.count,
+                                       "bits": asdict(bits), "ranges": encoded.ranges, "streams": descriptors},
+                                      separators=(",", ":")).encode(), 9)
+    body = PREFIX.pack(MAGIC, FORMAT_VERSION, len(header)) + header + b"".join(payload)
+    return body + CHECKSUM.pack(zlib.crc32(body))
+
+
+# What rendering depends on, beside the primitives; the fitting settings stay in the run's config.json.
+RENDER_FIELDS = ("width", "height", "color", "primitive", "curvature", "qpf", "bound", "eta", "global_bound",
+                 "pixel_pitch", "num_planes", "plane_center", "plane_span", "guard_band_px", "pad_multiple_px")
+
+
+def optics(config: FitConfig) -> dict[str, Any]:
+    """The header's rendering settings, lengths in m (`wavelengths` one per channel)."""
+    return {**{name: getattr(config, name) for name in RENDER_FIELDS}, "wavelengths": list(config.wavelengths)}
+
+
+def config_from_optics(values: dict[str, Any]) -> FitConfig:
+    """A configuration that renders like the encoded one; settings that only fitting uses are defaults."""
+    values = dict(values)
+    return FitConfig(**{name: values[name] for name in RENDER_FIELDS}, wavelengths_m=tuple(values["wavelengths"]))
+
+
+@dataclass
+class Compressed:
+    """A decoded `.cvq` file: the primitives, their configuration, and how they were coded."""
+
+    primitives: Primitives
+    config: FitConfig
+    bits: BitDepths
+    streams: list[dict[str, Any]]
+
+
+def decode(data: bytes, name: str = "file") -> Compressed:
+    """Parse and decode a `.cvq` file's bytes; `ModelFileError` names what is wrong."""
+    if len(data) < PREFIX.size or data[:len(MAGIC)] != MAGIC:
+        raise ModelFileError(f"{name}: not a cvqpg compressed file (wrong magic number)")
+    _, version, header_length = PREFIX.unpack_from(data)
+    if version > FORMAT_VERSION:
+        raise ModelFileError(f"{name}: format version {version} is newer than this cvqpg reads "
+                             f"({FORMAT_VERSION}); update cvqpg")
+    if len(data) < PREFIX.size + header_length + CHECKSUM.size:
+        raise ModelFileError(f"{name}: truncated ({len(data)} bytes)")
+    body, (stored,) = data[:-CHECKSUM.size], CHECKSUM.unpack(data[-CHECKSUM.size:])
+    try:
+        header = json.loads(zlib.decompress(body[PREFIX.size:PREFIX.size + header_length]))
+    except (zlib.error, ValueError):
+        header = None
+    payload_bytes = sum(s["bytes"] for s in header["streams"]) if header else 0
+    if header is not None and len(body) < PREFIX.size + header_length + payload_bytes:
+        raise ModelFileError(f"{name}: truncated ({len(data)} bytes, the header announces "
+                             f"{PREFIX.size + header_length + payload_bytes + CHECKSUM.size})")
+    if zlib.crc32(body) != stored or header is None:
+        raise ModelFileError(f"{name}: corrupted (CRC32 checksum mismatch)")
+    config = config_from_optics(header["optics"])
+    bits = BitDepths(**header["bits"])
+    offset, streams = PREFIX.size + header_length, {}
+    for descriptor in header["streams"]:
+        streams[descriptor["name"]] = decode_stream(descriptor, body[offset:offset + descriptor["bytes"]])
+        offset += descriptor["bytes"]
+    primitives = dequantise(Encoded(streams, header["ranges"]), config, bits)
+    return Compressed(primitives, config.replace(num_gaussians=primitives.count), bits, header["streams"])

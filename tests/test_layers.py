@@ -1,0 +1,90 @@
+"""The package's layering: every module imports only downward (no import cycle, counting the imports
+inside functions, which would otherwise hide one), and only the command line and the campaign itself
+import the experiment campaign (`cvqpg.campaign`)."""
+
+import ast
+from pathlib import Path
+
+import cvqpg
+
+CAMPAIGN = "cvqpg.campaign"
+CAMPAIGN_IMPORTERS = ("cvqpg.cli",)
+
+ROOT = Path(cvqpg.__file__).parent
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+MODULES = {module_name(path): path for path in sorted(ROOT.rglob("*.py"))}
+
+
+def imported_modules(name: str, path: Path) -> set[str]:
+    """The modules that `name` imports anywhere in its source, relative imports resolved; `from P import x`
+    counts as importing the module P.x where the package has one, else P."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")
+                base = ".".join(parts[:len(parts) - node.level + 1] + ([base] if base else []))
+            for alias in node.names:
+                found.add(f"{base}.{alias.name}" if f"{base}.{alias.name}" in MODULES else base)
+    return found - {name}
+
+
+IMPORTS = {name: imported_modules(name, path) for name, path in MODULES.items()}
+GRAPH = {name: imported & set(MODULES) for name, imported in IMPORTS.items()}
+
+
+def reachable(graph: dict[str, set[str]], start: str) -> set[str]:
+    """The nodes that paths from `start` lead to."""
+    seen, todo = set(), [start]
+    while todo:
+        for successor in graph[todo.pop()] - seen:
+            seen.add(successor)
+            todo.append(successor)
+    return seen
+
+
+def cycle_edges(graph: dict[str, set[str]]) -> set[tuple[str, str]]:
+    """Every edge on a cycle: a → b where a can be reached again from b."""
+    return {(a, b) for a, successors in graph.items() for b in successors if a in reachable(graph, b)}
+
+
+def test_the_import_graph_is_found():
+    assert {"cvqpg.codec", "cvqpg.storage", "cvqpg.ops.rasterize", "cvqpg.campaign.bench"} <= set(MODULES)
+    assert "cvqpg.codec" in GRAPH["cvqpg.storage"] and "cvqpg.ops" in GRAPH["cvqpg.ops.field"]
+    assert "cvqpg.ops.rasterize.gpu" in GRAPH["cvqpg.ops.rasterize"]  # imported inside a function
+
+
+def test_every_import_within_the_package_names_one_of_its_modules():
+    missing = {(name, module) for name, imported in IMPORTS.items() for module in imported
+               if module.split(".")[0] == "cvqpg" and module not in MODULES}
+    assert missing == set(), "(importer, missing module)"
+
+
+def test_no_import_cycles():
+    assert cycle_edges(GRAPH) == set(), "import cycle through these edges (importer, imported)"
+
+
+def test_a_cycle_is_found():
+    assert cycle_edges({"a": {"b"}, "b": {"c", "d"}, "c": {"a"}, "d": set()}) == {("a", "b"), ("b", "c"), ("c", "a")}
+
+
+def test_only_the_command_line_and_the_campaign_import_the_campaign():
+    importers = {name for name, imported in GRAPH.items() if any(m.startswith(CAMPAIGN) for m in imported)}
+    assert {name for name in importers if not name.startswith(CAMPAIGN)} <= set(CAMPAIGN_IMPORTERS)
+
+
+def test_the_codec_and_storage_sit_below_the_workflows():
+    assert GRAPH["cvqpg.codec"] <= {"cvqpg.config", "cvqpg.errors", "cvqpg.primitives"}
+    assert GRAPH["cvqpg.storage"] <= {"cvqpg.codec", "cvqpg.config", "cvqpg.errors", "cvqpg.files",
+                                      "cvqpg.primitives"}
+    assert "cvqpg.compression" not in GRAPH["cvqpg.finetune"] | GRAPH["cvqpg.runs"]
