@@ -13,18 +13,15 @@ from torch import Tensor
 
 from .codec import BitDepths, Quantiser, coding, folded, primitives_from
 from .config import FitConfig
-from .fitting import hologram
-from .ops.loss import multiplane_loss, noisy_targets, standard_normal
-from .optics import reconstruct
+from .fitting import hologram, hologram_loss
 from .primitives import Primitives
 from .targets import Scene
 
 # Adam's first steps move every value by about its learning rate whatever its gradient, and every value
-# that crosses a bin edge changes the render: a quarter bin, reached over a short linear warm-up, then
-# decayed by a cosine to 0. On the bento RGB 10% fit, one bit below the default budget, half a bin without
-# warm-up lost 2.7 dB in its first 10 steps; this schedule gains 0.50 dB in 100 steps.
+# that crosses a bin edge changes the render: a quarter bin, reached over a short linear ramp, then
+# decayed by a cosine to 0 (what each part gains: docs/compression.md, "What each technique buys on a 640×480 fit").
 LEARNING_RATE_BINS = 0.25
-WARMUP_STEPS = 10
+RAMP_STEPS = 10
 
 
 def straight_through(value: Tensor, quantiser: Quantiser) -> Tensor:
@@ -59,15 +56,12 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
         value.requires_grad_(True)
     optimizer = torch.optim.Adam([{"params": [value], "lr": LEARNING_RATE_BINS * coded.quantisers[name].step}
                                   for name, value in params.items()])
-    schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda i: min(1.0, (i + 1) / (WARMUP_STEPS + 1))
+    schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda i: min(1.0, (i + 1) / (RAMP_STEPS + 1))
                                                  * 0.5 * (1 + math.cos(math.pi * i / max(steps, 1))))
     generator = torch.Generator(device=config.device).manual_seed(config.seed if seed is None else seed)
     for _ in range(steps):
-        recon = reconstruct(hologram(quantised(params, coded.quantisers, config), config), config)
-        noise = standard_normal(scene.targets.shape, generator, config.backend)
-        loss, _ = multiplane_loss(recon, scene.targets, scene.masks,
-                                  noisy_targets(scene.targets, noise, config.target_noise),
-                                  config.ssim_weight, config.backend)
+        loss, _ = hologram_loss(hologram(quantised(params, coded.quantisers, config), config), scene, config,
+                                generator)
         optimizer.zero_grad(set_to_none=True)
         if not torch.isfinite(loss):
             continue
