@@ -120,7 +120,7 @@ def transform_actions(config: FitConfig) -> dict[str, Callable[[], object]]:
 
 
 def load_raw_parameters(gaussians: Gaussians, primitives: Primitives, config: FitConfig) -> None:
-    """Set raw parameters so that they activate to `primitives` (SPEC §2's activations inverted)."""
+    """Set raw parameters so that they activate to `primitives` (method.md §2's activations inverted)."""
     inside = 1 - OPEN_INTERVAL_MARGIN
     extent = torch.tensor([config.width, config.height], dtype=primitives.position_px.dtype)
     share = primitives.curvature_per_m / curvature_bound(primitives.scale_px, config)

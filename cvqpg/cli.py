@@ -64,7 +64,7 @@ def flag_message(message: str) -> str:
 def _fit_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("fit", help="fit a hologram of Gaussian primitives to an image and its depth",
                        description="Fit N complex-valued 2D Gaussians so that the hologram they sum to "
-                       "reproduces defocus-aware targets at every depth plane (SPEC §2–§7).",
+                       "reproduces defocus-aware targets at every depth plane (method.md §2–§7).",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("image", nargs="?", help="input image file (any format Pillow reads); "
                    "without it the built-in --scene is used")
@@ -133,7 +133,7 @@ def _device_argument(p: argparse.ArgumentParser) -> None:
 
 def _display_parsers(sub: argparse._SubParsersAction) -> None:
     x = sub.add_parser("export", help="phase-only SLM patterns of a run, and their simulated display",
-                       description="Encode RUN_DIR's hologram as phase-only patterns (SPEC §8), one per colour "
+                       description="Encode RUN_DIR's hologram as phase-only patterns (method.md §8), one per colour "
                        "channel (PNG gray levels, g ↔ 2πg/LEVELS, and the unquantised phase in rad as .npy), "
                        "then simulate showing them through a 4f system and compare with the complex field.",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)

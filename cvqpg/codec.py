@@ -5,7 +5,7 @@ number, a format version and a CRC32. A primitive is coded as: position on a gri
 Morton order and coded as gaps between consecutive Morton codes; log scale over the model's own range;
 rotation modulo π (an ellipse turned by π is the same ellipse); amplitude × opacity as a magnitude, its
 sign folded into the phase (+π); phase modulo 2π; curvature as a fraction of the primitive's own bound
-γ_max (SPEC §4), computed from the decoded scale so that encoder and decoder agree.
+γ_max (method.md §4), computed from the decoded scale so that encoder and decoder agree.
 
 Each attribute's quantiser is written once, in torch (`Quantiser`; `coding` derives them from a model):
 the encoder takes their integer codes, quantisation-aware fine-tuning (`finetune`) rounds through them

@@ -1,4 +1,4 @@
-"""Fit configuration: every setting of SPEC §2–§6 with the paper's value as default."""
+"""Fit configuration: every setting of method.md §2–§6 with the paper's value as default."""
 
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ GRAY_WAVELENGTH_M = 639e-9
 
 @dataclass(frozen=True)
 class LearningRates:
-    """Per-group Adan learning rates (SPEC §6). Position is cosine-annealed to `position_final`."""
+    """Per-group Adan learning rates (method.md §6). Position is cosine-annealed to `position_final`."""
 
     position: float = 0.01
     position_final: float = 1e-3
@@ -110,7 +110,7 @@ class FitConfig:
 
     @property
     def primitive_count(self) -> int:
-        """N: explicit, or `ratio · W·H/2` (RGB) / `ratio · W·H/4` (grayscale), SPEC §2."""
+        """N: explicit, or `ratio · W·H/2` (RGB) / `ratio · W·H/4` (grayscale), method.md §2."""
         if self.num_gaussians is not None:
             return self.num_gaussians
         pixels_per_primitive = 2 if self.color == "rgb" else 4

@@ -1,4 +1,4 @@
-"""Phase-only patterns for real SLMs (SPEC §8): double-phase amplitude coding, quantisation, the
+"""Phase-only patterns for real SLMs (method.md §8): double-phase amplitude coding, quantisation, the
 SLM canvas, and a simulated 4f display that reconstructs the quantised pattern."""
 
 from __future__ import annotations

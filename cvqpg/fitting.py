@@ -1,4 +1,4 @@
-"""Fitting: the optimisation loop of SPEC §6 and rendering of a fitted model.
+"""Fitting: the optimisation loop of method.md §6 and rendering of a fitted model.
 
 A library call here computes and returns: it compiles nothing ahead, prints nothing but its
 progress bar, and measures no memory; the command line (`cvqpg.app`) does those around it."""
@@ -81,7 +81,7 @@ def trainable_groups(config: FitConfig) -> tuple[str, ...]:
 
 
 def make_optimizer(gaussians: Gaussians, config: FitConfig) -> Adan:
-    """Adan (pytorch-optimizer) with one group per parameter kind and SPEC §6 learning rates."""
+    """Adan (pytorch-optimizer) with one group per parameter kind and method.md §6 learning rates."""
     # Imported here: pytorch-optimizer imports transformers where it is installed (a second or more),
     # which the first run's compile processes, importing this module, do not need.
     from pytorch_optimizer import Adan
@@ -197,7 +197,7 @@ def state_from_payload(payload: dict, config: FitConfig) -> FitState:
 
 def hologram_loss(field: Tensor, scene: Scene, config: FitConfig,
                   generator: torch.Generator) -> tuple[Tensor, Tensor]:
-    """SPEC §6's training loss of a complex hologram [C, H, W]: propagated to the scene's planes and
+    """method.md §6's training loss of a complex hologram [C, H, W]: propagated to the scene's planes and
     compared with its targets under fresh noise drawn from `generator`; returns it and the plain MSE."""
     noise = standard_normal(scene.targets.shape, generator, config.backend)
     return multiplane_loss(reconstruct(field, config), scene.targets, scene.masks,
@@ -218,7 +218,7 @@ class StepOutcome:
 
 
 def update(state: FitState, scene: Scene, config: FitConfig) -> StepOutcome:
-    """One update of SPEC §6: render, propagate, loss, sanitise and clip gradients, Adan, without
+    """One update of method.md §6: render, propagate, loss, sanitise and clip gradients, Adan, without
     reading anything back to the host (on CUDA the step is queued, not waited for).
 
     A step whose loss is not finite, or whose update would leave a parameter non-finite, is undone
@@ -257,7 +257,7 @@ def surely_false(flag: Tensor) -> bool:
 
 def apply_gradients(optimizer: Adan, config: FitConfig, step: int, finite_loss: Tensor | None = None
                     ) -> tuple[Tensor, Tensor]:
-    """Non-finite gradient entries → 0 (SPEC §6), clip to the global norm, anneal position, Adan.
+    """Non-finite gradient entries → 0 (method.md §6), clip to the global norm, anneal position, Adan.
 
     The update is undone, parameters and Adan's moments alike, where `finite_loss` is false or a
     parameter came out non-finite: they are copied into one buffer before it and put back with

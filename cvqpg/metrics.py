@@ -1,4 +1,4 @@
-"""The paper's image metrics (SPEC §7): PSNR, SSIM, FLIP always; LPIPS and ColorVideoVDP when present.
+"""The paper's image metrics (method.md §7): PSNR, SSIM, FLIP always; LPIPS and ColorVideoVDP when present.
 
 Nothing is downloaded: LPIPS needs `lpips` (and torchvision) plus the VGG16 weights already in the
 torch hub cache; ColorVideoVDP needs `cvvdp`. When either is missing its value is None and
@@ -57,7 +57,7 @@ def psnr(recon: np.ndarray, target: np.ndarray) -> float:
 
 
 def mean_psnr(recon: Tensor, targets: Tensor) -> float:
-    """PSNR (dB) of reconstructions [M, C, H, W] against targets, averaged over planes (SPEC §7)."""
+    """PSNR (dB) of reconstructions [M, C, H, W] against targets, averaged over planes (method.md §7)."""
     return float(np.mean([psnr(_hwc(r), _hwc(t)) for r, t in zip(recon, targets)]))
 
 
@@ -142,7 +142,7 @@ def evaluate(recon: Tensor, targets: Tensor) -> MetricReport:
 
 def radial_error_spectrum(recon: Tensor, target: Tensor, bins: int = 32
                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Squared error per spatial frequency, averaged in radial bins (SPEC §7's frequency analysis).
+    """Squared error per spatial frequency, averaged in radial bins (method.md §7's frequency analysis).
 
     `recon` and `target` are [..., H, W]; leading axes (planes, channels) are averaged. The error
     spectrum `|FFT2(recon − target)|² / (H·W)` is normalised so that its mean over all frequencies

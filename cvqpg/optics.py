@@ -1,4 +1,4 @@
-"""Reconstruction of a hologram at its depth planes (SPEC §3): the SLM field, propagated by BLASM
+"""Reconstruction of a hologram at its depth planes (method.md §3): the SLM field, propagated by BLASM
 (odak 0.2.7's convention), as clamped intensities; each an op of `cvqpg.ops`, on the config's backend."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from .ops.propagation import propagate_planes
 
 
 def reconstruct(hologram: Tensor, config: FitConfig, distances_m: Sequence[float] | None = None) -> Tensor:
-    """Hologram [C, H, W] → reconstructed intensity [M, C, H, W] clamped to [0, 1] (SPEC §3), at
+    """Hologram [C, H, W] → reconstructed intensity [M, C, H, W] clamped to [0, 1] (method.md §3), at
     `config`'s planes or at `distances_m` (m)."""
     grid = Grid.for_config(config)
     field = guarded_field(hologram, grid, config.backend)

@@ -1,4 +1,4 @@
-"""Complex-valued Gaussian primitives: raw parameters, initialisation and activations (SPEC §2, §4)."""
+"""Complex-valued Gaussian primitives: raw parameters, initialisation and activations (method.md §2, §4)."""
 
 from __future__ import annotations
 
@@ -76,7 +76,7 @@ class Primitives(TensorFields):
 
 def init_gaussians(count: int, channels: int, width: int, height: int, seed: int,
                    device: torch.device | str = "cpu", per_channel_curvature: bool = False) -> Gaussians:
-    """The reference initialisation: draws from a CPU generator in SPEC order, then moves to `device`.
+    """The reference initialisation: draws from a CPU generator in method.md's order (§2), then moves to `device`.
 
     Curvature starts at 0, [N] or [N, C] with `per_channel_curvature`; the draws do not depend on it.
     """
@@ -134,7 +134,7 @@ def curvature_bound(scale_px: Tensor, config: FitConfig) -> Tensor:
 
 
 def activate(raw: Gaussians, config: FitConfig) -> Primitives:
-    """Apply SPEC §2's activations; the curvature bound follows `config.bound` and `config.curvature`.
+    """Apply method.md §2's activations; the curvature bound follows `config.bound` and `config.curvature`.
 
     `channel-bound` shares one raw curvature: every channel gets the same fraction of its own bound.
     """
@@ -159,7 +159,7 @@ def inverse_covariance(scale_px: Tensor, rotation_rad: Tensor) -> tuple[Tensor, 
 
     Σ = R diag(e) Rᵀ with the eigenvalues e = s² + 0.1, so Σ⁻¹ = R diag(1/e) Rᵀ: sums of positive
     terms for a and c, without the float32 cancellation of Σxx·Σyy − Σxy² that makes the determinant
-    zero or negative for elongated primitives (one scale of 8000 px, the other of 1 px). SPEC's clamp
+    zero or negative for elongated primitives (one scale of 8000 px, the other of 1 px). method.md's clamp
     of the determinant at 1e-10 never applies: det Σ = e_x·e_y ≥ 0.01.
     """
     inverse = 1.0 / (scale_px * scale_px + COVARIANCE_REGULARISER_PX2)

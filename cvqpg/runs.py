@@ -197,7 +197,7 @@ def export_run(folder: str | Path, encoding: Encoding = "dpac", levels: int = DE
                slm: tuple[int, int] | None = None, aperture: float | None = DEFAULT_APERTURE,
                out: str | Path | None = None, model: str | Path | None = None, device: str = "cpu"
                ) -> dict[str, Any]:
-    """Write a run's phase-only SLM patterns and simulate showing them (SPEC §8), rendered on `device`;
+    """Write a run's phase-only SLM patterns and simulate showing them (method.md §8), rendered on `device`;
     `model` replaces the run's own model (e.g. a compressed file in the run folder).
 
     `slm` is the SLM's (W, H) in px (default: the hologram's own size). Writes the patterns, the

@@ -1,4 +1,4 @@
-"""Inputs and defocus-aware multi-plane targets (SPEC §5, Kavaklı et al. 2023)."""
+"""Inputs and defocus-aware multi-plane targets (method.md §5, Kavaklı et al. 2023)."""
 
 from __future__ import annotations
 
@@ -55,7 +55,7 @@ def prepare_image(picture: Image.Image, width: int, height: int, color: str) -> 
 def prepare_depth(picture: Image.Image, width: int, height: int) -> Tensor:
     """Depth map → [H, W] in [0, 1], 0 near, Lanczos-resized to W×H px.
 
-    8-bit maps follow SPEC §5 (L, /255). 16-bit maps are divided by 65535 and float maps
+    8-bit maps follow method.md §5 (L, /255). 16-bit maps are divided by 65535 and float maps
     normalised to [0, 1] from their own range, both resized in float so no precision is lost.
     """
     if picture.mode not in HIGH_DEPTH_MODES:

@@ -1,4 +1,4 @@
-"""Hologram field, guard band and BLASM propagation (SPEC §3)."""
+"""Hologram field, guard band and BLASM propagation (method.md §3)."""
 
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ def odak_kernel(rows: int, cols: int, wavelength: float, distance: float) -> tor
 
 
 def centred_pad(field: torch.Tensor) -> torch.Tensor:
-    """[C, P_H, P_W] → [C, 2P_H, 2P_W], content at (P_H//2, P_W//2) as SPEC §3 / odak place it."""
+    """[C, P_H, P_W] → [C, 2P_H, 2P_W], content at (P_H//2, P_W//2) as method.md §3 / odak place it."""
     channels, rows, cols = field.shape
     padded = field.new_zeros(channels, 2 * rows, 2 * cols)
     padded[:, rows // 2:rows // 2 + rows, cols // 2:cols // 2 + cols] = field
@@ -45,7 +45,7 @@ def centre_crop(padded: torch.Tensor, rows: int, cols: int) -> torch.Tensor:
 
 
 def spec_propagate(field: torch.Tensor, distance: float, wavelengths: list[float]) -> torch.Tensor:
-    """SPEC §3 written out literally with odak's kernel: pad, fftshift(fft2), ×H, ifft2(ifftshift), crop."""
+    """method.md §3 written out literally with odak's kernel: pad, fftshift(fft2), ×H, ifft2(ifftshift), crop."""
     _, rows, cols = field.shape
     padded = centred_pad(field)
     out = []
@@ -425,7 +425,7 @@ def test_guarded_field_matches_autograd_through_the_composition(backend):
     assert torch.allclose(fused, reference, rtol=1e-13, atol=1e-15)
     assert torch.allclose(fused_grad, reference_grad, rtol=1e-12, atol=1e-12)
     assert torch.isfinite(fused_grad).all()
-    # finite differences see the replicated guard band move too, which by SPEC carries no gradient:
+    # finite differences see the replicated guard band move too, which by method.md §3 carries no gradient:
     # they are taken on the content
     assert torch.autograd.gradcheck(lambda h: grid.crop(guarded_field(h, grid, backend)),
                                     (hologram[:1].clone().requires_grad_(True),), fast_mode=True)

@@ -1,4 +1,4 @@
-"""Adan, the position learning-rate schedule and the curvature warm-up (SPEC §4, §6)."""
+"""Adan, the position learning-rate schedule and the curvature warm-up (method.md §4, §6)."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ class HandAdan:
     """Adan as Xie et al. (2022), Algorithm 1, with the official release's bias correction.
 
     The paper writes m_k = (1 − β1) m_{k−1} + β1 g_k with β1 = 0.02, β2 = 0.08, β3 = 0.01; the code
-    (official release, pytorch-optimizer, SPEC §6) writes m = β1 m + (1 − β1) g with β = (0.98, 0.92, 0.99),
+    (official release, pytorch-optimizer, method.md §6) writes m = β1 m + (1 − β1) g with β = (0.98, 0.92, 0.99),
     i.e. code β = 1 − paper β. Per parameter, at step t = 1, 2, ...:
 
         m = β1 m + (1 − β1) g

@@ -1,4 +1,4 @@
-"""Rasterizer against an independent per-pixel evaluation of SPEC §2, gradients, Nyquist bound (SPEC §4)."""
+"""Rasterizer against an independent per-pixel evaluation of method.md §2, gradients, Nyquist bound (method.md §4)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from cvqpg.ops.rasterize import rasterize as _rasterize
 
 
 def rasterize(*args, backend="torch"):
-    """These tests hold the PyTorch reference (float64) against SPEC §2 written out by hand."""
+    """These tests hold the PyTorch reference (float64) against method.md §2 written out by hand."""
     return _rasterize(*args, backend=backend)
 
 
@@ -44,7 +44,7 @@ def covariance_matrices(scale: torch.Tensor, rotation: torch.Tensor) -> torch.Te
 
 
 def direct_hologram(prims: Primitives, width: int, height: int, wavelengths, pitch: float, qpf: str) -> torch.Tensor:
-    """Every primitive at every pixel centre (integer coordinates), complex [C, H, W]; SPEC §2 verbatim."""
+    """Every primitive at every pixel centre (integer coordinates), complex [C, H, W]; method.md §2 verbatim."""
     cov = covariance_matrices(prims.scale_px, prims.rotation_rad)
     det = torch.clamp(cov[:, 0, 0] * cov[:, 1, 1] - cov[:, 0, 1] * cov[:, 1, 0], min=1e-10)
     adj = torch.stack([torch.stack([cov[:, 1, 1], -cov[:, 0, 1]], -1),

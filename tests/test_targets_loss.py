@@ -1,4 +1,4 @@
-"""Defocus-aware multi-plane targets (SPEC §5) and the training loss (SPEC §6), against hand computation."""
+"""Defocus-aware multi-plane targets (method.md §5) and the training loss (method.md §6), against hand computation."""
 
 from __future__ import annotations
 

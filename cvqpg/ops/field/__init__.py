@@ -1,4 +1,4 @@
-"""The SLM field and the clamped intensity (SPEC §3): the public ops and their autograd boundaries.
+"""The SLM field and the clamped intensity (method.md §3): the public ops and their autograd boundaries.
 
 | op                  | reference.py (PyTorch)                    | cpu.py (Numba)                                    |
 |---------------------|-------------------------------------------|---------------------------------------------------|
@@ -50,7 +50,7 @@ class _GuardedField(torch.autograd.Function):
 
 
 def guarded_field(hologram: Tensor, grid: Grid, backend: str = "auto") -> Tensor:
-    """SLM field [C, P_H, P_W] of a hologram [C, H, W]: guard band, window and clamped amplitude (SPEC §3).
+    """SLM field [C, P_H, P_W] of a hologram [C, H, W]: guard band, window and clamped amplitude (method.md §3).
 
     `backend` picks the PyTorch formulas or the fused CPU kernels, as it picks the rasterizer.
     """
@@ -79,7 +79,7 @@ class _FusedIntensity(torch.autograd.Function):
 
 
 def clamped_intensity(field: Tensor, backend: str = "auto") -> Tensor:
-    """Intensity `clamp(|u|², 0, 1)` of a complex field (SPEC §3), through the backend's formulas."""
+    """Intensity `clamp(|u|², 0, 1)` of a complex field (method.md §3), through the backend's formulas."""
     if resolve_backend(backend, field.device) == "numba":
         return _FusedIntensity.apply(field)
     return reference.clamped_intensity(field)

@@ -1,4 +1,4 @@
-"""The SLM field's and the clamped intensity's PyTorch reference (SPEC §3): the guard band, its
+"""The SLM field's and the clamped intensity's PyTorch reference (method.md §3): the guard band, its
 window, the clamped amplitude, and the intensity of a propagated field."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The multi-plane training loss (SPEC §6) and the targets' noise: the public ops and their autograd boundaries.
+"""The multi-plane training loss (method.md §6) and the targets' noise: the public ops and their autograd boundaries.
 
 | op               | reference (PyTorch)         | cpu (Numba)                              |
 |------------------|-----------------------------|------------------------------------------|

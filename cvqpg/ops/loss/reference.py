@@ -1,4 +1,4 @@
-"""The training loss's PyTorch reference (SPEC §6): the pixel-wise terms and pytorch-msssim's SSIM,
+"""The training loss's PyTorch reference (method.md §6): the pixel-wise terms and pytorch-msssim's SSIM,
 differentiated by autograd, and the targets' noise as counter-based draws."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""BLASM propagation (SPEC §3): the public op and the autograd boundary of the pruned transforms.
+"""BLASM propagation (method.md §3): the public op and the autograd boundary of the pruned transforms.
 
 `propagate_planes` is the op: the H×W content of an SLM field propagated to every plane, through the
 backend's transforms (`cvqpg.ops.resolve_backend`). With `numba`, the CPU's default, they are the
@@ -196,7 +196,7 @@ def propagate_content(field: Tensor, grid: Grid, distances_m: Sequence[float], w
 def propagate_planes(field: Tensor, grid: Grid, distances_m: Sequence[float], wavelengths_m: Sequence[float],
                      pixel_pitch: float, backend: str = "auto") -> Tensor:
     """The H×W content [M, C, H, W] of a [C, P_H, P_W] SLM field propagated to every distance (m) at
-    each channel's wavelength (m), pitch in m (SPEC §3): the pruned transforms with the CPU kernels
+    each channel's wavelength (m), pitch in m (method.md §3): the pruned transforms with the CPU kernels
     (`numba`), else the full-grid ones (`torch`, `triton`); the same numbers to float32 rounding."""
     if resolve_backend(backend, field.device) == "numba":
         return propagate_content(field, grid, distances_m, wavelengths_m, pixel_pitch, fused=True)

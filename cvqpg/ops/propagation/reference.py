@@ -1,4 +1,4 @@
-"""BLASM propagation's PyTorch reference (SPEC §3, odak 0.2.7's convention): the transfer function,
+"""BLASM propagation's PyTorch reference (method.md §3, odak 0.2.7's convention): the transfer function,
 its distance-independent spectral terms, the bank of transfer functions a propagation uses, and the
 full-grid propagation."""
 

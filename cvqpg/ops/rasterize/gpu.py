@@ -6,7 +6,7 @@ beforehand in PyTorch: the weight `w_c = amplitude_c · opacity` and the phase r
 
     G_c(p) = w_c · exp(max(−½D², EXPONENT_FLOOR)) · e^{i(φ_c + κ_c·P)},   P = D² (Mahalanobis) or |p − x|²,
 
-inside its circle |p − x| ≤ reach (SPEC §2), as the reference does.
+inside its circle |p − x| ≤ reach (method.md §2), as the reference does.
 
 One program per primitive walks the pixels of its footprint's bounding box (clipped to the image)
 in blocks of BLOCK pixels, all channels at once. The forward pass adds its values to the complex

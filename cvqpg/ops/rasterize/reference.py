@@ -1,4 +1,4 @@
-"""The rasterizer's PyTorch reference: the complex hologram `H_c(p) = Σ_n G_{n,c}(p)` on the W×H SLM grid (SPEC §2).
+"""The rasterizer's PyTorch reference: the complex hologram `H_c(p) = Σ_n G_{n,c}(p)` on the W×H SLM grid (method.md §2).
 
 `splats` reduces each primitive to the quantities every backend sums (centre, inverse covariance,
 footprint, chirp) in plain differentiable PyTorch. `sum_patches` evaluates each primitive on a
@@ -54,7 +54,7 @@ def curvature_columns(curvature_per_m: Tensor) -> Tensor:
 
 
 def splats(prims: Primitives, pixel_pitch: float, qpf: Qpf) -> Splats:
-    """Per-primitive quantities of SPEC §2 (differentiable, except the footprint radius)."""
+    """Per-primitive quantities of method.md §2 (differentiable, except the footprint radius)."""
     a, b, c = inverse_covariance(prims.scale_px, prims.rotation_rad)
     with torch.no_grad():
         reach = FOOTPRINT_SIGMAS * major_sigma_px(prims.scale_px)
