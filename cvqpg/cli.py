@@ -6,19 +6,24 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import re
+import shutil
 import signal
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import NoReturn, Sequence
 
 import torch
+from PIL import Image
 
 from . import __version__
 from .app.allocator import keep_freed_memory
 from .app.compilation import compile_all
+from .app.outputs import check_output_file, check_output_folder
 from .app.runner import CHECKPOINT_SECONDS, fit_in_folder, resumed_state, write_fitted_run
 from .campaign.bench import (CELLS_DIR, METHODS, PRESETS, Overrides, RateDistortionOptions, describe_cells, make_plan,
                              parse_shard, peak_bytes, run_plan)
@@ -29,15 +34,16 @@ from .compression import ASSUMED_FIT_PSNR_DB, compress_model, decompress_file
 from .config import BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITIVES, QPFS, FitConfig
 from .depth import DEPTH_FILE, DEPTH_MODEL, estimate_depth, load_depth_model
 from .errors import CvqpgError
+from .files import replace_folder, staged_folder
 from .export import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
 from .fitting import FitInterrupted, FitState, estimated_peak_bytes
-from .runs import (CONFIG_FILE, EXPORT_FOLDER, METRICS_FILE, MODEL_FILE, RENDER_FOLDER, evaluate_run, export_run,
-                   half_precision_model, read_run, render_model, scene_from_source, start_run,
-                   write_atomic)
+from .runs import (CHECKPOINT_FILE, CONFIG_FILE, EXPORT_FOLDER, HALF_MODEL_FILE, METRICS_FILE, MODEL_FILE,
+                   RENDER_FOLDER, evaluate_run, export_run, half_precision_model, model_path, read_run, render_model,
+                   scene_from_source, start_run, write_atomic)
 from .scenes import SCENES
-from .storage import model_info
+from .storage import is_compressed, model_info
 from .targets import Scene, check_file, load_scene
-from .view import DEFAULT_SWEEP, VIEW_FILE, ViewRecord, write_view
+from .view import DEFAULT_SWEEP, VIEW_FILE, ViewRecord, default_page, write_view
 
 DEFAULTS = FitConfig()
 
@@ -54,6 +60,29 @@ FLAGS = {"width": "--size", "height": "--size", "num_planes": "--planes", "pixel
 
 class UsageError(CvqpgError):
     """Bad command-line input: printed as one line, exit code 2."""
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse whose usage errors are one line, like every other error (`cvqpg fit -h` shows the usage)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def finite(text: str) -> float:
+    """An argparse type: a finite number (inf and nan are refused where they are given)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return value
+
+
+def _overwrite_argument(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--overwrite", action="store_true", help=f"replace {what} if it exists (only once the command "
+                   "has succeeded; never the command's input or a run's own files)")
 
 
 def flag_message(message: str) -> str:
@@ -79,7 +108,7 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--primitive", choices=PRIMITIVES, default=DEFAULTS.primitive,
                    help="flat-phase baseline or CVQPG with learnable curvature")
     count = p.add_mutually_exclusive_group()
-    count.add_argument("--ratio", type=float, default=DEFAULTS.ratio,
+    count.add_argument("--ratio", type=finite, default=DEFAULTS.ratio,
                        help="primitive count as a fraction of W·H/2 (RGB) or W·H/4 (grayscale)")
     count.add_argument("--num-gaussians", type=int, metavar="N", help="explicit primitive count N")
     p.add_argument("--steps", type=int, default=DEFAULTS.steps,
@@ -104,19 +133,20 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
                    help="CVQPG curvature in colour: one γ for all channels bounded by the shortest "
                    "wavelength (the paper), one γ_c per channel bounded by its own λ_c (15 parameters "
                    "per RGB primitive), or one shared raw value scaled by each channel's own bound")
-    p.add_argument("--pitch", type=float, default=DEFAULTS.pixel_pitch, metavar="M",
+    p.add_argument("--pitch", type=finite, default=DEFAULTS.pixel_pitch, metavar="M",
                    help="SLM pixel pitch in m")
-    p.add_argument("--wavelengths", type=float, nargs="+", metavar="M",
+    p.add_argument("--wavelengths", type=finite, nargs="+", metavar="M",
                    help="wavelength per channel in m [default: 639e-9 532e-9 473e-9 (rgb), 639e-9 (gray)]")
-    p.add_argument("--plane-center", type=float, default=DEFAULTS.plane_center, metavar="M",
+    p.add_argument("--plane-center", type=finite, default=DEFAULTS.plane_center, metavar="M",
                    help="middle of the plane range d in m (planes span d ± V/2)")
-    p.add_argument("--plane-span", type=float, default=DEFAULTS.plane_span, metavar="M",
+    p.add_argument("--plane-span", type=finite, default=DEFAULTS.plane_span, metavar="M",
                    help="plane range V in m")
     p.add_argument("--resize-depth", action="store_true",
                    help="accept a depth map whose aspect ratio differs from the image's (it is stretched)")
     p.add_argument("--out", metavar="DIR", help="run folder [default: runs/<time>-<input>-<color>-"
                    "<primitive>]")
-    p.add_argument("--overwrite", action="store_true", help="replace a run already in --out")
+    p.add_argument("--overwrite", action="store_true", help="replace a run already in --out, as a whole, once the "
+                   "new fit has succeeded")
     p.add_argument("--resume", metavar="RUN_DIR", help="continue an interrupted run from its last "
                    "checkpoint with its own settings (other options are ignored)")
     p.add_argument("--checkpoint-every", type=int, metavar="K", help="save a checkpoint every K steps "
@@ -144,9 +174,10 @@ def _display_parsers(sub: argparse._SubParsersAction) -> None:
     x.add_argument("--levels", type=int, default=DEFAULT_LEVELS, help="phase levels of the SLM")
     x.add_argument("--slm", type=int, nargs=2, metavar=("W", "H"), help="SLM size in px: the pattern is "
                    "centred on it, the rest at phase 0 (e.g. 4096 2400) [default: the hologram's size]")
-    x.add_argument("--aperture", type=float, default=DEFAULT_APERTURE, help="radius of the 4f filter's "
+    x.add_argument("--aperture", type=finite, default=DEFAULT_APERTURE, help="radius of the 4f filter's "
                    "circular Fourier aperture as a fraction of the Nyquist frequency (0 disables the filter)")
     x.add_argument("--out", metavar="DIR", help="output folder [default: RUN_DIR/export]")
+    _overwrite_argument(x, "the output folder")
     _device_argument(x)
     i = sub.add_parser("info", help="size of a saved model: bits per pixel, and bits per attribute if compressed",
                        description="Print N, parameters, file size and bits per hologram pixel of a model file "
@@ -155,15 +186,17 @@ def _display_parsers(sub: argparse._SubParsersAction) -> None:
     i.add_argument("--half", action="store_true", help="also store the model in float16 "
                    "(RUN_DIR/model.f16.safetensors) and report the PSNR change (needs a run folder)")
     i.add_argument("--json", action="store_true", help="print the numbers as JSON")
+    _overwrite_argument(i, "an existing float16 copy (with --half)")
     r = sub.add_parser("render", help="render a saved model's hologram and reconstructions without fitting",
                        description="Render a model's hologram (amplitude.png, phase.png) and its reconstruction "
                        "at the model's planes or at --distance, optionally resampled to --size.")
     r.add_argument("target", metavar="RUN_DIR|MODEL", help="run folder or model file")
     r.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="resample the same physical "
                    "hologram to W×H px (same aspect ratio; the pixel pitch scales accordingly)")
-    r.add_argument("--distance", type=float, nargs="+", metavar="M", help="reconstruction distances in m "
+    r.add_argument("--distance", type=finite, nargs="+", metavar="M", help="reconstruction distances in m "
                    "(e.g. 0.001 0.002 0.003 to refocus) [default: the model's planes]")
     r.add_argument("--out", metavar="DIR", help="output folder [default: RUN_DIR/render, or next to MODEL]")
+    _overwrite_argument(r, "the output folder")
     _device_argument(r)
 
 
@@ -176,9 +209,10 @@ def _view_parser(sub: argparse._SubParsersAction) -> None:
                        "of `cvqpg export`, and the runs' settings and metrics.")
     v.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="one or two folders written by `cvqpg fit` "
                    "(of the same size and optics)")
-    v.add_argument("--distances", type=float, nargs=3, default=DEFAULT_SWEEP, metavar=("START", "STOP", "COUNT"),
+    v.add_argument("--distances", type=finite, nargs=3, default=DEFAULT_SWEEP, metavar=("START", "STOP", "COUNT"),
                    help=f"sweep COUNT distances from START to STOP in m, plus the training planes [default: "
                    f"{start:g} {stop:g} {count}]")
+    _overwrite_argument(v, "the page")
     v.add_argument("--out", metavar="PAGE", help=f"the page [default: RUN_DIR/{VIEW_FILE}, or "
                    "RUN_DIR/view_vs_<RUN_DIR_2>.html for two runs]")
     v.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -191,21 +225,23 @@ def _compression_parsers(sub: argparse._SubParsersAction) -> None:
                        "model file against its own reconstruction.")
     c.add_argument("target", metavar="RUN_DIR|MODEL", help="run folder or float model file")
     c.add_argument("--out", metavar="FILE", help=f"[default: the model's path with suffix {SUFFIX}]")
+    _overwrite_argument(c, "the output file")
     budget = c.add_mutually_exclusive_group()
-    budget.add_argument("--max-drop", type=float, metavar="DB", help="smallest budget whose decoded render stays "
+    budget.add_argument("--max-drop", type=finite, metavar="DB", help="smallest budget whose decoded render stays "
                         "within DB dB of the float model's PSNR [default: 0.1]")
     budget.add_argument("--bits", nargs="+", metavar="ATTR=B", help="fixed budget: ATTR=B for position "
                         "(fractional bits), scale, rotation, amplitude, phase, curvature; or one number for all "
                         f"but position [default of each: {' '.join(f'{k}={v}' for k, v in vars(BitDepths()).items())}]")
     c.add_argument("--finetune", type=int, default=0, metavar="STEPS", help="quantisation-aware fine-tuning "
                    "steps on the run's own targets (needs a run folder); kept only if it pays")
-    c.add_argument("--prune", type=float, default=0.0, metavar="FRACTION", help="with --finetune: first remove "
+    c.add_argument("--prune", type=finite, default=0.0, metavar="FRACTION", help="with --finetune: first remove "
                    "this fraction (0 ≤ FRACTION < 1) of the primitives, those of least field energy, and let the "
                    "fine-tuning make up for them [default: 0]")
     d = sub.add_parser("decompress", help=f"turn a {SUFFIX} file back into a model file",
                        description=f"Decode a {SUFFIX} file into a float32 model file (model.safetensors format).")
     d.add_argument("file", metavar="FILE", help=f"{SUFFIX} file")
     d.add_argument("--out", metavar="MODEL", help="[default: FILE's stem + .decoded.safetensors]")
+    _overwrite_argument(d, "the output file")
 
 
 def _bench_parser(sub: argparse._SubParsersAction) -> None:
@@ -222,7 +258,7 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", metavar="DIR", help="bench folder [default: runs/bench-<preset>]")
     p.add_argument("--scene-names", nargs="+", metavar="NAME", help="only these scenes [default: all]")
     p.add_argument("--colors", nargs="+", metavar="COLOR", help="rgb and/or gray [default: the preset's]")
-    p.add_argument("--ratios", nargs="+", type=float, metavar="R", help="primitive ratios [default: the preset's]")
+    p.add_argument("--ratios", nargs="+", type=finite, metavar="R", help="primitive ratios [default: the preset's]")
     p.add_argument("--methods", nargs="+", metavar="METHOD", help=f"any of {', '.join(METHODS)} "
                    "[default: the preset's]")
     seeds = p.add_mutually_exclusive_group()
@@ -257,7 +293,7 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="cvqpg", description="Holograms as complex-valued "
+    parser = OneLineParser(prog="cvqpg", description="Holograms as complex-valued "
                                      "quadratic-phase Gaussian primitives (CVQPG).")
     parser.add_argument("--version", action="version", version=f"cvqpg {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -268,6 +304,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "chromatic, frequency, runtime) beside the paper's numbers, with one line per claim.")
     p.add_argument("--root", default="results", metavar="DIR", help="the recorded bench folders [default: results]")
     p.add_argument("--out", default="docs/results.md", metavar="FILE", help="[default: docs/results.md]")
+    _overwrite_argument(p, "the document")
     e = sub.add_parser("eval", help="recompute the metrics of a saved run",
                        description="Recompute PSNR/SSIM/FLIP/LPIPS/CVVDP of RUN_DIR's model against "
                        "its targets and rewrite RUN_DIR/metrics.json.")
@@ -389,54 +426,118 @@ def check_device(device: str) -> None:
         raise UsageError(f"device {device}: no CUDA GPU is visible to PyTorch; use --device cpu")
 
 
-def _prepare(args: argparse.Namespace) -> tuple[Path, FitConfig, dict, Scene, FitState | None]:
-    if args.resume:
-        folder = Path(args.resume)
-        if not (folder / CONFIG_FILE).is_file():
-            raise UsageError(f"--resume {folder}: not a run folder (no {CONFIG_FILE})")
-        config, source = read_run(folder)
-        config.validate()
-        check_device(config.device)
-        scene = scene_from_source(source, config)
-        return folder, config, source, scene, resumed_state(folder, config)
+PARTIAL_SUFFIX = ".partial"
+
+
+@dataclass
+class FitPlan:
+    """What `cvqpg fit` will do: fit in `work` (with the loop state `state`, when resuming), and put the
+    finished run at `final` (the same folder, or `work` renamed; an existing run there is replaced)."""
+
+    work: Path
+    final: Path
+    config: FitConfig
+    source: dict
+    scene: Scene
+    state: FitState | None = None
+    depth: Image.Image | None = None  # an estimated depth map, saved in the run once `work` exists
+
+
+def check_fit_destination(final: Path, overwrite: bool) -> None:
+    """`--out` may be a new or empty folder, or a run that `--overwrite` replaces; never a file or a folder
+    of other files."""
+    if final.exists() and not final.is_dir():
+        raise UsageError(f"--out {final} is a file; give a folder for the run")
+    if (final / CONFIG_FILE).exists():
+        if not overwrite:
+            raise UsageError(f"{final} already holds a run; choose another --out, pass --overwrite to replace it "
+                             f"once the new fit succeeds, or --resume {final}")
+    elif final.is_dir() and any(final.iterdir()):
+        raise UsageError(f"--out {final} holds other files; give a new or empty folder")
+    for ancestor in final.parents:
+        if ancestor.exists():
+            if not ancestor.is_dir():
+                raise UsageError(f"--out {final}: {ancestor} is a file, not a folder")
+            if not os.access(ancestor, os.W_OK | os.X_OK):
+                raise UsageError(f"--out {final}: the folder {ancestor} is not writable; choose another place")
+            break
+
+
+def _resume_plan(args: argparse.Namespace) -> FitPlan:
+    work = Path(args.resume)
+    if not (work / CONFIG_FILE).is_file():
+        raise UsageError(f"--resume {work}: not a run folder (no {CONFIG_FILE})")
+    config, source = read_run(work)
+    config.validate()
+    check_device(config.device)
+    final = work.with_name(work.name[:-len(PARTIAL_SUFFIX)]) if work.name.endswith(PARTIAL_SUFFIX) else work
+    if final != work and (final / CONFIG_FILE).exists() and not args.overwrite:
+        raise UsageError(f"{final} holds a run that this fit replaces when it finishes; pass --overwrite to "
+                         "confirm")
+    scene = scene_from_source(source, config)
+    return FitPlan(work, final, config, source, scene, resumed_state(work, config))
+
+
+def _new_plan(args: argparse.Namespace) -> FitPlan:
     config, source = _config_and_source(args)
     check_device(config.device)
-    folder = Path(args.out) if args.out else _default_out(source, config)
-    if (folder / CONFIG_FILE).exists() and not args.overwrite:
-        raise UsageError(f"{folder} already holds a run; choose another --out, pass --overwrite, or "
-                         f"--resume {folder}")
+    final = Path(args.out) if args.out else _default_out(source, config)
+    check_fit_destination(final, args.overwrite)
+    work = final.with_name(final.name + PARTIAL_SUFFIX)
+    if work.exists():
+        raise UsageError(f"{work} holds an interrupted fit; continue it with cvqpg fit --resume {work}, or delete it")
     check_memory(config, device_memory_bytes(config.device))
     if "depth_model" not in source:
-        scene = scene_from_source(source, config)
-        start_run(folder, config, source)
-        return folder, config, source, scene, None
+        return FitPlan(work, final, config, source, scene_from_source(source, config))
     depth = estimate_depth(source["image"], load_depth_model(source["depth_model"]))
-    source["depth"] = str((folder / DEPTH_FILE).resolve())
-    scene = load_scene(source["image"], depth, config)
-    start_run(folder, config, source)
-    depth.save(folder / DEPTH_FILE)
-    if not args.quiet:
-        print(f"{folder / DEPTH_FILE}: depth estimated by {source['depth_model']} (0 = near)")
-    return folder, config, source, scene, None
+    source["depth"] = DEPTH_FILE  # kept in the run folder, wherever it moves
+    return FitPlan(work, final, config, source, load_scene(source["image"], depth, config), depth=depth)
+
+
+def _fit(plan: FitPlan, args: argparse.Namespace) -> int:
+    """Fit in `plan.work` and put the run at `plan.final`. A failure removes what this command made,
+    unless a checkpoint holds work worth resuming; an interruption keeps the checkpoint."""
+    every = args.checkpoint_every
+    created = [folder for folder in (plan.work, *plan.work.parents) if not folder.exists()]
+    try:
+        if plan.state is None:
+            start_run(plan.work, plan.config, plan.source)
+        if plan.depth is not None:
+            plan.depth.save(plan.work / DEPTH_FILE)
+        with StopRequest() as stop_requested:
+            result = fit_in_folder(plan.work, plan.scene, plan.config, plan.state, progress=not args.quiet,
+                                   checkpoint_every_steps=every if every else None,
+                                   checkpoint_every_seconds=None if every == 0 else CHECKPOINT_SECONDS,
+                                   stop_requested=stop_requested)
+        write_fitted_run(plan.work, result, plan.scene, plan.source)
+    except FitInterrupted as stop:
+        print(f"cvqpg fit: stopped before step {stop.step}; checkpoint saved. Continue with: "
+              f"cvqpg fit --resume {plan.work}", file=sys.stderr)
+        return 128 + stop_requested.signals[0]
+    except BaseException:
+        if (plan.work / CHECKPOINT_FILE).is_file():
+            print(f"cvqpg fit: the fit failed; its last checkpoint is kept: cvqpg fit --resume {plan.work}",
+                  file=sys.stderr)
+        else:
+            for folder in created:
+                shutil.rmtree(folder, ignore_errors=True)
+        raise
+    if plan.final != plan.work:
+        replace_folder(plan.work, plan.final)
+    return 0
 
 
 def run_fit(args: argparse.Namespace) -> int:
     if args.resume and (Path(args.resume) / METRICS_FILE).is_file():
         print(f"{args.resume}: this run is finished; nothing to resume")
         return 0
-    folder, config, source, scene, state = _prepare(args)
-    every = args.checkpoint_every
-    with StopRequest() as stop_requested:
-        try:
-            result = fit_in_folder(folder, scene, config, state, progress=not args.quiet,
-                                   checkpoint_every_steps=every if every else None,
-                                   checkpoint_every_seconds=None if every == 0 else CHECKPOINT_SECONDS,
-                                   stop_requested=stop_requested)
-        except FitInterrupted as stop:
-            print(f"cvqpg fit: stopped before step {stop.step}; checkpoint saved. Continue with: "
-                  f"cvqpg fit --resume {folder}", file=sys.stderr)
-            return 128 + stop_requested.signals[0]
-    write_fitted_run(folder, result, scene, source)
+    plan = _resume_plan(args) if args.resume else _new_plan(args)
+    code = _fit(plan, args)
+    if code:
+        return code
+    folder = plan.final
+    if plan.depth is not None and not args.quiet:
+        print(f"{folder / DEPTH_FILE}: depth estimated by {plan.source['depth_model']} (0 = near)")
     if not args.quiet:
         record = json.loads((folder / METRICS_FILE).read_text())
         print(f"{folder}: {_summary(record)}")
@@ -474,8 +575,10 @@ def run_export(args: argparse.Namespace) -> int:
     if args.aperture < 0:
         raise UsageError(f"--aperture {args.aperture}: give a radius ≥ 0 (a fraction of Nyquist; 0: no filter)")
     out = Path(args.out) if args.out else folder / (EXPORT_FOLDER if model is None else f"{EXPORT_FOLDER}-{model.stem}")
-    record = export_run(folder, args.encoding, args.levels, tuple(args.slm) if args.slm else None,
-                        args.aperture or None, out, model, args.device)
+    check_output_folder(out, [folder, model or folder / MODEL_FILE], args.overwrite)
+    with staged_folder(out, args.overwrite) as staged:
+        record = export_run(folder, args.encoding, args.levels, tuple(args.slm) if args.slm else None,
+                            args.aperture or None, staged, model, args.device)
     print(f"{out}: {len(record['files'])} files; mean PSNR against the targets:")
     for label, key in (("phase-only display", "phase_only_display"), ("complex field, same display", "complex_display"),
                        ("complex field, as fitted", "complex_field")):
@@ -486,7 +589,9 @@ def run_export(args: argparse.Namespace) -> int:
 def run_info(args: argparse.Namespace) -> int:
     target = Path(args.target)
     if args.half:
-        info = half_precision_model(finished_run(target))
+        folder = finished_run(target)
+        check_output_file(folder / HALF_MODEL_FILE, [folder / MODEL_FILE], args.overwrite)
+        info = half_precision_model(folder)
     else:
         info = model_info(finished_run(target) / MODEL_FILE if target.is_dir() else target)
     if args.json:
@@ -519,7 +624,9 @@ def run_render(args: argparse.Namespace) -> int:
                                            else target.with_name(target.stem + "-render"))
     if args.distance is not None and min(args.distance) <= 0:
         raise UsageError("--distance: give positive distances in m (e.g. 0.001 for 1 mm)")
-    record = render_model(target, out, tuple(args.size) if args.size else None, args.distance, args.device)
+    check_output_folder(out, [target], args.overwrite)
+    with staged_folder(out, args.overwrite) as staged:
+        record = render_model(target, staged, tuple(args.size) if args.size else None, args.distance, args.device)
     width, height = record["hologram_px"]
     print(f"{out}: {width}×{height} px at {record['pixel_pitch_m'] * 1e6:.3f} µm, planes at "
           + ", ".join(f"{d * 1e3:g} mm" for d in record["distances_m"]))
@@ -538,7 +645,8 @@ def run_view(args: argparse.Namespace) -> int:
     start, stop, count = args.distances
     if not float(count).is_integer():
         raise UsageError(f"--distances {start:g} {stop:g} {count:g}: COUNT is a whole number of distances")
-    _print_view(write_view(folders, args.out, (start, stop, int(count)), progress=not args.quiet))
+    out = check_output_file(args.out or default_page(folders), folders, args.overwrite)
+    _print_view(write_view(folders, out, (start, stop, int(count)), progress=not args.quiet))
     return 0
 
 
@@ -559,14 +667,12 @@ def run_compile(_args: argparse.Namespace) -> int:
 
 
 def run_compress(args: argparse.Namespace) -> int:
-    if args.finetune < 0:
-        raise UsageError(f"--finetune {args.finetune}: give a number of steps ≥ 0")
-    if args.max_drop is not None and args.max_drop < 0:
-        raise UsageError(f"--max-drop {args.max_drop}: give a drop in dB ≥ 0")
-    if not 0 <= args.prune < 1:
-        raise UsageError(f"--prune {args.prune}: give the fraction of primitives to remove, 0 ≤ FRACTION < 1")
     bits = BitDepths.parse(args.bits) if args.bits else None
-    r = compress_model(Path(args.target), args.out, bits, args.max_drop, args.finetune, args.prune)
+    model = model_path(args.target)
+    out = args.out
+    if model.is_file() and not is_compressed(model):  # otherwise compress_model says what the target is
+        out = check_output_file(args.out or model.with_suffix(SUFFIX), [model], args.overwrite)
+    r = compress_model(Path(args.target), out, bits, args.max_drop, args.finetune, args.prune)
     scored = (f", float {r['psnr_float']:.3f} dB" if r["psnr_float"] is not None
               else f" (drop estimated for a fit at {ASSUMED_FIT_PSNR_DB:g} dB)")
     print(f"{r['file']}: {r['bytes'] / 2**10:.1f} KiB, {r['bits_per_pixel']:.3f} bpp, {r['ratio']:.1f}× smaller than "
@@ -581,7 +687,9 @@ def run_compress(args: argparse.Namespace) -> int:
 
 
 def run_decompress(args: argparse.Namespace) -> int:
-    print(f"{decompress_file(Path(args.file), args.out)}")
+    source = Path(args.file)
+    out = Path(args.out) if args.out else source.with_name(f"{source.stem}.decoded.safetensors")
+    print(f"{decompress_file(source, check_output_file(out, [source], args.overwrite))}")
     return 0
 
 
@@ -625,9 +733,8 @@ def run_bench(args: argparse.Namespace) -> int:
 
 
 def run_results(args: argparse.Namespace) -> int:
-    text = document(Path(args.root))
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(Path(args.out), text)
+    out = check_output_file(args.out, [], args.overwrite)
+    write_atomic(out, document(Path(args.root)))
     print(f"cvqpg results: {args.out}")
     return 0
 

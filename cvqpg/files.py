@@ -69,7 +69,7 @@ def staged_folder(final: str | Path, overwrite: bool = False) -> Iterator[Path]:
     staged.mkdir()
     try:
         yield staged
-        if final.exists() and not overwrite:
+        if not overwrite and (final.is_file() or (final.is_dir() and any(final.iterdir()))):
             raise FileExistsError(f"{final} appeared while the command ran")
         replace_folder(staged, final)
     finally:

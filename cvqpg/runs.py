@@ -110,7 +110,10 @@ def start_run(folder: str | Path, config: FitConfig, source: dict[str, Any], kee
 def read_run(folder: str | Path) -> tuple[FitConfig, dict[str, Any]]:
     """The configuration and input description of a run folder."""
     recorded = json.loads((Path(folder) / CONFIG_FILE).read_text())
-    return FitConfig.from_dict(recorded), recorded["source"]
+    # Inputs the run keeps itself (an estimated depth map) are recorded relative to the run folder.
+    source = {key: str(Path(folder) / value) if key in ("image", "depth") and not Path(value).is_absolute()
+              else value for key, value in recorded["source"].items()}
+    return FitConfig.from_dict(recorded), source
 
 
 def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[str, Any],

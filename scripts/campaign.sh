@@ -9,4 +9,4 @@ while read -r command; do
     echo "== $command"
     .venv/bin/$command --quiet "$@" </dev/null
 done
-.venv/bin/cvqpg results
+.venv/bin/cvqpg results --overwrite

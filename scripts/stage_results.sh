@@ -4,7 +4,7 @@
 # cells are refitted, never committed).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-.venv/bin/cvqpg results
+.venv/bin/cvqpg results --overwrite
 for cell in results/*/cells/*/; do
     case "$cell" in
         results/compression*) record=rd.json ;;

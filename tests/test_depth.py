@@ -15,6 +15,7 @@ from PIL import Image
 
 import cvqpg
 from cvqpg import cli
+from cvqpg.runs import read_run
 from cvqpg.depth import DEPTH_LEVELS, DepthModel, DepthModelError, depth_from_disparity, estimate_depth, load_depth_model
 
 REPO = Path(cvqpg.__file__).resolve().parent.parent
@@ -75,7 +76,8 @@ def test_fit_with_depth_auto_saves_the_map_and_repeats_with_it(model, photo, tmp
     saved = tmp_path / "auto" / "depth.png"
     assert Image.open(saved).size == (40, 30)
     source = json.loads((tmp_path / "auto" / "config.json").read_text())["source"]
-    assert source["depth"] == str(saved.resolve()) and source["depth_model"] == cvqpg.depth.DEPTH_MODEL
+    assert source["depth"] == "depth.png" and source["depth_model"] == cvqpg.depth.DEPTH_MODEL  # inside the run
+    assert read_run(tmp_path / "auto")[1]["depth"] == str(saved)
     assert cli.main(["fit", str(photo), "--depth", str(saved), *small, "--out", str(tmp_path / "again")]) == 0
     for plane in ("target_plane0.png", "target_plane1.png"):
         assert np.array_equal(np.asarray(Image.open(tmp_path / "auto" / plane)),

@@ -131,16 +131,16 @@ def test_more_planes_than_the_depth_separates(tmp_path, photo, capsys):
     (["--size", "30000", "30000"], "GiB are available"),
     (["--num-gaussians", "0"], "need between 1 and the pixel count"),
     (["--num-gaussians", "100000"], "need between 1 and the pixel count"),
-    (["--steps", "0"], "steps must be positive"),
-    (["--steps", "-3"], "steps must be positive"),
-    (["--ratio", "0"], "ratio must be positive"),
-    (["--pitch", "0"], "pixel_pitch must be positive"),
-    (["--pitch=-3.74e-6"], "pixel_pitch must be positive"),
+    (["--steps", "0"], "--steps must be positive"),
+    (["--steps", "-3"], "--steps must be positive"),
+    (["--ratio", "0"], "--ratio must be positive"),
+    (["--pitch", "0"], "--pitch must be positive"),
+    (["--pitch=-3.74e-6"], "--pitch must be positive"),
     (["--plane-center", "-0.001"], "plane distances"),
-    (["--plane-span", "-0.004"], "plane_span must be positive"),
+    (["--plane-span", "-0.004"], "--plane-span must be positive"),
     (["--wavelengths", "639e-9", "0", "473e-9"], "positive value"),
     (["--wavelengths", "639e-9"], "need 3 positive value(s)"),
-    (["--curvature-warmup", "50", "--steps", "10"], "warmup 50 must lie in 0..steps"),
+    (["--curvature-warmup", "50", "--steps", "10"], "--curvature-warmup 50 must lie in 0..--steps"),
 ])
 def test_bad_options_fail_cleanly(arguments, message, capsys, tmp_path):
     base = ["fit", "--size", "48", "36", "--steps", "4", "--curvature-warmup", "1", "--quiet"]

@@ -1,4 +1,4 @@
-"""The SLM field's and the clamped intensity's CPU kernels (Numba), with their gradients (SPEC §3).
+"""The SLM field's and the clamped intensity's CPU kernels (Numba), with their gradients (method.md §3).
 
 PyTorch builds the guard-banded, windowed, amplitude-clamped field in about eight full passes over
 the padded array (gather, content copy, window product, magnitude, clamp, quotient) and the clamped

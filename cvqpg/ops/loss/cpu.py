@@ -1,4 +1,4 @@
-"""Fused CPU kernels (Numba) for the training loss (SPEC §6).
+"""Fused CPU kernels (Numba) for the training loss (method.md §6).
 
 PyTorch evaluates the loss's three MSE terms and the SSIM formula as some forty full-size
 element-wise passes, forward and backward, and runs SSIM's 11-tap depthwise blurs at well under

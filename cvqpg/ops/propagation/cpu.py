@@ -1,4 +1,4 @@
-"""The pruned propagation's CPU kernels (Numba): copies, transposes and transfer products (SPEC §3).
+"""The pruned propagation's CPU kernels (Numba): copies, transposes and transfer products (method.md §3).
 
 `propagate_content` calls them with `fused` on (the `numba` backend), and PyTorch's operations
 otherwise. The transpose moves the propagation's arrays between row and column layout (in less time

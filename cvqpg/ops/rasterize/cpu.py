@@ -6,7 +6,7 @@ into Σ⁻¹, footprint radii and chirps, and `geometry_gradients` takes the gra
 Both passes visit only the pixels inside each primitive's 3σ_major circle and store nothing of size
 N × pixels. Per channel a primitive is `G = α c e^{iφ} exp(E)` with a complex exponent E that is
 quadratic in the pixel offset (dx, dy) from its centre, E = A dx² + 2B dx dy + C dy² (the envelope
-−½D² and the quadratic phase). The kernels leave out the pixels where SPEC's floor of −50 on the
+−½D² and the quadratic phase). The kernels leave out the pixels where method.md §2's floor of −50 on the
 envelope exponent applies (D² > 100: values below e⁻⁵⁰ ≈ 2e-22 of the amplitude, invisible in
 float32), so each row's span is the 3σ circle cut to the band where D² ≤ 100.
 
@@ -62,7 +62,7 @@ import numpy as np
 from ..cpu import CALLED_BY_KERNELS_ONLY, cosines_and_sines
 from . import vectors
 
-FLOOR_MAHALANOBIS2 = 100.0  # D² where the envelope exponent −½D² reaches SPEC's floor of −50
+FLOOR_MAHALANOBIS2 = 100.0  # D² where the envelope exponent −½D² reaches method.md §2's floor of −50
 MAX_WALKED_MAHALANOBIS2 = 600.0
 TABLE_EXPONENT_LIMIT = 80.0  # |Re log| of a lane value or ratio on the first row: e^±80 is inside float32
 LANES = vectors.WIDTH  # float32 values in one AVX2 register
