@@ -125,6 +125,7 @@ print(calls)
 """
 
 
+@pytest.mark.slow
 def test_importing_the_library_and_fitting_has_no_process_wide_side_effects():
     """No subprocess (git, compile helpers), no gc or /proc writes, nothing printed, no app-layer import."""
     done = subprocess.run([sys.executable, "-c", LIBRARY_CALL], capture_output=True, text=True, timeout=600)

@@ -14,7 +14,8 @@ from pytorch_msssim import ssim as msssim_ssim
 from cvqpg.ops.loss.cpu import gaussian_taps, ssim_forward
 from cvqpg.config import FitConfig
 from cvqpg.ops.loss import multiplane_loss, noisy_targets, ssim_per_plane, standard_normal
-from cvqpg.targets import build_scene, defocus_targets, gaussian_kernel, plane_masks
+from cvqpg.errors import InputError
+from cvqpg.targets import build_scene, defocus_targets, gaussian_kernel, load_scene, plane_masks
 
 
 # --------------------------------------------------------------------------- hand references
@@ -362,3 +363,17 @@ def test_ssim_of_images_narrower_than_the_window_uses_the_reference():
         reference = msssim_ssim(recon, targets, data_range=1.0, size_average=False, win_size=11,
                                 win_sigma=1.5)
     np.testing.assert_allclose(fast.numpy(), reference.numpy(), rtol=1e-6)
+
+
+@pytest.mark.parametrize(("image_shape", "depth_shape", "name"), [((3, 24, 32), (24, 32), None),
+                                                                  ((1, 24, 32), (24, 32), "image"),
+                                                                  ((3, 32, 24), (24, 32), "image"),
+                                                                  ((3, 24, 32), (32, 24), "depth")])
+def test_load_scene_checks_tensors_against_the_configuration(image_shape, depth_shape, name):
+    config = FitConfig(width=32, height=24, color="rgb", num_planes=2)
+    depth = torch.linspace(0, 1, math.prod(depth_shape)).reshape(depth_shape)
+    if name is None:
+        assert load_scene(torch.rand(image_shape), depth, config).targets.shape == (2, 3, 24, 32)
+        return
+    with pytest.raises(InputError, match=f"`{name}` tensor has shape"):
+        load_scene(torch.rand(image_shape), depth, config)

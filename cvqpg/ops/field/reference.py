@@ -100,5 +100,6 @@ def guarded_field_backward(hologram: Tensor, grad: Tensor, grid: Grid) -> Tensor
 
 
 def clamped_intensity(field: Tensor) -> Tensor:
-    """Intensity `clamp(|u|², 0, 1)` of a complex field."""
-    return torch.clamp(field.abs() ** 2, 0.0, 1.0)
+    """Intensity `clamp(|u|², 0, 1)` of a complex field, as re² + im² (the CPU kernel's sum): the gradient
+    of `|u|` is u/|u|, not a number where |u| underflows to 0 but u does not."""
+    return torch.clamp(torch.view_as_real(field).square().sum(-1), 0.0, 1.0)
