@@ -1,0 +1,633 @@
+"""Hostile input, command by command: every refusal is exit code 2, one line `cvqpg <command>: error: …` naming
+the problem, and the folder it ran in left exactly as it was (every path, its bytes and its mode).
+
+The cases are data (`CASES`), grouped by class: degenerate or non-finite numbers, unknown choices and usage
+typos, missing or wrong inputs, and outputs that cannot be written or would destroy something. Each runs in its
+own copy of one template folder of tiny assets made once through the CLI (`template`). A second table
+(`SUCCESSES`) holds that a command given `--overwrite` replaces its own output as a whole and nothing else, and
+that a fit refused with `--overwrite` leaves the old run byte for byte.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shlex
+import shutil
+import stat
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from cvqpg.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+RECORDED_CELL = ROOT / "results" / "paper" / "cells" / "bento_gray-10_baseline_s100"
+IS_ROOT = hasattr(os, "geteuid") and os.geteuid() == 0
+
+# The template's assets, named in the cases by placeholder. Folder names are distinctive, so that a fragment
+# such as "run_a" cannot match a message by chance.
+PLACES = {
+    "run": "run_a",                        # finished 32×24 RGB run, 2 planes; also model.cvq, export/, render/, ...
+    "run2": "run_b",                       # finished 48×36 grayscale run, 1 plane
+    "model": "run_a/model.safetensors",
+    "cvq": "run_a/model.cvq",              # compressed model of run_a
+    "badcvq": "run_a/bad.cvq",             # model.cvq with bytes flipped, inside the run folder
+    "brokencvq": "broken.cvq",             # the same damage, outside any run folder
+    "emptycvq": "empty.cvq",
+    "image": "photo.png",                  # 32×24 RGB
+    "depth": "depth.png",                  # 32×24 horizontal ramp
+    "square": "square_depth.png",          # 24×24: another aspect ratio
+    "flat": "flat_depth.png",              # constant
+    "binary": "binary_depth.png",          # two levels: separates 2 planes, not 5
+    "nandepth": "nan_depth.tiff",          # float ('F') depth with NaN pixels
+    "text": "notes.txt",
+    "folder": "folder",                    # an empty folder
+    "cut": "cut.png",                      # truncated PNG
+    "empty": "empty.png",                  # 0 bytes
+    "notarun": "notarun",                  # a folder with a file, no config.json
+    "unfinished": "unfinished",            # config.json only
+    "loose": "loose/model.safetensors",    # a model outside its run folder
+    "mixed": "mixed",                      # run_a's files plus run_b's model as foreign.safetensors
+    "damaged": "damaged",                  # run_a's files with a garbage model.safetensors
+    "bench": "bench",                      # finished `cvqpg bench --preset star` folder
+    "records": "records",                  # a results root: records/paper/cells/<one recorded cell>
+    "badrecords": "badrecords",            # a results root whose one cell was fitted with other settings
+    "page": "page.html",                   # an existing page
+    "readonly": "readonly",                # chmod 0o555 (the permission cases are skipped as root)
+    "scenes": "scenes",                    # a --scenes folder of one scene (image.png, depth.png)
+}
+
+FIT = "--size 32 24 --steps 1 --quiet --out new_run"  # a fit that is wrongly accepted ends soon
+SWEEP = "--distances 0.001 0.002 2"  # the same for a page
+BENCH = "--preset star --size 32 24 --steps 2 --scene-names star --quiet --out new_bench"
+RD_BENCH = "--preset compression --scenes {scenes} --fits bench --size 32 24 --steps 2 --quiet --out new_bench"
+
+
+class Case(NamedTuple):
+    id: str
+    argv: str
+    fragment: str
+    permissions: bool = False  # relies on file permissions, which do not apply to root
+
+
+def cases(group: str, *rows: tuple) -> list:
+    return [pytest.param(Case(f"{group}:{row[0]}", *row[1:]), id=f"{group}:{row[0]}") for row in rows]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Non-finite, degenerate and out-of-range numbers.
+NUMBERS = cases(
+    "numbers",
+    ("fit-ratio-inf", f"fit {FIT} --ratio inf", "--ratio"),
+    ("fit-ratio-nan", f"fit {FIT} --ratio nan", "--ratio"),
+    ("fit-ratio-0", f"fit {FIT} --ratio 0", "--ratio"),
+    ("fit-ratio-negative", f"fit {FIT} --ratio -1", "--ratio"),
+    ("fit-ratio-above-pixel-count", f"fit {FIT} --ratio 3", "--ratio"),
+    ("fit-pitch-inf", f"fit {FIT} --pitch inf", "--pitch"),
+    ("fit-pitch-nan", f"fit {FIT} --pitch nan", "--pitch"),
+    ("fit-pitch-0", f"fit {FIT} --pitch 0", "--pitch"),
+    ("fit-plane-span-nan", f"fit {FIT} --plane-span nan", "--plane-span"),
+    ("fit-plane-span-inf", f"fit {FIT} --plane-span inf", "--plane-span"),
+    ("fit-plane-span-negative", f"fit {FIT} --plane-span -0.004", "--plane-span"),
+    ("fit-plane-center-negative", f"fit {FIT} --plane-center -1", "--plane-center"),
+    ("fit-plane-center-inf", f"fit {FIT} --plane-center inf", "--plane-center"),
+    ("fit-wavelength-0", f"fit {FIT} --color gray --wavelengths 0", "--wavelengths"),
+    ("fit-wavelengths-inf", f"fit {FIT} --wavelengths inf 1 2", "--wavelengths"),
+    ("fit-wavelengths-nan", f"fit {FIT} --wavelengths 639e-9 nan 473e-9", "--wavelengths"),
+    ("fit-wavelengths-negative", f"fit {FIT} --wavelengths 0.000000639 -0.000000532 0.000000473", "--wavelengths"),
+    ("fit-wavelengths-too-few", f"fit {FIT} --wavelengths 639e-9", "--wavelengths"),
+    ("fit-planes-0", f"fit {FIT} --planes 0", "--planes"),
+    ("fit-planes-negative", f"fit {FIT} --planes -2", "--planes"),
+    ("fit-steps-0", f"fit {FIT} --steps 0", "--steps"),
+    ("fit-steps-negative", f"fit {FIT} --steps -5", "--steps"),
+    ("fit-num-gaussians-0", f"fit {FIT} --num-gaussians 0", "--num-gaussians"),
+    ("fit-num-gaussians-huge", f"fit {FIT} --num-gaussians 10000000", "--num-gaussians"),
+    ("fit-num-gaussians-negative", f"fit {FIT} --num-gaussians -3", "--num-gaussians"),
+    ("fit-size-0", f"fit {FIT} --size 0 0", "--size"),
+    ("fit-size-8", f"fit {FIT} --size 8 8", "--size"),
+    ("fit-size-negative", f"fit {FIT} --size -32 24", "--size"),
+    ("fit-size-beyond-memory", f"fit {FIT} --size 100000 100000", "--size"),
+    ("fit-warmup-negative", f"fit {FIT} --curvature-warmup -1", "--curvature-warmup"),
+    ("fit-warmup-beyond-steps", f"fit {FIT} --curvature-warmup 99999", "--curvature-warmup"),
+    ("fit-checkpoint-every-negative", f"fit {FIT} --checkpoint-every -1", "--checkpoint-every"),
+    ("fit-seed-negative", f"fit {FIT} --seed -1", "--seed"),
+    ("export-levels-1", "export {run} --levels 1 --out new_export", "--levels"),
+    ("export-levels-0", "export {run} --levels 0 --out new_export", "--levels"),
+    ("export-levels-negative", "export {run} --levels -4 --out new_export", "--levels"),
+    ("export-aperture-negative", "export {run} --aperture -1 --out new_export", "--aperture"),
+    ("export-aperture-nan", "export {run} --aperture nan --out new_export", "--aperture"),
+    ("export-aperture-inf", "export {run} --aperture inf --out new_export", "--aperture"),
+    ("export-slm-0", "export {run} --slm 0 0 --out new_export", "--slm"),
+    ("export-slm-smaller-than-hologram", "export {run} --slm 10 10 --out new_export", "--slm"),
+    ("export-slm-negative", "export {run} --slm -32 24 --out new_export", "--slm"),
+    ("render-distance-0", "render {run} --distance 0 --out new_render", "--distance"),
+    ("render-distance-negative", "render {run} --distance -1 --out new_render", "--distance"),
+    ("render-distance-inf", "render {run} --distance inf --out new_render", "--distance"),
+    ("render-distance-nan", "render {run} --distance 0.001 nan --out new_render", "--distance"),
+    ("render-size-0", "render {run} --size 0 0 --out new_render", "--size"),
+    ("render-size-other-aspect", "render {run} --size 33 24 --out new_render", "--size"),
+    ("render-size-negative", "render {run} --size -32 -24 --out new_render", "--size"),
+    ("view-distances-start-0", "view {run} --distances 0 1 5 --quiet --out new.html", "--distances"),
+    ("view-distances-count-0", "view {run} --distances 0.001 0.002 0 --quiet --out new.html", "--distances"),
+    ("view-distances-nan", "view {run} --distances 0.001 nan 3 --quiet --out new.html", "--distances"),
+    ("view-distances-inf", "view {run} --distances 0.001 inf 3 --quiet --out new.html", "--distances"),
+    ("view-distances-negative", "view {run} --distances -0.001 0.002 3 --quiet --out new.html", "--distances"),
+    ("view-distances-fractional-count", "view {run} --distances 0.001 0.002 2.5 --quiet --out new.html",
+     "--distances"),
+    ("compress-max-drop-negative", "compress {run} --max-drop -1 --out new.cvq", "--max-drop"),
+    ("compress-max-drop-nan", "compress {run} --max-drop nan --out new.cvq", "--max-drop"),
+    ("compress-max-drop-inf", "compress {run} --max-drop inf --out new.cvq", "--max-drop"),
+    ("compress-prune-1", "compress {run} --finetune 2 --prune 1 --out new.cvq", "--prune"),
+    ("compress-prune-negative", "compress {run} --finetune 2 --prune -0.1 --out new.cvq", "--prune"),
+    ("compress-prune-nan", "compress {run} --finetune 2 --prune nan --out new.cvq", "--prune"),
+    ("compress-prune-without-finetune", "compress {run} --prune 0.5 --out new.cvq", "--prune"),
+    ("compress-finetune-negative", "compress {run} --finetune -1 --out new.cvq", "--finetune"),
+    ("compress-bits-99", "compress {run} --bits 99 --out new.cvq", "--bits"),
+    ("compress-bits-position-negative", "compress {run} --bits position=-1 --out new.cvq", "--bits"),
+    ("compress-bits-unknown-attribute", "compress {run} --bits nonsense=3 --out new.cvq", "--bits"),
+    ("compress-bits-not-a-number", "compress {run} --bits phase=x --out new.cvq", "--bits"),
+    ("bench-jobs-0", f"bench {BENCH} --jobs 0", "--jobs"),
+    ("bench-jobs-negative", f"bench {BENCH} --jobs -1", "--jobs"),
+    ("bench-shard-0", f"bench {BENCH} --shard 0/2", "--shard"),
+    ("bench-shard-beyond-count", f"bench {BENCH} --shard 3/2", "--shard"),
+    ("bench-shard-not-a-fraction", f"bench {BENCH} --shard x", "--shard"),
+    ("bench-shard-of-0", f"bench {BENCH} --shard 1/0", "--shard"),
+    ("bench-steps-0", f"bench {BENCH} --steps 0", "--steps"),
+    ("bench-steps-negative", f"bench {BENCH} --steps -1", "--steps"),
+    ("bench-size-8", f"bench {BENCH} --size 8 8", "--size"),
+    ("bench-size-0", f"bench {BENCH} --size 0 0", "--size"),
+    ("bench-ratio-0", f"bench {BENCH} --ratios 0", "--ratio"),
+    ("bench-ratio-nan", f"bench {BENCH} --ratios nan", "--ratio"),
+    ("bench-ratio-inf", f"bench {BENCH} --ratios inf", "--ratio"),
+    ("bench-warmup-negative", f"bench {BENCH} --curvature-warmup -1", "--curvature-warmup"),
+    ("bench-warmup-beyond-steps", f"bench {BENCH} --curvature-warmup 99999", "--curvature-warmup"),
+    ("bench-finetune-negative", f"bench {RD_BENCH} --finetune -1", "--finetune"),
+)
+
+# ---------------------------------------------------------------------------------------------------------------
+# Unknown choices, typos and other usage errors (argparse's own included).
+USAGE = cases(
+    "usage",
+    ("fit-color-RGB", f"fit {FIT} --color RGB", "--color"),
+    ("fit-primitive-CVQPG", f"fit {FIT} --primitive CVQPG", "--primitive"),
+    ("fit-qpf-Mahalanobis", f"fit {FIT} --qpf Mahalanobis", "--qpf"),
+    ("fit-device-gpu", f"fit {FIT} --device gpu", "--device"),
+    ("fit-backend-cuda", f"fit {FIT} --backend cuda", "--backend"),
+    ("fit-bound-none", f"fit {FIT} --bound none", "--bound"),
+    ("fit-curvature-rainbow", f"fit {FIT} --curvature rainbow", "--curvature"),
+    ("fit-scene-nope", f"fit {FIT} --scene nope", "--scene"),
+    ("fit-device-cuda-without-gpu", f"fit {FIT} --device cuda", "cuda"),
+    ("fit-numba-on-cuda", f"fit {FIT} --device cuda --backend numba", "numba"),
+    ("fit-triton-on-cpu", f"fit {FIT} --backend triton", "triton"),
+    ("fit-steps-not-whole", f"fit {FIT} --steps 2.5", "--steps"),
+    ("fit-ratio-not-a-number", f"fit {FIT} --ratio abc", "--ratio"),
+    ("fit-size-one-number", "fit --quiet --out new_run --size 32", "--size"),
+    ("fit-ratio-and-num-gaussians", f"fit {FIT} --ratio 0.1 --num-gaussians 5", "--num-gaussians"),
+    ("fit-unknown-flag", f"fit {FIT} --bogus-flag", "--bogus-flag"),
+    ("fit-out-without-value", "fit --size 32 24 --steps 2 --quiet --out", "--out"),
+    ("eval-no-target", "eval", "RUN_DIR"),
+    ("eval-two-targets", "eval {run} {run2}", "run_b"),
+    ("eval-device-gpu", "eval {run} --device gpu", "--device"),
+    ("eval-device-cuda-without-gpu", "eval {run} --device cuda", "cuda"),
+    ("export-encoding-dpacc", "export {run} --encoding dpacc --out new_export", "--encoding"),
+    ("export-device-gpu", "export {run} --device gpu --out new_export", "--device"),
+    ("export-levels-not-whole", "export {run} --levels 2.5 --out new_export", "--levels"),
+    ("export-slm-one-number", "export {run} --slm 64 --out new_export", "--slm"),
+    ("info-no-target", "info", "RUN_DIR"),
+    ("info-unknown-flag", "info {run} --bogus-flag", "--bogus-flag"),
+    ("render-device-gpu", "render {run} --device gpu --out new_render", "--device"),
+    ("render-distance-without-value", "render {run} --out new_render --distance", "--distance"),
+    ("view-no-run", "view --quiet", "RUN_DIR"),
+    ("view-distances-two-numbers", "view {run} --distances 0.001 0.002 --quiet --out new.html", "--distances"),
+    ("compress-bits-and-max-drop", "compress {run} --bits 8 --max-drop 0.1 --out new.cvq", "--max-drop"),
+    ("compress-finetune-not-whole", "compress {run} --finetune 1.5 --out new.cvq", "--finetune"),
+    ("decompress-no-file", "decompress", "FILE"),
+    ("decompress-unknown-flag", "decompress {cvq} --bits 8 --out new.safetensors", "--bits"),
+    ("bench-preset-nope", f"bench {BENCH} --preset nope", "nope"),
+    ("bench-colors-RGB", f"bench {BENCH} --colors RGB", "RGB"),
+    ("bench-methods-typo", f"bench {BENCH} --methods cvqgp", "cvqgp"),
+    ("bench-scene-names-unknown", "bench --preset star --size 32 24 --steps 2 --quiet --out new_bench "
+     "--scene-names nosuchscene", "nosuchscene"),
+    ("bench-device-gpu", f"bench {BENCH} --device gpu", "--device"),
+    ("bench-backend-cuda", f"bench {BENCH} --backend cuda", "--backend"),
+    ("bench-device-cuda-without-gpu", f"bench {BENCH} --device cuda", "cuda"),
+    ("bench-seed-and-seeds", f"bench {BENCH} --seed 1 --seeds 2 3", "--seeds"),
+    ("bench-jobs-not-whole", f"bench {BENCH} --jobs two", "--jobs"),
+    ("bench-fits-outside-rate-distortion", f"bench {BENCH} --fits {{bench}}", "--fits"),
+    ("bench-finetune-outside-rate-distortion", f"bench {BENCH} --finetune 5", "--finetune"),
+    ("results-unknown-flag", "results --root {records} --out new.md --bogus-flag", "--bogus-flag"),
+    ("results-root-without-value", "results --out new.md --root", "--root"),
+    ("compile-unknown-flag", "compile --bogus-flag", "--bogus-flag"),
+    ("compile-extra-argument", "compile extra_argument", "extra_argument"),
+    ("compile-device", "compile --device gpu", "--device"),
+)
+
+# ---------------------------------------------------------------------------------------------------------------
+# Missing, wrong, corrupt or mismatched inputs.
+INPUTS = cases(
+    "inputs",
+    ("fit-image-missing", f"fit missing.png --planes 1 {FIT}", "missing.png"),
+    ("fit-image-is-a-folder", f"fit {{folder}} --planes 1 {FIT}", "folder"),
+    ("fit-image-is-text", f"fit {{text}} --planes 1 {FIT}", "notes.txt"),
+    ("fit-image-corrupt-png", f"fit {{cut}} --planes 1 {FIT}", "cut.png"),
+    ("fit-image-empty-file", f"fit {{empty}} --planes 1 {FIT}", "empty.png"),
+    ("fit-depth-missing", f"fit {{image}} --depth nodepth.png {FIT}", "nodepth.png"),
+    ("fit-depth-is-a-folder", f"fit {{image}} --depth {{folder}} {FIT}", "folder"),
+    ("fit-depth-is-text", f"fit {{image}} --depth {{text}} {FIT}", "notes.txt"),
+    ("fit-depth-corrupt", f"fit {{image}} --depth {{cut}} {FIT}", "cut.png"),
+    ("fit-depth-with-nan", f"fit {{image}} --depth {{nandepth}} {FIT}", "nan_depth.tiff"),
+    ("fit-depth-other-aspect", f"fit {{image}} --depth {{square}} {FIT}", "--resize-depth"),
+    ("fit-depth-constant", f"fit {{image}} --depth {{flat}} {FIT}", "constant"),
+    ("fit-more-planes-than-depth-separates", f"fit {{image}} --depth {{binary}} --planes 5 {FIT}", "--planes"),
+    ("fit-depth-with-scene", f"fit --scene demo --depth {{depth}} {FIT}", "--depth"),
+    ("fit-image-and-scene", f"fit {{image}} --scene star {FIT}", "--scene"),
+    ("fit-two-planes-without-depth", f"fit {{image}} --planes 2 {FIT}", "--planes"),
+    ("fit-resume-not-a-run", "fit --resume {notarun} --quiet", "notarun"),
+    ("fit-resume-missing", "fit --resume missing_run --quiet", "missing_run"),
+    ("fit-resume-a-file", "fit --resume {image} --quiet", "photo.png"),
+    ("eval-run-missing", "eval missing_run", "missing_run"),
+    ("eval-not-a-run", "eval {notarun}", "notarun"),
+    ("eval-run-without-model", "eval {unfinished}", "unfinished"),
+    ("eval-model-outside-its-run", "eval {loose}", "loose"),
+    ("eval-corrupt-cvq", "eval {badcvq}", "bad.cvq"),
+    ("eval-model-of-another-run", "eval {mixed}/foreign.safetensors", "foreign.safetensors"),
+    ("eval-damaged-model", "eval {damaged}", "model.safetensors"),
+    ("eval-text-file", "eval {text}", "notes.txt"),
+    ("eval-config-as-model", "eval {run}/config.json", "config.json"),
+    ("export-run-missing", "export missing_run --out new_export", "missing_run"),
+    ("export-not-a-run", "export {notarun} --out new_export", "notarun"),
+    ("export-run-without-model", "export {unfinished} --out new_export", "unfinished"),
+    ("export-model-outside-its-run", "export {loose} --out new_export", "loose"),
+    ("export-corrupt-cvq", "export {badcvq} --out new_export", "bad.cvq"),
+    ("export-damaged-model", "export {damaged} --out new_export", "model.safetensors"),
+    ("export-model-of-another-run", "export {mixed}/foreign.safetensors --out new_export", "foreign.safetensors"),
+    ("info-missing", "info missing_run", "missing_run"),
+    ("info-not-a-run", "info {notarun}", "notarun"),
+    ("info-run-without-model", "info {unfinished}", "unfinished"),
+    ("info-text-file", "info {text}", "notes.txt"),
+    ("info-empty-file", "info {empty}", "empty.png"),
+    ("info-corrupt-cvq", "info {badcvq}", "bad.cvq"),
+    ("info-damaged-model", "info {damaged}", "model.safetensors"),
+    ("info-half-of-a-loose-model", "info {loose} --half", "loose"),
+    ("info-half-of-a-cvq", "info {cvq} --half", "--half"),
+    ("render-missing", "render missing_run --out new_render", "missing_run"),
+    ("render-not-a-run", "render {notarun} --out new_render", "notarun"),
+    ("render-run-without-model", "render {unfinished} --out new_render", "unfinished"),
+    ("render-text-file", "render {text} --out new_render", "notes.txt"),
+    ("render-corrupt-cvq", "render {badcvq} --out new_render", "bad.cvq"),
+    ("render-damaged-model", "render {damaged} --out new_render", "model.safetensors"),
+    ("view-run-missing", "view missing_run --quiet --distances 0.001 0.002 2 --out new.html", "missing_run"),
+    ("view-not-a-run", "view {notarun} --quiet --distances 0.001 0.002 2 --out new.html", "notarun"),
+    ("view-run-without-model", "view {unfinished} --quiet --distances 0.001 0.002 2 --out new.html", "unfinished"),
+    ("view-damaged-model", "view {damaged} --quiet --distances 0.001 0.002 2 --out new.html", "model.safetensors"),
+    ("view-runs-of-different-sizes", "view {run} {run2} --quiet --distances 0.001 0.002 2 --out new.html", "run_b"),
+    ("view-three-runs", "view {run} {run} {run} --quiet --distances 0.001 0.002 2 --out new.html", "one or two"),
+    ("compress-missing", "compress missing_run --out new.cvq", "missing_run"),
+    ("compress-not-a-run", "compress {notarun} --out new.cvq", "notarun"),
+    ("compress-run-without-model", "compress {unfinished} --out new.cvq", "unfinished"),
+    ("compress-a-cvq", "compress {cvq} --out new.cvq", "model.cvq"),
+    ("compress-damaged-model", "compress {damaged} --out new.cvq", "model.safetensors"),
+    ("compress-text-file", "compress {text} --out new.cvq", "notes.txt"),
+    ("compress-empty-file", "compress {empty} --out new.cvq", "empty.png"),
+    ("compress-finetune-of-a-loose-model", "compress {loose} --finetune 2 --out new.cvq", "--finetune"),
+    ("decompress-a-safetensors", "decompress {model} --out new.safetensors", "model.safetensors"),
+    ("decompress-missing", "decompress missing.cvq --out new.safetensors", "missing.cvq"),
+    ("decompress-corrupt", "decompress {brokencvq} --out new.safetensors", "broken.cvq"),
+    ("decompress-empty", "decompress {emptycvq} --out new.safetensors", "empty.cvq"),
+    ("decompress-text-file", "decompress {text} --out new.safetensors", "notes.txt"),
+    ("decompress-a-folder", "decompress {folder} --out new.safetensors", "folder"),
+    ("bench-scenes-missing", f"bench {BENCH} --scenes missing_scenes", "missing_scenes"),
+    ("bench-scenes-a-file", f"bench {BENCH} --scenes {{text}}", "notes.txt"),
+    ("bench-scenes-empty-folder", f"bench {BENCH} --scenes {{folder}}", "folder"),
+    ("bench-scenes-needed", "bench --preset paper --size 32 24 --steps 2 --quiet --out new_bench", "--scenes"),
+    ("bench-fits-not-a-bench", "bench --preset compression --scenes {scenes} --fits {notarun} --size 32 24 --steps 2 "
+     "--quiet --out new_bench", "notarun"),
+    ("bench-reuse-missing", f"bench {BENCH} --reuse missing_bench", "missing_bench"),
+    ("bench-summary-of-nothing", "bench --preset star --summary-only --quiet --out missing_bench", "missing_bench"),
+    ("results-root-missing", "results --root missing_root --out new.md", "missing_root"),
+    ("results-root-a-file", "results --root {text} --out new.md", "notes.txt"),
+    ("results-cell-of-other-settings", "results --root {badrecords} --out new.md", "badrecords"),
+)
+
+# ---------------------------------------------------------------------------------------------------------------
+# Outputs that cannot be written, or would write over something that existed.
+OUTPUTS = cases(
+    "outputs",
+    ("fit-out-existing-run", "fit --size 32 24 --steps 2 --quiet --out {run}", "overwrite"),
+    ("fit-out-existing-file", "fit --size 32 24 --steps 2 --quiet --out {text}", "notes.txt"),
+    ("fit-out-existing-folder", "fit --size 32 24 --steps 2 --quiet --out {notarun}", "notarun"),
+    ("fit-out-under-a-file", "fit --size 32 24 --steps 2 --quiet --out {image}/run", "photo.png"),
+    ("fit-out-under-a-model-file", "fit --size 32 24 --steps 2 --quiet --out {model}/run", "model.safetensors"),
+    ("fit-out-unwritable", "fit --size 32 24 --steps 2 --quiet --out /proc/cvqpg-hostile-run",
+     "/proc/cvqpg-hostile-run"),
+    ("fit-out-readonly-folder", "fit --size 32 24 --steps 2 --quiet --out {readonly}/run", "readonly", True),
+    ("fit-bad-option-with-overwrite", "fit --size 32 24 --steps 0 --quiet --out {run} --overwrite", "--steps"),
+    ("fit-failure-creates-no-parents", "fit --size 32 24 --steps 0 --quiet --out new_parent/deeper/run", "--steps"),
+    ("export-out-the-run-itself", "export {run} --out {run}", "run_a"),
+    ("export-out-the-run-itself-with-overwrite", "export {run} --out {run} --overwrite", "run_a"),
+    ("export-default-out-exists", "export {run}", "overwrite"),
+    ("export-out-existing-folder", "export {run} --out {notarun}", "overwrite"),
+    ("export-out-a-file", "export {run} --out {text}", "notes.txt"),
+    ("export-out-under-a-file", "export {run} --out {image}/export", "photo.png"),
+    ("export-out-unwritable", "export {run} --out /proc/cvqpg-hostile-export", "/proc/cvqpg-hostile-export"),
+    ("export-out-readonly-folder", "export {run} --out {readonly}/export", "readonly", True),
+    ("render-out-the-run-itself", "render {run} --out {run}", "run_a"),
+    ("render-default-out-exists", "render {run}", "overwrite"),
+    ("render-out-existing-folder", "render {run} --out {notarun}", "overwrite"),
+    ("render-out-a-file", "render {run} --out {text}", "notes.txt"),
+    ("render-out-under-a-file", "render {run} --out {image}/render", "photo.png"),
+    ("render-out-unwritable", "render {run} --out /proc/cvqpg-hostile-render", "/proc/cvqpg-hostile-render"),
+    ("view-out-a-folder", f"view {{run}} --quiet {SWEEP} --out {{run}}", "run_a"),
+    ("view-out-existing-page", f"view {{run}} --quiet {SWEEP} --out {{page}}", "overwrite"),
+    ("view-out-run-config", f"view {{run}} --quiet {SWEEP} --out {{run}}/config.json --overwrite", "config.json"),
+    ("view-out-run-metrics", f"view {{run}} --quiet {SWEEP} --out {{run}}/metrics.json --overwrite", "metrics.json"),
+    ("view-out-under-a-file", f"view {{run}} --quiet {SWEEP} --out {{image}}/page.html", "photo.png"),
+    ("view-out-parent-missing", f"view {{run}} --quiet {SWEEP} --out nodir/page.html", "nodir"),
+    ("info-half-exists", "info {run} --half", "overwrite"),
+    ("compress-out-the-model", "compress {run} --bits 8 --out {model}", "model.safetensors"),
+    ("compress-out-the-model-with-overwrite", "compress {run} --bits 8 --out {model} --overwrite",
+     "model.safetensors"),
+    ("compress-out-own-input-absolute", "compress {loose} --bits 8 --out {tmp}/loose/model.safetensors --overwrite",
+     "model.safetensors"),
+    ("compress-out-metrics", "compress {run} --bits 8 --out {run}/metrics.json --overwrite", "metrics.json"),
+    ("compress-out-config", "compress {run} --bits 8 --out {run}/config.json --overwrite", "config.json"),
+    ("compress-out-a-folder", "compress {run} --bits 8 --out {run}", "run_a"),
+    ("compress-default-out-exists", "compress {run} --bits 8", "overwrite"),
+    ("compress-out-existing-file", "compress {run} --bits 8 --out {text}", "overwrite"),
+    ("compress-out-parent-missing", "compress {run} --bits 8 --out nodir/deeper/out.cvq", "nodir"),
+    ("compress-out-under-a-file", "compress {run} --bits 8 --out {image}/out.cvq", "photo.png"),
+    ("compress-out-unwritable", "compress {run} --bits 8 --out /proc/cvqpg-hostile.cvq", "/proc/cvqpg-hostile.cvq"),
+    ("compress-out-readonly-folder", "compress {run} --bits 8 --out {readonly}/out.cvq", "readonly", True),
+    ("decompress-out-own-input", "decompress {cvq} --out {cvq}", "model.cvq"),
+    ("decompress-out-own-input-with-overwrite", "decompress {cvq} --out {cvq} --overwrite", "model.cvq"),
+    ("decompress-out-the-run-model", "decompress {cvq} --out {model} --overwrite", "model.safetensors"),
+    ("decompress-out-run-config", "decompress {cvq} --out {run}/config.json --overwrite", "config.json"),
+    ("decompress-default-out-exists", "decompress {cvq}", "overwrite"),
+    ("decompress-out-existing-file", "decompress {cvq} --out {text}", "overwrite"),
+    ("decompress-out-a-folder", "decompress {cvq} --out {folder}", "folder"),
+    ("decompress-out-parent-missing", "decompress {cvq} --out nodir/model.safetensors", "nodir"),
+    ("decompress-out-unwritable", "decompress {cvq} --out /proc/cvqpg-hostile.safetensors",
+     "/proc/cvqpg-hostile.safetensors"),
+    ("bench-out-a-file", f"bench {BENCH} --out {{text}}", "notes.txt"),
+    ("bench-out-under-a-file", f"bench {BENCH} --out {{image}}/bench", "photo.png"),
+    ("bench-out-a-run-folder", f"bench {BENCH} --out {{run}}", "run_a"),
+    ("bench-out-unwritable", f"bench {BENCH} --out /proc/cvqpg-hostile-bench", "/proc/cvqpg-hostile-bench"),
+    ("results-out-existing-file", "results --root {records} --out {text}", "overwrite"),
+    ("results-default-out-exists", "results --root {records}", "overwrite"),
+    ("results-out-under-a-file", "results --root {records} --out {image}/results.md", "photo.png"),
+    ("results-out-parent-missing", "results --root {records} --out nodir/results.md", "nodir"),
+    ("results-out-a-folder", "results --root {records} --out {folder}", "folder"),
+    ("results-out-run-config", "results --root {records} --out {run}/config.json --overwrite", "config.json"),
+    ("results-out-unwritable", "results --root {records} --out /proc/cvqpg-hostile.md", "/proc/cvqpg-hostile.md"),
+    ("results-out-readonly-folder", "results --root {records} --out {readonly}/results.md", "readonly", True),
+)
+
+CASES = NUMBERS + USAGE + INPUTS + OUTPUTS
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Helpers.
+
+def cli(argv: list[str], capsys) -> tuple[int, str, str]:
+    """`main(argv)` as the console script runs it: argparse's exit is an exit code too."""
+    try:
+        code = main(argv)
+    except SystemExit as exit_:
+        code = exit_.code if isinstance(exit_.code, int) else 1
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def tree_state(root: Path) -> dict[str, tuple[int, str | None]]:
+    """Every path under `root` (not following links): its mode, and its bytes' SHA-256 or its link's target."""
+    state = {}
+    for folder, folders, files in os.walk(root):
+        for name in folders + files:
+            path = Path(folder) / name
+            info = os.lstat(path)
+            if stat.S_ISREG(info.st_mode):
+                content = hashlib.sha256(path.read_bytes()).hexdigest()
+            elif stat.S_ISLNK(info.st_mode):
+                content = "-> " + os.readlink(path)
+            else:
+                content = None
+            state[path.relative_to(root).as_posix()] = (info.st_mode, content)
+    return state
+
+
+def tree_changes(before: dict, after: dict) -> list[str]:
+    return ([f"created {p}" for p in sorted(after.keys() - before.keys())]
+            + [f"removed {p}" for p in sorted(before.keys() - after.keys())]
+            + [f"changed {p}" for p in sorted(before.keys() & after.keys()) if before[p] != after[p]])
+
+
+def expand(argv: str, work: Path) -> list[str]:
+    return [token.format(tmp=work, **PLACES) for token in shlex.split(argv)]
+
+
+def command_of(argv: list[str]) -> str:
+    return argv[0] if argv else ""
+
+
+def flip_bytes(data: bytes) -> bytes:
+    """Damage in the middle of a file: every byte of its middle third inverted."""
+    start, stop = len(data) // 3, 2 * len(data) // 3
+    return data[:start] + bytes(b ^ 0xFF for b in data[start:stop]) + data[stop:]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The template: tiny assets, made once through the command line.
+
+class Template(NamedTuple):
+    folder: Path
+    fresh_run_files: frozenset[str]  # the files of run_a as `cvqpg fit` left it
+
+
+FIT_A = ["--size", "32", "24", "--num-gaussians", "20", "--steps", "2", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def template(tmp_path_factory) -> Template:
+    t = tmp_path_factory.mktemp("hostile") / "template"
+    t.mkdir()
+    run_a, run_b = t / "run_a", t / "run_b"
+    assert main(["fit", *FIT_A, "--out", str(run_a)]) == 0
+    fresh = frozenset(p.relative_to(run_a).as_posix() for p in run_a.rglob("*"))
+    assert main(["fit", "--size", "48", "36", "--color", "gray", "--planes", "1", "--num-gaussians", "20",
+                 "--steps", "2", "--quiet", "--out", str(run_b)]) == 0
+
+    # Copies of run_a, made before its extras: damaged, mixed, unfinished, a loose model.
+    shutil.copytree(run_a, t / "damaged")
+    (t / "damaged" / "model.safetensors").write_bytes(b"\x00garbage" * 32)
+    shutil.copytree(run_a, t / "mixed")
+    shutil.copy(run_b / "model.safetensors", t / "mixed" / "foreign.safetensors")
+    (t / "unfinished").mkdir()
+    shutil.copy(run_a / "config.json", t / "unfinished" / "config.json")
+    (t / "loose").mkdir()
+    shutil.copy(run_a / "model.safetensors", t / "loose" / "model.safetensors")
+
+    # run_a's extras: every command's default output exists, so that rerunning it needs --overwrite.
+    assert main(["compress", str(run_a), "--bits", "8"]) == 0                       # run_a/model.cvq
+    assert main(["decompress", str(run_a / "model.cvq")]) == 0                      # run_a/model.decoded.safetensors
+    assert main(["export", str(run_a)]) == 0                                        # run_a/export/
+    assert main(["render", str(run_a)]) == 0                                        # run_a/render/
+    assert main(["info", str(run_a), "--half"]) == 0                                # run_a/model.f16.safetensors
+    damaged = flip_bytes((run_a / "model.cvq").read_bytes())
+    (run_a / "bad.cvq").write_bytes(damaged)
+    (t / "broken.cvq").write_bytes(damaged)
+    (t / "empty.cvq").write_bytes(b"")
+
+    assert main(["bench", "--preset", "star", "--size", "32", "24", "--steps", "2", "--scene-names", "star",
+                 "--out", str(t / "bench"), "--quiet"]) == 0
+
+    cells = t / "records" / "paper" / "cells"
+    cells.mkdir(parents=True)
+    shutil.copytree(RECORDED_CELL, cells / RECORDED_CELL.name)
+    other = t / "badrecords" / "paper" / "cells" / RECORDED_CELL.name
+    other.mkdir(parents=True)
+    for name in ("config.json", "metrics.json"):
+        shutil.copy(run_a / name, other / name)
+    (t / "docs").mkdir()
+    (t / "docs" / "results.md").write_text("# Results written before\n")
+
+    rng = np.random.default_rng(7)
+    Image.fromarray(rng.integers(0, 256, (24, 32, 3), dtype=np.uint8)).save(t / "photo.png")
+    ramp = np.tile(np.linspace(0, 255, 32).astype(np.uint8), (24, 1))
+    Image.fromarray(ramp).save(t / "depth.png")
+    Image.fromarray(ramp[:, :24]).save(t / "square_depth.png")
+    Image.new("L", (32, 24), 90).save(t / "flat_depth.png")
+    binary = np.zeros((24, 32), np.uint8)
+    binary[:, 16:] = 255
+    Image.fromarray(binary).save(t / "binary_depth.png")
+    values = np.tile(np.linspace(1.0, 4.0, 32, dtype=np.float32), (24, 1))
+    values[5:9, 10:20] = np.nan
+    Image.fromarray(values, "F").save(t / "nan_depth.tiff")
+    png = (t / "photo.png").read_bytes()
+    (t / "cut.png").write_bytes(png[: len(png) // 2])
+    (t / "empty.png").write_bytes(b"")
+    (t / "notes.txt").write_text("not an image, not a model\n")
+    (t / "folder").mkdir()
+    (t / "notarun").mkdir()
+    (t / "notarun" / "readme.txt").write_text("a folder of someone's files\n")
+    (t / "page.html").write_text("<!doctype html><title>a page written before</title>\n")
+    (t / "scenes" / "tiny").mkdir(parents=True)
+    shutil.copy(t / "photo.png", t / "scenes" / "tiny" / "image.png")
+    shutil.copy(t / "depth.png", t / "scenes" / "tiny" / "depth.png")
+    (t / "readonly").mkdir()
+    (t / "readonly").chmod(0o555)
+    return Template(t, fresh)
+
+
+@pytest.fixture
+def work(template, tmp_path, monkeypatch) -> Path:
+    """A private copy of the template, the current folder; no GPU visible, no traceback requested."""
+    folder = tmp_path / "w"
+    shutil.copytree(template.folder, folder, symlinks=True)
+    monkeypatch.chdir(folder)
+    monkeypatch.setattr("torch.cuda.is_available", lambda: False)
+    monkeypatch.delenv("CVQPG_TRACEBACK", raising=False)
+    return folder
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The tests.
+
+def test_the_table_covers_every_command_with_enough_cases():
+    commands = {case.values[0].argv.split()[0] for case in CASES}
+    assert commands == {"fit", "eval", "export", "info", "render", "view", "compress", "decompress", "bench",
+                        "results", "compile"}
+    assert len(CASES) >= 110
+    ids = [case.id for case in CASES]
+    assert len(ids) == len(set(ids))
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_hostile_input_is_refused_in_one_line_and_changes_nothing(case: Case, work, tmp_path, capsys):
+    if case.permissions and IS_ROOT:
+        pytest.skip("running as root: file permissions do not apply (the /proc cases cover unwritable outputs)")
+    argv = expand(case.argv, work)
+    command = command_of(argv)
+    before = tree_state(tmp_path)
+    code, _out, err = cli(argv, capsys)
+    changes = tree_changes(before, tree_state(tmp_path))
+    lines = err.splitlines()
+    problems = []
+    if code != 2:
+        problems.append(f"exit code {code}, not 2")
+    if len(lines) != 1:
+        problems.append(f"{len(lines)} lines on stderr, not 1")
+    if "Traceback" in err:
+        problems.append("a traceback")
+    if not (lines and lines[-1].startswith(f"cvqpg {command}: error: ")):
+        problems.append(f"no line starting 'cvqpg {command}: error: '")
+    if case.fragment not in err:
+        problems.append(f"{case.fragment!r} not named")
+    if changes:
+        problems.append("the tree changed: " + ", ".join(changes[:6]) + (" ..." if len(changes) > 6 else ""))
+    assert not problems, "; ".join(problems) + f"\n  cvqpg {' '.join(argv)}\n  stderr: {err.strip()[-800:]}"
+
+
+# Nothing lost on success: a command given --overwrite replaces its own output as a whole and nothing else.
+
+class Success(NamedTuple):
+    argv: str
+    replaced: str  # the one path (file or folder) that may change; everything else stays byte for byte
+
+
+SUCCESSES = {
+    # run_a holds model.cvq, export/, render/, model.f16.safetensors ... that a fresh run does not: all must go.
+    "fit-overwrite-replaces-the-whole-run": Success(
+        "fit --size 32 24 --num-gaussians 20 --steps 2 --quiet --seed 5 --out {run} --overwrite", "run_a"),
+    "compress-overwrite-replaces-only-its-file": Success("compress {run} --bits 6 --overwrite", "run_a/model.cvq"),
+    "decompress-overwrite-replaces-only-its-file": Success("decompress {cvq} --overwrite",
+                                                           "run_a/model.decoded.safetensors"),
+    "export-overwrite-replaces-the-whole-folder": Success("export {run} --levels 16 --overwrite", "run_a/export"),
+    "render-overwrite-replaces-the-whole-folder": Success("render {run} --distance 0.002 --overwrite",
+                                                          "run_a/render"),
+    "info-half-overwrite-replaces-only-its-file": Success("info {run} --half --overwrite",
+                                                          "run_a/model.f16.safetensors"),
+    "results-overwrite-replaces-only-its-file": Success("results --root {records} --overwrite", "docs/results.md"),
+}
+
+
+@pytest.mark.parametrize("name", list(SUCCESSES))
+def test_overwrite_replaces_the_output_as_a_whole_and_nothing_else(name, template, work, tmp_path, capsys):
+    success = SUCCESSES[name]
+    output = work / success.replaced
+    if output.is_dir():
+        (output / "stray.txt").write_text("left by an earlier run\n")  # must be gone: the folder is replaced
+    else:
+        output.write_bytes(b"an older output\n")  # must be rewritten
+    before = tree_state(tmp_path)
+    code, _out, err = cli(expand(success.argv, work), capsys)
+    assert code == 0, err
+    after = tree_state(tmp_path)
+    replaced = f"w/{success.replaced}"
+
+    def outside(state):
+        return {p: v for p, v in state.items() if p != replaced and not p.startswith(replaced + "/")}
+
+    assert tree_changes(outside(before), outside(after)) == [], "paths other than the output changed"
+    if name.startswith("fit"):
+        files = {p.relative_to(output).as_posix() for p in output.rglob("*")}
+        assert files == template.fresh_run_files, (
+            f"the replaced run holds other files than a fresh run: {sorted(files ^ template.fresh_run_files)}")
+    if output.is_dir():
+        assert not (output / "stray.txt").exists(), f"{success.replaced}/stray.txt survived the overwrite"
+    else:
+        assert after[replaced][1] != before[replaced][1], f"{success.replaced} was not rewritten"
+
+
+def test_a_fit_refused_with_overwrite_leaves_the_old_run_byte_for_byte(work, tmp_path, capsys):
+    """The failure comes after the options pass (the depth map separates 2 planes, not 5): the run that was there
+    stays, with its model.cvq, export/ and every other file."""
+    argv = expand("fit {image} --depth {binary} --planes 5 --size 32 24 --steps 2 --quiet --out {run} --overwrite",
+                  work)
+    before = tree_state(tmp_path)
+    code, _out, err = cli(argv, capsys)
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert tree_changes(before, tree_state(tmp_path)) == []
