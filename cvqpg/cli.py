@@ -23,7 +23,7 @@ from PIL import Image
 from . import __version__
 from .app.allocator import keep_freed_memory
 from .app.compilation import compile_all
-from .app.outputs import check_output_file, check_output_folder
+from .app.outputs import check_new_folder, check_output_file, check_output_folder, is_run_folder
 from .app.runner import CHECKPOINT_SECONDS, fit_in_folder, resumed_state, write_fitted_run
 from .campaign.bench import (CELLS_DIR, METHODS, PRESETS, Overrides, RateDistortionOptions, describe_cells, make_plan,
                              parse_shard, peak_bytes, run_plan)
@@ -48,7 +48,7 @@ from .view import DEFAULT_SWEEP, VIEW_FILE, ViewRecord, default_page, write_view
 DEFAULTS = FitConfig()
 
 # The library's parameter names (in backticks in its messages) as the command line spells them.
-FLAGS = {"width": "--size", "height": "--size", "num_planes": "--planes", "pixel_pitch": "--pitch",
+FLAGS = {"width": "--size", "height": "--size", "size": "--size", "num_planes": "--planes", "pixel_pitch": "--pitch",
          "wavelengths_m": "--wavelengths", "num_gaussians": "--num-gaussians", "curvature_warmup": "--curvature-warmup",
          "plane_center": "--plane-center", "plane_span": "--plane-span", "resize_depth": "--resize-depth",
          **{name: f"--{name.replace('_', '-')}" for name in (
@@ -67,6 +67,16 @@ class OneLineParser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+    def parse_args(self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+                   ) -> argparse.Namespace:
+        """As argparse's, but an unknown argument is reported by the subcommand it was given to."""
+        namespace, extras = self.parse_known_args(args, namespace)
+        if extras:
+            command = getattr(namespace, "command", None)
+            prog = f"{self.prog} {command}" if command else self.prog
+            self.exit(2, f"{prog}: error: unrecognized arguments: {' '.join(extras)} (see {prog} --help)\n")
+        return namespace
 
 
 def finite(text: str) -> float:
@@ -87,7 +97,11 @@ def _overwrite_argument(p: argparse.ArgumentParser, what: str) -> None:
 
 def flag_message(message: str) -> str:
     """A library message with its backticked parameter names replaced by the command line's flags."""
-    return re.sub(r"`([\w.\[\]]+)`", lambda m: FLAGS.get(m.group(1), m.group(1)), message)
+    def flag(match: re.Match) -> str:
+        name = re.sub(r"\[\d+\]$", "", match.group(1))  # `wavelengths_m[0]`: the flag of the whole list
+        return FLAGS.get(name, match.group(1))
+
+    return re.sub(r"`([\w.\[\]]+)`", flag, message)
 
 
 def _fit_parser(sub: argparse._SubParsersAction) -> None:
@@ -454,13 +468,7 @@ def check_fit_destination(final: Path, overwrite: bool) -> None:
                              f"once the new fit succeeds, or --resume {final}")
     elif final.is_dir() and any(final.iterdir()):
         raise UsageError(f"--out {final} holds other files; give a new or empty folder")
-    for ancestor in final.parents:
-        if ancestor.exists():
-            if not ancestor.is_dir():
-                raise UsageError(f"--out {final}: {ancestor} is a file, not a folder")
-            if not os.access(ancestor, os.W_OK | os.X_OK):
-                raise UsageError(f"--out {final}: the folder {ancestor} is not writable; choose another place")
-            break
+    check_new_folder(final)
 
 
 def _resume_plan(args: argparse.Namespace) -> FitPlan:
@@ -479,6 +487,9 @@ def _resume_plan(args: argparse.Namespace) -> FitPlan:
 
 
 def _new_plan(args: argparse.Namespace) -> FitPlan:
+    if args.checkpoint_every is not None and args.checkpoint_every < 0:
+        raise UsageError(f"--checkpoint-every {args.checkpoint_every}: give a number of steps ≥ 1, or 0 for "
+                         "checkpoints only when interrupted")
     config, source = _config_and_source(args)
     check_device(config.device)
     final = Path(args.out) if args.out else _default_out(source, config)
@@ -589,6 +600,8 @@ def run_export(args: argparse.Namespace) -> int:
 def run_info(args: argparse.Namespace) -> int:
     target = Path(args.target)
     if args.half:
+        if target.is_file():
+            raise UsageError(f"--half stores a float16 copy beside a run's model: give the run folder, not {target}")
         folder = finished_run(target)
         check_output_file(folder / HALF_MODEL_FILE, [folder / MODEL_FILE], args.overwrite)
         info = half_precision_model(folder)
@@ -705,9 +718,16 @@ def run_bench(args: argparse.Namespace) -> int:
                              f"{args.preset}")
     if args.finetune < 0:
         raise UsageError(f"--finetune {args.finetune}: give a number of steps ≥ 0")
-    for folder in args.fits:
-        if not (Path(folder) / CELLS_DIR).is_dir():
-            raise UsageError(f"--fits {folder}: not a bench folder (no {CELLS_DIR}/ in it)")
+    for option, folders in (("--fits", args.fits), ("--reuse", args.reuse)):
+        for folder in folders:
+            if not (Path(folder) / CELLS_DIR).is_dir():
+                raise UsageError(f"{option} {folder}: not a bench folder (no {CELLS_DIR}/ in it)")
+    if is_run_folder(plan.folder):
+        raise UsageError(f"--out {plan.folder} is a run folder; give a bench folder")
+    if args.summary_only and not (plan.folder / CELLS_DIR).is_dir():
+        raise UsageError(f"--summary-only: {plan.folder} holds no {CELLS_DIR}/ to summarise; fit the grid first, "
+                         "or give its --out")
+    check_new_folder(plan.folder)
     cells = plan.shard(*parse_shard(args.shard)) if args.shard else plan.cells
     if args.dry_run:
         listing = describe_cells(plan, cells, [Path(d) for d in args.reuse])
@@ -733,6 +753,8 @@ def run_bench(args: argparse.Namespace) -> int:
 
 
 def run_results(args: argparse.Namespace) -> int:
+    if not Path(args.root).is_dir():
+        raise UsageError(f"--root {args.root} is not a folder of recorded bench folders (e.g. results)")
     out = check_output_file(args.out, [], args.overwrite)
     write_atomic(out, document(Path(args.root)))
     print(f"cvqpg results: {args.out}")
@@ -754,7 +776,10 @@ def _show_notes() -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as stop:  # --help, --version, or a usage error already printed in one line
+        return stop.code if isinstance(stop.code, int) else 2
     _show_notes()
     keep_freed_memory()
     try:

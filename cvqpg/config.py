@@ -193,6 +193,8 @@ class FitConfig:
         for name, value in positive.items():
             if not value > 0:
                 raise ConfigError(f"`{name}` must be positive, got {value}")
+        if self.seed < 0:
+            raise ConfigError(f"`seed` must be 0 or more, got {self.seed}")
         if self.guard_band_px < 0:
             raise ConfigError(f"`guard_band_px` must be 0 or more, got {self.guard_band_px}")
         if self.width < MIN_SIZE_PX or self.height < MIN_SIZE_PX:

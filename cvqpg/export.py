@@ -69,8 +69,8 @@ def place_on_canvas(pattern: Tensor, canvas_width: int, canvas_height: int) -> T
     """[C, H, W] → [C, canvas_height, canvas_width]: centred, the rest of the canvas at 0."""
     channels, height, width = pattern.shape
     if canvas_width < width or canvas_height < height:
-        raise ConfigError(f"the SLM canvas {canvas_width}×{canvas_height} is smaller than the "
-                         f"{width}×{height} hologram; give an SLM at least that large")
+        raise ConfigError(f"`slm` {canvas_width}×{canvas_height} is smaller than the {width}×{height} hologram; "
+                          "give an SLM at least that large")
     top, left = canvas_offset((canvas_height, canvas_width), (height, width))
     canvas = pattern.new_zeros(channels, canvas_height, canvas_width)
     canvas[:, top:top + height, left:left + width] = pattern

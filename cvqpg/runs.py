@@ -13,7 +13,8 @@ from PIL import Image
 from torch import Tensor
 
 from . import __version__
-from .config import ConfigError, FitConfig
+from .config import MIN_SIZE_PX, FitConfig
+from .errors import ConfigError
 from .files import write_atomic
 from .export import (DEFAULT_APERTURE, DEFAULT_LEVELS, Display, Encoding, PhasePattern, phase_pattern, place_on_canvas,
                      simulate_display)
@@ -258,10 +259,12 @@ def half_precision_model(folder: str | Path) -> dict[str, Any]:
 def rescaled(primitives: Primitives, config: FitConfig, width: int, height: int) -> tuple[Primitives, FitConfig]:
     """The same physical hologram sampled on a W×H grid: positions and scales scale with the grid,
     the pixel pitch shrinks by as much, curvature (1/m) stays. Refuses another aspect ratio."""
+    if min(width, height) < MIN_SIZE_PX:
+        raise ConfigError(f"size {width}×{height}: `width` and `height` need at least {MIN_SIZE_PX} px")
     factor = width / config.width
     if abs(height / config.height - factor) > 0.01 * factor:
         raise ConfigError(f"size {width}×{height} changes the aspect ratio of the {config.width}×"
-                          f"{config.height} model; keep `width`/`height` = {config.width / config.height:.4f}")
+                          f"{config.height} model; keep W/H = {config.width / config.height:.4f} (`size`)")
     values = primitives.tensors()
     values["position_px"] = (values["position_px"] + 0.5) * factor - 0.5
     values["scale_px"] = values["scale_px"] * factor

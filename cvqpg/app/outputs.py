@@ -7,7 +7,7 @@ make a folder a run). Messages name the parameter `out`, which the command line 
 
 from __future__ import annotations
 
-import os
+import tempfile
 from pathlib import Path
 from typing import Iterable
 
@@ -32,12 +32,22 @@ def _refuse_inputs_and_records(path: Path, inputs: Iterable[Path]) -> None:
         raise InputError(f"`out` {path} is the run's own {path.name}; choose another file name")
 
 
+def writable(folder: Path) -> bool:
+    """Whether files can be created in `folder`, tried with a probe file that is removed at once (for
+    root, `os.access` says yes even where the file system refuses, as in /proc)."""
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".cvqpg-probe-"):
+            return True
+    except OSError:
+        return False
+
+
 def _check_parent(path: Path) -> None:
     parent = path.parent
     if not parent.is_dir():
         what = "is a file" if parent.exists() else "does not exist"
         raise InputError(f"`out` {path}: the folder {parent} {what}; give a path in an existing folder")
-    if not os.access(parent, os.W_OK | os.X_OK):
+    if not writable(parent):
         raise InputError(f"`out` {path}: the folder {parent} is not writable; choose another place")
 
 
@@ -50,6 +60,22 @@ def check_output_file(path: str | Path, inputs: Iterable[Path] = (), overwrite: 
         raise InputError(f"`out` {path} is a folder; give a file name")
     if path.exists() and not overwrite:
         raise InputError(f"`out` {path} exists; choose another path, or pass `overwrite` to replace it")
+    return path
+
+
+def check_new_folder(path: str | Path) -> Path:
+    """A folder a command creates, with its missing parents, on success: nothing in the way, and its
+    nearest existing ancestor writable."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(f"`out` {path} is a file; give a folder")
+    for ancestor in path.parents:
+        if ancestor.exists():
+            if not ancestor.is_dir():
+                raise InputError(f"`out` {path}: {ancestor} is a file, not a folder")
+            if not writable(ancestor):
+                raise InputError(f"`out` {path}: the folder {ancestor} is not writable; choose another place")
+            break
     return path
 
 
