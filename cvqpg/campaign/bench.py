@@ -434,10 +434,12 @@ def reusable_record(plan: BenchPlan, cell: Cell, others: Sequence[Path]) -> Path
 
 
 def _resume_state(folder: Path, cell: Cell) -> FitState | None:
-    """The checkpoint's loop state when the folder holds one of this cell's settings; else a fresh run folder."""
-    if (folder / CONFIG_FILE).is_file() and not config_differences(folder, cell.config):
+    """The checkpoint's loop state when the folder holds one of this cell's settings; else a fresh run folder
+    (also where its config.json or checkpoint cannot be used, with a note)."""
+    if (folder / CONFIG_FILE).is_file():
         try:
-            state = resumed_state(folder, cell.config)
+            state = None if config_differences(folder, cell.config) else resumed_state(folder, cell.config,
+                                                                                         cell.scene.source)
         except CvqpgError as error:
             log.warning(f"{error}; cell {cell.name} restarts from step 0")
         else:
@@ -462,7 +464,8 @@ def run_cell(cell: Cell, folder: Path, stop_requested: Callable[[], bool] | None
     state = _resume_state(folder, cell)
     (folder / ERROR_FILE).unlink(missing_ok=True)
     try:
-        result = fit_in_folder(folder, scene, config, state, progress=False, stop_requested=stop_requested)
+        result = fit_in_folder(folder, scene, config, state, progress=False, stop_requested=stop_requested,
+                               source=cell.scene.source)
     except FitInterrupted:
         return INTERRUPTED
     recon = result.reconstructions
