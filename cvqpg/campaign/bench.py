@@ -10,7 +10,6 @@ every node of a job array computes the same split. The tables, figures and repor
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import multiprocessing
@@ -320,11 +319,10 @@ def recorded_scenes(folder: Path) -> dict[str, BenchScene]:
         return {}
     scenes = {}
     for config_file in sorted(cells.glob(f"*/{CONFIG_FILE}")):
-        recorded = json.loads(config_file.read_text())
-        source = recorded.get("source", {})
+        recorded, source = read_run(config_file.parent)
         if "image" in source:
             name = Path(source["image"]).parent.name
-            scenes[name] = BenchScene(name, source, recorded["num_planes"])
+            scenes[name] = BenchScene(name, source, recorded.num_planes)
     return dict(sorted(scenes.items()))
 
 
@@ -633,8 +631,3 @@ def _run_pool(plan: BenchPlan, todo: list[Cell], jobs: int, stop: Callable[[], b
         finally:
             # also on a second Ctrl-C: running fits checkpoint and queued cells return at once
             stop_event.set()
-
-
-def read_json(path: Path) -> dict[str, Any] | None:
-    """A JSON file's content, or None where there is none."""
-    return json.loads(path.read_text()) if path.is_file() else None
