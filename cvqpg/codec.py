@@ -28,7 +28,8 @@ from torch import Tensor
 
 from .config import FitConfig
 from .errors import ConfigError, ModelFileError
-from .primitives import Primitives, curvature_bound
+from .primitives import (REWRITE_MODEL, Primitives, check_settings, check_tensors, curvature_bound,
+                         model_shapes)
 
 MAGIC = b"\x89CVQ\r\n\x1a\n"
 FORMAT_VERSION = 2  # 2 added the `bitlength` coding; a version 1 file reads unchanged
@@ -453,8 +454,41 @@ class Compressed:
     streams: list[dict[str, Any]]
 
 
+def stream_shapes(count: int, config: FitConfig) -> dict[str, tuple[int, ...]]:
+    """The shape of each stream of `count` primitives: one Morton gap per position, the other attributes'
+    own shapes (`model_shapes`), curvature for `cvqpg` primitives only."""
+    shapes = model_shapes(count, config)
+    streams = {"position": (count,), "scale": shapes["scale_px"], "rotation": shapes["rotation_rad"],
+               "amplitude": shapes["amplitude"], "phase": shapes["phase_rad"]}
+    return {**streams, "curvature": shapes["curvature_per_m"]} if config.primitive == "cvqpg" else streams
+
+
+def _checked_header(header: Any, name: str) -> tuple[FitConfig, BitDepths]:
+    """The configuration (with the file's primitive count) and bit depths of a header whose checksum holds,
+    refused (`ModelFileError`) where they make no sense: a file altered with its checksum recomputed, or
+    written by another program."""
+    try:
+        config, count = config_from_optics(header["optics"]), header["num_primitives"]
+        bits = BitDepths(**header["bits"])
+        shapes = {descriptor["name"]: tuple(descriptor["shape"]) for descriptor in header["streams"]}
+    except (KeyError, TypeError, AttributeError) as error:
+        raise ModelFileError(f"{name}: its header is malformed ({type(error).__name__}: {error}); "
+                             f"{REWRITE_MODEL}") from None
+    check_settings(config, count, name)
+    try:
+        bits.validate()
+    except ConfigError as error:
+        raise ModelFileError(f"{name}: its bit depths cannot work ({error}); {REWRITE_MODEL}") from None
+    expected = stream_shapes(count, config)
+    if shapes != expected:
+        raise ModelFileError(f"{name}: its streams have shapes {shapes}, {count} primitives need {expected}; "
+                             f"{REWRITE_MODEL}")
+    return config.replace(num_gaussians=count), bits
+
+
 def decode(data: bytes, name: str = "file") -> Compressed:
-    """Parse and decode a `.cvq` file's bytes; `ModelFileError` names what is wrong."""
+    """Parse and decode a `.cvq` file's bytes; `ModelFileError` names what is wrong, also where a file whose
+    checksum holds makes no physical sense (`_checked_header`, `check_tensors`)."""
     if len(data) < PREFIX.size or data[:len(MAGIC)] != MAGIC:
         raise ModelFileError(f"{name}: not a cvqpg compressed file (wrong magic number)")
     _, version, header_length = PREFIX.unpack_from(data)
@@ -466,19 +500,29 @@ def decode(data: bytes, name: str = "file") -> Compressed:
     body, (stored,) = data[:-CHECKSUM.size], CHECKSUM.unpack(data[-CHECKSUM.size:])
     try:
         header = json.loads(zlib.decompress(body[PREFIX.size:PREFIX.size + header_length]))
-    except (zlib.error, ValueError):
-        header = None
-    payload_bytes = sum(s["bytes"] for s in header["streams"]) if header else 0
+        payload_bytes = sum(int(s["bytes"]) for s in header["streams"])
+    except (zlib.error, ValueError, KeyError, TypeError):
+        header, payload_bytes = None, 0
     if header is not None and len(body) < PREFIX.size + header_length + payload_bytes:
         raise ModelFileError(f"{name}: truncated ({len(data)} bytes, the header announces "
                              f"{PREFIX.size + header_length + payload_bytes + CHECKSUM.size})")
-    if zlib.crc32(body) != stored or header is None:
+    if zlib.crc32(body) != stored:
         raise ModelFileError(f"{name}: corrupted (CRC32 checksum mismatch)")
-    config = config_from_optics(header["optics"])
-    bits = BitDepths(**header["bits"])
+    if header is None:
+        raise ModelFileError(f"{name}: its header is not one cvqpg writes; {REWRITE_MODEL}")
+    config, bits = _checked_header(header, name)
     offset, streams = PREFIX.size + header_length, {}
     for descriptor in header["streams"]:
-        streams[descriptor["name"]] = decode_stream(descriptor, body[offset:offset + descriptor["bytes"]])
+        try:
+            streams[descriptor["name"]] = decode_stream(descriptor, body[offset:offset + descriptor["bytes"]])
+        except (KeyError, TypeError, ValueError, IndexError, zlib.error) as error:
+            raise ModelFileError(f"{name}: stream {descriptor['name']!r} does not decode ({error}); "
+                                 f"{REWRITE_MODEL}") from None
         offset += descriptor["bytes"]
-    primitives = dequantise(Encoded(streams, header["ranges"]), config, bits)
-    return Compressed(primitives, config.replace(num_gaussians=primitives.count), bits, header["streams"])
+    try:
+        primitives = dequantise(Encoded(streams, header["ranges"]), config, bits)
+    except (KeyError, TypeError, IndexError) as error:
+        raise ModelFileError(f"{name}: its ranges are malformed ({type(error).__name__}: {error}); "
+                             f"{REWRITE_MODEL}") from None
+    check_tensors(primitives, config, name)
+    return Compressed(primitives, config, bits, header["streams"])

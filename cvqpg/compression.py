@@ -20,7 +20,7 @@ from .finetune import finetune
 from .fitting import render
 from .metrics import mean_psnr
 from .primitives import Primitives
-from .runs import CONFIG_FILE, model_path, read_run, scene_from_source
+from .runs import CONFIG_FILE, load_run_model, model_path, scene_from_source
 from .storage import is_compressed, load_model, read_compressed, save_model
 
 # The budgets `max_drop` tries, coarsest first: the defaults shifted together.
@@ -151,11 +151,15 @@ def compress_model(target: str | Path, out: str | Path | None = None, bits: BitD
         raise ModelFileError(f"{target}: no such run folder or model file")
     if is_compressed(model_file):
         raise ModelFileError(f"{model_file}: already compressed; give the float model")
-    primitives, config = load_model(model_file)
     folder = model_file.parent if (model_file.parent / CONFIG_FILE).is_file() else None
     if finetune_steps and folder is None:
         raise ConfigError(f"`finetune_steps` needs the run folder's inputs; {model_file} is not in a run folder")
-    scene = scene_from_source(read_run(folder)[1], config) if folder is not None else None
+    if folder is None:
+        primitives, config = load_model(model_file)
+        scene = None
+    else:
+        primitives, config, source = load_run_model(folder, model_file)
+        scene = scene_from_source(source, config)
     out = Path(out) if out is not None else model_file.with_suffix(SUFFIX)
     started = time.perf_counter()
     reference = reference_for(primitives, config, None if scene is None else scene.targets)

@@ -174,18 +174,23 @@ def initial_state(config: FitConfig) -> FitState:
     return FitState(gaussians, optimizer, generator)
 
 
-def state_from_payload(payload: dict, config: FitConfig) -> FitState:
-    """Inverse of `FitState.to_payload` on `config.device`. A checkpoint from another device type is
-    refused (`ModelFileError`): CPU and CUDA noise generators have different states."""
+def state_from_payload(payload: dict, config: FitConfig, name: str = "the checkpoint") -> FitState:
+    """Inverse of `FitState.to_payload` on `config.device`. A checkpoint (`name` in messages) from another
+    device type is refused (`ModelFileError`): CPU and CUDA noise generators have different states; so is
+    one whose primitives have other shapes than `config` gives them."""
     written_on = payload.get("device", "cpu")
     if written_on != torch.device(config.device).type:
-        raise ModelFileError(f"the checkpoint was written on {written_on}, this run is on {config.device}: "
+        raise ModelFileError(f"{name} was written on {written_on}, this run is on {config.device}: "
                              f"resume it with `device` {written_on}, or delete the checkpoint to restart from "
                              "step 0")
     state = initial_state(config)
     with torch.no_grad():
-        for name, tensor in state.gaussians.tensors().items():
-            tensor.copy_(payload["gaussians"][name])
+        for key, tensor in state.gaussians.tensors().items():
+            stored = payload["gaussians"][key]
+            if stored.shape != tensor.shape:
+                raise ModelFileError(f"{name} belongs to another run (its {key} has shape {tuple(stored.shape)}, "
+                                     f"this run's {tuple(tensor.shape)}): delete it to restart from step 0")
+            tensor.copy_(stored)
     state.optimizer.load_state_dict(payload["optimizer"])
     state.generator.set_state(payload["generator"])
     state.step, state.history, state.seconds = payload["step"], payload["history"], payload["seconds"]

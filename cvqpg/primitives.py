@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from .config import FitConfig
+from .errors import ConfigError, ModelFileError
 
 COVARIANCE_REGULARISER_PX2 = 0.1
 MIN_SCALE_PX = 0.1
@@ -72,6 +73,47 @@ class Primitives(TensorFields):
     @property
     def channels(self) -> int:
         return self.amplitude.shape[1]
+
+
+# What to do with a model file that is refused for making no physical sense.
+REWRITE_MODEL = "the file was damaged or altered, or not written by cvqpg: write it again from its run"
+
+
+def model_shapes(count: int, config: FitConfig) -> dict[str, tuple[int, ...]]:
+    """The shape of each tensor of `count` primitives under `config`."""
+    channels = config.channels
+    return {"position_px": (count, 2), "scale_px": (count, 2), "rotation_rad": (count,),
+            "amplitude": (count, channels), "phase_rad": (count, channels), "opacity": (count,),
+            "curvature_per_m": (count,) if config.curvature == "shared" else (count, channels)}
+
+
+def check_settings(config: FitConfig, count: object, name: str) -> None:
+    """Raise `ModelFileError` naming the model file `name` unless it holds at least one primitive and its
+    settings, with its primitive count `count`, validate."""
+    if not isinstance(count, int) or isinstance(count, bool) or count < 1:
+        raise ModelFileError(f"{name}: it holds {count!r} primitives, not at least 1; {REWRITE_MODEL}")
+    try:
+        config.replace(num_gaussians=count).validate()
+    except ConfigError as error:
+        raise ModelFileError(f"{name}: its settings cannot work ({error}); {REWRITE_MODEL}") from None
+
+
+def check_tensors(primitives: Primitives, config: FitConfig, name: str) -> None:
+    """Raise `ModelFileError` naming the model file `name` unless every tensor has the shape `config` gives
+    it and finite values, and every scale (px) is positive."""
+    tensors = primitives.tensors()
+    count = tensors["position_px"].shape[0] if tensors["position_px"].dim() else 0
+    for tensor_name, shape in model_shapes(count, config).items():
+        if tuple(tensors[tensor_name].shape) != shape:
+            raise ModelFileError(f"{name}: tensor {tensor_name!r} has shape {tuple(tensors[tensor_name].shape)}, "
+                                 f"expected {shape}; {REWRITE_MODEL}")
+    # the scale first: a decoded curvature follows from it, and is not finite where it is not positive
+    scale = primitives.scale_px
+    if not bool((torch.isfinite(scale) & (scale > 0)).all()):
+        raise ModelFileError(f"{name}: some scales (px) are not finite and positive; {REWRITE_MODEL}")
+    for tensor_name, tensor in tensors.items():
+        if not bool(torch.isfinite(tensor).all()):
+            raise ModelFileError(f"{name}: tensor {tensor_name!r} holds values that are not finite; {REWRITE_MODEL}")
 
 
 def init_gaussians(count: int, channels: int, width: int, height: int, seed: int,

@@ -14,7 +14,7 @@ from torch import Tensor
 
 from . import __version__
 from .config import MIN_SIZE_PX, FitConfig
-from .errors import ConfigError
+from .errors import ConfigError, InputError, ModelFileError
 from .files import write_atomic
 from .export import (DEFAULT_APERTURE, DEFAULT_LEVELS, Display, Encoding, PhasePattern, phase_pattern, place_on_canvas,
                      simulate_display)
@@ -31,6 +31,10 @@ METRICS_FILE = "metrics.json"
 MODEL_FILE = "model.safetensors"
 CHECKPOINT_FILE = "checkpoint.pt"
 PLANE_IMAGES = ("target_plane*.png", "recon_plane*.png")
+# What every config.json has held since the first version: without them a run would take the defaults.
+RUN_KEYS = ("source", "width", "height", "color", "primitive", "pixel_pitch", "num_planes", "plane_center",
+            "plane_span")
+RESTORE_RUN = "restore the file or fit the run again"
 
 
 def write_json(path: Path, data: Any) -> None:
@@ -108,13 +112,39 @@ def start_run(folder: str | Path, config: FitConfig, source: dict[str, Any], kee
     return folder
 
 
+def read_record(path: Path, remedy: str) -> dict[str, Any]:
+    """The JSON object in the file `path`; `InputError` naming it and `remedy` where it is unreadable, not JSON
+    or not an object."""
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise InputError(f"{path} is not a readable JSON file ({error}); {remedy}") from None
+    if not isinstance(record, dict):
+        raise InputError(f"{path} holds a JSON {type(record).__name__}, not an object; {remedy}")
+    return record
+
+
 def read_run(folder: str | Path) -> tuple[FitConfig, dict[str, Any]]:
-    """The configuration and input description of a run folder."""
-    recorded = json.loads((Path(folder) / CONFIG_FILE).read_text())
-    # Inputs the run keeps itself (an estimated depth map) are recorded relative to the run folder.
-    source = {key: str(Path(folder) / value) if key in ("image", "depth") and not Path(value).is_absolute()
-              else value for key, value in recorded["source"].items()}
-    return FitConfig.from_dict(recorded), source
+    """The configuration and input description of a run folder; `InputError` naming the folder or file where
+    its `config.json` is missing, unreadable, incomplete or holds settings that cannot work. Inputs the run
+    keeps itself (an estimated depth map) are recorded relative to the run folder and returned resolved."""
+    folder = Path(folder)
+    path = folder / CONFIG_FILE
+    if not path.is_file():
+        raise InputError(f"{folder} is not a run folder (no {CONFIG_FILE}); give a folder written by `cvqpg fit`")
+    recorded = read_record(path, RESTORE_RUN)
+    missing = [key for key in RUN_KEYS if key not in recorded]
+    if missing:
+        raise InputError(f"{path} lacks {', '.join(missing)}; {RESTORE_RUN}")
+    source = recorded["source"]
+    if not isinstance(source, dict) or not ("scene" in source or "image" in source):
+        raise InputError(f"{path}: its source names neither a scene nor an image; {RESTORE_RUN}")
+    source = {key: str(folder / value) if key in ("image", "depth") and not Path(value).is_absolute() else value
+              for key, value in source.items()}
+    try:
+        return FitConfig.from_dict(recorded).validate(), source
+    except (ConfigError, TypeError) as error:
+        raise InputError(f"{path}: its settings cannot work ({error}); {RESTORE_RUN}") from None
 
 
 def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[str, Any],
@@ -155,19 +185,54 @@ def load_model_on(path: str | Path, device: str) -> tuple[Primitives, FitConfig]
     return primitives, config.on_device(device)
 
 
+def optics_label(config: FitConfig) -> str:
+    """E.g. `640×480 px, 3.74 µm pitch, 639/532/473 nm`."""
+    return (f"{config.width}×{config.height} px, {config.pixel_pitch * 1e6:g} µm pitch, "
+            + "/".join(f"{w * 1e9:g}" for w in config.wavelengths) + " nm")
+
+
+def _targets(config: FitConfig) -> tuple[Any, ...]:
+    """What a run's targets, and a render compared with them, depend on: size and colour first."""
+    return (config.width, config.height, config.color, config.pixel_pitch, config.wavelengths,
+            config.plane_distances)
+
+
+def targets_label(config: FitConfig, brief: bool) -> str:
+    """The targets `config` fits: size and colour (`brief`: `64×48 rgb`), or the optics and planes."""
+    if brief:
+        return f"{config.width}×{config.height} {config.color}"
+    return f"{optics_label(config)}, planes at {', '.join(f'{d * 1e3:g}' for d in config.plane_distances)} mm"
+
+
+def load_run_model(folder: str | Path, model: str | Path | None = None, device: str | None = None
+                   ) -> tuple[Primitives, FitConfig, dict[str, Any]]:
+    """The model of the run in `folder` (its own, or the model file `model`) with its settings, on `device`
+    (None: the CPU, settings as recorded), and the run's `source`. `ModelFileError` where the model was
+    fitted for other targets than the run's: another size, colour, pixel pitch, wavelengths or planes."""
+    folder = Path(folder)
+    run_config, source = read_run(folder)
+    path = folder / MODEL_FILE if model is None else Path(model)
+    primitives, config = load_model(path) if device is None else load_model_on(path, device)
+    if _targets(config) != _targets(run_config):
+        brief = _targets(config)[:3] != _targets(run_config)[:3]
+        raise ModelFileError(f"{path} was fitted for {targets_label(config, brief)}, the run folder {folder} is "
+                             f"{targets_label(run_config, brief)}: use it with its own run folder")
+    return primitives, config, source
+
+
 def evaluate_run(folder: str | Path, model: str | Path | None = None, device: str = "cpu") -> dict[str, Any]:
     """Recompute a saved run's metrics from its model (or `model`, e.g. a compressed file in the
     run folder) and inputs, rendered on `device`; rewrites `metrics.json`, or writes
     `<model stem>.metrics.json` for `model`."""
     folder = Path(folder)
-    _, source = read_run(folder)
-    primitives, config = load_model_on(folder / MODEL_FILE if model is None else model, device)
+    primitives, config, source = load_run_model(folder, model, device)
     scene = scene_from_source(source, config)
     _, recon = render(primitives, config)
     metrics_file = folder / METRICS_FILE if model is None else folder / f"{Path(model).stem}.{METRICS_FILE}"
     previous = {}
     if (folder / METRICS_FILE).is_file():
-        previous = json.loads((folder / METRICS_FILE).read_text())
+        previous = read_record(folder / METRICS_FILE, "delete it and evaluate again (the fit's time and run "
+                               "record go with it)")
     kept = {k: v for k, v in previous.items() if k not in ("mean", "per_plane", "unavailable")}
     record = {**metrics_record(evaluate(recon, scene.targets), config, previous.get("seconds", 0.0)), **kept}
     write_json(metrics_file, record)
@@ -210,8 +275,7 @@ def export_run(folder: str | Path, encoding: Encoding = "dpac", levels: int = DE
     """
     folder = Path(folder)
     out = Path(out) if out is not None else folder / EXPORT_FOLDER
-    _, source = read_run(folder)
-    primitives, config = load_model_on(folder / MODEL_FILE if model is None else model, device)
+    primitives, config, source = load_run_model(folder, model, device)
     out.mkdir(parents=True, exist_ok=True)
     scene = scene_from_source(source, config)
     hologram, complex_recon = render(primitives, config)
@@ -245,8 +309,7 @@ def model_path(target: str | Path) -> Path:
 def half_precision_model(folder: str | Path) -> dict[str, Any]:
     """Store a run's model in float16 next to it and measure what that costs in PSNR (dB)."""
     folder = Path(folder)
-    _, source = read_run(folder)
-    primitives, config = load_model(folder / MODEL_FILE)
+    primitives, config, source = load_run_model(folder)
     save_model(folder / HALF_MODEL_FILE, primitives, config, dtype="float16")
     half, _ = load_model(folder / HALF_MODEL_FILE)
     scene = scene_from_source(source, config)
@@ -275,8 +338,12 @@ def rescaled(primitives: Primitives, config: FitConfig, width: int, height: int)
 def render_model(target: str | Path, out: str | Path, size: tuple[int, int] | None = None,
                  distances_m: Sequence[float] | None = None, device: str = "cpu") -> dict[str, Any]:
     """Render a saved model on `device` without fitting: hologram images and the reconstruction at each
-    plane (the model's own, or `distances_m`), optionally resampled to `size` (W, H) px."""
-    primitives, config = load_model_on(model_path(target), device)
+    plane (the model's own, or `distances_m`), optionally resampled to `size` (W, H) px. A run folder's
+    model must belong to it (`load_run_model`)."""
+    if Path(target).is_dir():
+        primitives, config, _ = load_run_model(target, device=device)
+    else:
+        primitives, config = load_model_on(target, device)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if size is not None:

@@ -17,7 +17,7 @@ from .codec import MAGIC, SUFFIX, Compressed, decode
 from .config import FitConfig
 from .errors import ModelFileError, choices_error
 from .files import atomic_file, write_atomic
-from .primitives import Primitives
+from .primitives import REWRITE_MODEL, Primitives, check_settings, check_tensors
 
 MODEL_FORMAT = "cvqpg-model"
 MODEL_FORMAT_VERSION = "2"
@@ -84,19 +84,21 @@ def _read_safetensors(path: Path, device: str | torch.device = "cpu") -> tuple[P
         raise ModelFileError(f"{path}: not a cvqpg model of format version {MODEL_FORMAT_VERSION} "
                              f"(found format {metadata.get('format')!r} "
                              f"version {metadata.get('format_version')!r})")
-    config = FitConfig.from_dict(json.loads(metadata["config"]))
+    try:
+        config = FitConfig.from_dict(json.loads(metadata["config"]))
+    except (KeyError, ValueError, TypeError, AttributeError) as error:
+        raise ModelFileError(f"{path}: its metadata holds no readable configuration ({type(error).__name__}: "
+                             f"{error}); {REWRITE_MODEL}") from None
     missing = [name for name in UNITS if name not in tensors]
     if missing:
         raise ModelFileError(f"{path}: missing tensors {', '.join(missing)}")
-    count, channels = tensors["position_px"].shape[0], config.channels
-    expected = {"position_px": (count, 2), "scale_px": (count, 2), "rotation_rad": (count,),
-                "amplitude": (count, channels), "phase_rad": (count, channels), "opacity": (count,),
-                "curvature_per_m": (count,) if config.curvature == "shared" else (count, channels)}
-    for name, shape in expected.items():
-        if tuple(tensors[name].shape) != shape:
-            raise ModelFileError(f"{path}: tensor {name!r} has shape {tuple(tensors[name].shape)}, "
-                                 f"expected {shape}")
-    return Primitives.from_tensors({name: t.float() for name, t in tensors.items()}), config, metadata
+    primitives = Primitives.from_tensors({name: t.float() for name, t in tensors.items()})
+    check_tensors(primitives, config, str(path))
+    check_settings(config, primitives.count, str(path))
+    if metadata.get("num_primitives") != str(primitives.count):
+        raise ModelFileError(f"{path}: its metadata says {metadata.get('num_primitives')} primitives, its tensors "
+                             f"hold {primitives.count}; {REWRITE_MODEL}")
+    return primitives, config, metadata
 
 
 def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Primitives, FitConfig]:

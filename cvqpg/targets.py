@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -10,6 +11,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from PIL import Image, UnidentifiedImageError
+from PIL.Image import DecompressionBombError, DecompressionBombWarning
 from torch import Tensor
 
 from .config import FitConfig
@@ -61,6 +63,12 @@ def prepare_depth(picture: Image.Image, width: int, height: int) -> Tensor:
     if picture.mode not in HIGH_DEPTH_MODES:
         return to_tensor(picture.convert("L").resize((width, height), Image.LANCZOS))[0]
     values = np.asarray(picture, dtype=np.float64)
+    unknown = int(np.count_nonzero(~np.isfinite(values)))
+    if unknown:
+        # a NaN would spread through the normalisation and the resize to every target
+        name = f"depth map {picture.filename}" if getattr(picture, "filename", "") else "the depth map"
+        raise InputError(f"{name} has {unknown} of {values.size} pixels that are not finite (NaN or ±inf); give "
+                         "every pixel a depth (e.g. the farthest) and save it again")
     if picture.mode.startswith("I;16") or (picture.mode == "I" and 0 <= values.min() and values.max() <= 65535):
         values = values / 65535.0
     elif values.min() < 0 or values.max() > 1:
@@ -81,20 +89,28 @@ def check_file(path: str | Path, role: str = "image") -> Path:
     return path
 
 
-def load_picture(path: str | Path, role: str = "image") -> Image.Image:
-    """Open and decode an image file fully; any problem becomes an `InputError` naming the file."""
+def load_picture(path: str | Path, role: str = "image", remedy: str = "re-export the file") -> Image.Image:
+    """Open and decode an image file fully; any problem becomes an `InputError` naming the file, with
+    `remedy` for a corrupt one."""
     path = check_file(path, role)
     try:
-        with Image.open(path) as picture:
-            picture.load()
-            return picture
+        # Pillow only warns up to twice its pixel limit; decoding such a file can take all the memory
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", DecompressionBombWarning)
+            with Image.open(path) as picture:
+                picture.load()
+                return picture
+    except (DecompressionBombError, DecompressionBombWarning) as error:
+        size = str(error).partition(", could be")[0]  # Pillow's "Image size (N pixels) exceeds limit of L pixels"
+        raise InputError(f"{role} {path} is too large to decode safely ({size}); resize it first to a few "
+                         "thousand px per side (the fit resizes it to its own size in any case)") from None
     except PermissionError:
         raise InputError(f"{role} {path} cannot be read (permission denied)") from None
     except UnidentifiedImageError:
         raise InputError(f"{role} {path} is not an image file Pillow can read; give a PNG, JPEG, TIFF, ...") \
             from None
     except (OSError, SyntaxError, ValueError) as error:
-        raise InputError(f"{role} {path} is corrupt or truncated ({error}); re-export the file") from None
+        raise InputError(f"{role} {path} is corrupt or truncated ({error}); {remedy}") from None
 
 
 def check_depth_geometry(image: Image.Image, depth: Image.Image, resize_depth: bool) -> None:

@@ -27,8 +27,9 @@ from .fitting import hologram
 from .metrics import METRIC_NAMES, psnr
 from .ops.propagation import release_transfer_functions
 from .optics import reconstruct
-from .runs import (EXPORT_FOLDER, METRICS_FILE, MODEL_FILE, hologram_images, load_model_on, read_run, to_8bit,
-                   write_atomic)
+from .runs import (EXPORT_FOLDER, METRICS_FILE, hologram_images, load_run_model, optics_label, read_record, read_run,
+                   to_8bit, write_atomic)
+from .targets import load_picture
 
 VIEW_FILE = "view.html"
 DEFAULT_SWEEP = (0.5e-3, 6e-3, 41)  # START (m), STOP (m), COUNT
@@ -37,6 +38,7 @@ FRAME_QUALITY = 90  # JPEG quality of every embedded image, colour at full resol
 SWEEP_BATCH = 8  # distances per propagation: they share each channel's forward transform
 SAME_DISTANCE_M = 1e-9
 TEMPLATE = "view_page.html"
+EXPORT_AGAIN = "run `cvqpg export` on the run again"
 
 log = logging.getLogger("cvqpg")
 
@@ -92,12 +94,6 @@ def sweep_distances(start_m: float, stop_m: float, count: int, planes_m: Sequenc
     return sorted(float(d) for d in kept + inside)
 
 
-def optics_label(config: FitConfig) -> str:
-    """E.g. `640×480 px, 3.74 µm pitch, 639/532/473 nm`."""
-    return (f"{config.width}×{config.height} px, {config.pixel_pitch * 1e6:g} µm pitch, "
-            + "/".join(f"{w * 1e9:g}" for w in config.wavelengths) + " nm")
-
-
 def check_comparable(folders: Sequence[Path], configs: Sequence[FitConfig]) -> None:
     """Raise `InputError` unless the runs share size, pixel pitch and wavelengths (side by side and the zoom
     need the same pixels)."""
@@ -117,11 +113,11 @@ def run_device(config: FitConfig) -> str:
 
 
 def load_run(folder: Path) -> Run:
-    """Read a finished run folder and render its hologram."""
-    config, source = read_run(folder)
-    primitives, config = load_model_on(folder / MODEL_FILE, run_device(config))
+    """Read a finished run folder and render its hologram; its model must belong to it (`load_run_model`)."""
+    primitives, config, source = load_run_model(folder, device=run_device(read_run(folder)[0]))
     metrics_file = folder / METRICS_FILE
-    metrics = json.loads(metrics_file.read_text()) if metrics_file.is_file() else None
+    metrics = (read_record(metrics_file, "delete it, then `cvqpg eval` on the run writes it again")
+               if metrics_file.is_file() else None)
     with torch.no_grad():
         field = hologram(primitives, config)
     return Run(folder, config, source, field, metrics)
@@ -150,10 +146,13 @@ def data_uri(image: Image.Image) -> str:
 
 
 def read_target(path: Path, frame: Tensor) -> np.ndarray | None:
-    """An 8-bit target PNG as [C, H, W] in [0, 1], or None where it is missing or does not match the frame."""
+    """An 8-bit target PNG as [C, H, W] in [0, 1], or None where it is missing or does not match the frame;
+    `InputError` where it is damaged."""
     if not path.is_file():
         return None
-    pixels = np.asarray(Image.open(path), dtype=np.float32) / 255
+    picture = load_picture(path, "target", "delete it to view the run without the PSNR at its plane, or fit the "
+                           "run again")
+    pixels = np.asarray(picture, dtype=np.float32) / 255
     pixels = pixels[None] if pixels.ndim == 2 else pixels.transpose(2, 0, 1)
     return pixels if pixels.shape == tuple(frame.shape) else None
 
@@ -182,7 +181,7 @@ def display_images(run: Run) -> list[dict[str, str]]:
     """The simulated phase-only display of `cvqpg export` at each plane, with its PSNR; none without an export."""
     folder = run.folder / EXPORT_FOLDER
     record_file = folder / METRICS_FILE
-    record = json.loads(record_file.read_text()) if record_file.is_file() else {}
+    record = read_record(record_file, EXPORT_AGAIN) if record_file.is_file() else {}
     shown = record.get("phase_only_display", {}).get("per_plane", {}).get("psnr", [])
     fitted = record.get("complex_field", {}).get("per_plane", {}).get("psnr", [])
     images = []
@@ -192,7 +191,7 @@ def display_images(run: Run) -> list[dict[str, str]]:
             scores = (f"PSNR {shown[plane]:.2f} dB (complex field: {fitted[plane]:.2f} dB)"
                       if plane < min(len(shown), len(fitted)) else "")
             images.append({"label": f"{plane_label(plane, distance)} {scores}".strip(),
-                           "uri": data_uri(Image.open(path))})
+                           "uri": data_uri(load_picture(path, "display image", EXPORT_AGAIN))})
     return images
 
 

@@ -426,3 +426,28 @@ def test_cells_finished_in_another_grid_are_reused_not_refitted(scenes_dir, tmp_
     assert main(["bench", "--preset", "ablation", "--out", str(tmp_path / "longer"), "--methods", "baseline",
                  "--reuse", str(table1), *other_steps]) == 0
     assert "1 done, 0 skipped, 0 reused" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("name, content, message", [
+    ("metrics.json", '{"mean": ', "metrics.json is not a readable JSON file"),
+    ("metrics.json", '{"steps": 3}', "metrics.json lacks mean; restore it, or delete the cell folder"),
+])
+def test_summary_only_names_a_damaged_cell_record_in_one_line(tmp_path, name, content, message, capsys):
+    plan = make_plan("quick", tmp_path / "bench")
+    cell = plan.cells[0]
+    folder = start_run(plan.cell_dir(cell), cell.config, cell.scene.source)
+    (folder / "metrics.json").write_text(json.dumps({"mean": {m: 20.0 for m in ("psnr", "ssim", "lpips", "flip",
+                                                                                "cvvdp")}}))
+    (folder / name).write_text(content)
+    assert main(["bench", "--preset", "quick", "--out", str(plan.folder), "--summary-only", "--quiet"]) == 2
+    error = capsys.readouterr().err
+    assert f"{folder / name}" in error and message in error and error.count("\n") == 1 and "Traceback" not in error
+
+
+def test_a_damaged_config_json_of_a_recorded_scene_is_one_line(tmp_path, capsys):
+    config_file = tmp_path / "bench" / "cells" / "sushi_rgb-10_baseline_s100" / "config.json"
+    config_file.parent.mkdir(parents=True)
+    config_file.write_text("[]")
+    assert main(["bench", "--preset", "paper", "--out", str(tmp_path / "bench"), "--summary-only", "--quiet"]) == 2
+    error = capsys.readouterr().err
+    assert f"{config_file} holds a JSON list, not an object; restore the file" in error and error.count("\n") == 1

@@ -2,7 +2,9 @@
 
 import json
 import math
+import re
 import struct
+import zlib
 
 import numpy as np
 import pytest
@@ -10,16 +12,16 @@ import torch
 
 from cvqpg import FitConfig, load_model
 from cvqpg.cli import main
-from cvqpg.codec import (CHECKSUM, FORMAT_VERSION, MAGIC, BitDepths, coding, decode, decode_stream, dequantise, encode,
-                         encode_stream, morton_order, quantise)
+from cvqpg.codec import (CHECKSUM, FORMAT_VERSION, MAGIC, PREFIX, BitDepths, coding, decode, decode_stream, dequantise,
+                         encode, encode_stream, morton_order, quantise)
 from cvqpg.compression import compress_model
-from cvqpg.errors import ConfigError
+from cvqpg.errors import ConfigError, ModelFileError
 from cvqpg.finetune import quantised
 from cvqpg.fitting import render
 from cvqpg.metrics import mean_psnr
 from cvqpg.primitives import activate, init_gaussians
 from cvqpg.runs import read_run, scene_from_source
-from cvqpg.storage import read_compressed
+from cvqpg.storage import read_compressed, save_model
 
 SMALL_FIT = ["fit", "--size", "40", "30", "--steps", "30", "--curvature-warmup", "10", "--quiet"]
 FINE = BitDepths(position=8, scale=16, rotation=16, amplitude=16, phase=16, curvature=16)
@@ -67,8 +69,6 @@ def test_streams_round_trip_exactly(values):
 
 
 def test_a_version_1_file_still_reads():
-    import zlib
-
     config = FitConfig(width=48, height=32, color="gray", ratio=0.3)
     current = encode(random_primitives(config), config, BitDepths())
     body = bytearray(current[:-CHECKSUM.size])
@@ -78,6 +78,78 @@ def test_a_version_1_file_still_reads():
     expected = decode(current).primitives.tensors()
     for name, tensor in decode(older).primitives.tensors().items():
         assert torch.equal(tensor, expected[name]), name
+
+
+def tampered(data: bytes, change) -> bytes:
+    """A `.cvq` file whose header `change` (a function of the header's dict) altered, checksum recomputed."""
+    _, version, length = PREFIX.unpack_from(data)
+    header = json.loads(zlib.decompress(data[PREFIX.size:PREFIX.size + length]))
+    change(header)
+    packed = zlib.compress(json.dumps(header).encode())
+    body = PREFIX.pack(MAGIC, version, len(packed)) + packed + data[PREFIX.size + length:-CHECKSUM.size]
+    return body + CHECKSUM.pack(zlib.crc32(body))
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda h: h["optics"].update(pixel_pitch=0), "`pixel_pitch` must be positive"),
+    (lambda h: h["optics"].update(pixel_pitch=-3.74e-6), "`pixel_pitch` must be positive"),
+    (lambda h: h["optics"].update(width=8), "too small"),
+    (lambda h: h["optics"].update(wavelengths=[639e-9, 532e-9]), "`wavelengths_m`"),
+    (lambda h: h.update(num_primitives=0), "holds 0 primitives"),
+    (lambda h: h.update(num_primitives=h["num_primitives"] + 1), "its streams have shapes"),
+    (lambda h: h["streams"][1].update(shape=[h["num_primitives"], 3]), "its streams have shapes"),
+    (lambda h: h["bits"].update(scale=40), "`bits` scale=40"),
+    (lambda h: h.pop("optics"), "its header is malformed (KeyError: 'optics')"),
+    (lambda h: h["ranges"].update(amplitude=[0.0, math.inf]), "tensor 'amplitude' holds values that are not finite"),
+    (lambda h: h["ranges"].update(scale=[math.nan, math.nan]), "some scales (px) are not finite and positive"),
+    (lambda h: h["ranges"].update(scale=[-300.0, -299.0]), "some scales (px) are not finite and positive"),  # exp → 0
+])
+def test_a_file_whose_checksum_holds_is_still_checked_for_physical_sense(change, message):
+    config = FitConfig(width=48, height=32, ratio=0.3)
+    data = tampered(encode(random_primitives(config), config, BitDepths()), change)
+    with pytest.raises(ModelFileError, match=f"^model.cvq: .*{re.escape(message)}.*write it again") as refused:
+        decode(data, "model.cvq")
+    assert "\n" not in str(refused.value)
+
+
+@pytest.mark.parametrize("damage, message", [
+    ("nan", "tensor 'phase_rad' holds values that are not finite"),
+    ("negative scale", "some scales (px) are not finite and positive"),
+    ("pitch", "`pixel_pitch` must be positive"),
+    ("config", "holds no readable configuration"),
+    ("count", "its metadata says 5 primitives"),
+])
+def test_a_model_file_that_makes_no_physical_sense_is_refused(tmp_path, damage, message):
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    config = FitConfig(width=48, height=32, ratio=0.3)
+    path = tmp_path / "model.safetensors"
+    save_model(path, random_primitives(config), config.replace(pixel_pitch=0) if damage == "pitch" else config)
+    tensors = load_file(path)
+    with safe_open(str(path), framework="pt") as handle:
+        metadata = handle.metadata()
+    if damage == "nan":
+        tensors["phase_rad"][2, 1] = math.nan
+    elif damage == "negative scale":
+        tensors["scale_px"][0, 0] = -1.0
+    elif damage == "config":
+        metadata["config"] = "{not json"
+    elif damage == "count":
+        metadata["num_primitives"] = "5"
+    save_file(tensors, str(path), metadata=metadata)
+    with pytest.raises(ModelFileError, match=re.escape(message)) as refused:
+        load_model(path)
+    assert str(path) in str(refused.value) and "\n" not in str(refused.value)
+
+
+def test_a_tampered_file_is_one_line_exit_2_with_the_flag_named(tmp_path, capsys):
+    config = FitConfig(width=48, height=32, ratio=0.3)
+    (tmp_path / "model.cvq").write_bytes(tampered(encode(random_primitives(config), config, BitDepths()),
+                                                  lambda h: h["optics"].update(pixel_pitch=0)))
+    assert main(["info", str(tmp_path / "model.cvq")]) == 2
+    error = capsys.readouterr().err
+    assert "--pitch must be positive" in error and len(error.strip().splitlines()) == 1 and "Traceback" not in error
 
 
 def test_long_tailed_streams_take_the_bit_length_coding():

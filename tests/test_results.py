@@ -201,3 +201,22 @@ def test_the_papers_ablation_means_are_those_of_five_of_its_per_scene_rows():
         for metric, value in numbers["ablation"]["methods"][method].items():
             mean = sum(numbers["per_scene"][s]["rgb-10"][method][metric] for s in scenes) / len(scenes)
             assert mean == pytest.approx(value, abs=1e-3)  # one unit of the last printed digit
+
+
+@pytest.mark.parametrize("name, damage, message", [
+    ("metrics.json", lambda record: "{cut short", "metrics.json is not a readable JSON file"),
+    ("metrics.json", lambda record: {k: v for k, v in record.items() if k != "mean"}, "metrics.json lacks mean;"),
+    ("metrics.json", lambda record: {**record, "mean": {"psnr": 28.0}}, "lacks mean.ssim, mean.lpips"),
+    ("metrics.json", lambda record: {**record, "run": {"commit": None}}, "lacks run.device"),
+    ("spectrum.json", lambda record: [], "spectrum.json holds a JSON list, not an object"),
+    ("config.json", lambda record: "", "config.json is not a readable JSON file"),
+    ("config.json", lambda record: {k: v for k, v in record.items() if k != "height"}, "config.json lacks height"),
+])
+def test_a_damaged_cell_record_is_one_line_naming_it(tmp_path, name, damage, message, capsys):
+    folder = record_cell(tmp_path, "paper", "tiger_rgb-10_cvqpg_s100", 28.0)
+    damaged = damage(json.loads((folder / name).read_text()))
+    (folder / name).write_text(damaged if isinstance(damaged, str) else json.dumps(damaged))
+    assert main(["results", "--root", str(tmp_path), "--out", str(tmp_path / "results.md")]) == 2
+    error = capsys.readouterr().err
+    assert str(folder / name) in error and message in error and error.count("\n") == 1 and "Traceback" not in error
+    assert "restore" in error and not (tmp_path / "results.md").exists()

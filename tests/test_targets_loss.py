@@ -9,13 +9,15 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from PIL import Image
 from pytorch_msssim import ssim as msssim_ssim
 
 from cvqpg.ops.loss.cpu import gaussian_taps, ssim_forward
 from cvqpg.config import FitConfig
+from cvqpg.errors import InputError
 from cvqpg.ops.loss import multiplane_loss, noisy_targets, ssim_per_plane, standard_normal
 from cvqpg.errors import InputError
-from cvqpg.targets import build_scene, defocus_targets, gaussian_kernel, load_scene, plane_masks
+from cvqpg.targets import build_scene, defocus_targets, gaussian_kernel, load_picture, load_scene, plane_masks
 
 
 # --------------------------------------------------------------------------- hand references
@@ -145,6 +147,32 @@ def test_build_scene_needs_depth_for_several_planes():
         build_scene(image, None, FitConfig(width=5, height=4, color="gray", num_planes=2))
     scene = build_scene(image, None, FitConfig(width=5, height=4, color="gray", num_planes=1))
     assert torch.allclose(scene.targets[0], image, atol=1e-7)
+
+
+# --------------------------------------------------------------------------- inputs checked where they enter
+
+
+@pytest.mark.parametrize("size", [(40, 30), (64, 48)])  # over Pillow's limit (a warning), over twice it (an error)
+def test_an_image_over_pillows_pixel_limit_is_refused_with_its_size(tmp_path, monkeypatch, size):
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)
+    path = tmp_path / "huge.png"
+    Image.new("RGB", size).save(path)
+    with pytest.raises(InputError, match="resize it first") as refused:
+        load_picture(path)
+    message = str(refused.value)
+    assert str(path) in message and f"{size[0] * size[1]} pixels" in message and "\n" not in message
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_a_float_depth_map_with_pixels_that_are_not_finite_is_refused(tmp_path, bad):
+    depth = np.tile(np.linspace(0.0, 1.0, 24, dtype=np.float32), (16, 1))
+    depth[3, 4:7] = bad
+    path = tmp_path / "depth.tiff"
+    Image.fromarray(depth, "F").save(path)
+    config = FitConfig(width=24, height=16, color="gray", num_planes=2)
+    with pytest.raises(InputError, match="has 3 of 384 pixels that are not finite") as refused:
+        load_scene(torch.rand(1, 16, 24), path, config)
+    assert str(path) in str(refused.value)
 
 
 # --------------------------------------------------------------------------- loss

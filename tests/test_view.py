@@ -3,6 +3,7 @@ and one-line errors for input the page cannot be built from."""
 
 import json
 import re
+import shutil
 
 import pytest
 
@@ -114,3 +115,20 @@ def test_bad_input_is_one_line_exit_2_and_nothing_written(runs, arguments, messa
     error = capsys.readouterr().err
     assert message.format(**names) in error and error.count("\n") == 1
     assert sorted(runs.rglob("*")) == before
+
+
+@pytest.mark.parametrize("damaged, remedy", [
+    ("target_plane1.png", "delete it to view the run without the PSNR at its plane"),
+    ("metrics.json", "delete it, then `cvqpg eval` on the run writes it again"),
+    ("export/metrics.json", "run `cvqpg export` on the run again"),
+    ("export/display_plane0.png", "run `cvqpg export` on the run again"),
+])
+def test_a_damaged_record_of_the_run_is_one_line_naming_it(runs, tmp_path, damaged, remedy, capsys):
+    run = shutil.copytree(runs / "cvqpg", tmp_path / "cvqpg")
+    path = run / damaged
+    path.write_bytes(path.read_bytes()[:path.stat().st_size // 2])
+    page = tmp_path / "page.html"
+    assert main(["view", str(run), *SWEEP, "--quiet", "--out", str(page)]) == 2
+    error = capsys.readouterr().err
+    assert str(path) in error and remedy in error and error.count("\n") == 1 and "Traceback" not in error
+    assert not page.exists()

@@ -4,36 +4,74 @@ the results."""
 
 from __future__ import annotations
 
+import hashlib
+import json
 from pathlib import Path
 from typing import Any, Callable
 
 import torch
 
 from ..config import FitConfig
+from ..errors import CvqpgError, ModelFileError
 from ..fitting import CheckpointPolicy, FitResult, FitState, fit_scene, initial_state, state_from_payload
-from ..runs import CHECKPOINT_FILE, write_run
+from ..runs import CHECKPOINT_FILE, CONFIG_FILE, read_run, write_run
 from ..storage import load_checkpoint, save_checkpoint
 from ..targets import Scene
 from .compilation import prepare_kernels
 from .provenance import peak_memory, reset_peak_memory, run_record
 
 CHECKPOINT_SECONDS = 180.0
+# Settings a resumed run may change: they move the last bits of a render only.
+UNFINGERPRINTED = ("device", "backend")
+FINGERPRINT_KEY = "run_fingerprint"
 
 
-def resumed_state(folder: Path, config: FitConfig) -> FitState | None:
-    """The loop state of the folder's checkpoint for a fit of `config`, or None where it has none."""
+def run_fingerprint(config: FitConfig, source: dict[str, Any]) -> str:
+    """What a checkpoint records of the run it belongs to: a SHA-256 of its settings (but `UNFINGERPRINTED`)
+    and its inputs (`source`, as `config.json` records it)."""
+    settings = {k: v for k, v in config.to_dict().items() if k not in UNFINGERPRINTED}
+    return hashlib.sha256(json.dumps({"config": settings, "source": source}, sort_keys=True).encode()).hexdigest()
+
+
+def recorded_source(folder: Path, source: dict[str, Any] | None) -> dict[str, Any]:
+    """`source`, or where None the run's inputs as the folder's `config.json` records them."""
+    return read_run(folder)[1] if source is None else source
+
+
+def resumed_state(folder: Path, config: FitConfig, source: dict[str, Any] | None = None) -> FitState | None:
+    """The loop state of the folder's checkpoint for a fit of `config` on `source` (default: as the folder's
+    `config.json` records it), or None where it has none. `ModelFileError` where the checkpoint belongs to
+    another run: another fingerprint (`run_fingerprint`), or, in one of a version that wrote none, primitives
+    of other shapes; or where it is not a loop state this version wrote."""
     checkpoint = Path(folder) / CHECKPOINT_FILE
-    return state_from_payload(load_checkpoint(checkpoint), config) if checkpoint.is_file() else None
+    if not checkpoint.is_file():
+        return None
+    payload = load_checkpoint(checkpoint)
+    recorded = payload.get(FINGERPRINT_KEY) if isinstance(payload, dict) else None
+    if recorded is not None and recorded != run_fingerprint(config, recorded_source(folder, source)):
+        raise ModelFileError(f"{checkpoint} belongs to another run (written for other settings or inputs than "
+                             f"{Path(folder) / CONFIG_FILE} records): delete it to restart from step 0")
+    try:
+        return state_from_payload(payload, config, str(checkpoint))
+    except CvqpgError:
+        raise
+    except (AttributeError, KeyError, TypeError, ValueError, RuntimeError) as error:  # a payload of other content
+        raise ModelFileError(f"{checkpoint} is not a loop state this version wrote ({type(error).__name__}: "
+                             f"{error}): delete it to restart from step 0") from None
 
 
 def fit_in_folder(folder: Path, scene: Scene, config: FitConfig, state: FitState | None = None,
                   progress: bool = True, checkpoint_every_steps: int | None = None,
                   checkpoint_every_seconds: float | None = CHECKPOINT_SECONDS,
-                  stop_requested: Callable[[], bool] | None = None) -> FitResult:
+                  stop_requested: Callable[[], bool] | None = None, source: dict[str, Any] | None = None
+                  ) -> FitResult:
     """`fit_scene` with the folder's checkpoint policy, after compiling the CPU kernels (a status line
     when `progress`); the state records the compile time and the peak memory of every segment, so a
-    resumed fit reports the whole run's. Raises `FitInterrupted` after saving on a stop request."""
+    resumed fit reports the whole run's, and checkpoints record the run's fingerprint (`run_fingerprint`
+    of `config` and `source`, default: as the folder's `config.json` records it). Raises `FitInterrupted`
+    after saving on a stop request."""
     folder = Path(folder)
+    fingerprint = run_fingerprint(config, recorded_source(folder, source))
     device = torch.device(config.device)
     # The kernels first: a cold compile starts its second process before this one imports the optimiser.
     compile_seconds = prepare_kernels(config, show_status=progress)
@@ -43,7 +81,7 @@ def fit_in_folder(folder: Path, scene: Scene, config: FitConfig, state: FitState
 
     def save(current: FitState) -> None:
         current.note_peak_memory(peak_memory(device))
-        save_checkpoint(folder / CHECKPOINT_FILE, current.to_payload())
+        save_checkpoint(folder / CHECKPOINT_FILE, {**current.to_payload(), FINGERPRINT_KEY: fingerprint})
 
     policy = CheckpointPolicy(save=save, every_steps=checkpoint_every_steps, every_seconds=checkpoint_every_seconds)
     result = fit_scene(scene, config, progress=progress, state=state, checkpoint=policy,

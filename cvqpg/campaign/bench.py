@@ -10,7 +10,6 @@ every node of a job array computes the same split. The tables, figures and repor
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import multiprocessing
@@ -320,11 +319,10 @@ def recorded_scenes(folder: Path) -> dict[str, BenchScene]:
         return {}
     scenes = {}
     for config_file in sorted(cells.glob(f"*/{CONFIG_FILE}")):
-        recorded = json.loads(config_file.read_text())
-        source = recorded.get("source", {})
+        recorded, source = read_run(config_file.parent)
         if "image" in source:
             name = Path(source["image"]).parent.name
-            scenes[name] = BenchScene(name, source, recorded["num_planes"])
+            scenes[name] = BenchScene(name, source, recorded.num_planes)
     return dict(sorted(scenes.items()))
 
 
@@ -434,10 +432,12 @@ def reusable_record(plan: BenchPlan, cell: Cell, others: Sequence[Path]) -> Path
 
 
 def _resume_state(folder: Path, cell: Cell) -> FitState | None:
-    """The checkpoint's loop state when the folder holds one of this cell's settings; else a fresh run folder."""
-    if (folder / CONFIG_FILE).is_file() and not config_differences(folder, cell.config):
+    """The checkpoint's loop state when the folder holds one of this cell's settings; else a fresh run folder
+    (also where its config.json or checkpoint cannot be used, with a note)."""
+    if (folder / CONFIG_FILE).is_file():
         try:
-            state = resumed_state(folder, cell.config)
+            state = None if config_differences(folder, cell.config) else resumed_state(folder, cell.config,
+                                                                                         cell.scene.source)
         except CvqpgError as error:
             log.warning(f"{error}; cell {cell.name} restarts from step 0")
         else:
@@ -462,7 +462,8 @@ def run_cell(cell: Cell, folder: Path, stop_requested: Callable[[], bool] | None
     state = _resume_state(folder, cell)
     (folder / ERROR_FILE).unlink(missing_ok=True)
     try:
-        result = fit_in_folder(folder, scene, config, state, progress=False, stop_requested=stop_requested)
+        result = fit_in_folder(folder, scene, config, state, progress=False, stop_requested=stop_requested,
+                               source=cell.scene.source)
     except FitInterrupted:
         return INTERRUPTED
     recon = result.reconstructions
@@ -630,8 +631,3 @@ def _run_pool(plan: BenchPlan, todo: list[Cell], jobs: int, stop: Callable[[], b
         finally:
             # also on a second Ctrl-C: running fits checkpoint and queued cells return at once
             stop_event.set()
-
-
-def read_json(path: Path) -> dict[str, Any] | None:
-    """A JSON file's content, or None where there is none."""
-    return json.loads(path.read_text()) if path.is_file() else None

@@ -23,8 +23,9 @@ import numpy as np
 
 from . import figures
 from .bench import (CELLS_DIR, DONE, METHODS, METRICS_FILE, PRESETS, RD_FILE, SPECTRUM_FILE, BenchPlan, Cell,
-                    cell_status, read_json, setting_label)
-from ..runs import write_atomic
+                    cell_status, setting_label)
+from ..errors import InputError
+from ..runs import read_record, write_atomic
 from ..view import VIEW_FILE
 
 TABLE_METRICS = ("psnr", "ssim", "lpips", "flip", "cvvdp")
@@ -38,6 +39,13 @@ CHANNEL_NAMES = ("red", "green", "blue")
 NA, MISSING = "n/a", "–"
 
 Metrics = dict[str, float | None]
+
+# What the tables read of each cell record; `a.b` is required where `a` is present (listed, `a` is required).
+RUN_RECORD_KEYS = ("commit", "device", "torch_threads", "numba_threads", "loop_seconds", "peak_memory_bytes")
+RECORD_KEYS = {METRICS_FILE: ("mean", *(f"mean.{m}" for m in TABLE_METRICS), *(f"run.{k}" for k in RUN_RECORD_KEYS)),
+               SPECTRUM_FILE: ("edges", "power"),
+               RD_FILE: ("points", "fit_psnr", "model_bytes", "run", "run.load_average")}
+RESTORE_CELL = "restore it, or delete the cell folder to fit the cell again"
 
 
 @dataclass
@@ -91,6 +99,23 @@ def paper_numbers() -> dict[str, Any]:
     return json.loads(resources.files("cvqpg.campaign").joinpath("paper_numbers.json").read_text())
 
 
+def read_cell_record(path: Path) -> dict[str, Any] | None:
+    """A cell's `metrics.json`, `spectrum.json` or `rd.json`, or None where there is none; `InputError` naming
+    it where it is not JSON or lacks what the tables read (`RECORD_KEYS`)."""
+    if not path.is_file():
+        return None
+    record = read_record(path, RESTORE_CELL)
+    missing = []
+    for key in RECORD_KEYS[path.name]:
+        parent, _, name = key.rpartition(".")
+        holder = record.get(parent) if parent else record
+        if (holder is not None or not parent) and (not isinstance(holder, dict) or name not in holder):
+            missing.append(key)
+    if missing:
+        raise InputError(f"{path} lacks {', '.join(missing)}; {RESTORE_CELL}")
+    return record
+
+
 def collect(plan: BenchPlan) -> list[CellResult]:
     """Every cell of the plan with its status, and its metrics and spectrum once done."""
     results = []
@@ -98,9 +123,9 @@ def collect(plan: BenchPlan) -> list[CellResult]:
         folder = plan.cell_dir(cell)
         status = cell_status(folder, plan.done_file)
         fitted = (folder / METRICS_FILE).is_file()
-        results.append(CellResult(cell, status, read_json(folder / METRICS_FILE) if fitted else None,
-                                  read_json(folder / SPECTRUM_FILE) if fitted else None,
-                                  read_json(folder / RD_FILE) if status == DONE else None))
+        results.append(CellResult(cell, status, read_cell_record(folder / METRICS_FILE) if fitted else None,
+                                  read_cell_record(folder / SPECTRUM_FILE) if fitted else None,
+                                  read_cell_record(folder / RD_FILE) if status == DONE else None))
     return results
 
 

@@ -1,0 +1,81 @@
+"""Fits in a run folder: checkpoints record the run they belong to, and a resume trusts nothing it reads."""
+
+import pytest
+import torch
+
+from cvqpg import FitConfig
+from cvqpg.app.runner import FINGERPRINT_KEY, fit_in_folder, resumed_state, run_fingerprint
+from cvqpg.cli import main
+from cvqpg.errors import ModelFileError
+from cvqpg.fitting import initial_state
+from cvqpg.runs import CHECKPOINT_FILE, scene_from_source, start_run
+from cvqpg.storage import load_checkpoint, save_checkpoint
+
+CONFIG = FitConfig(width=32, height=24, num_gaussians=20, steps=2, curvature_warmup=1, guard_band_px=16)
+SOURCE = {"scene": "demo"}
+
+
+@pytest.fixture
+def run(tmp_path):
+    """A started run folder of `CONFIG` on the demo scene, without a checkpoint."""
+    return start_run(tmp_path / "run", CONFIG, SOURCE)
+
+
+def checkpoint_of(config: FitConfig, fingerprint: str | None = None) -> dict:
+    """The payload of a fresh loop state of `config` at step 1, with `fingerprint` where given."""
+    state = initial_state(config)
+    state.step = 1
+    payload = state.to_payload()
+    return payload if fingerprint is None else {**payload, FINGERPRINT_KEY: fingerprint}
+
+
+def test_checkpoints_record_the_fingerprint_of_the_run(run):
+    fit_in_folder(run, scene_from_source(SOURCE, CONFIG), CONFIG, progress=False, checkpoint_every_steps=1)
+    payload = load_checkpoint(run / CHECKPOINT_FILE)
+    assert payload[FINGERPRINT_KEY] == run_fingerprint(CONFIG, SOURCE)
+    assert resumed_state(run, CONFIG).step == payload["step"] > 0
+
+
+def test_the_fingerprint_ignores_device_and_backend_only():
+    fingerprint = run_fingerprint(CONFIG, SOURCE)
+    assert run_fingerprint(CONFIG.replace(device="cuda", backend="triton"), SOURCE) == fingerprint
+    assert run_fingerprint(CONFIG.replace(seed=101), SOURCE) != fingerprint
+    assert run_fingerprint(CONFIG, {"scene": "star"}) != fingerprint
+
+
+@pytest.mark.parametrize("fingerprint", [run_fingerprint(CONFIG.replace(seed=101), SOURCE),
+                                         run_fingerprint(CONFIG, {"scene": "star"})])
+def test_a_checkpoint_of_another_run_is_refused(run, fingerprint):
+    save_checkpoint(run / CHECKPOINT_FILE, checkpoint_of(CONFIG, fingerprint))
+    with pytest.raises(ModelFileError, match="belongs to another run .*: delete it to restart from step 0"):
+        resumed_state(run, CONFIG, SOURCE)
+
+
+def test_a_checkpoint_without_fingerprint_is_resumed_where_its_shapes_fit(run):
+    save_checkpoint(run / CHECKPOINT_FILE, checkpoint_of(CONFIG))
+    assert resumed_state(run, CONFIG, SOURCE).step == 1
+
+
+@pytest.mark.parametrize("other", [CONFIG.replace(num_gaussians=30), CONFIG.replace(color="gray"),
+                                   CONFIG.replace(curvature="per-channel")])
+def test_a_checkpoint_of_other_shapes_is_refused_cleanly(run, other):
+    save_checkpoint(run / CHECKPOINT_FILE, checkpoint_of(other))
+    with pytest.raises(ModelFileError, match=f"^{run / CHECKPOINT_FILE} belongs to another run \\(its .* has shape"):
+        resumed_state(run, CONFIG, SOURCE)
+
+
+@pytest.mark.parametrize("payload", [{"gaussians": {}}, ["not", "a", "dict"],
+                                     {**checkpoint_of(CONFIG), "optimizer": {"state": {}}}])
+def test_a_payload_of_other_content_is_refused(run, payload):
+    save_checkpoint(run / CHECKPOINT_FILE, payload)
+    with pytest.raises(ModelFileError, match="is not a loop state this version wrote .*: delete it to restart"):
+        resumed_state(run, CONFIG, SOURCE)
+
+
+def test_resuming_with_another_run_s_checkpoint_is_one_line_and_keeps_it(run, capsys):
+    save_checkpoint(run / CHECKPOINT_FILE, checkpoint_of(CONFIG, run_fingerprint(CONFIG, {"scene": "star"})))
+    before = (run / CHECKPOINT_FILE).read_bytes()
+    assert main(["fit", "--resume", str(run), "--quiet"]) == 2
+    error = capsys.readouterr().err
+    assert f"{run / CHECKPOINT_FILE} belongs to another run" in error and error.count("\n") == 1
+    assert (run / CHECKPOINT_FILE).read_bytes() == before and torch.load(run / CHECKPOINT_FILE)["step"] == 1

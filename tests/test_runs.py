@@ -1,0 +1,84 @@
+"""Run folders read back: a `config.json` that is missing, damaged or incomplete, and model files checked
+against the run folder they are used with."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from cvqpg import FitConfig
+from cvqpg.cli import main
+from cvqpg.errors import InputError, ModelFileError
+from cvqpg.primitives import Primitives, activate, init_gaussians
+from cvqpg.runs import MODEL_FILE, load_run_model, read_run, start_run
+from cvqpg.storage import save_model
+
+RUN = FitConfig(width=64, height=48, num_gaussians=30, steps=2, guard_band_px=32)
+OTHER = RUN.replace(width=32, height=24, color="gray")
+
+
+def model_of(config: FitConfig) -> Primitives:
+    return activate(init_gaussians(config.primitive_count, config.channels, config.width, config.height, 1), config)
+
+
+def run_folder(root: Path, model_config: FitConfig = RUN) -> Path:
+    """A run folder of `RUN` (the demo scene) whose model was fitted with `model_config`."""
+    folder = start_run(root / "run", RUN, {"scene": "demo"})
+    save_model(folder / MODEL_FILE, model_of(model_config), model_config)
+    return folder
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda recorded: "{not json", "config.json is not a readable JSON file"),
+    (lambda recorded: [recorded], "config.json holds a JSON list, not an object"),
+    (lambda recorded: {k: v for k, v in recorded.items() if k != "width"}, "config.json lacks width"),
+    (lambda recorded: {**recorded, "source": {"depth": "d.png"}}, "names neither a scene nor an image"),
+    (lambda recorded: {**recorded, "pixel_pitch": 0}, "`pixel_pitch` must be positive"),
+    (lambda recorded: {**recorded, "lr": {"speed": 1}}, "its settings cannot work"),
+])
+def test_a_damaged_config_json_is_an_input_error_naming_the_file(tmp_path, change, message):
+    folder = run_folder(tmp_path)
+    changed = change(json.loads((folder / "config.json").read_text()))
+    (folder / "config.json").write_text(changed if isinstance(changed, str) else json.dumps(changed))
+    with pytest.raises(InputError, match="restore the file or fit the run again") as refused:
+        read_run(folder)
+    assert message in str(refused.value) and str(folder / "config.json") in str(refused.value)
+
+
+def test_a_folder_without_config_json_is_not_a_run_folder(tmp_path):
+    with pytest.raises(InputError, match=f"{tmp_path} is not a run folder"):
+        read_run(tmp_path)
+
+
+def test_a_model_of_the_run_s_targets_is_accepted(tmp_path):
+    folder = run_folder(tmp_path, RUN.replace(num_gaussians=20, primitive="flat", device="cuda"))
+    primitives, config, source = load_run_model(folder)
+    assert primitives.count == 20 and config.primitive == "flat" and source == {"scene": "demo"}
+
+
+def test_a_model_of_other_optics_names_them(tmp_path):
+    folder = run_folder(tmp_path, RUN.replace(pixel_pitch=2e-6))
+    with pytest.raises(ModelFileError) as refused:
+        load_run_model(folder)
+    assert str(refused.value) == (
+        f"{folder / MODEL_FILE} was fitted for 64×48 px, 2 µm pitch, 639/532/473 nm, planes at 1, 5 mm, the run "
+        f"folder {folder} is 64×48 px, 3.74 µm pitch, 639/532/473 nm, planes at 1, 5 mm: use it with its own run "
+        "folder")
+
+
+@pytest.mark.parametrize("command", [["eval", "{model}"], ["export", "{model}"], ["compress", "{model}"],
+                                     ["eval", "{run}"], ["render", "{run}"], ["info", "{run}", "--half"],
+                                     ["view", "{run}", "--quiet"]])
+def test_a_model_fitted_for_other_targets_is_refused_in_one_line(tmp_path, command, capsys):
+    own = command[1] == "{run}"
+    folder = run_folder(tmp_path, OTHER if own else RUN)
+    model = folder / (MODEL_FILE if own else "other.safetensors")
+    if not own:
+        save_model(model, model_of(OTHER), OTHER)
+    before = sorted(folder.rglob("*"))
+    assert main([a.format(run=folder, model=model) for a in command]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "Traceback" not in error
+    assert (f"{model} was fitted for 32×24 gray, the run folder {folder} is 64×48 rgb: use it with its own run "
+            "folder") in error
+    assert sorted(folder.rglob("*")) == before
