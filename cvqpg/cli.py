@@ -476,7 +476,6 @@ def _resume_plan(args: argparse.Namespace) -> FitPlan:
     if not (work / CONFIG_FILE).is_file():
         raise UsageError(f"--resume {work}: not a run folder (no {CONFIG_FILE})")
     config, source = read_run(work)
-    config.validate()
     check_device(config.device)
     final = work.with_name(work.name[:-len(PARTIAL_SUFFIX)]) if work.name.endswith(PARTIAL_SUFFIX) else work
     if final != work and (final / CONFIG_FILE).exists() and not args.overwrite:

@@ -16,7 +16,6 @@ from cvqpg.ops.loss.cpu import gaussian_taps, ssim_forward
 from cvqpg.config import FitConfig
 from cvqpg.errors import InputError
 from cvqpg.ops.loss import multiplane_loss, noisy_targets, ssim_per_plane, standard_normal
-from cvqpg.errors import InputError
 from cvqpg.targets import build_scene, defocus_targets, gaussian_kernel, load_picture, load_scene, plane_masks
 
 
