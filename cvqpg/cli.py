@@ -30,7 +30,7 @@ from .campaign.bench import (CELLS_DIR, METHODS, PRESETS, Overrides, RateDistort
 from .campaign.report import write_summary
 from .campaign.results import document
 from .codec import SUFFIX, BitDepths
-from .compression import ASSUMED_FIT_PSNR_DB, compress_model, decompress_file
+from .compression import ASSUMED_FIT_PSNR_DB, check_compression_settings, compress_model, decompress_file
 from .config import BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITIVES, QPFS, FitConfig
 from .depth import DEPTH_FILE, DEPTH_MODEL, estimate_depth, load_depth_model
 from .errors import CvqpgError
@@ -43,7 +43,7 @@ from .runs import (CHECKPOINT_FILE, CONFIG_FILE, EXPORT_FOLDER, HALF_MODEL_FILE,
 from .scenes import SCENES
 from .storage import is_compressed, model_info
 from .targets import Scene, check_file, load_scene
-from .view import DEFAULT_SWEEP, VIEW_FILE, ViewRecord, default_page, write_view
+from .view import DEFAULT_SWEEP, VIEW_FILE, ViewRecord, check_sweep, default_page, write_view
 
 DEFAULTS = FitConfig()
 
@@ -55,7 +55,7 @@ FLAGS = {"width": "--size", "height": "--size", "size": "--size", "num_planes": 
              "color", "primitive", "ratio", "steps", "seed", "bound", "qpf", "curvature", "device", "backend",
              "depth", "image", "max_drop", "bits", "prune", "finetune", "levels", "aperture", "slm", "distance",
              "encoding", "distances", "out")},
-         "finetune_steps": "--finetune", "prune_fraction": "--prune"}
+         "finetune_steps": "--finetune", "prune_fraction": "--prune", "overwrite": "--overwrite"}
 
 
 class UsageError(CvqpgError):
@@ -657,6 +657,7 @@ def run_view(args: argparse.Namespace) -> int:
     start, stop, count = args.distances
     if not float(count).is_integer():
         raise UsageError(f"--distances {start:g} {stop:g} {count:g}: COUNT is a whole number of distances")
+    check_sweep(start, stop, int(count))
     out = check_output_file(args.out or default_page(folders), folders, args.overwrite)
     _print_view(write_view(folders, out, (start, stop, int(count)), progress=not args.quiet))
     return 0
@@ -680,6 +681,7 @@ def run_compile(_args: argparse.Namespace) -> int:
 
 def run_compress(args: argparse.Namespace) -> int:
     bits = BitDepths.parse(args.bits) if args.bits else None
+    check_compression_settings(args.max_drop, args.finetune, args.prune)
     model = model_path(args.target)
     out = args.out
     if model.is_file() and not is_compressed(model):  # otherwise compress_model says what the target is

@@ -127,6 +127,18 @@ def prune(primitives: Primitives, fraction: float) -> Primitives:
     return type(primitives).from_tensors({name: tensor[chosen] for name, tensor in primitives.tensors().items()})
 
 
+def check_compression_settings(max_drop: float | None, finetune_steps: int, prune_fraction: float) -> None:
+    """`ConfigError` naming the first setting of `compress_model` that cannot work."""
+    if max_drop is not None and max_drop < 0:
+        raise ConfigError(f"`max_drop` {max_drop:g}: give a drop in dB ≥ 0")
+    if finetune_steps < 0:
+        raise ConfigError(f"`finetune_steps` {finetune_steps}: give a number of steps ≥ 0")
+    _check_prune_fraction(prune_fraction)
+    if prune_fraction and not finetune_steps:
+        raise ConfigError(f"`prune_fraction` {prune_fraction:g} needs `finetune_steps` > 0: pruned primitives "
+                          "cost PSNR that only fine-tuning regains")
+
+
 def compress_model(target: str | Path, out: str | Path | None = None, bits: BitDepths | None = None,
                    max_drop: float | None = None, finetune_steps: int = 0, prune_fraction: float = 0.0
                    ) -> dict[str, Any]:
@@ -138,14 +150,7 @@ def compress_model(target: str | Path, out: str | Path | None = None, bits: BitD
     after removing the `prune_fraction` of its primitives of least field energy (`prune`; it needs
     fine-tuning, and like it is kept only where it pays).
     """
-    if max_drop is not None and max_drop < 0:
-        raise ConfigError(f"`max_drop` {max_drop:g}: give a drop in dB ≥ 0")
-    if finetune_steps < 0:
-        raise ConfigError(f"`finetune_steps` {finetune_steps}: give a number of steps ≥ 0")
-    _check_prune_fraction(prune_fraction)
-    if prune_fraction and not finetune_steps:
-        raise ConfigError(f"`prune_fraction` {prune_fraction:g} needs `finetune_steps` > 0: pruned primitives "
-                          "cost PSNR that only fine-tuning regains")
+    check_compression_settings(max_drop, finetune_steps, prune_fraction)
     model_file = model_path(target)
     if not model_file.is_file():
         raise ModelFileError(f"{target}: no such run folder or model file")

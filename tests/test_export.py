@@ -211,8 +211,8 @@ def test_render_refocuses_a_saved_model(fitted_run, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("arguments, message", [
-    (["export", "{run}", "--slm", "20", "20"], "smaller than"),
-    (["export", "{run}", "--levels", "1"], "phase levels"),
+    (["export", "{run}", "--slm", "20", "20", "--out", "{new}"], "--slm 20×20 is smaller than"),
+    (["export", "{run}", "--levels", "1", "--out", "{new}"], "phase levels"),
     (["export", "{run}", "--aperture", "-1"], "--aperture"),
     (["render", "{run}", "--size", "80", "80"], "aspect ratio"),
     (["render", "{run}", "--distance", "0"], "positive distances"),
@@ -220,7 +220,7 @@ def test_render_refocuses_a_saved_model(fitted_run, tmp_path, capsys):
     (["export", "{missing}"], "not a run folder"),
 ])
 def test_bad_export_input_fails_cleanly(fitted_run, tmp_path, arguments, message, capsys):
-    filled = [a.format(run=fitted_run, missing=tmp_path / "nothing") for a in arguments]
+    filled = [a.format(run=fitted_run, missing=tmp_path / "nothing", new=tmp_path / "new") for a in arguments]
     assert main(filled) == 2
     error = capsys.readouterr().err
     assert message in error and "Traceback" not in error and len(error.strip().splitlines()) == 1

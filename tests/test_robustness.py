@@ -218,30 +218,33 @@ def assert_same_model(run: Path, expected: dict) -> None:
                                           (signal.SIGINT, 128 + signal.SIGINT)])
 def test_signal_saves_a_checkpoint_and_resume_ends_bit_identical(tmp_path, uninterrupted, signum, code):
     out = tmp_path / "run"
+    work = tmp_path / "run.partial"  # a fit works beside its --out until the run is written
     process = subprocess.Popen(cli_command(out, "--checkpoint-every", "5"), stderr=subprocess.PIPE, text=True)
-    wait_for(out / "checkpoint.pt", process)
+    wait_for(work / "checkpoint.pt", process)
     process.send_signal(signum)
     _, error = process.communicate(timeout=120)
     assert process.returncode == code, error
-    assert "--resume" in error and "Traceback" not in error
-    assert not (out / "model.safetensors").exists()
-    step = torch.load(out / "checkpoint.pt", weights_only=True)["step"]
+    assert f"--resume {work}" in error and "Traceback" not in error
+    assert not out.exists() and not (work / "model.safetensors").exists()
+    step = torch.load(work / "checkpoint.pt", weights_only=True)["step"]
     assert 0 < step < 41
-    subprocess.run([sys.executable, "-m", "cvqpg.cli", "fit", "--resume", str(out), "--quiet"], check=True)
+    subprocess.run([sys.executable, "-m", "cvqpg.cli", "fit", "--resume", str(work), "--quiet"], check=True)
+    assert not work.exists()
     assert_same_model(out, uninterrupted)
 
 
 @pytest.mark.slow
 def test_sigkill_leaves_the_previous_checkpoint_and_resume_ends_bit_identical(tmp_path, uninterrupted):
     out = tmp_path / "run"
+    work = tmp_path / "run.partial"
     process = subprocess.Popen(cli_command(out, "--checkpoint-every", "1"), stderr=subprocess.PIPE, text=True)
-    wait_for(out / "checkpoint.pt", process)
+    wait_for(work / "checkpoint.pt", process)
     time.sleep(0.5)
     os.kill(process.pid, signal.SIGKILL)
     process.wait(timeout=60)
-    payload = torch.load(out / "checkpoint.pt", weights_only=True)
+    payload = torch.load(work / "checkpoint.pt", weights_only=True)
     assert payload["step"] >= 1
-    subprocess.run([sys.executable, "-m", "cvqpg.cli", "fit", "--resume", str(out), "--quiet"], check=True)
+    subprocess.run([sys.executable, "-m", "cvqpg.cli", "fit", "--resume", str(work), "--quiet"], check=True)
     assert_same_model(out, uninterrupted)
 
 

@@ -129,11 +129,11 @@ def test_triton_on_the_cpu_needs_the_interpreter(monkeypatch, capsys, tmp_path):
     monkeypatch.delenv("TRITON_INTERPRET", raising=False)
     with pytest.raises(ValueError, match="runs on CUDA, not on cpu"):
         resolve_backend("triton", "cpu")
-    with pytest.raises(ConfigError, match="backend 'triton' runs on the GPU only"):
+    with pytest.raises(ConfigError, match="`backend` 'triton' runs on the GPU only"):
         FitConfig(backend="triton").validate()
     assert main(["fit", "--scene", "demo", "--backend", "triton", "--out", str(tmp_path / "run")]) == 2
     error = capsys.readouterr().err
-    assert "backend 'triton' runs on the GPU only" in error and error.count("\n") == 1
+    assert "--backend 'triton' runs on the GPU only" in error and error.count("\n") == 1
     assert not (tmp_path / "run").exists()
 
 

@@ -105,7 +105,8 @@ def test_fit_with_view_writes_the_page_into_the_run(tmp_path):
     (["{cvqpg}", "{flat}", "{larger}"], "3 run folders: give one or two"),
     (["{cvqpg}", "--distances", "0.5", "6", "41"], "distances are in m"),
     (["{cvqpg}", "--distances", "0.001", "0.002", "2.5"], "COUNT is a whole number"),
-    (["{cvqpg}", "--out", "{flat}"], "is a folder; give a file name"),
+    (["{cvqpg}", "--out", "{flat}"], "is a run folder; choose a path outside it"),
+    (["{cvqpg}", "--out", "{root}"], "is a folder; give a file name"),
     (["{root}"], "is not a run folder (no config.json)"),
 ])
 def test_bad_input_is_one_line_exit_2_and_nothing_written(runs, arguments, message, capsys):
