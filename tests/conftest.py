@@ -8,7 +8,7 @@ import torch
 from PIL import Image
 
 if not torch.cuda.is_available():
-    # The Triton kernels' tests (test_triton.py) run them through Triton's interpreter on the CPU,
+    # The Triton kernels' tests (test_ops_gpu.py) run them through Triton's interpreter on the CPU,
     # which Triton reads where a kernel is defined: before cvqpg's first Triton import.
     os.environ.setdefault("TRITON_INTERPRET", "1")
 
