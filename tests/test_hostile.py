@@ -24,6 +24,9 @@ from PIL import Image
 
 from cvqpg.cli import main
 
+# Hundreds of commands, each in its own copy of the template: the full run (.ci/run) holds them all.
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parents[1]
 RECORDED_CELL = ROOT / "results" / "paper" / "cells" / "bento_gray-10_baseline_s100"
 IS_ROOT = hasattr(os, "geteuid") and os.geteuid() == 0

@@ -41,6 +41,7 @@ def numba_functions_called_by_a_fit(backend: str, out) -> str:
     return record
 
 
+@pytest.mark.slow
 def test_a_cpu_fit_with_the_torch_backend_calls_no_numba_function(tmp_path):
     assert numba_functions_called_by_a_fit("torch", tmp_path / "torch") == "[]"
     # the record sees the kernels where they run

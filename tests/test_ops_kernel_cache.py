@@ -7,6 +7,7 @@ import shutil
 import subprocess
 import sys
 
+import pytest
 from numba.core.caching import CacheImpl
 
 from cvqpg.ops import kernel_cache
@@ -72,6 +73,7 @@ def compiles(cache_dir, *key: str) -> int:
     return int(done.stdout.split()[-1])
 
 
+@pytest.mark.slow
 def test_a_cached_kernel_is_compiled_again_after_the_key_changes(tmp_path):
     assert compiles(tmp_path) > 0  # an empty cache
     assert compiles(tmp_path) == 0  # loaded from the cache
