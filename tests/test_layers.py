@@ -88,3 +88,14 @@ def test_the_codec_and_storage_sit_below_the_workflows():
     assert GRAPH["cvqpg.storage"] <= {"cvqpg.codec", "cvqpg.config", "cvqpg.errors", "cvqpg.files",
                                       "cvqpg.primitives"}
     assert "cvqpg.compression" not in GRAPH["cvqpg.finetune"] | GRAPH["cvqpg.runs"]
+
+
+APP = "cvqpg.app"
+
+
+def test_the_core_never_imports_the_application_layer_or_the_command_line():
+    """Compilation, provenance and memory tracking belong to the commands, not to a library call."""
+    core = {name for name in GRAPH if not name.startswith((APP, CAMPAIGN, "cvqpg.cli"))}
+    assert {name: sorted(m for m in GRAPH[name] if m.startswith((APP, "cvqpg.cli"))) for name in core
+            if any(m.startswith((APP, "cvqpg.cli")) for m in GRAPH[name])} == {}
+    assert {"cvqpg.fitting", "cvqpg.runs", "cvqpg.ops"} <= core
