@@ -8,7 +8,7 @@
 #   stage.txt/.json  benchmarks/step.py --device cuda: the stage table against the GPU FFT floor, full-grid
 #                    propagation (auto's choice on CUDA) and a stage with the pruned transforms in its place,
 #                    with one round of the PyTorch reference rasterizer
-#   fits.txt         whole 2000-step fits of RGB 20% and grayscale 10% at 640×480: warm-up apart, fit
+#   fits.txt         whole 2000-step fits of RGB 20% and grayscale 10% at 640×480: the first fit apart, fit
 #                    loop, peak torch.cuda.max_memory_allocated, PSNR
 #   fits4k.txt       the same for RGB 20% at 3840×2160
 #   bento.txt        bento RGB 20%, 2000 steps, on the GPU and on the CPU of the same machine: both PSNRs
