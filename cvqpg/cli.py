@@ -460,15 +460,13 @@ class FitPlan:
 def check_fit_destination(final: Path, overwrite: bool) -> None:
     """`--out` may be a new or empty folder, or a run that `--overwrite` replaces; never a file or a folder
     of other files."""
-    if final.exists() and not final.is_dir():
-        raise UsageError(f"--out {final} is a file; give a folder for the run")
-    if (final / CONFIG_FILE).exists():
+    check_new_folder(final)
+    if is_run_folder(final):
         if not overwrite:
             raise UsageError(f"{final} already holds a run; choose another --out, pass --overwrite to replace it "
                              f"once the new fit succeeds, or --resume {final}")
     elif final.is_dir() and any(final.iterdir()):
         raise UsageError(f"--out {final} holds other files; give a new or empty folder")
-    check_new_folder(final)
 
 
 def _resume_plan(args: argparse.Namespace) -> FitPlan:

@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 
 import pytest
-import torch
 
 from cvqpg import load_model, save_model
 from cvqpg.cli import flag_message, main

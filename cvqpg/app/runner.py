@@ -14,7 +14,7 @@ import torch
 from ..config import FitConfig
 from ..errors import CvqpgError, ModelFileError
 from ..fitting import CheckpointPolicy, FitResult, FitState, fit_scene, initial_state, state_from_payload
-from ..runs import CHECKPOINT_FILE, CONFIG_FILE, read_run, write_run
+from ..runs import CHECKPOINT_FILE, CONFIG_FILE, RESTORE_RUN, read_record, write_run
 from ..storage import load_checkpoint, save_checkpoint
 from ..targets import Scene
 from .compilation import prepare_kernels
@@ -34,8 +34,10 @@ def run_fingerprint(config: FitConfig, source: dict[str, Any]) -> str:
 
 
 def recorded_source(folder: Path, source: dict[str, Any] | None) -> dict[str, Any]:
-    """`source`, or where None the run's inputs as the folder's `config.json` records them."""
-    return read_run(folder)[1] if source is None else source
+    """`source`, or where None the run's inputs as the folder's `config.json` records them: as written, so
+    that a path kept relative to the run folder (an estimated depth map) fingerprints the same wherever the
+    folder is."""
+    return read_record(Path(folder) / CONFIG_FILE, RESTORE_RUN)["source"] if source is None else source
 
 
 def resumed_state(folder: Path, config: FitConfig, source: dict[str, Any] | None = None) -> FitState | None:
