@@ -24,14 +24,14 @@ from . import __version__
 from .app.allocator import keep_freed_memory
 from .app.compilation import compile_all
 from .app.outputs import check_new_folder, check_output_file, check_output_folder, is_run_folder
-from .app.runner import CHECKPOINT_SECONDS, fit_in_folder, resumed_state, write_fitted_run
+from .app.runner import CHECKPOINT_SECONDS, fit_in_folder, resumed_state, timed_config, write_fitted_run
 from .campaign.bench import (CELLS_DIR, METHODS, PRESETS, Overrides, RateDistortionOptions, describe_cells, make_plan,
                              parse_shard, peak_bytes, run_plan)
 from .campaign.report import write_summary
 from .campaign.results import document
 from .codec import SUFFIX, BitDepths
 from .compression import ASSUMED_FIT_PSNR_DB, check_compression_settings, compress_model, decompress_file
-from .config import BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITIVES, QPFS, FitConfig
+from .config import BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITIVES, QPFS, RECIPES, FitConfig
 from .depth import DEPTH_FILE, DEPTH_MODEL, estimate_depth, load_depth_model
 from .errors import CvqpgError
 from .files import replace_folder, staged_folder
@@ -55,7 +55,8 @@ FLAGS = {"width": "--size", "height": "--size", "size": "--size", "num_planes": 
              "color", "primitive", "ratio", "steps", "seed", "bound", "qpf", "curvature", "device", "backend",
              "depth", "image", "max_drop", "bits", "prune", "finetune", "levels", "aperture", "slm", "distance",
              "encoding", "distances", "out")},
-         "finetune_steps": "--finetune", "prune_fraction": "--prune", "overwrite": "--overwrite"}
+         "finetune_steps": "--finetune", "prune_fraction": "--prune", "overwrite": "--overwrite", "time": "--time",
+         "recipe": "--recipe"}
 
 
 class UsageError(CvqpgError):
@@ -125,8 +126,15 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
     count.add_argument("--ratio", type=finite, default=DEFAULTS.ratio,
                        help="primitive count as a fraction of W·H/2 (RGB) or W·H/4 (grayscale)")
     count.add_argument("--num-gaussians", type=int, metavar="N", help="explicit primitive count N")
-    p.add_argument("--steps", type=int, default=DEFAULTS.steps,
-                   help="optimisation steps (the loop runs indices 0..steps, as the reference)")
+    p.add_argument("--recipe", choices=tuple(RECIPES), default=DEFAULTS.recipe,
+                   help="how to fit: 'paper' is the paper's recipe, bit for bit; the others, and what each "
+                   "gains, are in docs/beyond.md")
+    budget = p.add_mutually_exclusive_group()
+    budget.add_argument("--steps", type=int, help=f"optimisation steps (the loop runs indices 0..steps, as the "
+                        f"reference) [default: {DEFAULTS.steps}]")
+    budget.add_argument("--time", type=finite, metavar="MINUTES", help="fit for about this long: the first steps "
+                        "are timed on this machine and fix the step count, which the run records (a --resume or a "
+                        "rerun with that --steps is exact)")
     p.add_argument("--curvature-warmup", type=int, metavar="W",
                    help="steps with curvature frozen at 0 (CVQPG only) [default: steps/5, as 400 of 2000]")
     p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"),
@@ -361,13 +369,14 @@ def _config_and_source(args: argparse.Namespace) -> tuple[FitConfig, dict]:
     if args.resize_depth:
         source["resize_depth"] = True
     config = FitConfig(width=width, height=height, color=color, primitive=args.primitive,
-                       ratio=args.ratio, num_gaussians=args.num_gaussians, steps=args.steps,
+                       ratio=args.ratio, num_gaussians=args.num_gaussians,
+                       steps=DEFAULTS.steps if args.steps is None else args.steps,
                        curvature_warmup=args.curvature_warmup,
                        seed=args.seed, num_planes=planes, bound=args.bound,
                        qpf=args.qpf, curvature=args.curvature, device=args.device, backend=args.backend,
                        pixel_pitch=args.pitch,
                        plane_center=args.plane_center, plane_span=args.plane_span,
-                       wavelengths_m=tuple(args.wavelengths) if args.wavelengths else None)
+                       wavelengths_m=tuple(args.wavelengths) if args.wavelengths else None).with_recipe(args.recipe)
     return config.validate(), source
 
 
@@ -495,11 +504,19 @@ def _new_plan(args: argparse.Namespace) -> FitPlan:
     if work.exists():
         raise UsageError(f"{work} holds an interrupted fit; continue it with cvqpg fit --resume {work}, or delete it")
     check_memory(config, device_memory_bytes(config.device))
-    if "depth_model" not in source:
-        return FitPlan(work, final, config, source, scene_from_source(source, config))
-    depth = estimate_depth(source["image"], load_depth_model(source["depth_model"]))
-    source["depth"] = DEPTH_FILE  # kept in the run folder, wherever it moves
-    return FitPlan(work, final, config, source, load_scene(source["image"], depth, config), depth=depth)
+    depth = None
+    if "depth_model" in source:
+        depth = estimate_depth(source["image"], load_depth_model(source["depth_model"]))
+        scene = load_scene(source["image"], depth, config)
+        source["depth"] = DEPTH_FILE  # kept in the run folder, wherever it moves
+    else:
+        scene = scene_from_source(source, config)
+    if args.time is not None:
+        config, source["time_budget"] = timed_config(scene, config, args.time, progress=not args.quiet)
+        if not args.quiet:
+            print(f"--time {args.time:g}: {config.steps} steps at {source['time_budget']['seconds_per_step'] * 1e3:.0f} "
+                  "ms each, measured here", file=sys.stderr)
+    return FitPlan(work, final, config, source, scene, depth=depth)
 
 
 def _fit(plan: FitPlan, args: argparse.Namespace) -> int:

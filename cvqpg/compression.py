@@ -19,7 +19,7 @@ from .files import write_atomic
 from .finetune import finetune
 from .fitting import render
 from .metrics import mean_psnr
-from .primitives import Primitives
+from .primitives import Primitives, field_energy
 from .runs import CONFIG_FILE, load_run_model, model_path, scene_from_source
 from .storage import is_compressed, load_model, read_compressed, save_model
 
@@ -99,16 +99,6 @@ def choose_bits(primitives: Primitives, config: FitConfig, reference: Reference,
         if holding:
             best, improved = min(holding, key=lambda t: len(t.data)), True
     return best
-
-
-def field_energy(primitives: Primitives) -> torch.Tensor:
-    """Each primitive's field energy up to a constant factor: Σ_c (amplitude_c·opacity)² σx σy [N].
-
-    A primitive's field is a Gaussian of that peak and those scales whatever its curvature (a chirp
-    changes only the phase), and propagation to the planes preserves energy, so removing it changes the
-    reconstructed fields by this much (squared L2), interference with the others aside."""
-    weight = primitives.amplitude * primitives.opacity[:, None]
-    return (weight**2).sum(dim=1) * primitives.scale_px.prod(dim=1)
 
 
 def _check_prune_fraction(fraction: float) -> None:

@@ -15,12 +15,14 @@ Bound = Literal["adaptive", "global"]
 Qpf = Literal["mahalanobis", "standard"]
 Curvature = Literal["shared", "per-channel", "channel-bound"]
 Backend = Literal["auto", "numba", "triton", "torch"]
+Init = Literal["uniform", "targets"]
 COLORS: tuple[str, ...] = get_args(Color)
 PRIMITIVES: tuple[str, ...] = get_args(Primitive)
 BOUNDS: tuple[str, ...] = get_args(Bound)
 QPFS: tuple[str, ...] = get_args(Qpf)
 CURVATURES: tuple[str, ...] = get_args(Curvature)
 BACKENDS: tuple[str, ...] = get_args(Backend)
+INITS: tuple[str, ...] = get_args(Init)
 DEVICE_TYPES = ("cpu", "cuda")
 
 RGB_WAVELENGTHS_M = (639e-9, 532e-9, 473e-9)
@@ -39,6 +41,22 @@ class LearningRates:
     opacity: float = 0.025
     rotation: float = 0.001
     curvature: float = 0.001
+
+
+@dataclass(frozen=True)
+class DensityControl:
+    """Relocation at a fixed N (docs/beyond.md): at every `every` share of the steps, until the `until`
+    share, the `fraction` of primitives with the least field energy are moved onto splits of primitives
+    that sit where the reconstruction's error is largest."""
+
+    every: float = 0.05
+    until: float = 0.6
+    fraction: float = 0.02
+
+    def event_steps(self, steps: int) -> tuple[int, ...]:
+        """The steps (indices) before whose update primitives are relocated, for a run of `steps` steps."""
+        interval = max(1, round(self.every * steps))
+        return tuple(range(interval, int(self.until * steps), interval))
 
 
 CURVATURE_WARMUP_SHARE = 400 / 2000  # the paper's curvature warm-up share of the steps
@@ -76,7 +94,9 @@ class FitConfig:
     global_bound: float = 200.0
     qpf: Qpf = "mahalanobis"
     curvature: Curvature = "shared"
-    lr: LearningRates = field(default_factory=LearningRates)
+    lr: LearningRates = field(default_factory=lambda: RECIPES[DEFAULT_RECIPE]["lr"])
+    init: Init = "uniform"  # the default recipe's, as the two below (`RECIPES`)
+    density: DensityControl | None = None
     betas: tuple[float, float, float] = (0.98, 0.92, 0.99)
     adan_eps: float = 1e-8
     grad_clip_norm: float = 1.0
@@ -89,6 +109,18 @@ class FitConfig:
     device: str = "cpu"
     backend: Backend = "auto"
     wavelengths_m: tuple[float, ...] | None = None
+
+    @property
+    def recipe(self) -> str:
+        """The name of the recipe (`RECIPES`) whose settings this configuration has, or 'custom'."""
+        return next((name for name, settings in RECIPES.items()
+                     if all(getattr(self, k) == v for k, v in settings.items())), "custom")
+
+    def with_recipe(self, name: str) -> "FitConfig":
+        """This configuration with the settings of the recipe `name` (`RECIPES`)."""
+        if name not in RECIPES:
+            raise choices_error("recipe", name, tuple(RECIPES))
+        return self.replace(**RECIPES[name])
 
     @property
     def curvature_warmup_steps(self) -> int:
@@ -154,7 +186,10 @@ class FitConfig:
         (a run's `source`, settings that no longer exist) are ignored."""
         known = {f.name for f in dataclasses.fields(cls)}
         data = {RENAMED_FIELDS.get(k, k): v for k, v in data.items()}
-        values = {k: v for k, v in data.items() if k in known}
+        # A record older than recipes is the paper's.
+        values = {**RECIPES["paper"], **{k: v for k, v in data.items() if k in known}}
+        if isinstance(values.get("density"), dict):
+            values["density"] = DensityControl(**values["density"])
         if isinstance(values.get("lr"), dict):
             values["lr"] = LearningRates(**{RENAMED_LEARNING_RATES.get(k, k): v for k, v in values["lr"].items()})
         for name in ("betas", "wavelengths_m"):
@@ -165,7 +200,7 @@ class FitConfig:
     def validate(self) -> "FitConfig":
         """Raise `ConfigError` naming the first setting that cannot work, and what to do."""
         for name, choices in (("color", COLORS), ("primitive", PRIMITIVES), ("bound", BOUNDS), ("qpf", QPFS),
-                              ("curvature", CURVATURES), ("backend", BACKENDS)):
+                              ("curvature", CURVATURES), ("backend", BACKENDS), ("init", INITS)):
             if getattr(self, name) not in choices:
                 raise choices_error(name, getattr(self, name), choices)
         if not isinstance(self.device, str) or self.device.split(":")[0] not in DEVICE_TYPES:
@@ -183,6 +218,7 @@ class FitConfig:
                    "defocus_sigma_px": self.defocus_sigma_px, "depth_exponent": self.depth_exponent,
                    **{f"lr.{k}": v for k, v in dataclasses.asdict(self.lr).items()},
                    **{f"betas[{i}]": b for i, b in enumerate(self.betas)},
+                   **{f"density.{k}": v for k, v in (dataclasses.asdict(self.density) if self.density else {}).items()},
                    **{f"wavelengths_m[{i}]": w for i, w in enumerate(self.wavelengths_m or ())}}
         for name, value in numbers.items():
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
@@ -195,6 +231,10 @@ class FitConfig:
                 raise ConfigError(f"`{name}` must be positive, got {value}")
         if self.seed < 0:
             raise ConfigError(f"`seed` must be 0 or more, got {self.seed}")
+        if self.density is not None and not (0 < self.density.every <= 1 and 0 <= self.density.until <= 1
+                                             and 0 <= self.density.fraction < 1):
+            raise ConfigError(f"`density` {self.density}: `every` must lie in (0, 1], `until` in [0, 1] (shares of "
+                              "the steps) and `fraction` in [0, 1)")
         if self.guard_band_px < 0:
             raise ConfigError(f"`guard_band_px` must be 0 or more, got {self.guard_band_px}")
         if self.width < MIN_SIZE_PX or self.height < MIN_SIZE_PX:
@@ -221,6 +261,16 @@ class FitConfig:
             raise ConfigError(f"{count} Gaussians for {pixels} pixels: need between 1 and the pixel count; "
                               "change `ratio` or `num_gaussians`")
         return self
+
+
+# The recorded choices of a fit beyond its problem (method.md §6; docs/beyond.md): `FitConfig.with_recipe`.
+BEYOND_RECIPE = "beyond"
+RECIPES: dict[str, dict[str, Any]] = {
+    "paper": {"lr": LearningRates(), "init": "uniform", "density": None},
+    BEYOND_RECIPE: {"lr": LearningRates(position=0.005, position_final=5e-4, opacity=0.05, rotation=0.002),
+                    "init": "targets", "density": None},
+}
+DEFAULT_RECIPE = "paper"
 
 
 def _is_integer(value: object) -> bool:

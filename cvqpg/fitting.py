@@ -17,12 +17,14 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from .config import FitConfig
+from .density import Relocator
 from .errors import InputError, ModelFileError
 from .metrics import MetricReport, evaluate
 from .ops.loss import multiplane_loss, noisy_targets, standard_normal
 from .ops.rasterize import rasterize
 from .optics import reconstruct
-from .primitives import Gaussians, Primitives, activate, init_gaussians
+from .initialisation import initial_gaussians
+from .primitives import Gaussians, Primitives, activate
 from .targets import Scene, load_scene
 
 if TYPE_CHECKING:
@@ -110,6 +112,7 @@ class FitState:
     gaussians: Gaussians
     optimizer: Adan
     generator: torch.Generator
+    relocator: Relocator | None = None  # density control (`config.density`), beside the optimiser
     step: int = 0  # the next step index to run
     history: dict[str, list[float]] = field(default_factory=lambda: {"loss": [], "psnr": []})
     seconds: float = 0.0
@@ -159,19 +162,20 @@ class FitState:
                 "step": self.step, "history": self.history, "seconds": self.seconds,
                 "skipped_steps": self.skipped_steps, "sanitised_steps": self.sanitised_steps,
                 "peak_memory": self.peak_memory, "compile_seconds": self.compile_seconds,
-                "device": self.generator.device.type}
+                "device": self.generator.device.type,
+                "relocator": None if self.relocator is None else self.relocator.to_payload()}
 
 
-def initial_state(config: FitConfig) -> FitState:
-    """The reference initialisation, optimiser and noise generator before step 0."""
+def initial_state(config: FitConfig, scene: Scene | None = None) -> FitState:
+    """The state before step 0: the initialisation of `config.init` (`initialisation.initial_gaussians`;
+    `targets` needs the `scene`), the optimiser, the noise generator and density control."""
     device = torch.device(config.device)
-    gaussians = init_gaussians(config.primitive_count, config.channels, config.width, config.height,
-                               config.seed, device, config.curvature == "per-channel")
+    gaussians = initial_gaussians(config, scene)
     for name in trainable_groups(config):
         getattr(gaussians, name).requires_grad_(True)
     optimizer = make_optimizer(gaussians, config)
     generator = torch.Generator(device=device).manual_seed(config.seed)
-    return FitState(gaussians, optimizer, generator)
+    return FitState(gaussians, optimizer, generator, Relocator.for_config(config))
 
 
 def state_from_payload(payload: dict, config: FitConfig, name: str = "the checkpoint") -> FitState:
@@ -183,7 +187,7 @@ def state_from_payload(payload: dict, config: FitConfig, name: str = "the checkp
         raise ModelFileError(f"{name} was written on {written_on}, this run is on {config.device}: "
                              f"resume it with `device` {written_on}, or delete the checkpoint to restart from "
                              "step 0")
-    state = initial_state(config)
+    state = initial_state(config.replace(init="uniform"))
     with torch.no_grad():
         for key, tensor in state.gaussians.tensors().items():
             stored = payload["gaussians"][key]
@@ -195,6 +199,8 @@ def state_from_payload(payload: dict, config: FitConfig, name: str = "the checkp
     state.generator.set_state(payload["generator"])
     state.step, state.history, state.seconds = payload["step"], payload["history"], payload["seconds"]
     state.skipped_steps, state.sanitised_steps = payload["skipped_steps"], payload["sanitised_steps"]
+    if state.relocator is not None:
+        state.relocator.load_payload(payload["relocator"])
     state.peak_memory = payload.get("peak_memory", {})
     state.compile_seconds = payload.get("compile_seconds", 0.0)
     return state
@@ -231,6 +237,9 @@ def update(state: FitState, scene: Scene, config: FitConfig) -> StepOutcome:
     the host.
     """
     gaussians, step = state.gaussians, state.step
+    if state.relocator is not None and state.relocator.due(step, config.steps):
+        with torch.no_grad():
+            state.relocator.relocate(gaussians, state.optimizer, scene, config, render_hologram(gaussians, config))
     gaussians.curvature.requires_grad_(config.primitive == "cvqpg" and step >= config.curvature_warmup_steps)
     loss, mse = hologram_loss(render_hologram(gaussians, config), scene, config, state.generator)
     optimizer = state.optimizer
@@ -290,6 +299,29 @@ def apply_gradients(optimizer: Adan, config: FitConfig, step: int, finite_loss: 
             for tensor, previous in zip(kept, before.split([t.numel() for t in kept])):
                 torch.where(skipped, previous.view_as(tensor), tensor, out=tensor)
     return finite_loss & ~finite_grads, skipped
+
+
+PROBE_STEPS = 12
+
+
+def seconds_per_step(scene: Scene, config: FitConfig, probe_steps: int = PROBE_STEPS) -> float:
+    """Seconds one update of a fit of `config` takes here, timed over `probe_steps` updates of a throwaway
+    state after one untimed update (first-call costs), past the curvature warm-up, where most steps are.
+    Density control's renders are left out: a render per event, under 1% of a run (docs/beyond.md)."""
+    state = initial_state(config, scene)
+    state.relocator = None
+    first = config.curvature_warmup_steps
+    for step in range(first, first + probe_steps + 1):
+        if step == first + 1:
+            start = time.perf_counter()
+        state.step = step
+        optimisation_step(state, scene, config)
+    return (time.perf_counter() - start) / probe_steps
+
+
+def steps_within(seconds: float, seconds_each: float) -> int:
+    """The step count of a run whose `steps + 1` updates of `seconds_each` s fit into `seconds` s (≥ 1)."""
+    return max(1, int(seconds / seconds_each) - 1)
 
 
 READBACK_SECONDS = 0.5
@@ -369,7 +401,7 @@ def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = Tr
                          f"but the configuration fits {expected}; build the scene with the same configuration")
     device = torch.device(config.device)
     scene = Scene(*(t.to(device) for t in (scene.image, scene.masks, scene.targets)))
-    state = state or initial_state(config)
+    state = state or initial_state(config, scene)
     last_save, clock = time.perf_counter(), time.perf_counter()
     bar = tqdm(range(state.step, config.steps + 1), initial=state.step, total=config.steps + 1,
                disable=not progress, desc=f"fit {config.primitive}", unit="step", dynamic_ncols=True)

@@ -153,6 +153,12 @@ def positions_px(raw_position: Tensor, width: int, height: int) -> Tensor:
     return (torch.tanh(raw_position) + 1) / 2 * extent
 
 
+def raw_positions(position_px: Tensor, width: int, height: int) -> Tensor:
+    """Inverse of `positions_px`: px → raw, clamped as the initialisation clamps."""
+    extent = device_constants((width, height), position_px.dtype, position_px.device)
+    return torch.atanh(torch.clamp(2 * position_px / extent - 1, -POSITION_CLAMP, POSITION_CLAMP))
+
+
 def scales_px(raw_scale: Tensor) -> Tensor:
     """Raw scale → px: `exp(raw) + 0.1`, capped at 1e4 px so Σ stays finite in float32."""
     return torch.exp(torch.clamp(raw_scale, max=MAX_LOG_SCALE)) + MIN_SCALE_PX
@@ -194,6 +200,16 @@ def activate(raw: Gaussians, config: FitConfig) -> Primitives:
         opacity=torch.sigmoid(raw.opacity),
         curvature_per_m=bound * share,
     )
+
+
+def field_energy(primitives: Primitives) -> Tensor:
+    """Each primitive's field energy up to a constant factor: Σ_c (amplitude_c·opacity)² σx σy [N].
+
+    A primitive's field is a Gaussian of that peak and those scales whatever its curvature (a chirp
+    changes only the phase), and propagation to the planes preserves energy, so removing it changes the
+    reconstructed fields by this much (squared L2), interference with the others aside."""
+    weight = primitives.amplitude * primitives.opacity[:, None]
+    return (weight**2).sum(dim=1) * primitives.scale_px.prod(dim=1)
 
 
 def inverse_covariance(scale_px: Tensor, rotation_rad: Tensor) -> tuple[Tensor, Tensor, Tensor]:

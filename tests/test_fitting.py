@@ -142,7 +142,8 @@ FINGERPRINTED_FITS = {"rgb_cvqpg_2planes": dict(color="rgb", primitive="cvqpg", 
 
 @pytest.mark.parametrize("name", sorted(FINGERPRINTED_FITS))
 def test_a_small_fit_is_bit_identical_to_the_recorded_one(name):
-    """CPU fits are bit-identical across refactors: the recorded fingerprints were made before one.
+    """CPU fits with the paper's recipe are bit-identical across refactors: the recorded fingerprints were
+    made before one.
     Bits depend on the CPU's instruction paths and the thread count, so only the same machine can compare."""
     recorded = json.loads(FINGERPRINTS.read_text())
     here = {"cpu": cpu_model(), "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
@@ -150,7 +151,7 @@ def test_a_small_fit_is_bit_identical_to_the_recorded_one(name):
         pytest.skip(f"fingerprints were recorded on {recorded['cpu']}, torch {recorded['torch']}, "
                     f"{recorded['torch_threads']} threads; this is {here}")
     config = FitConfig(width=64, height=48, num_gaussians=300, steps=40, curvature_warmup=8,
-                       **FINGERPRINTED_FITS[name])
+                       **FINGERPRINTED_FITS[name]).with_recipe("paper")
     pictures = builtin_pictures("demo", config.width, config.height)
     result = fit(pictures.image, pictures.depth, config, progress=False)
     digest = hashlib.sha256()

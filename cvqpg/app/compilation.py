@@ -165,8 +165,9 @@ def compile_kernels(config: FitConfig, alongside: bool = True) -> None:
     probe = probe_config(config)
     with CompileAlongside([alongside_command(probe)] if alongside else []):
         compile_rasterizer_kernels(probe, per_primitive=True)
-        state = initial_state(probe)  # the optimiser's imports, before waiting for the other process
-    optimisation_step(state, probe_scene(probe), probe)
+        scene = probe_scene(probe)
+        state = initial_state(probe, scene)  # the optimiser's imports, before waiting for the other process
+    optimisation_step(state, scene, probe)
     render(activate(state.gaussians.detached(), probe), probe)
 
 

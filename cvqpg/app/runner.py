@@ -12,8 +12,9 @@ from typing import Any, Callable
 import torch
 
 from ..config import FitConfig
-from ..errors import CvqpgError, ModelFileError
-from ..fitting import CheckpointPolicy, FitResult, FitState, fit_scene, initial_state, state_from_payload
+from ..errors import ConfigError, CvqpgError, ModelFileError
+from ..fitting import (CheckpointPolicy, FitResult, FitState, fit_scene, initial_state, seconds_per_step,
+                       state_from_payload, steps_within)
 from ..runs import CHECKPOINT_FILE, CONFIG_FILE, RESTORE_RUN, read_record, write_run
 from ..storage import load_checkpoint, save_checkpoint
 from ..targets import Scene
@@ -77,7 +78,7 @@ def fit_in_folder(folder: Path, scene: Scene, config: FitConfig, state: FitState
     device = torch.device(config.device)
     # The kernels first: a cold compile starts its second process before this one imports the optimiser.
     compile_seconds = prepare_kernels(config, show_status=progress)
-    state = state or initial_state(config)
+    state = state or initial_state(config, scene)
     state.compile_seconds += compile_seconds
     reset_peak_memory(device)
 
@@ -91,6 +92,17 @@ def fit_in_folder(folder: Path, scene: Scene, config: FitConfig, state: FitState
     state.note_peak_memory(peak_memory(device))
     result.peak_memory = state.peak_memory
     return result
+
+
+def timed_config(scene: Scene, config: FitConfig, minutes: float, progress: bool = True) -> tuple[FitConfig, dict]:
+    """`config` with the step count whose fit takes about `minutes` here (the kernels compiled first, then a
+    few steps timed: `fitting.seconds_per_step`), and what a run records of the choice."""
+    if not minutes > 0:
+        raise ConfigError(f"`time` {minutes} min: give a positive number of minutes")
+    prepare_kernels(config, show_status=progress)
+    seconds_each = seconds_per_step(scene, config)
+    steps = steps_within(60 * minutes, seconds_each)
+    return config.replace(steps=steps).validate(), {"minutes": minutes, "seconds_per_step": seconds_each}
 
 
 def write_fitted_run(folder: Path, result: FitResult, scene: Scene, source: dict[str, Any]) -> Path:

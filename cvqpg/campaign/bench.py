@@ -29,7 +29,7 @@ from tqdm.auto import tqdm
 from ..app.allocator import keep_freed_memory
 from ..app.provenance import available_cores
 from ..app.runner import fit_in_folder, resumed_state, write_fitted_run
-from ..config import FitConfig, default_curvature_warmup
+from ..config import BEYOND_RECIPE, FitConfig, default_curvature_warmup
 from ..errors import CvqpgError
 from ..fitting import FitInterrupted, FitState, estimated_peak_bytes
 from ..metrics import radial_error_spectrum
@@ -55,6 +55,9 @@ REUSED = "reused"
 # What a finished cell keeps in git (results/): enough to rebuild every table; metrics.json last (the done mark).
 RECORD_FILES = (CONFIG_FILE, SPECTRUM_FILE, RD_FILE, METRICS_FILE)
 STARTED, MISSING = "started", "missing"
+# The paper's training time for grayscale and RGB 10% (8.7 and 17.0 min, its runtime table) as steps of the new
+# recipe on our 2-core CPU with 2 threads and the machine to itself, measured once (docs/beyond.md).
+PAPER_TIME_STEPS = {"gray": 9000, "rgb": 5000}
 
 
 class BenchError(CvqpgError):
@@ -99,6 +102,11 @@ class Preset:
     size: tuple[int, int] = (640, 480)
     steps: int = 2000
     rate_distortion: bool = False  # each cell also records the R-D points of its model (`rd.json`)
+    recipe: str = "paper"  # every grid that compares with the paper pins its recipe
+    steps_by_color: tuple[tuple[str, int], ...] = ()  # where a colour has its own step count
+
+    def steps_for(self, color: str) -> int:
+        return dict(self.steps_by_color).get(color, self.steps)
 
 
 PRESETS = {
@@ -115,6 +123,12 @@ PRESETS = {
     "compression": Preset("issue #28: the Table 1 CVQPG cells at {rgb, gray} 10%, each with the R-D points of the "
                           ".cvq codec, JPEG 2000 and JPEG XL on its field, and its float32/float16 model files",
                           COLORS, (0.1,), ("cvqpg",), rate_distortion=True),
+    "beyond": Preset("issue #38: the new recipe at 2000 steps, {rgb, gray} 10% × {baseline, cvqpg}, beside the "
+                     "paper grid's cells", COLORS, (0.1,), ("baseline", "cvqpg"), recipe=BEYOND_RECIPE),
+    "beyond-time": Preset("issue #38: CVQPG with the new recipe for the paper's own training time (8.7 min gray, "
+                          "17.0 min RGB, its runtime table), as fixed step counts measured on our 2-core CPU",
+                          COLORS, (0.1,), ("cvqpg",), recipe=BEYOND_RECIPE,
+                          steps_by_color=tuple(PAPER_TIME_STEPS.items())),
     "quick": Preset("smoke test: built-in scenes, 160×120, 60 steps",
                     ("gray",), (0.1,), ("baseline", "cvqpg"), ("demo", "star"), (160, 120), 60),
 }
@@ -294,14 +308,17 @@ def make_plan(preset: str, folder: str | Path | None = None, overrides: Override
     seeds = (FitConfig().seed,) if overrides.seeds is None else tuple(dict.fromkeys(overrides.seeds))
     if overrides.device == "cuda" and not torch.cuda.is_available():
         raise BenchError("--device cuda: no CUDA GPU is visible to PyTorch; use --device cpu")
-    steps = spec.steps if overrides.steps is None else overrides.steps
     width, height = spec.size if overrides.size is None else tuple(overrides.size)
-    warmup = default_curvature_warmup(steps) if overrides.curvature_warmup is None else overrides.curvature_warmup
-    base = FitConfig(width=width, height=height, steps=steps, curvature_warmup=warmup)
-    base = base.replace(**{k: v for k, v in (("device", overrides.device), ("backend", overrides.backend))
-                           if v is not None})
+
+    def base(color: str) -> FitConfig:
+        steps = spec.steps_for(color) if overrides.steps is None else overrides.steps
+        warmup = default_curvature_warmup(steps) if overrides.curvature_warmup is None else overrides.curvature_warmup
+        config = FitConfig(width=width, height=height, steps=steps, curvature_warmup=warmup).with_recipe(spec.recipe)
+        return config.replace(**{k: v for k, v in (("device", overrides.device), ("backend", overrides.backend))
+                                 if v is not None})
+
     scenes = tuple(available[name] for name in names)
-    cells = tuple(Cell(scene, method, cell_config(base, scene, color, ratio, method, seed))
+    cells = tuple(Cell(scene, method, cell_config(base(color), scene, color, ratio, method, seed))
                   for scene in scenes for color in colors for ratio in ratios for method in methods
                   for seed in seeds)
     return BenchPlan(preset, default_folder(preset, folder), scenes, methods, seeds, cells)

@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from .bench import (DONE, FOLDER_SCENE_PLANES, METHODS, BenchPlan, BenchScene, Cell, cell_config, config_differences,
-                    setting_label)
+from .bench import (DONE, FOLDER_SCENE_PLANES, METHODS, PRESETS, BenchPlan, BenchScene, Cell, cell_config,
+                    config_differences, setting_label)
 from ..config import FitConfig
 from ..errors import CvqpgError
 from .report import (DECIMALS, TABLE1_METHODS, CellResult, Metrics, Table, baseline_gain, channel_frequency_curves,
@@ -31,6 +31,8 @@ SCENES = ("bento", "dragon", "flower", "sushi", "tiger", "windmill")
 ABLATION_SCENES = ("bento", "dragon", "flower", "sushi", "tiger")
 CHROMATIC_METHODS = ("baseline", "cvqpg", "per-channel", "channel-bound")
 ABLATION_METHODS = ("baseline", "cvqpg", "no-bound", "no-mahalanobis", "vanilla")
+BEYOND_METHODS = ("baseline", "cvqpg")
+BEYOND_SETTINGS = ("gray-10", "rgb-10")
 SETTINGS = ("rgb-20", "rgb-10", "gray-20", "gray-10")
 SCENE_TOLERANCE_DB = 0.3
 GAIN_TOLERANCE_DB = 0.1
@@ -77,6 +79,13 @@ CAMPAIGN = (
           _bench("chromatic", "--ratios 0.2 --methods " + " ".join(CHROMATIC_METHODS), reuse=True))),
     Grid("ablation", "Ablation", ABLATION_SCENES, (Block("rgb", (0.1,), ABLATION_METHODS),),
          (_bench("ablation", "--scene-names " + " ".join(ABLATION_SCENES), reuse=True),)),
+    Grid("beyond", "Beyond the paper: the new recipe, 2000 steps", SCENES,
+         (Block("gray", (0.1,), BEYOND_METHODS), Block("rgb", (0.1,), BEYOND_METHODS)),
+         (_bench("beyond", "--colors gray"), _bench("beyond", "--colors rgb --methods cvqpg"),
+          _bench("beyond", "--colors rgb --methods baseline"))),
+    Grid("beyond-time", "Beyond the paper: the new recipe, the paper's training time", SCENES,
+         (Block("gray", (0.1,), ("cvqpg",)), Block("rgb", (0.1,), ("cvqpg",))),
+         (_bench("beyond-time", "--colors gray"), _bench("beyond-time", "--colors rgb"))),
 )
 
 
@@ -96,10 +105,12 @@ class GridResults:
 
 
 def campaign_plan(grid: Grid, root: Path) -> BenchPlan:
-    """The grid's cells at the paper's settings (FitConfig defaults, seed 100), in `root/<preset>`."""
-    base = FitConfig()
+    """The grid's cells at its preset's recipe and steps (seed 100), in `root/<preset>`."""
+    preset = PRESETS[grid.preset]
+    base = FitConfig().with_recipe(preset.recipe)
     scenes = tuple(BenchScene(name, {"scene": name}, FOLDER_SCENE_PLANES) for name in grid.scenes)
-    cells = tuple(Cell(scene, method, cell_config(base, scene, block.color, ratio, method, base.seed))
+    cells = tuple(Cell(scene, method, cell_config(base.replace(steps=preset.steps_for(block.color)), scene,
+                                                  block.color, ratio, method, base.seed))
                   for scene in scenes for block in grid.blocks for ratio in block.ratios for method in block.methods)
     methods = tuple(dict.fromkeys(m for block in grid.blocks for m in block.methods))
     return BenchPlan(grid.preset, root / grid.preset, scenes, methods, (base.seed,), cells)
@@ -516,10 +527,98 @@ def _runtime(grid: GridResults, setting: str, method: str) -> dict[str, Any] | N
             "machines": "; ".join(f"{count} × {machine}" for machine, count in sorted(machines.items()))}
 
 
+BEYOND_TARGET_DB = 0.5  # issue #38: the new recipe's CVQPG over the paper grid's, at 2000 steps
+BEYOND_TIME_TARGET_DB = 1.5  # and at the paper's training time over the paper's own per-scene values
+
+
+def _metric(results: list[CellResult], setting: str, method: str, metric: str) -> dict[str, float]:
+    return {scene: v[metric] for scene, v in scene_values(results, setting, method).items() if v[metric] is not None}
+
+
+def beyond_table(paper: GridResults, beyond: GridResults, setting: str) -> Table:
+    """Per scene at equal N and 2000 steps: CVQPG with the new recipe against the paper grid's CVQPG cell
+    (PSNR, SSIM, FLIP), and CVQPG's gain over the Baseline under each recipe beside the paper's."""
+    table = Table(f"The new recipe against the paper's, {setting_label(setting)}, 2000 steps (dB unless named)",
+                  ["scene", "CVQPG paper recipe", "CVQPG new", "Δ PSNR", "Δ SSIM", "Δ FLIP", "gain new",
+                   "gain paper recipe", "gain paper"])
+    supplement = paper_numbers()["per_scene"]
+    old = {m: _metric(paper.results, setting, "cvqpg", m) for m in ("psnr", "ssim", "flip")}
+    new = {m: _metric(beyond.results, setting, "cvqpg", m) for m in ("psnr", "ssim", "flip")}
+    new_base, old_base = (_metric(g.results, setting, "baseline", "psnr") for g in (beyond, paper))
+    for scene in beyond.grid.scenes:
+        if scene not in new["psnr"]:
+            continue
+        deltas = [_signed(new[m][scene] - old[m][scene] if scene in old[m] else None, 4 if m != "psnr" else 3)
+                  for m in ("psnr", "ssim", "flip")]
+        gains = [_signed(c[scene] - b[scene] if scene in b and scene in c else None)
+                 for c, b in ((new["psnr"], new_base), (old["psnr"], old_base))]
+        theirs = supplement[scene][setting]
+        table.rows.append([scene, "–" if scene not in old["psnr"] else f"{old['psnr'][scene]:.3f}",
+                           f"{new['psnr'][scene]:.3f}", *deltas, *gains,
+                           f"{theirs['cvqpg']['psnr'] - theirs['baseline']['psnr']:+.3f}"])
+    return table
+
+
+def timed_table(timed: GridResults, setting: str) -> Table:
+    """Per scene: CVQPG with the new recipe for the paper's training time, against the paper's own value."""
+    table = Table(f"The new recipe at the paper's training time, {setting_label(setting)}",
+                  ["scene", "steps", "minutes here", "PSNR", "paper's CVQPG", "Δ"])
+    supplement = paper_numbers()["per_scene"]
+    for r in timed.done:
+        if r.cell.setting != setting:
+            continue
+        ours, theirs = r.metrics["mean"]["psnr"], supplement[r.cell.scene.name][setting]["cvqpg"]["psnr"]
+        minutes = (r.metrics.get("run") or {}).get("loop_seconds")
+        table.rows.append([r.cell.scene.name, str(r.cell.config.steps), "–" if minutes is None else f"{minutes / 60:.1f}",
+                           f"{ours:.3f}", f"{theirs:.3f}", f"{ours - theirs:+.3f}"])
+    return table
+
+
+def beyond_claims(paper: GridResults, beyond: GridResults, timed: GridResults) -> list[str]:
+    """Issue #38's targets, met or not, or how they stand while cells are missing."""
+    lines = []
+    scenes = len(beyond.grid.scenes)
+    supplement = paper_numbers()["per_scene"]
+    for setting in BEYOND_SETTINGS:
+        label = f"New recipe's CVQPG over the paper grid's, {setting_label(setting)}, 2000 steps"
+        old = {m: _metric(paper.results, setting, "cvqpg", m) for m in ("psnr", "ssim", "flip")}
+        new = {m: _metric(beyond.results, setting, "cvqpg", m) for m in ("psnr", "ssim", "flip")}
+        shared = sorted(set(old["psnr"]) & set(new["psnr"]))
+        if not shared:
+            lines.append(f"{label}: not measured yet.")
+            continue
+        delta = {m: float(np.mean([new[m][s] - old[m][s] for s in shared])) for m in ("psnr", "ssim", "flip")}
+        ahead = sum(new["psnr"][s] > old["psnr"][s] for s in shared)
+        met = (delta["psnr"] >= BEYOND_TARGET_DB and ahead == len(shared) and delta["ssim"] >= 0
+               and delta["flip"] <= 0)
+        lines.append(f"{label}: {delta['psnr']:+.3f} dB mean on {_scenes(len(shared))} (ahead on {ahead}), SSIM "
+                     f"{delta['ssim']:+.4f}, FLIP {delta['flip']:+.4f}; target {BEYOND_TARGET_DB:+.1f} dB ahead on every "
+                     f"scene with SSIM and FLIP no worse: {'met' if met else 'not met'}"
+                     f"{'' if len(shared) == scenes else ' so far'}.")
+        gains = _paired(beyond.results, setting, "cvqpg", "baseline")
+        if gains is not None:
+            claimed = float(np.mean([supplement[s][setting]["cvqpg"]["psnr"] - supplement[s][setting]["baseline"]["psnr"]
+                                     for s in beyond.grid.scenes]))
+            lines.append(f"CVQPG − Baseline at equal N under the new recipe, {setting_label(setting)}: "
+                         f"{gains[0]:+.3f} dB on {_scenes(gains[1])} (paper {claimed:+.3f} on our six scenes).")
+        timed_values = {r.cell.scene.name: r.metrics["mean"]["psnr"] for r in timed.done if r.cell.setting == setting}
+        time_label = f"New recipe's CVQPG at the paper's training time, {setting_label(setting)}"
+        if not timed_values:
+            lines.append(f"{time_label}: not measured yet.")
+            continue
+        gain = float(np.mean([v - supplement[s][setting]["cvqpg"]["psnr"] for s, v in timed_values.items()]))
+        verdict = "met" if gain >= BEYOND_TIME_TARGET_DB else "not met"
+        lines.append(f"{time_label}: {gain:+.3f} dB mean over the paper's per-scene values on "
+                     f"{_scenes(len(timed_values))}; target {BEYOND_TIME_TARGET_DB:+.1f} dB: {verdict}"
+                     f"{'' if len(timed_values) == scenes else ' so far'}.")
+    return lines
+
+
 def document(root: Path) -> str:
     """The whole of `docs/results.md` from the records under `root` (`results/`)."""
     grids = {g.preset: load_grid(g, root) for g in CAMPAIGN}
     paper, chromatic, ablation = grids["paper"], grids["chromatic"], grids["ablation"]
+    beyond, timed = grids["beyond"], grids["beyond-time"]
     parts = ["# Results against the paper", "",
              "Generated by `cvqpg results` from the cell records in `results/` (each cell's `config.json`, "
              "`metrics.json` and `spectrum.json`); do not edit it by hand, the test suite holds it to those "
@@ -548,5 +647,11 @@ def document(root: Path) -> str:
              *(t.markdown() for t in (gain_per_scene_table(chromatic, s) for s in ("rgb-10", "rgb-20")) if t.rows),
              *(f"- {line}" for line in frequency_lines(channel_frequency_curves(chromatic.plan, chromatic.results))
                if chromatic.done), "", runtime_table(chromatic, with_paper=False).markdown(),
+             "## Beyond the paper: the new recipe", "",
+             f"`--recipe {PRESETS['beyond'].recipe}` (docs/beyond.md) at equal N against the paper grid's cells above, "
+             "evaluated alike (mean PSNR over the planes against the noise-free targets).", "",
+             *(f"- {line}" for line in beyond_claims(paper, beyond, timed)), "",
+             *(beyond_table(paper, beyond, s).markdown() for s in BEYOND_SETTINGS),
+             *(timed_table(timed, s).markdown() for s in BEYOND_SETTINGS),
              "## Runtime", "", runtime_table(paper, with_paper=True).markdown()]
     return "\n".join(parts).rstrip() + "\n"

@@ -1,0 +1,49 @@
+"""Where a fit's primitives start: the paper's uniform draws (method.md §2), or positions drawn from the
+field that the targets imply on the SLM plane (docs/beyond.md)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from .config import FitConfig
+from .ops.propagation.reference import propagate
+from .primitives import Gaussians, init_gaussians, raw_positions
+from .targets import Scene
+
+SEED_OFFSET = 0x1417  # the position draws have their own generator: the paper's draws stay as they are
+
+
+def implied_slm_field(scene: Scene, config: FitConfig) -> Tensor:
+    """The field [C, H, W] that the targets imply on the SLM plane: each plane's target amplitude √I with
+    a flat phase, propagated back by its distance (BLASM, −d m), averaged over the planes."""
+    amplitude = scene.targets.clamp(min=0).sqrt().to(torch.complex64)
+    fields = [propagate(amplitude[plane], [-distance], config.wavelengths, config.pixel_pitch)[0]
+              for plane, distance in enumerate(config.plane_distances)]
+    return torch.stack(fields).mean(dim=0)
+
+
+def positions_from_energy(energy: Tensor, count: int, generator: torch.Generator) -> Tensor:
+    """`count` positions [count, 2] (x, y) px drawn with a probability proportional to `energy` [H, W] per
+    pixel, uniformly within the pixel."""
+    height, width = energy.shape
+    index = torch.multinomial(energy.flatten().double(), count, replacement=True, generator=generator)
+    pixel = torch.stack((index % width, index // width), dim=1).float()
+    return pixel + torch.rand(count, 2, generator=generator) - 0.5
+
+
+def initial_gaussians(config: FitConfig, scene: Scene | None = None) -> Gaussians:
+    """The raw parameters a fit starts from (`config.init`): the paper's uniform draws, or with `targets`
+    (which needs the `scene`) the same draws with positions moved to where the implied SLM field
+    (`implied_slm_field`) carries its energy."""
+    gaussians = init_gaussians(config.primitive_count, config.channels, config.width, config.height, config.seed,
+                               "cpu", config.curvature == "per-channel")
+    if config.init == "targets":
+        if scene is None:
+            raise ValueError("an initialisation from the targets needs the scene")
+        with torch.no_grad():
+            energy = implied_slm_field(scene, config).cpu().abs().square().sum(dim=0)
+            generator = torch.Generator().manual_seed(config.seed + SEED_OFFSET)
+            position = positions_from_energy(energy, config.primitive_count, generator)
+            gaussians.position.copy_(raw_positions(position, config.width, config.height))
+    return gaussians.to(config.device)
