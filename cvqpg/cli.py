@@ -1,4 +1,4 @@
-"""Command line: `cvqpg fit`, `eval`, `export`, `info`, `render`, `view`, `compress`, `decompress`,
+"""Command line: `cvqpg fit`, `eval`, `export`, `info`, `render`, `view`, `compress`, `decompress`, `encode`,
 `bench`, `results` and `compile`, thin wrappers over the library API."""
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from PIL import Image
 
 from . import __version__
 from .app.allocator import keep_freed_memory
-from .app.compilation import compile_all
+from .app.compilation import compile_all, prepare_kernels
 from .app.outputs import check_new_folder, check_output_file, check_output_folder, is_run_folder
 from .app.runner import CHECKPOINT_SECONDS, fit_in_folder, resumed_state, timed_config, write_fitted_run
 from .campaign.bench import (CELLS_DIR, METHODS, PRESETS, Overrides, RateDistortionOptions, describe_cells, make_plan,
@@ -37,6 +37,8 @@ from .errors import CvqpgError
 from .files import replace_folder, staged_folder
 from .export import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
 from .fitting import FitInterrupted, FitState, estimated_peak_bytes
+from .ratecontrol import (RATE_FINETUNE_STEPS, check_budget_values, compress_to_budget, encode_budget, encode_scene,
+                          encoding_record)
 from .runs import (CHECKPOINT_FILE, CONFIG_FILE, EXPORT_FOLDER, HALF_MODEL_FILE, METRICS_FILE, MODEL_FILE,
                    RENDER_FOLDER, evaluate_run, export_run, half_precision_model, model_path, read_run, render_model,
                    scene_from_source, start_run, write_atomic)
@@ -55,8 +57,8 @@ FLAGS = {"width": "--size", "height": "--size", "size": "--size", "num_planes": 
              "color", "primitive", "ratio", "steps", "seed", "bound", "qpf", "curvature", "device", "backend",
              "depth", "image", "max_drop", "bits", "prune", "finetune", "levels", "aperture", "slm", "distance",
              "encoding", "distances", "out")},
-         "finetune_steps": "--finetune", "prune_fraction": "--prune", "overwrite": "--overwrite", "time": "--time",
-         "recipe": "--recipe"}
+         "finetune_steps": "--finetune", "prune_fraction": "--prune", "overwrite": "--overwrite", "bpp": "--bpp",
+         "max_bytes": "--max-bytes", "time": "--time", "recipe": "--recipe"}
 
 
 class UsageError(CvqpgError):
@@ -110,11 +112,34 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
                        description="Fit N complex-valued 2D Gaussians so that the hologram they sum to "
                        "reproduces defocus-aware targets at every depth plane (method.md §2–§7).",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    _fit_options(p)
+    p.add_argument("--time", type=finite, metavar="MINUTES", help="instead of --steps: fit for about this long; "
+                   "a few steps are timed on this machine and fix the step count, which the run records (a --resume "
+                   "or a rerun with that --steps is exact)")
+    count = p.add_mutually_exclusive_group()
+    count.add_argument("--ratio", type=finite, default=DEFAULTS.ratio,
+                       help="primitive count as a fraction of W·H/2 (RGB) or W·H/4 (grayscale)")
+    count.add_argument("--num-gaussians", type=int, metavar="N", help="explicit primitive count N")
+    p.add_argument("--out", metavar="DIR", help="run folder [default: runs/<time>-<input>-<color>-"
+                   "<primitive>]")
+    p.add_argument("--overwrite", action="store_true", help="replace a run already in --out, as a whole, once the "
+                   "new fit has succeeded")
+    p.add_argument("--resume", metavar="RUN_DIR", help="continue an interrupted run from its last "
+                   "checkpoint with its own settings (other options are ignored)")
+    p.add_argument("--checkpoint-every", type=int, metavar="K", help="save a checkpoint every K steps "
+                   "(0: only when interrupted) [default: every 3 minutes of work]")
+    p.add_argument("--view", action="store_true", help=f"at the end, also write the run's view page "
+                   f"(RUN_DIR/{VIEW_FILE}, see `cvqpg view`)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+
+
+def _fit_options(p: argparse.ArgumentParser) -> None:
+    """What to fit and how (`_config_and_source` reads them): shared by `fit` and `encode`."""
     p.add_argument("image", nargs="?", help="input image file (any format Pillow reads); "
                    "without it the built-in --scene is used")
     p.add_argument("--depth", metavar="PATH|auto", help="depth map (0 = near); needed for --planes > 1. 'auto' "
                    f"estimates it with Depth Anything V2 ({DEPTH_MODEL}; needs the depth extra, fetches the weights "
-                   f"on first use) and saves it as {DEPTH_FILE} in the run folder")
+                   f"on first use); `cvqpg fit` saves it as {DEPTH_FILE} in the run folder")
     p.add_argument("--scene", choices=sorted(SCENES), help="built-in scene, generated at --size: "
                    "'demo' (RGB, 2 planes; the default without IMAGE) or 'star' (grayscale Siemens "
                    "star, single plane)")
@@ -122,19 +147,11 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
                    "grayscale at 639 nm [default: rgb; gray for --scene star]")
     p.add_argument("--primitive", choices=PRIMITIVES, default=DEFAULTS.primitive,
                    help="flat-phase baseline or CVQPG with learnable curvature")
-    count = p.add_mutually_exclusive_group()
-    count.add_argument("--ratio", type=finite, default=DEFAULTS.ratio,
-                       help="primitive count as a fraction of W·H/2 (RGB) or W·H/4 (grayscale)")
-    count.add_argument("--num-gaussians", type=int, metavar="N", help="explicit primitive count N")
     p.add_argument("--recipe", choices=tuple(RECIPES), default=DEFAULTS.recipe,
                    help="how to fit: 'paper' is the paper's recipe, bit for bit; the others, and what each "
                    "gains, are in docs/beyond.md")
-    budget = p.add_mutually_exclusive_group()
-    budget.add_argument("--steps", type=int, help=f"optimisation steps (the loop runs indices 0..steps, as the "
-                        f"reference) [default: {DEFAULTS.steps}]")
-    budget.add_argument("--time", type=finite, metavar="MINUTES", help="fit for about this long: the first steps "
-                        "are timed on this machine and fix the step count, which the run records (a --resume or a "
-                        "rerun with that --steps is exact)")
+    p.add_argument("--steps", type=int, help=f"optimisation steps (the loop runs indices 0..steps, as the "
+                   f"reference) [default: {DEFAULTS.steps}]")
     p.add_argument("--curvature-warmup", type=int, metavar="W",
                    help="steps with curvature frozen at 0 (CVQPG only) [default: steps/5, as 400 of 2000]")
     p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"),
@@ -165,17 +182,6 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
                    help="plane range V in m")
     p.add_argument("--resize-depth", action="store_true",
                    help="accept a depth map whose aspect ratio differs from the image's (it is stretched)")
-    p.add_argument("--out", metavar="DIR", help="run folder [default: runs/<time>-<input>-<color>-"
-                   "<primitive>]")
-    p.add_argument("--overwrite", action="store_true", help="replace a run already in --out, as a whole, once the "
-                   "new fit has succeeded")
-    p.add_argument("--resume", metavar="RUN_DIR", help="continue an interrupted run from its last "
-                   "checkpoint with its own settings (other options are ignored)")
-    p.add_argument("--checkpoint-every", type=int, metavar="K", help="save a checkpoint every K steps "
-                   "(0: only when interrupted) [default: every 3 minutes of work]")
-    p.add_argument("--view", action="store_true", help=f"at the end, also write the run's view page "
-                   f"(RUN_DIR/{VIEW_FILE}, see `cvqpg view`)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
 
 def _device_argument(p: argparse.ArgumentParser) -> None:
@@ -254,16 +260,39 @@ def _compression_parsers(sub: argparse._SubParsersAction) -> None:
     budget.add_argument("--bits", nargs="+", metavar="ATTR=B", help="fixed budget: ATTR=B for position "
                         "(fractional bits), scale, rotation, amplitude, phase, curvature; or one number for all "
                         f"but position [default of each: {' '.join(f'{k}={v}' for k, v in vars(BitDepths()).items())}]")
-    c.add_argument("--finetune", type=int, default=0, metavar="STEPS", help="quantisation-aware fine-tuning "
-                   "steps on the run's own targets (needs a run folder); kept only if it pays")
+    _rate_arguments(budget)
+    c.add_argument("--finetune", type=int, metavar="STEPS", help="quantisation-aware fine-tuning steps on the "
+                   "run's own targets (needs a run folder); kept only if it pays [default: 0; with --bpp or "
+                   f"--max-bytes {RATE_FINETUNE_STEPS} in a run folder]")
     c.add_argument("--prune", type=finite, default=0.0, metavar="FRACTION", help="with --finetune: first remove "
                    "this fraction (0 ≤ FRACTION < 1) of the primitives, those of least field energy, and let the "
                    "fine-tuning make up for them [default: 0]")
+    e = sub.add_parser("encode", help=f"fit an image straight into a {SUFFIX} file of a given size",
+                       description=f"Fit an image (or a built-in --scene) with as many primitives as the budget "
+                       "holds at the default bit depths (bytes per primitive measured with the codec, plus headroom), "
+                       f"then write a {SUFFIX} file of at most --bpp bits per hologram pixel or --max-bytes bytes, as "
+                       "`cvqpg compress --bpp` does. Writes FILE only.",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    _fit_options(e)
+    _rate_arguments(e.add_mutually_exclusive_group(required=True))
+    e.add_argument("--finetune", type=int, default=RATE_FINETUNE_STEPS, metavar="STEPS",
+                   help="quantisation-aware fine-tuning steps at the chosen bit depths; kept only if it pays")
+    e.add_argument("--out", metavar="FILE", required=True, help=f"the {SUFFIX} file")
+    _overwrite_argument(e, "the output file")
+    e.add_argument("--quiet", action="store_true", help="no progress bars or summary")
+    e.set_defaults(ratio=DEFAULTS.ratio, num_gaussians=None)  # the count follows from the budget
     d = sub.add_parser("decompress", help=f"turn a {SUFFIX} file back into a model file",
                        description=f"Decode a {SUFFIX} file into a float32 model file (model.safetensors format).")
     d.add_argument("file", metavar="FILE", help=f"{SUFFIX} file")
     d.add_argument("--out", metavar="MODEL", help="[default: FILE's stem + .decoded.safetensors]")
     _overwrite_argument(d, "the output file")
+
+
+def _rate_arguments(group: argparse._MutuallyExclusiveGroup) -> None:
+    group.add_argument("--bpp", type=finite, metavar="B", help="the file at most B bits per hologram pixel "
+                       "(8·bytes / (W·H), all channels, as `cvqpg info` reports): the primitives kept and their bit "
+                       "depths are searched, fine-tuned, and every size measured")
+    group.add_argument("--max-bytes", type=int, metavar="N", help="the file at most N bytes (as --bpp)")
 
 
 def _bench_parser(sub: argparse._SubParsersAction) -> None:
@@ -496,6 +525,8 @@ def _new_plan(args: argparse.Namespace) -> FitPlan:
     if args.checkpoint_every is not None and args.checkpoint_every < 0:
         raise UsageError(f"--checkpoint-every {args.checkpoint_every}: give a number of steps ≥ 1, or 0 for "
                          "checkpoints only when interrupted")
+    if args.time is not None and args.steps is not None:
+        raise UsageError("give --steps or --time, not both")
     config, source = _config_and_source(args)
     check_device(config.device)
     final = Path(args.out) if args.out else _default_out(source, config)
@@ -504,19 +535,23 @@ def _new_plan(args: argparse.Namespace) -> FitPlan:
     if work.exists():
         raise UsageError(f"{work} holds an interrupted fit; continue it with cvqpg fit --resume {work}, or delete it")
     check_memory(config, device_memory_bytes(config.device))
-    depth = None
-    if "depth_model" in source:
-        depth = estimate_depth(source["image"], load_depth_model(source["depth_model"]))
-        scene = load_scene(source["image"], depth, config)
+    scene, depth = _scene_and_depth(source, config)
+    if depth is not None:
         source["depth"] = DEPTH_FILE  # kept in the run folder, wherever it moves
-    else:
-        scene = scene_from_source(source, config)
     if args.time is not None:
         config, source["time_budget"] = timed_config(scene, config, args.time, progress=not args.quiet)
         if not args.quiet:
             print(f"--time {args.time:g}: {config.steps} steps at {source['time_budget']['seconds_per_step'] * 1e3:.0f} "
                   "ms each, measured here", file=sys.stderr)
     return FitPlan(work, final, config, source, scene, depth=depth)
+
+
+def _scene_and_depth(source: dict, config: FitConfig) -> tuple[Scene, Image.Image | None]:
+    """The scene of `_config_and_source`'s `source`, and the depth map estimated for it (`--depth auto`)."""
+    if "depth_model" not in source:
+        return scene_from_source(source, config), None
+    depth = estimate_depth(source["image"], load_depth_model(source["depth_model"]))
+    return load_scene(source["image"], depth, config), depth
 
 
 def _fit(plan: FitPlan, args: argparse.Namespace) -> int:
@@ -696,12 +731,22 @@ def run_compile(_args: argparse.Namespace) -> int:
 
 def run_compress(args: argparse.Namespace) -> int:
     bits = BitDepths.parse(args.bits) if args.bits else None
-    check_compression_settings(args.max_drop, args.finetune, args.prune)
+    rate = args.bpp is not None or args.max_bytes is not None
+    if rate and args.prune:
+        raise UsageError("--prune applies to --bits and --max-drop; with --bpp or --max-bytes the rate control "
+                         "chooses the primitives to keep")
+    check_compression_settings(args.max_drop, args.finetune or 0, args.prune)
+    if rate:
+        check_budget_values(args.bpp, args.max_bytes)
     model = model_path(args.target)
     out = args.out
     if model.is_file() and not is_compressed(model):  # otherwise compress_model says what the target is
         out = check_output_file(args.out or model.with_suffix(SUFFIX), [model], args.overwrite)
-    r = compress_model(Path(args.target), out, bits, args.max_drop, args.finetune, args.prune)
+    if rate:
+        r = compress_to_budget(Path(args.target), out, args.bpp, args.max_bytes, args.finetune, progress=True)
+        print(f"{r['file']}: {_rate_summary(r)}")
+        return 0
+    r = compress_model(Path(args.target), out, bits, args.max_drop, args.finetune or 0, args.prune)
     scored = (f", float {r['psnr_float']:.3f} dB" if r["psnr_float"] is not None
               else f" (drop estimated for a fit at {ASSUMED_FIT_PSNR_DB:g} dB)")
     print(f"{r['file']}: {r['bytes'] / 2**10:.1f} KiB, {r['bits_per_pixel']:.3f} bpp, {r['ratio']:.1f}× smaller than "
@@ -712,6 +757,35 @@ def run_compress(args: argparse.Namespace) -> int:
              + (f" after pruning {r['prune_fraction']:.0%} of the primitives" if r["prune_fraction"] else "")
              + f" ({'kept' if r['finetune_kept'] else 'did not pay, dropped'}); {r['num_primitives']} primitives"
              if r["finetune_steps"] else ""))
+    return 0
+
+
+def _rate_summary(r: dict) -> str:
+    """A rate-controlled file (`compress_to_budget`, `encode_scene`) in one line."""
+    budget = r["max_bytes"]
+    return (f"{r['bytes']} bytes of a budget of {budget} ({r['bytes'] / budget:.1%}), {r['bits_per_pixel']:.3f} bpp; "
+            f"{r['num_primitives']} primitives at bits " + " ".join(f"{k}={v}" for k, v in r["bits"].items())
+            + f"; PSNR {r['psnr']:.3f} dB against {r['reference']}"
+            + (f" (float {r['psnr_float']:.3f} dB)" if r["psnr_float"] is not None
+               else f" (drop estimated for a fit at {ASSUMED_FIT_PSNR_DB:g} dB)")
+            + (f"; fine-tuned {r['finetune_steps']} steps ({'kept' if r['finetune_kept'] else 'did not pay, dropped'})"
+               if r["finetune_steps"] else "; not fine-tuned"))
+
+
+def run_encode(args: argparse.Namespace) -> int:
+    config, source = _config_and_source(args)
+    check_device(config.device)
+    check_compression_settings(None, args.finetune, 0.0)
+    budget = encode_budget(config, args.bpp, args.max_bytes)
+    out = check_output_file(args.out, [Path(source[key]) for key in ("image", "depth") if key in source],
+                            args.overwrite)
+    check_memory(config, device_memory_bytes(config.device))
+    scene, _ = _scene_and_depth(source, config)
+    prepare_kernels(config, show_status=not args.quiet)
+    encoded = encode_scene(scene, config, budget, args.finetune, progress=not args.quiet)
+    write_atomic(out, encoded.rate.choice.data)
+    if not args.quiet:
+        print(f"{out}: {_rate_summary(encoding_record(encoded, out, budget))}")
     return 0
 
 
@@ -802,7 +876,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return {"fit": run_fit, "eval": run_eval, "export": run_export, "info": run_info,
                 "render": run_render, "bench": run_bench, "results": run_results,
                 "compile": run_compile, "view": run_view, "compress": run_compress,
-                "decompress": run_decompress}[args.command](args)
+                "decompress": run_decompress, "encode": run_encode}[args.command](args)
     except CvqpgError as error:
         print(f"cvqpg {args.command}: error: {flag_message(str(error))}", file=sys.stderr)
         return 2

@@ -40,6 +40,11 @@ MAX_POSITION_BITS = 8
 MAX_BITS = 16
 
 
+def bits_per_pixel(size_bytes: int, config: FitConfig) -> float:
+    """8·bytes / (W·H): a file's bits per hologram pixel, all channels together (`cvqpg info`'s bpp)."""
+    return 8 * size_bytes / (config.width * config.height)
+
+
 def _limits(name: str) -> tuple[int, int]:
     """Valid bit depths of an attribute: positions from whole pixels (0) to 1/256 px; the others 2..16."""
     return (0, MAX_POSITION_BITS) if name == "position" else (2, MAX_BITS)
@@ -76,10 +81,12 @@ class BitDepths:
     def names(self) -> list[str]:
         return [f.name for f in fields(self)]
 
-    def shifted_one(self, name: str) -> "BitDepths | None":
-        """One bit coarser in attribute `name`, or None at its lowest depth."""
-        value = getattr(self, name) - 1
-        return replace(self, **{name: value}) if value >= _limits(name)[0] else None
+    def shifted_one(self, name: str, delta: int = -1) -> "BitDepths | None":
+        """`delta` bits finer (coarser when negative, by default one) in attribute `name`, or None beyond its
+        valid depths."""
+        value = getattr(self, name) + delta
+        low, top = _limits(name)
+        return replace(self, **{name: value}) if low <= value <= top else None
 
     @classmethod
     def parse(cls, items: list[str]) -> "BitDepths":
@@ -201,6 +208,15 @@ def coding(primitives: Primitives, config: FitConfig, bits: BitDepths) -> Coding
         bound = curvature_bound(scale, config).double()
         values["curvature"] = p["curvature_per_m"] / torch.where(bound > 0, bound, 1.0)
     return Coding(values, ranges, chosen)
+
+
+def range_holders(primitives: Primitives) -> Tensor:
+    """Indices of the primitives whose values set the header's ranges (`coding`): the smallest and the largest
+    scale, and the largest |amplitude·opacity|. Removing any other primitive leaves the ranges, and so every
+    attribute's bins, as they were."""
+    scale = primitives.scale_px.detach().reshape(-1)
+    weight = (primitives.amplitude * primitives.opacity[:, None]).detach().abs().reshape(-1)
+    return torch.stack([scale.argmin() // 2, scale.argmax() // 2, weight.argmax() // primitives.channels]).unique()
 
 
 def folded(values: dict[str, Tensor]) -> dict[str, Tensor]:

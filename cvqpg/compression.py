@@ -12,7 +12,7 @@ from typing import Any
 
 import torch
 
-from .codec import SUFFIX, BitDepths, decode, encode
+from .codec import SUFFIX, BitDepths, bits_per_pixel, decode, encode
 from .config import FitConfig
 from .errors import ConfigError, ModelFileError
 from .files import write_atomic
@@ -22,6 +22,7 @@ from .metrics import mean_psnr
 from .primitives import Primitives, field_energy
 from .runs import CONFIG_FILE, load_run_model, model_path, scene_from_source
 from .storage import is_compressed, load_model, read_compressed, save_model
+from .targets import Scene
 
 # The budgets `max_drop` tries, coarsest first: the defaults shifted together.
 LADDER = tuple(BitDepths().shifted(delta) for delta in range(-3, 7))
@@ -38,11 +39,13 @@ class Reference:
     fit_psnr: float | None
 
 
-def reference_for(primitives: Primitives, config: FitConfig, scene_targets: torch.Tensor | None) -> Reference:
-    """The run's targets with the float model's PSNR on them, or the float model's reconstruction."""
+def reference_for(primitives: Primitives, config: FitConfig, scene_targets: torch.Tensor | None,
+                  label: str = "the run's targets") -> Reference:
+    """The scene's targets (named `label`) with the float model's PSNR on them, or the float model's
+    reconstruction."""
     recon = render(primitives, config)[1]
     if scene_targets is not None:
-        return Reference(scene_targets, "the run's targets", mean_psnr(recon, scene_targets))
+        return Reference(scene_targets, label, mean_psnr(recon, scene_targets))
     return Reference(recon, "the float model's own reconstruction", None)
 
 
@@ -107,14 +110,26 @@ def _check_prune_fraction(fraction: float) -> None:
                           "0 ≤ fraction < 1")
 
 
+def strongest_first(primitives: Primitives, first: torch.Tensor | None = None) -> torch.Tensor:
+    """Indices of the primitives by decreasing field energy (`field_energy`), ties in their order, those of
+    the indices `first` ahead of all the others [N]."""
+    energy = field_energy(primitives)
+    if first is not None:
+        energy = energy.index_fill(0, first, math.inf)
+    return torch.argsort(energy, descending=True, stable=True)
+
+
+def kept(primitives: Primitives, order: torch.Tensor, count: int) -> Primitives:
+    """The first `count` primitives of `order` (e.g. `strongest_first`), in their own order."""
+    chosen = order[:count].sort().values
+    return type(primitives).from_tensors({name: tensor[chosen] for name, tensor in primitives.tensors().items()})
+
+
 def prune(primitives: Primitives, fraction: float) -> Primitives:
     """The primitives without the `fraction` (0 ≤ fraction < 1) of least field energy (`field_energy`),
     the others in their order. The rest only regain the PSNR lost with fine-tuning (`finetune`)."""
     _check_prune_fraction(fraction)
-    kept = round((1 - fraction) * primitives.count)
-    order = torch.argsort(field_energy(primitives), descending=True, stable=True)
-    chosen = order[:kept].sort().values
-    return type(primitives).from_tensors({name: tensor[chosen] for name, tensor in primitives.tensors().items()})
+    return kept(primitives, strongest_first(primitives), round((1 - fraction) * primitives.count))
 
 
 def check_compression_settings(max_drop: float | None, finetune_steps: int, prune_fraction: float) -> None:
@@ -129,18 +144,20 @@ def check_compression_settings(max_drop: float | None, finetune_steps: int, prun
                           "cost PSNR that only fine-tuning regains")
 
 
-def compress_model(target: str | Path, out: str | Path | None = None, bits: BitDepths | None = None,
-                   max_drop: float | None = None, finetune_steps: int = 0, prune_fraction: float = 0.0
-                   ) -> dict[str, Any]:
-    """Compress a run folder's model or a model file into a `.cvq` file (atomically) and report it.
+@dataclass
+class CompressionInput:
+    """A float model to compress: its file, primitives and settings, and its run's scene (None for a model
+    file outside a run folder)."""
 
-    `bits` fixes the budget; otherwise `max_drop` (dB, default 0.1) picks it with `choose_bits`. A
-    model inside a run folder is scored against the run's targets, a bare model file against its own
-    reconstruction. `finetune_steps` > 0 first tunes the model at the budget (needs the run folder),
-    after removing the `prune_fraction` of its primitives of least field energy (`prune`; it needs
-    fine-tuning, and like it is kept only where it pays).
-    """
-    check_compression_settings(max_drop, finetune_steps, prune_fraction)
+    model_file: Path
+    primitives: Primitives
+    config: FitConfig
+    scene: Scene | None
+
+
+def compression_input(target: str | Path, finetune_steps: int = 0) -> CompressionInput:
+    """The float model of a run folder, or a model file with its run's scene where it lies in one;
+    `ConfigError` where `finetune_steps` > 0 but there is no run folder whose targets it could tune on."""
     model_file = model_path(target)
     if not model_file.is_file():
         raise ModelFileError(f"{target}: no such run folder or model file")
@@ -150,12 +167,44 @@ def compress_model(target: str | Path, out: str | Path | None = None, bits: BitD
     if finetune_steps and folder is None:
         raise ConfigError(f"`finetune_steps` needs the run folder's inputs; {model_file} is not in a run folder")
     if folder is None:
-        primitives, config = load_model(model_file)
-        scene = None
-    else:
-        primitives, config, source = load_run_model(folder, model_file)
-        scene = scene_from_source(source, config)
-    out = Path(out) if out is not None else model_file.with_suffix(SUFFIX)
+        return CompressionInput(model_file, *load_model(model_file), None)
+    primitives, config, source = load_run_model(folder, model_file)
+    return CompressionInput(model_file, primitives, config, scene_from_source(source, config))
+
+
+def choice_record(choice: Choice, reference: Reference, config: FitConfig) -> dict[str, Any]:
+    """A chosen file's size (bytes, bits per hologram pixel), bit depths, primitives, and PSNR and drop (dB)
+    against the reference (with the float model's PSNR on it, where known)."""
+    return {"bytes": len(choice.data), "bits_per_pixel": bits_per_pixel(len(choice.data), config),
+            "bits": asdict(choice.bits), "num_primitives": choice.decoded.count, "reference": reference.label,
+            "psnr_float": reference.fit_psnr, "psnr": choice.psnr, "drop": choice.drop}
+
+
+def compression_record(given: CompressionInput, out: Path, choice: Choice, reference: Reference, seconds: float,
+                       **settings: Any) -> dict[str, Any]:
+    """What `compress_model` and `ratecontrol.compress_to_budget` report: the file written (`choice_record`)
+    beside the model file it came from, `settings`, and the seconds the choice took."""
+    model_bytes = given.model_file.stat().st_size
+    return {"file": str(out), "model": str(given.model_file), **choice_record(choice, reference, given.config),
+            "model_bytes": model_bytes, "ratio": model_bytes / len(choice.data), **settings, "seconds": seconds}
+
+
+def compress_model(target: str | Path, out: str | Path | None = None, bits: BitDepths | None = None,
+                   max_drop: float | None = None, finetune_steps: int = 0, prune_fraction: float = 0.0
+                   ) -> dict[str, Any]:
+    """Compress a run folder's model or a model file into a `.cvq` file (atomically) and report it.
+
+    `bits` fixes the budget; otherwise `max_drop` (dB, default 0.1) picks it with `choose_bits`. A
+    model inside a run folder is scored against the run's targets, a bare model file against its own
+    reconstruction. `finetune_steps` > 0 first tunes the model at the budget (needs the run folder),
+    after removing the `prune_fraction` of its primitives of least field energy (`prune`; it needs
+    fine-tuning, and like it is kept only where it pays). `ratecontrol.compress_to_budget` compresses to
+    a file size instead.
+    """
+    check_compression_settings(max_drop, finetune_steps, prune_fraction)
+    given = compression_input(target, finetune_steps)
+    primitives, config, scene = given.primitives, given.config, given.scene
+    out = Path(out) if out is not None else given.model_file.with_suffix(SUFFIX)
     started = time.perf_counter()
     reference = reference_for(primitives, config, None if scene is None else scene.targets)
     max_drop = 0.1 if bits is None and max_drop is None else max_drop
@@ -178,14 +227,8 @@ def compress_model(target: str | Path, out: str | Path | None = None, bits: BitD
         choice = candidate if tuned else choice
     seconds = time.perf_counter() - started
     write_atomic(out, choice.data)
-    pixels = config.width * config.height
-    return {"file": str(out), "model": str(model_file), "bytes": len(choice.data),
-            "bits_per_pixel": 8 * len(choice.data) / pixels, "model_bytes": model_file.stat().st_size,
-            "ratio": model_file.stat().st_size / len(choice.data), "bits": asdict(choice.bits),
-            "reference": reference.label, "psnr_float": reference.fit_psnr, "psnr": choice.psnr,
-            "drop": choice.drop, "max_drop": max_drop, "finetune_steps": finetune_steps, "finetune_kept": tuned,
-            "prune_fraction": prune_fraction, "num_primitives": choice.decoded.count,
-            "seconds": seconds}
+    return compression_record(given, out, choice, reference, seconds, max_drop=max_drop,
+                              finetune_steps=finetune_steps, finetune_kept=tuned, prune_fraction=prune_fraction)
 
 
 def decompress_file(path: str | Path, out: str | Path | None = None) -> Path:

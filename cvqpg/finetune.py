@@ -7,13 +7,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from typing import Callable
 
 import torch
 from torch import Tensor
 
 from .codec import BitDepths, Quantiser, coding, folded, primitives_from
 from .config import FitConfig
-from .fitting import hologram, hologram_loss
+from .fitting import hologram, hologram_loss, psnr_from_mse
 from .primitives import Primitives
 from .targets import Scene
 
@@ -37,7 +38,7 @@ def quantised(values: dict[str, Tensor], quantisers: dict[str, Quantiser], confi
 
 
 def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitDepths, steps: int,
-             seed: int | None = None) -> Primitives:
+             seed: int | None = None, on_step: Callable[[int, float], None] | None = None) -> Primitives:
     """`steps` Adam steps on the coded attributes (position px, log scale, rotation, signed
     amplitude·opacity, phase, curvature as a share of γ_max) through their quantisers at `bits`.
 
@@ -46,10 +47,13 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
     step moves a value by about a quarter of a bin at most. Returns float primitives (opacity 1) that the
     codec then quantises. The codec takes the ranges of log scale and |amplitude| from the model, so
     the entries at their extremes are held fixed and the others kept within them: the file's ranges,
-    and its bins, are then those the loop trained against.
+    and its bins, are then those the loop trained against. `on_step(step, psnr)` is called at each step with
+    the PSNR (dB, mean over planes) of the quantised render the step trains on.
     """
     coded = coding(primitives, config, bits)
     params = {name: value.to(config.device, copy=True) for name, value in coded.values.items()}
+    # scenes are built on the CPU; a run fitted on a GPU tunes there, as `fit_scene` fits there
+    scene = Scene(*(t.to(config.device) for t in (scene.image, scene.masks, scene.targets)))
     held = {"scale": _extremes(params["scale"]), "amplitude": _extremes(params["amplitude"].abs())}
     held_values = {name: params[name].view(-1)[index].clone() for name, index in held.items()}
     for value in params.values():
@@ -59,9 +63,11 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
     schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda i: min(1.0, (i + 1) / (RAMP_STEPS + 1))
                                                  * 0.5 * (1 + math.cos(math.pi * i / max(steps, 1))))
     generator = torch.Generator(device=config.device).manual_seed(config.seed if seed is None else seed)
-    for _ in range(steps):
-        loss, _ = hologram_loss(hologram(quantised(params, coded.quantisers, config), config), scene, config,
-                                generator)
+    for step in range(steps):
+        loss, mse = hologram_loss(hologram(quantised(params, coded.quantisers, config), config), scene, config,
+                                  generator)
+        if on_step is not None:  # reads the device back: only for a caller that shows progress
+            on_step(step, float(psnr_from_mse(mse)))
         optimizer.zero_grad(set_to_none=True)
         if not torch.isfinite(loss):
             continue

@@ -13,7 +13,7 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save
 
-from .codec import MAGIC, SUFFIX, Compressed, decode
+from .codec import MAGIC, SUFFIX, Compressed, bits_per_pixel, decode
 from .config import FitConfig
 from .errors import ModelFileError, choices_error
 from .files import atomic_file, write_atomic
@@ -129,7 +129,7 @@ def model_info(path: str | Path) -> dict[str, Any]:
             "learnable_params": primitives.count * config.params_per_primitive,
             "stored_values": sum(t.numel() for t in primitives.tensors().values()), "dtype": dtype,
             "file_bytes": file_bytes, "hologram_px": [config.width, config.height],
-            "channels": config.channels, "bits_per_pixel": 8 * file_bytes / (config.width * config.height), **extra}
+            "channels": config.channels, "bits_per_pixel": bits_per_pixel(file_bytes, config), **extra}
 
 
 def save_checkpoint(path: str | Path, payload: dict) -> None:

@@ -131,7 +131,7 @@ def test_help_explains_options_with_units_and_defaults(capsys):
 
 
 @pytest.mark.parametrize("command", ["fit", "eval", "render", "export", "info", "view", "compress", "decompress",
-                                     "bench", "results", "compile"])
+                                     "encode", "bench", "results", "compile"])
 def test_every_command_prints_its_help(command, capsys):
     assert main([command, "--help"]) == 0
     assert f"usage: cvqpg {command}" in capsys.readouterr().out

@@ -68,6 +68,7 @@ FIT = "--size 32 24 --steps 1 --quiet --out new_run"  # a fit that is wrongly ac
 SWEEP = "--distances 0.001 0.002 2"  # the same for a page
 BENCH = "--preset star --size 32 24 --steps 2 --scene-names star --quiet --out new_bench"
 RD_BENCH = "--preset compression --scenes {scenes} --fits bench --size 32 24 --steps 2 --quiet --out new_bench"
+ENCODE = "encode {image} --depth {depth} --size 32 24 --steps 1 --finetune 1 --quiet"  # as FIT, into a file
 
 
 class Case(NamedTuple):
@@ -169,6 +170,20 @@ NUMBERS = cases(
     ("bench-warmup-negative", f"bench {BENCH} --curvature-warmup -1", "--curvature-warmup"),
     ("bench-warmup-beyond-steps", f"bench {BENCH} --curvature-warmup 99999", "--curvature-warmup"),
     ("bench-finetune-negative", f"bench {RD_BENCH} --finetune -1", "--finetune"),
+    ("compress-bpp-0", "compress {run} --bpp 0 --out new.cvq", "--bpp"),
+    ("compress-bpp-negative", "compress {run} --bpp -1 --out new.cvq", "--bpp"),
+    ("compress-bpp-nan", "compress {run} --bpp nan --out new.cvq", "--bpp"),
+    ("compress-bpp-inf", "compress {run} --bpp inf --out new.cvq", "--bpp"),
+    ("compress-bpp-below-the-smallest-file", "compress {run} --bpp 1 --out new.cvq", "--bpp 1 (96 bytes"),
+    ("compress-max-bytes-0", "compress {run} --max-bytes 0 --out new.cvq", "--max-bytes"),
+    ("compress-max-bytes-below-the-smallest-file", "compress {run} --max-bytes 50 --out new.cvq", "smallest file"),
+    ("encode-bpp-0", f"{ENCODE} --bpp 0 --out new.cvq", "--bpp"),
+    ("encode-bpp-nan", f"{ENCODE} --bpp nan --out new.cvq", "--bpp"),
+    ("encode-bpp-inf", f"{ENCODE} --bpp inf --out new.cvq", "--bpp"),
+    ("encode-bpp-below-the-smallest-file", f"{ENCODE} --bpp 1 --out new.cvq", "smallest file"),
+    ("encode-max-bytes-negative", f"{ENCODE} --max-bytes -5 --out new.cvq", "--max-bytes"),
+    ("encode-finetune-negative", f"{ENCODE} --finetune -1 --bpp 8 --out new.cvq", "--finetune"),
+    ("encode-steps-0", f"{ENCODE} --steps 0 --bpp 8 --out new.cvq", "--steps"),
 )
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -208,6 +223,14 @@ USAGE = cases(
     ("view-distances-two-numbers", "view {run} --distances 0.001 0.002 --quiet --out new.html", "--distances"),
     ("compress-bits-and-max-drop", "compress {run} --bits 8 --max-drop 0.1 --out new.cvq", "--max-drop"),
     ("compress-finetune-not-whole", "compress {run} --finetune 1.5 --out new.cvq", "--finetune"),
+    ("compress-bpp-and-max-drop", "compress {run} --bpp 8 --max-drop 0.1 --out new.cvq", "--max-drop"),
+    ("compress-bpp-and-bits", "compress {run} --bpp 8 --bits 6 --out new.cvq", "--bits"),
+    ("compress-bpp-and-max-bytes", "compress {run} --bpp 8 --max-bytes 900 --out new.cvq", "--max-bytes"),
+    ("compress-bpp-and-prune", "compress {run} --bpp 8 --finetune 1 --prune 0.1 --out new.cvq", "--prune"),
+    ("encode-no-budget", "encode {image} --depth {depth} --out new.cvq", "--bpp"),
+    ("encode-no-out", "encode {image} --depth {depth} --bpp 8", "--out"),
+    ("encode-max-drop", f"{ENCODE} --bpp 8 --max-drop 0.1 --out new.cvq", "--max-drop"),
+    ("encode-image-and-scene", f"{ENCODE} --scene star --bpp 8 --out new.cvq", "--scene"),
     ("decompress-no-file", "decompress", "FILE"),
     ("decompress-unknown-flag", "decompress {cvq} --bits 8 --out new.safetensors", "--bits"),
     ("bench-preset-nope", f"bench {BENCH} --preset nope", "nope"),
@@ -365,6 +388,12 @@ OUTPUTS = cases(
     ("compress-out-under-a-file", "compress {run} --bits 8 --out {image}/out.cvq", "photo.png"),
     ("compress-out-unwritable", "compress {run} --bits 8 --out /proc/cvqpg-hostile.cvq", "/proc/cvqpg-hostile.cvq"),
     ("compress-out-readonly-folder", "compress {run} --bits 8 --out {readonly}/out.cvq", "readonly", True),
+    ("compress-bpp-out-the-model", "compress {run} --bpp 8 --out {model} --overwrite", "model.safetensors"),
+    ("encode-out-the-image", f"{ENCODE} --bpp 8 --out {{image}} --overwrite", "photo.png"),
+    ("encode-out-the-depth-map", f"{ENCODE} --bpp 8 --out {{depth}} --overwrite", "depth.png"),
+    ("encode-out-existing-file", f"{ENCODE} --bpp 8 --out {{text}}", "overwrite"),
+    ("encode-out-a-folder", f"{ENCODE} --bpp 8 --out {{folder}}", "folder"),
+    ("encode-out-run-model", f"{ENCODE} --bpp 8 --out {{model}} --overwrite", "model.safetensors"),
     ("decompress-out-own-input", "decompress {cvq} --out {cvq}", "model.cvq"),
     ("decompress-out-own-input-with-overwrite", "decompress {cvq} --out {cvq} --overwrite", "model.cvq"),
     ("decompress-out-the-run-model", "decompress {cvq} --out {model} --overwrite", "model.safetensors"),
@@ -541,8 +570,8 @@ def work(template, tmp_path, monkeypatch) -> Path:
 
 def test_the_table_covers_every_command_with_enough_cases():
     commands = {case.values[0].argv.split()[0] for case in CASES}
-    assert commands == {"fit", "eval", "export", "info", "render", "view", "compress", "decompress", "bench",
-                        "results", "compile"}
+    assert commands == {"fit", "eval", "export", "info", "render", "view", "compress", "decompress", "encode",
+                        "bench", "results", "compile"}
     assert len(CASES) >= 110
     ids = [case.id for case in CASES]
     assert len(ids) == len(set(ids))
@@ -586,6 +615,9 @@ SUCCESSES = {
     "fit-overwrite-replaces-the-whole-run": Success(
         "fit --size 32 24 --num-gaussians 20 --steps 2 --quiet --seed 5 --out {run} --overwrite", "run_a"),
     "compress-overwrite-replaces-only-its-file": Success("compress {run} --bits 6 --overwrite", "run_a/model.cvq"),
+    "compress-bpp-overwrite-replaces-only-its-file": Success("compress {run} --bpp 8 --finetune 1 --overwrite",
+                                                             "run_a/model.cvq"),
+    "encode-overwrite-replaces-only-its-file": Success(f"{ENCODE} --bpp 8 --out {{cvq}} --overwrite", "run_a/model.cvq"),
     "decompress-overwrite-replaces-only-its-file": Success("decompress {cvq} --overwrite",
                                                            "run_a/model.decoded.safetensors"),
     "export-overwrite-replaces-the-whole-folder": Success("export {run} --levels 16 --overwrite", "run_a/export"),

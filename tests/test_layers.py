@@ -90,6 +90,32 @@ def test_the_codec_and_storage_sit_below_the_workflows():
     assert "cvqpg.compression" not in GRAPH["cvqpg.finetune"] | GRAPH["cvqpg.runs"]
 
 
+# The modules that read, write and compress model files, each importing only those before it; storage alone
+# decides a file's format (safetensors or the .cvq codec) when it reads one.
+MODEL_FILE_LAYERS = ("cvqpg.storage", "cvqpg.runs", "cvqpg.finetune", "cvqpg.compression", "cvqpg.ratecontrol")
+
+
+def test_the_model_file_workflows_import_one_way():
+    """The circle storage/runs → compression → runs/storage/finetune → compression must not come back, not even
+    through an import inside a function."""
+    within = {name: GRAPH[name] & set(MODEL_FILE_LAYERS) for name in MODEL_FILE_LAYERS}
+    assert cycle_edges(within) == set()
+    upward = {(name, imported) for index, name in enumerate(MODEL_FILE_LAYERS)
+              for imported in within[name] if imported in MODEL_FILE_LAYERS[index:]}
+    assert upward == set(), "(importer, a module above it)"
+
+
+def test_a_cycle_among_the_model_file_workflows_would_be_found():
+    graph = {name: set(GRAPH[name]) for name in GRAPH}
+    graph["cvqpg.storage"].add("cvqpg.compression")  # as a loader importing the workflow once did
+    assert ("cvqpg.storage", "cvqpg.compression") in cycle_edges(graph)
+
+
+def test_only_storage_reads_and_writes_safetensors():
+    readers = {name for name, imported in IMPORTS.items() if any(m.split(".")[0] == "safetensors" for m in imported)}
+    assert readers == {"cvqpg.storage"}
+
+
 APP = "cvqpg.app"
 
 
