@@ -15,7 +15,7 @@ Bound = Literal["adaptive", "global"]
 Qpf = Literal["mahalanobis", "standard"]
 Curvature = Literal["shared", "per-channel", "channel-bound"]
 Backend = Literal["auto", "numba", "triton", "torch"]
-Init = Literal["uniform", "targets"]
+Init = Literal["uniform", "targets", "auto"]
 COLORS: tuple[str, ...] = get_args(Color)
 PRIMITIVES: tuple[str, ...] = get_args(Primitive)
 BOUNDS: tuple[str, ...] = get_args(Bound)
@@ -95,7 +95,7 @@ class FitConfig:
     qpf: Qpf = "mahalanobis"
     curvature: Curvature = "shared"
     lr: LearningRates = field(default_factory=lambda: RECIPES[DEFAULT_RECIPE]["lr"])
-    init: Init = "uniform"  # the default recipe's, as the two below (`RECIPES`)
+    init: Init = "uniform"  # the default recipe's, as the two below (`RECIPES`); `initialisation.resolved_init`
     density: DensityControl | None = None
     betas: tuple[float, float, float] = (0.98, 0.92, 0.99)
     adan_eps: float = 1e-8
@@ -267,8 +267,7 @@ class FitConfig:
 BEYOND_RECIPE = "beyond"
 RECIPES: dict[str, dict[str, Any]] = {
     "paper": {"lr": LearningRates(), "init": "uniform", "density": None},
-    BEYOND_RECIPE: {"lr": LearningRates(position=0.005, position_final=5e-4, opacity=0.05, rotation=0.002),
-                    "init": "targets", "density": None},
+    BEYOND_RECIPE: {"lr": LearningRates(), "init": "auto", "density": None},
 }
 DEFAULT_RECIPE = "paper"
 

@@ -12,6 +12,16 @@ from .primitives import Gaussians, init_gaussians, raw_positions
 from .targets import Scene
 
 SEED_OFFSET = 0x1417  # the position draws have their own generator: the paper's draws stay as they are
+# `init="auto"` starts from the targets in runs of at most this many steps, where it pays, and from the
+# paper's draws in longer ones, where it costs (docs/beyond.md).
+TARGETS_INIT_MAX_STEPS = 1000
+
+
+def resolved_init(config: FitConfig) -> str:
+    """`uniform` or `targets`: `config.init`, with `auto` resolved by the run's length."""
+    if config.init != "auto":
+        return config.init
+    return "targets" if config.steps <= TARGETS_INIT_MAX_STEPS else "uniform"
 
 
 def implied_slm_field(scene: Scene, config: FitConfig) -> Tensor:
@@ -33,12 +43,12 @@ def positions_from_energy(energy: Tensor, count: int, generator: torch.Generator
 
 
 def initial_gaussians(config: FitConfig, scene: Scene | None = None) -> Gaussians:
-    """The raw parameters a fit starts from (`config.init`): the paper's uniform draws, or with `targets`
+    """The raw parameters a fit starts from (`resolved_init`): the paper's uniform draws, or with `targets`
     (which needs the `scene`) the same draws with positions moved to where the implied SLM field
     (`implied_slm_field`) carries its energy."""
     gaussians = init_gaussians(config.primitive_count, config.channels, config.width, config.height, config.seed,
                                "cpu", config.curvature == "per-channel")
-    if config.init == "targets":
+    if resolved_init(config) == "targets":
         if scene is None:
             raise ValueError("an initialisation from the targets needs the scene")
         with torch.no_grad():
