@@ -14,7 +14,7 @@ from .targets import Scene
 SEED_OFFSET = 0x1417  # the position draws have their own generator: the paper's draws stay as they are
 # `init="auto"` starts from the targets in runs of at most this many steps, where it pays, and from the
 # paper's draws in longer ones, where it costs (docs/beyond.md).
-TARGETS_INIT_MAX_STEPS = 1000
+TARGETS_INIT_MAX_STEPS = 400
 
 
 def resolved_init(config: FitConfig) -> str:
