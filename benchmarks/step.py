@@ -150,7 +150,7 @@ def stage_actions(config: FitConfig, primitives: Primitives | None = None,
     whole steps too."""
     scene = demo_scene(config)
     config = config.replace(curvature_warmup=0 if curved else 10**9)
-    state = initial_state(config)
+    state = initial_state(config, scene)
     if primitives is not None:
         load_raw_parameters(state.gaussians, primitives, config)
     elif curved:

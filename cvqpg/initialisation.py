@@ -7,6 +7,7 @@ import torch
 from torch import Tensor
 
 from .config import FitConfig
+from .errors import ConfigError
 from .ops.propagation.reference import propagate
 from .primitives import Gaussians, init_gaussians, raw_positions
 from .targets import Scene
@@ -35,9 +36,13 @@ def implied_slm_field(scene: Scene, config: FitConfig) -> Tensor:
 
 def positions_from_energy(energy: Tensor, count: int, generator: torch.Generator) -> Tensor:
     """`count` positions [count, 2] (x, y) px drawn with a probability proportional to `energy` [H, W] per
-    pixel, uniformly within the pixel."""
+    pixel, uniformly within the pixel. Non-finite entries count as none; where nothing is left (black
+    targets), every pixel is as likely."""
     height, width = energy.shape
-    index = torch.multinomial(energy.flatten().double(), count, replacement=True, generator=generator)
+    weights = torch.nan_to_num(energy.double(), nan=0.0, posinf=0.0, neginf=0.0).clamp(min=0).flatten()
+    if not weights.sum() > 0:
+        weights = torch.ones_like(weights)
+    index = torch.multinomial(weights, count, replacement=True, generator=generator)
     pixel = torch.stack((index % width, index // width), dim=1).float()
     return pixel + torch.rand(count, 2, generator=generator) - 0.5
 
@@ -50,7 +55,7 @@ def initial_gaussians(config: FitConfig, scene: Scene | None = None) -> Gaussian
                                "cpu", config.curvature == "per-channel")
     if resolved_init(config) == "targets":
         if scene is None:
-            raise ValueError("an initialisation from the targets needs the scene")
+            raise ConfigError("`init` from the targets needs the scene; pass it, or set `init` to uniform")
         with torch.no_grad():
             energy = implied_slm_field(scene, config).cpu().abs().square().sum(dim=0)
             generator = torch.Generator().manual_seed(config.seed + SEED_OFFSET)

@@ -266,7 +266,7 @@ def test_non_finite_loss_skips_the_step():
     config = FitConfig(width=24, height=20, steps=5, curvature_warmup=1, num_gaussians=30, guard_band_px=8)
     scene = tiny_scene(config)
     scene.targets[0, 0, 0, 0] = float("nan")
-    state = initial_state(config)
+    state = initial_state(config, scene)
     before = {k: v.detach().clone() for k, v in state.gaussians.tensors().items()}
     optimisation_step(state, scene, config)
     assert state.skipped_steps == 1
@@ -296,7 +296,7 @@ def test_a_nan_step_leaves_parameters_and_optimiser_state_as_they_were(ordinary_
     """On the first step (no optimiser state yet) and after two ordinary ones (moments and counters)."""
     config = FitConfig(width=24, height=20, steps=5, curvature_warmup=1, num_gaussians=30, guard_band_px=8)
     scene = tiny_scene(config)
-    state = initial_state(config)
+    state = initial_state(config, scene)
     for _ in range(ordinary_steps):
         optimisation_step(state, scene, config)
         state.step += 1
@@ -310,7 +310,7 @@ def test_a_nan_step_leaves_parameters_and_optimiser_state_as_they_were(ordinary_
 def test_an_update_that_leaves_a_parameter_non_finite_is_undone_with_the_optimiser_state(monkeypatch):
     config = FitConfig(width=24, height=20, steps=5, curvature_warmup=1, num_gaussians=30, guard_band_px=8)
     scene = tiny_scene(config)
-    state = initial_state(config)
+    state = initial_state(config, scene)
     optimisation_step(state, scene, config)
     state.step += 1
     before = optimiser_snapshot(state)
@@ -366,7 +366,7 @@ def test_steps_are_read_back_after_each_on_the_cpu_and_every_half_second_on_cuda
 def test_propagation_loss_and_update_read_nothing_back_on_cuda():
     """Everything of a step after the rasterizer, under CUDA's sync debug mode set to fail on a host read."""
     config = FitConfig(width=24, height=20, steps=5, curvature_warmup=0, num_gaussians=30, guard_band_px=8, device="cuda")
-    state = initial_state(config)
+    state = initial_state(config.replace(init="uniform"))
     with torch.no_grad():
         hologram = fitting.render_hologram(state.gaussians, config).requires_grad_(True)
     scene = tiny_scene(config)
@@ -392,7 +392,7 @@ def test_propagation_loss_and_update_read_nothing_back_on_cuda():
 def test_non_finite_gradient_entries_are_zeroed_and_counted():
     config = FitConfig(width=24, height=20, steps=5, curvature_warmup=1, num_gaussians=30, guard_band_px=8)
     scene = tiny_scene(config)
-    state = initial_state(config)
+    state = initial_state(config, scene)
     poison = torch.zeros(30, 3)
     poison[4, 1] = float("inf")
     state.gaussians.amplitude.register_hook(lambda grad: grad + poison)

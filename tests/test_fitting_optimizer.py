@@ -157,7 +157,7 @@ def tiny_setup(curvature_warmup: int = 3):
     image = torch.rand(3, 24, 32, generator=g) * 0.8
     depth = torch.rand(24, 32, generator=g)
     scene = build_scene(image, depth, config)
-    return config, scene, initial_state(config)
+    return config, scene, initial_state(config, scene)
 
 
 def run_step(state, scene, config):

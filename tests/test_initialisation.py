@@ -1,0 +1,66 @@
+"""Initialisation from the targets: where the implied SLM field carries energy, the paper's other draws
+kept, only in short runs under `auto`, and safe on black or damaged targets."""
+
+import math
+
+import pytest
+import torch
+
+from cvqpg import FitConfig, builtin_scene
+from cvqpg.errors import ConfigError
+from cvqpg.initialisation import (TARGETS_INIT_MAX_STEPS, implied_slm_field, initial_gaussians, positions_from_energy,
+                                  resolved_init)
+from cvqpg.ops.propagation.reference import propagate
+from cvqpg.primitives import init_gaussians, positions_px
+from cvqpg.targets import Scene
+
+CONFIG = FitConfig(width=48, height=36, num_gaussians=400, steps=20, guard_band_px=16, color="gray", init="targets")
+
+
+def test_positions_follow_the_energy():
+    energy = torch.zeros(36, 48)
+    energy[10:14, 30:34] = 1.0
+    position = positions_from_energy(energy, 500, torch.Generator().manual_seed(0))
+    assert ((position[:, 0] >= 29.5) & (position[:, 0] < 33.5) & (position[:, 1] >= 9.5)
+            & (position[:, 1] < 13.5)).all()
+
+
+@pytest.mark.parametrize("energy", [torch.zeros(36, 48), torch.full((36, 48), float("nan"))])
+def test_black_or_damaged_targets_fall_back_to_every_pixel_alike(energy):
+    position = positions_from_energy(energy, 2000, torch.Generator().manual_seed(0))
+    assert torch.isfinite(position).all()
+    assert position[:, 0].min() < 5 and position[:, 0].max() > 42
+
+
+def test_a_plane_s_target_propagates_back_to_a_field_that_reproduces_it():
+    """One plane: the implied field, propagated forward by the same distance, gives the target amplitude back."""
+    config = CONFIG.replace(num_planes=1, width=64, height=64)
+    target = torch.zeros(1, 1, 64, 64)
+    target[..., 24:40, 24:40] = 1.0
+    scene = Scene(target[0], torch.ones(1, 64, 64), target)
+    field = implied_slm_field(scene, config)
+    back = propagate(field, [config.plane_distances[0]], config.wavelengths, config.pixel_pitch)[0].abs()
+    assert torch.allclose(back[0, 28:36, 28:36], torch.ones(8, 8), atol=0.15)
+    assert math.isclose(field.abs().square().sum().item(), target.sum().item(), rel_tol=0.2)
+
+
+def test_only_positions_move_and_the_paper_s_draws_stay():
+    scene = builtin_scene("demo", CONFIG)
+    ours, paper = initial_gaussians(CONFIG, scene), init_gaussians(400, 1, 48, 36, CONFIG.seed)
+    for name, tensor in paper.tensors().items():
+        if name != "position":
+            assert torch.equal(ours.tensors()[name], tensor), name
+    assert not torch.equal(ours.position, paper.position)
+    assert torch.equal(initial_gaussians(CONFIG.replace(init="uniform")).position, paper.position)
+    assert torch.isfinite(positions_px(ours.position, 48, 36)).all()
+
+
+def test_auto_starts_from_the_targets_in_short_runs_only():
+    assert resolved_init(CONFIG.replace(init="auto", steps=TARGETS_INIT_MAX_STEPS)) == "targets"
+    assert resolved_init(CONFIG.replace(init="auto", steps=TARGETS_INIT_MAX_STEPS + 1)) == "uniform"
+    assert FitConfig().init == "auto" and FitConfig().with_recipe("paper").init == "uniform"
+
+
+def test_the_targets_are_needed_to_start_from_them():
+    with pytest.raises(ConfigError, match="`init`"):
+        initial_gaussians(CONFIG)
