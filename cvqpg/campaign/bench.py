@@ -32,6 +32,7 @@ from ..app.runner import fit_in_folder, resumed_state, write_fitted_run
 from ..config import BEYOND_RECIPE, FitConfig, default_curvature_warmup
 from ..errors import CvqpgError
 from ..fitting import FitInterrupted, FitState, estimated_peak_bytes
+from ..initialisation import resolved_init
 from ..metrics import radial_error_spectrum
 from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, MODEL_FILE, read_run, scene_from_source, start_run,
                     write_atomic, write_json)
@@ -359,8 +360,10 @@ def cell_status(folder: Path, done_file: str = METRICS_FILE) -> str:
 
 def _comparable(config: FitConfig) -> FitConfig:
     """Device and backend change the last bits only; a resumed or finished cell may differ in them. A
-    default curvature warm-up is compared as the steps it resolves to."""
-    return config.replace(device="cpu", backend="auto", curvature_warmup=config.curvature_warmup_steps)
+    default curvature warm-up is compared as the steps it resolves to, an `auto` initialisation as the one
+    it resolves to."""
+    return config.replace(device="cpu", backend="auto", curvature_warmup=config.curvature_warmup_steps,
+                          init=resolved_init(config))
 
 
 def config_differences(folder: Path, config: FitConfig) -> list[str]:
