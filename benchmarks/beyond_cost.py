@@ -1,0 +1,73 @@
+"""What the initialisation from the targets and density control add to a fit's time, measured side by side.
+
+    python benchmarks/beyond_cost.py                       # grayscale 10%, 640×480, the demo scene
+    python benchmarks/beyond_cost.py --color rgb
+
+Times, in turns over several rounds (medians): an update step, the paper's initialisation, the one from
+the targets, and one relocation event of density control (`density.Relocator.relocate`, its render
+included). Prints each in ms and what the extras add to a 2000-step fit (2001 updates): the targets'
+initialisation once, and the events of `DensityControl()`'s defaults.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from typing import Callable
+
+from cvqpg import FitConfig, builtin_scene
+from cvqpg.app.compilation import prepare_kernels
+from cvqpg.config import DensityControl
+from cvqpg.density import Relocator
+from cvqpg.fitting import initial_state, optimisation_step, render_hologram
+from cvqpg.initialisation import initial_gaussians
+
+ROUNDS = 5
+STEPS = 2000
+
+
+def seconds(action: Callable[[], object]) -> float:
+    start = time.perf_counter()
+    action()
+    return time.perf_counter() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--color", choices=("gray", "rgb"), default="gray")
+    args = parser.parse_args()
+    config = FitConfig(color=args.color, ratio=0.1, steps=STEPS).with_recipe("paper").replace(density=DensityControl())
+    prepare_kernels(config, show_status=False)
+    scene = builtin_scene("demo", config)
+    state = initial_state(config, scene)
+    relocator = Relocator.for_config(config)
+    optimisation_step(state, scene, config)
+
+    def step() -> None:
+        optimisation_step(state, scene, config)
+
+    def relocate() -> None:
+        relocator.relocate(state.gaussians, state.optimizer, scene, config,
+                           render_hologram(state.gaussians, config).detach())
+
+    actions = {"update step": step,
+               "initialisation, paper": lambda: initial_gaussians(config.replace(init="uniform"), scene),
+               "initialisation, from the targets": lambda: initial_gaussians(config.replace(init="targets"), scene),
+               "relocation event": relocate}
+    times: dict[str, list[float]] = {name: [] for name in actions}
+    for _ in range(ROUNDS):
+        for name, action in actions.items():
+            times[name].append(seconds(action))
+    median = {name: statistics.median(values) for name, values in times.items()}
+    for name, value in median.items():
+        print(f"{name:34s} {value * 1e3:9.1f} ms")
+    fit = (STEPS + 1) * median["update step"]
+    init_extra = median["initialisation, from the targets"] - median["initialisation, paper"]
+    events = len(config.density.event_steps(STEPS))
+    print(f"a {STEPS}-step fit: {fit:.0f} s of updates; the targets' initialisation adds {init_extra / fit:+.2%}, "
+          f"density control's {events} events {events * median['relocation event'] / fit:+.2%}")
+
+
+if __name__ == "__main__":
+    main()
