@@ -1,4 +1,5 @@
-"""Fit configuration: every setting of method.md §2–§6 with the paper's value as default."""
+"""Fit configuration: every setting of method.md §2–§6 with the paper's value as default, and the recipes
+(`RECIPES`): the paper's, and the default one, which differs from it in short runs only (docs/beyond.md)."""
 
 from __future__ import annotations
 
