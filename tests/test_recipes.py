@@ -5,8 +5,9 @@ import json
 from pathlib import Path
 
 import pytest
+import torch
 
-from cvqpg import FitConfig
+from cvqpg import FitConfig, load_model
 from cvqpg.app.runner import timed_config
 from cvqpg.campaign.bench import PRESETS, make_plan
 from cvqpg.campaign.results import CAMPAIGN, campaign_plan
@@ -78,14 +79,17 @@ def test_a_time_budget_is_timed_and_recorded():
         timed_config(builtin_scene("demo", config), config, 0.0, progress=False)
 
 
-def test_fit_records_the_recipe_and_the_time_budget(tmp_path):
-    out = tmp_path / "run"
-    assert main(["fit", "--scene", "demo", "--size", "32", "24", "--num-gaussians", "30", "--time", "0.02",
-                 "--recipe", "paper", "--quiet", "--out", str(out)]) == 0
+def test_fit_records_the_recipe_and_the_time_budget_and_a_rerun_with_its_steps_is_exact(tmp_path):
+    out, rerun = tmp_path / "run", tmp_path / "rerun"
+    small = ["fit", "--scene", "demo", "--size", "32", "24", "--num-gaussians", "30", "--recipe", "paper", "--quiet"]
+    assert main([*small, "--time", "0.02", "--out", str(out)]) == 0
     recorded = json.loads((out / "config.json").read_text())
     assert FitConfig.from_dict(recorded).recipe == "paper"
     assert recorded["source"]["time_budget"]["minutes"] == 0.02
     assert json.loads((out / "metrics.json").read_text())["steps"] == recorded["steps"]
+    assert main([*small, "--steps", str(recorded["steps"]), "--out", str(rerun)]) == 0
+    timed, again = (load_model(folder / "model.safetensors")[0].tensors() for folder in (out, rerun))
+    assert all(torch.equal(timed[name], again[name]) for name in timed)
 
 
 def test_steps_and_time_together_are_one_line(capsys, tmp_path):
