@@ -51,8 +51,9 @@ def is_own_checkout(top_level: Path, package_root: Path = PACKAGE_ROOT) -> bool:
 @functools.cache
 def code_commit() -> str | None:
     """The git commit of cvqpg's own checkout that this process runs, with `+dirty` when tracked files
-    under the package differ from it; None for an installed package. Asked once per process (the first
-    run record): the code a process runs is what it imported, whatever is committed later."""
+    under the package differ from it; None for an installed package. Asked once per process: the code a
+    process runs is what it imported, whatever is committed later, so `app.runner` asks before a fit's first
+    step rather than at its record."""
     top_level = _git("rev-parse", "--show-toplevel")
     if not top_level or not is_own_checkout(Path(top_level), PACKAGE_ROOT):
         return None

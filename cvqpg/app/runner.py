@@ -19,7 +19,7 @@ from ..runs import CHECKPOINT_FILE, CONFIG_FILE, RESTORE_RUN, read_record, write
 from ..storage import load_checkpoint, save_checkpoint
 from ..targets import Scene
 from .compilation import prepare_kernels
-from .provenance import peak_memory, reset_peak_memory, run_record
+from .provenance import code_commit, peak_memory, reset_peak_memory, run_record
 
 CHECKPOINT_SECONDS = 180.0
 # Settings a resumed run may change: they move the last bits of a render only.
@@ -78,6 +78,7 @@ def fit_in_folder(folder: Path, scene: Scene, config: FitConfig, state: FitState
     device = torch.device(config.device)
     # The kernels first: a cold compile starts its second process before this one imports the optimiser.
     compile_seconds = prepare_kernels(config, show_status=progress)
+    code_commit()  # cached for the run record: the commit of the code this process runs, not of a later one
     state = state or initial_state(config, scene)
     state.compile_seconds += compile_seconds
     reset_peak_memory(device)
