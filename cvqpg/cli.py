@@ -527,6 +527,8 @@ def _new_plan(args: argparse.Namespace) -> FitPlan:
                          "checkpoints only when interrupted")
     if args.time is not None and args.steps is not None:
         raise UsageError("give --steps or --time, not both")
+    if args.time is not None and not args.time > 0:
+        raise UsageError(f"--time {args.time:g}: give a positive number of minutes")
     config, source = _config_and_source(args)
     check_device(config.device)
     final = Path(args.out) if args.out else _default_out(source, config)

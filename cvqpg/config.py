@@ -47,8 +47,8 @@ class LearningRates:
 @dataclass(frozen=True)
 class DensityControl:
     """Relocation at a fixed N (docs/beyond.md): at every `every` share of the steps, until the `until`
-    share, the `fraction` of primitives with the least field energy are moved onto splits of primitives
-    that sit where the reconstruction's error is largest."""
+    share, the `fraction` of primitives with the least field energy are moved onto splits of others, drawn
+    with a probability proportional to the reconstruction's error where they sit."""
 
     every: float = 0.05
     until: float = 0.6
@@ -189,7 +189,7 @@ class FitConfig:
         known = {f.name for f in dataclasses.fields(cls)}
         data = {RENAMED_FIELDS.get(k, k): v for k, v in data.items()}
         # A record older than recipes is the paper's.
-        values = {**RECIPES["paper"], **{k: v for k, v in data.items() if k in known}}
+        values = {**RECIPES[PAPER_RECIPE], **{k: v for k, v in data.items() if k in known}}
         if isinstance(values.get("density"), dict):
             values["density"] = DensityControl(**values["density"])
         if isinstance(values.get("lr"), dict):
@@ -266,9 +266,9 @@ class FitConfig:
 
 
 # The recorded choices of a fit beyond its problem (method.md §6; docs/beyond.md): `FitConfig.with_recipe`.
-BEYOND_RECIPE = "beyond"
+PAPER_RECIPE, BEYOND_RECIPE = "paper", "beyond"
 RECIPES: dict[str, dict[str, Any]] = {
-    "paper": {"lr": LearningRates(), "init": "uniform", "density": None},
+    PAPER_RECIPE: {"lr": LearningRates(), "init": "uniform", "density": None},
     BEYOND_RECIPE: {"lr": LearningRates(), "init": "auto", "density": None},
 }
 DEFAULT_RECIPE = BEYOND_RECIPE  # measured better than the paper's on every scene (docs/beyond.md)

@@ -28,7 +28,7 @@ JITTER_SCALES = 0.5  # a moved primitive lands this many of its source's scales 
 SEED_OFFSET = 0x5EED  # the relocation draws come from their own generator, apart from the targets' noise
 
 
-def error_map(primitives: Primitives, scene: Scene, config: FitConfig, hologram: Tensor) -> Tensor:
+def error_map(scene: Scene, config: FitConfig, hologram: Tensor) -> Tensor:
     """Squared error of the reconstruction summed over planes and channels, averaged over
     `ERROR_WINDOW_PX`² px [H, W]."""
     error = (reconstruct(hologram, config) - scene.targets).square().sum(dim=(0, 1))
@@ -61,11 +61,11 @@ def relocation(primitives: Primitives, error: Tensor, fraction: float, generator
 @dataclass
 class Relocator:
     """Density control's state beside the optimiser: its settings, its own random generator (a
-    checkpoint stores its state) and how many primitives it has moved."""
+    checkpoint stores its state) and how many primitives it has moved so far."""
 
     settings: DensityControl
     generator: torch.Generator
-    moved: int = 0
+    moved_count: int = 0
 
     @classmethod
     def for_config(cls, config: FitConfig) -> Relocator | None:
@@ -82,7 +82,7 @@ class Relocator:
         `hologram` is the current model's [C, H, W] field."""
         with torch.no_grad():
             primitives = activate(gaussians, config)
-            moved, sources, destination = relocation(primitives, error_map(primitives, scene, config, hologram),
+            moved, sources, destination = relocation(primitives, error_map(scene, config, hologram),
                                                      self.settings.fraction, self.generator)
             if moved.numel() == 0:
                 return
@@ -95,11 +95,11 @@ class Relocator:
                 for moment in optimizer.state.get(parameter, {}).values():
                     if isinstance(moment, Tensor) and moment.dim() > 0 and moment.shape[0] == count:
                         moment[moved] = 0
-            self.moved += moved.numel()
+            self.moved_count += moved.numel()
 
     def to_payload(self) -> dict:
-        return {"generator": self.generator.get_state(), "moved": self.moved}
+        return {"generator": self.generator.get_state(), "moved_count": self.moved_count}
 
     def load_payload(self, payload: dict) -> None:
         self.generator.set_state(payload["generator"])
-        self.moved = payload["moved"]
+        self.moved_count = payload["moved_count"]

@@ -53,7 +53,7 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
     coded = coding(primitives, config, bits)
     params = {name: value.to(config.device, copy=True) for name, value in coded.values.items()}
     # scenes are built on the CPU; a run fitted on a GPU tunes there, as `fit_scene` fits there
-    scene = Scene(*(t.to(config.device) for t in (scene.image, scene.masks, scene.targets)))
+    scene = scene.to(config.device)
     held = {"scale": _extremes(params["scale"]), "amplitude": _extremes(params["amplitude"].abs())}
     held_values = {name: params[name].view(-1)[index].clone() for name, index in held.items()}
     for value in params.values():

@@ -178,6 +178,12 @@ def initial_state(config: FitConfig, scene: Scene | None = None) -> FitState:
     return FitState(gaussians, optimizer, generator, Relocator.for_config(config))
 
 
+def blank_state(config: FitConfig) -> FitState:
+    """A state of `config`'s shapes whose values do not matter (a checkpoint overwrites them): the paper's
+    initialisation, which needs no scene."""
+    return initial_state(config.replace(init="uniform"))
+
+
 def state_from_payload(payload: dict, config: FitConfig, name: str = "the checkpoint") -> FitState:
     """Inverse of `FitState.to_payload` on `config.device`. A checkpoint (`name` in messages) from another
     device type is refused (`ModelFileError`): CPU and CUDA noise generators have different states; so is
@@ -187,7 +193,7 @@ def state_from_payload(payload: dict, config: FitConfig, name: str = "the checkp
         raise ModelFileError(f"{name} was written on {written_on}, this run is on {config.device}: "
                              f"resume it with `device` {written_on}, or delete the checkpoint to restart from "
                              "step 0")
-    state = initial_state(config.replace(init="uniform"))
+    state = blank_state(config)
     with torch.no_grad():
         for key, tensor in state.gaussians.tensors().items():
             stored = payload["gaussians"][key]
@@ -200,6 +206,9 @@ def state_from_payload(payload: dict, config: FitConfig, name: str = "the checkp
     state.step, state.history, state.seconds = payload["step"], payload["history"], payload["seconds"]
     state.skipped_steps, state.sanitised_steps = payload["skipped_steps"], payload["sanitised_steps"]
     if state.relocator is not None:
+        if not isinstance(payload.get("relocator"), dict):
+            raise ModelFileError(f"{name} holds no state of density control, which this run has (`density`): "
+                                 "delete it to restart from step 0")
         state.relocator.load_payload(payload["relocator"])
     state.peak_memory = payload.get("peak_memory", {})
     state.compile_seconds = payload.get("compile_seconds", 0.0)
@@ -308,6 +317,7 @@ def seconds_per_step(scene: Scene, config: FitConfig, probe_steps: int = PROBE_S
     """Seconds one update of a fit of `config` takes here, timed over `probe_steps` updates of a throwaway
     state after one untimed update (first-call costs), past the curvature warm-up, where most steps are.
     Density control's renders are left out: a render per event, under 1% of a run (docs/beyond.md)."""
+    scene = scene.to(config.device)
     state = initial_state(config, scene)
     state.relocator = None
     first = config.curvature_warmup_steps
@@ -400,7 +410,7 @@ def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = Tr
         raise InputError(f"the scene's targets are {tuple(scene.targets.shape)} (planes, channels, height, width) "
                          f"but the configuration fits {expected}; build the scene with the same configuration")
     device = torch.device(config.device)
-    scene = Scene(*(t.to(device) for t in (scene.image, scene.masks, scene.targets)))
+    scene = scene.to(device)
     state = state or initial_state(config, scene)
     last_save, clock = time.perf_counter(), time.perf_counter()
     bar = tqdm(range(state.step, config.steps + 1), initial=state.step, total=config.steps + 1,

@@ -42,7 +42,10 @@ def positions_from_energy(energy: Tensor, count: int, generator: torch.Generator
     weights = torch.nan_to_num(energy.double(), nan=0.0, posinf=0.0, neginf=0.0).clamp(min=0).flatten()
     if not weights.sum() > 0:
         weights = torch.ones_like(weights)
-    index = torch.multinomial(weights, count, replacement=True, generator=generator)
+    # Inverse-CDF draws: torch.multinomial refuses more than 2^24 categories (pixels beyond 8K).
+    cumulative = weights.cumsum(dim=0)
+    index = torch.searchsorted(cumulative, torch.rand(count, generator=generator, dtype=torch.float64) * cumulative[-1],
+                               right=True).clamp(max=weights.numel() - 1)
     pixel = torch.stack((index % width, index // width), dim=1).float()
     return pixel + torch.rand(count, 2, generator=generator) - 0.5
 
@@ -57,7 +60,7 @@ def initial_gaussians(config: FitConfig, scene: Scene | None = None) -> Gaussian
         if scene is None:
             raise ConfigError("`init` from the targets needs the scene; pass it, or set `init` to uniform")
         with torch.no_grad():
-            energy = implied_slm_field(scene, config).cpu().abs().square().sum(dim=0)
+            energy = implied_slm_field(scene.to("cpu"), config).abs().square().sum(dim=0)
             generator = torch.Generator().manual_seed(config.seed + SEED_OFFSET)
             position = positions_from_energy(energy, config.primitive_count, generator)
             gaussians.position.copy_(raw_positions(position, config.width, config.height))

@@ -8,7 +8,8 @@ to finer bit depths, one attribute at a time. Fine-tuning with the quantisers in
 those depths starts from a few more primitives than fit (`TUNING_HEADROOM`), since tuning moves the
 entropy-coded size a little either way, and a last bisection keeps as many of the tuned primitives as fit.
 Those that set the codec's ranges are kept first, so that the file's bins stay the ones the tuning trained
-on. As in `compress_model`, the tuned file is kept only where it scores better (by the same rule).
+on. The tuned file is kept where the same rule prefers it: it scores better when both land within 5% below
+the budget, and otherwise the larger file wins.
 
 bpp is bits per hologram pixel, 8·bytes / (W·H), all channels together, as `cvqpg info` reports it.
 """

@@ -30,6 +30,10 @@ class Scene:
     masks: Tensor  # [M, H, W] in {0, 1}
     targets: Tensor  # [M, C, H, W]
 
+    def to(self, device: torch.device | str) -> "Scene":
+        """The same scene with its tensors on `device`."""
+        return Scene(*(t.to(device) for t in (self.image, self.masks, self.targets)))
+
 
 log = logging.getLogger("cvqpg")
 

@@ -1,5 +1,8 @@
 """Fits in a run folder: checkpoints record the run they belong to, and a resume trusts nothing it reads."""
 
+import hashlib
+import json
+
 import pytest
 import torch
 
@@ -7,7 +10,7 @@ from cvqpg import FitConfig
 from cvqpg.app.runner import FINGERPRINT_KEY, fit_in_folder, resumed_state, run_fingerprint
 from cvqpg.cli import main
 from cvqpg.errors import ModelFileError
-from cvqpg.fitting import initial_state
+from cvqpg.fitting import blank_state
 from cvqpg.runs import CHECKPOINT_FILE, scene_from_source, start_run
 from cvqpg.storage import load_checkpoint, save_checkpoint
 
@@ -23,7 +26,7 @@ def run(tmp_path):
 
 def checkpoint_of(config: FitConfig, fingerprint: str | None = None) -> dict:
     """The payload of a fresh loop state of `config` at step 1, with `fingerprint` where given."""
-    state = initial_state(config.replace(init="uniform"))  # only its shapes matter
+    state = blank_state(config)
     state.step = 1
     payload = state.to_payload()
     return payload if fingerprint is None else {**payload, FINGERPRINT_KEY: fingerprint}
@@ -34,6 +37,18 @@ def test_checkpoints_record_the_fingerprint_of_the_run(run):
     payload = load_checkpoint(run / CHECKPOINT_FILE)
     assert payload[FINGERPRINT_KEY] == run_fingerprint(CONFIG, SOURCE)
     assert resumed_state(run, CONFIG).step == payload["step"] > 0
+
+
+def test_a_checkpoint_written_before_recipes_still_resumes(tmp_path):
+    """Versions before recipes fingerprinted configurations without `init` and `density`; their runs fitted
+    with the values those fields now record for them."""
+    paper = CONFIG.with_recipe("paper")
+    folder = start_run(tmp_path / "old", paper, SOURCE)
+    settings = {k: v for k, v in paper.to_dict().items() if k not in ("device", "backend", "init", "density")}
+    old = hashlib.sha256(json.dumps({"config": settings, "source": SOURCE}, sort_keys=True).encode()).hexdigest()
+    save_checkpoint(folder / CHECKPOINT_FILE, checkpoint_of(paper, old))
+    assert resumed_state(folder, paper).step == 1
+    assert run_fingerprint(paper.with_recipe("beyond"), SOURCE) != old
 
 
 def test_the_fingerprint_ignores_device_and_backend_only():

@@ -9,7 +9,7 @@ from PIL import Image
 
 from cvqpg.cli import main
 from cvqpg.config import FitConfig
-from cvqpg.fitting import initial_state
+from cvqpg.fitting import blank_state
 from cvqpg.runs import read_run
 from cvqpg.storage import load_checkpoint, save_checkpoint
 
@@ -157,7 +157,7 @@ def test_a_checkpoint_from_another_device_is_refused_with_its_device_named(tmp_p
     out = tmp_path / "run"
     assert main(["fit", *SMALL, "--out", str(out)]) == 0
     (out / "metrics.json").unlink()
-    payload = initial_state(read_run(out)[0].replace(init="uniform")).to_payload()
+    payload = blank_state(read_run(out)[0]).to_payload()
     assert payload["device"] == "cpu"
     payload["device"], payload["generator"] = "cuda", torch.zeros(16, dtype=torch.uint8)  # a CUDA generator's state
     save_checkpoint(out / "checkpoint.pt", payload)

@@ -20,7 +20,7 @@ from safetensors.torch import load_file, save_file
 from cvqpg import FitConfig, builtin_pictures, fit
 from cvqpg.cli import main
 from cvqpg import fitting
-from cvqpg.fitting import fit_scene, initial_state, optimisation_step, readback_due
+from cvqpg.fitting import blank_state, fit_scene, initial_state, optimisation_step, readback_due
 from cvqpg.optics import reconstruct
 from cvqpg.primitives import Gaussians, activate, inverse_covariance
 from cvqpg.ops.rasterize import rasterize
@@ -366,7 +366,7 @@ def test_steps_are_read_back_after_each_on_the_cpu_and_every_half_second_on_cuda
 def test_propagation_loss_and_update_read_nothing_back_on_cuda():
     """Everything of a step after the rasterizer, under CUDA's sync debug mode set to fail on a host read."""
     config = FitConfig(width=24, height=20, steps=5, curvature_warmup=0, num_gaussians=30, guard_band_px=8, device="cuda")
-    state = initial_state(config.replace(init="uniform"))
+    state = blank_state(config)
     with torch.no_grad():
         hologram = fitting.render_hologram(state.gaussians, config).requires_grad_(True)
     scene = tiny_scene(config)

@@ -54,7 +54,7 @@ def test_a_split_without_jitter_leaves_the_hologram_as_it_was(monkeypatch):
     before = render_hologram(state.gaussians, SMALL).detach()
     state.relocator.relocate(state.gaussians, state.optimizer, scene, SMALL, before)
     after = render_hologram(state.gaussians, SMALL).detach()
-    assert state.relocator.moved == 12
+    assert state.relocator.moved_count == 12
     assert torch.allclose(after, before, atol=1e-5 * before.abs().max())
 
 
@@ -95,4 +95,4 @@ def test_a_fit_with_density_control_resumes_bit_for_bit(interrupt_at):
     resumed = fit_scene(scene, SMALL, progress=False, state=resumed_state)
     for name, tensor in straight.gaussians.tensors().items():
         assert torch.equal(tensor, resumed.gaussians.tensors()[name]), name
-    assert resumed_state.relocator.moved == len(SMALL.density.event_steps(SMALL.steps)) * 12
+    assert resumed_state.relocator.moved_count == len(SMALL.density.event_steps(SMALL.steps)) * 12

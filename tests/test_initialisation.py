@@ -64,3 +64,11 @@ def test_auto_starts_from_the_targets_in_short_runs_only():
 def test_the_targets_are_needed_to_start_from_them():
     with pytest.raises(ConfigError, match="`init`"):
         initial_gaussians(CONFIG)
+
+
+def test_positions_draw_from_maps_beyond_multinomial_s_limit():
+    """More than 2^24 pixels (an 8K hologram): drawn all the same, and only where the energy is."""
+    energy = torch.zeros(4100, 4100)
+    energy[-1, -2] = 1.0
+    position = positions_from_energy(energy, 10, torch.Generator().manual_seed(0))
+    assert (position.round() == torch.tensor([4098.0, 4099.0])).all()

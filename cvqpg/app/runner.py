@@ -24,13 +24,17 @@ from .provenance import code_commit, peak_memory, reset_peak_memory, run_record
 CHECKPOINT_SECONDS = 180.0
 # Settings a resumed run may change: they move the last bits of a render only.
 UNFINGERPRINTED = ("device", "backend")
+# Settings that versions before recipes did not have, at the value those versions fitted with: left out of
+# the fingerprint at that value, so that their checkpoints still resume.
+LEGACY_VALUES = {"init": "uniform", "density": None}
 FINGERPRINT_KEY = "run_fingerprint"
 
 
 def run_fingerprint(config: FitConfig, source: dict[str, Any]) -> str:
-    """What a checkpoint records of the run it belongs to: a SHA-256 of its settings (but `UNFINGERPRINTED`)
-    and its inputs (`source`, as `config.json` records it)."""
-    settings = {k: v for k, v in config.to_dict().items() if k not in UNFINGERPRINTED}
+    """What a checkpoint records of the run it belongs to: a SHA-256 of its settings (but `UNFINGERPRINTED`,
+    and `LEGACY_VALUES` where they hold) and its inputs (`source`, as `config.json` records it)."""
+    settings = {k: v for k, v in config.to_dict().items()
+                if k not in UNFINGERPRINTED and not (k in LEGACY_VALUES and v == LEGACY_VALUES[k])}
     return hashlib.sha256(json.dumps({"config": settings, "source": source}, sort_keys=True).encode()).hexdigest()
 
 

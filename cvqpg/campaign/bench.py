@@ -29,7 +29,7 @@ from tqdm.auto import tqdm
 from ..app.allocator import keep_freed_memory
 from ..app.provenance import available_cores
 from ..app.runner import fit_in_folder, resumed_state, write_fitted_run
-from ..config import BEYOND_RECIPE, FitConfig, default_curvature_warmup
+from ..config import BEYOND_RECIPE, PAPER_RECIPE, FitConfig, default_curvature_warmup
 from ..errors import CvqpgError
 from ..fitting import FitInterrupted, FitState, estimated_peak_bytes
 from ..initialisation import resolved_init
@@ -103,7 +103,7 @@ class Preset:
     size: tuple[int, int] = (640, 480)
     steps: int = 2000
     rate_distortion: bool = False  # each cell also records the R-D points of its model (`rd.json`)
-    recipe: str = "paper"  # every grid that compares with the paper pins its recipe
+    recipe: str = PAPER_RECIPE  # every grid that compares with the paper pins its recipe
     steps_by_color: tuple[tuple[str, int], ...] = ()  # where a colour has its own step count
 
     def steps_for(self, color: str) -> int:

@@ -143,8 +143,13 @@ def _scenes(count: int) -> str:
     return f"{count} scene{'s' * (count != 1)}"
 
 
+def _metric(results: list[CellResult], setting: str, method: str, metric: str) -> dict[str, float]:
+    """Per scene, the method's `metric` in `setting` (where the cells have it)."""
+    return {scene: v[metric] for scene, v in scene_values(results, setting, method).items() if v[metric] is not None}
+
+
 def _psnr(results: list[CellResult], setting: str, method: str) -> dict[str, float]:
-    return {scene: v["psnr"] for scene, v in scene_values(results, setting, method).items()}
+    return _metric(results, setting, method, "psnr")
 
 
 def status_table(grids: list[GridResults]) -> Table:
@@ -529,10 +534,6 @@ def _runtime(grid: GridResults, setting: str, method: str) -> dict[str, Any] | N
 
 BEYOND_TARGET_DB = 0.5  # issue #38: the new recipe's CVQPG over the paper grid's, at 2000 steps
 BEYOND_TIME_TARGET_DB = 1.5  # and at the paper's training time over the paper's own per-scene values
-
-
-def _metric(results: list[CellResult], setting: str, method: str, metric: str) -> dict[str, float]:
-    return {scene: v[metric] for scene, v in scene_values(results, setting, method).items() if v[metric] is not None}
 
 
 def beyond_table(paper: GridResults, beyond: GridResults, setting: str) -> Table:
