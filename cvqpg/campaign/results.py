@@ -587,15 +587,15 @@ def beyond_claims(paper: GridResults, beyond: GridResults, timed: GridResults) -
         shared = sorted(set(old["psnr"]) & set(new["psnr"]))
         if not shared:
             lines.append(f"{label}: not measured yet.")
-            continue
-        delta = {m: float(np.mean([new[m][s] - old[m][s] for s in shared])) for m in ("psnr", "ssim", "flip")}
-        ahead = sum(new["psnr"][s] > old["psnr"][s] for s in shared)
-        met = (delta["psnr"] >= BEYOND_TARGET_DB and ahead == len(shared) and delta["ssim"] >= 0
-               and delta["flip"] <= 0)
-        lines.append(f"{label}: {delta['psnr']:+.3f} dB mean on {_scenes(len(shared))} (ahead on {ahead}), SSIM "
-                     f"{delta['ssim']:+.4f}, FLIP {delta['flip']:+.4f}; target {BEYOND_TARGET_DB:+.1f} dB ahead on every "
-                     f"scene with SSIM and FLIP no worse: {'met' if met else 'not met'}"
-                     f"{'' if len(shared) == scenes else ' so far'}.")
+        else:
+            delta = {m: float(np.mean([new[m][s] - old[m][s] for s in shared])) for m in ("psnr", "ssim", "flip")}
+            ahead = sum(new["psnr"][s] > old["psnr"][s] for s in shared)
+            met = (delta["psnr"] >= BEYOND_TARGET_DB and ahead == len(shared) and delta["ssim"] >= 0
+                   and delta["flip"] <= 0)
+            lines.append(f"{label}: {delta['psnr']:+.3f} dB mean on {_scenes(len(shared))} (ahead on {ahead}), SSIM "
+                         f"{delta['ssim']:+.4f}, FLIP {delta['flip']:+.4f}; target {BEYOND_TARGET_DB:+.1f} dB ahead on "
+                         f"every scene with SSIM and FLIP no worse: {'met' if met else 'not met'}"
+                         f"{'' if len(shared) == scenes else ' so far'}.")
         gains = _paired(beyond.results, setting, "cvqpg", "baseline")
         if gains is not None:
             claimed = float(np.mean([supplement[s][setting]["cvqpg"]["psnr"] - supplement[s][setting]["baseline"]["psnr"]
