@@ -97,17 +97,34 @@ def smallest_file(primitives: Primitives, config: FitConfig) -> int:
 
 
 def largest_fitting(size: Callable[[int], int], max_bytes: int, top: int) -> int:
-    """The largest count n in 1..`top` that a bisection finds with `size(n)` ≤ `max_bytes` bytes, 0 where
+    """The largest count n in 1..`top` that a search finds with `size(n)` ≤ `max_bytes` bytes, 0 where
     not even one fits. Sizes grow with n but not strictly (an entropy-coded stream of more symbols can
-    be a few bytes shorter), so n is one whose successor does not fit, not always the largest of all."""
-    if size(1) > max_bytes:
+    be a few bytes shorter), so n is one whose successor does not fit, not always the largest of all.
+
+    Sizes grow about linearly, so each probe is where the line through the bracket's ends meets the
+    budget, a few encodes instead of a bisection's log2(top); a probe that leaves more than half of the
+    bracket is followed by a bisection step, so the search never takes more than about twice as many."""
+    smallest = size(1)
+    if smallest > max_bytes:
         return 0
-    if size(top) <= max_bytes:
+    largest = size(top)
+    if largest <= max_bytes:
         return top
-    low, high = 1, top  # size(low) fits, size(high) does not
+    low, high, size_low, size_high = 1, top, smallest, largest  # size(low) fits, size(high) does not
+    bisect = False
     while high - low > 1:
-        middle = (low + high) // 2
-        low, high = (middle, high) if size(middle) <= max_bytes else (low, middle)
+        width = high - low
+        if bisect:
+            probe = (low + high) // 2
+        else:
+            probe = low + (max_bytes - size_low) * width // max(size_high - size_low, 1)
+        probe = min(max(probe, low + 1), high - 1)
+        measured = size(probe)
+        if measured <= max_bytes:
+            low, size_low = probe, measured
+        else:
+            high, size_high = probe, measured
+        bisect = not bisect and 2 * (high - low) > width
     return low
 
 

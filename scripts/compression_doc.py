@@ -1,26 +1,32 @@
 """Paste the rate–distortion tables of the compression bench folders' `summary.md` into
 docs/compression.md between its `generated` markers: the 2000-step grid's table with its RGB 10%
-figure, and the long (8000-step) fits' table. Run after rebuilding each folder's summary with
-`cvqpg bench --preset compression --scenes ../shared/scenes --out FOLDER --summary-only`:
+figure, the long (8000-step) fits' table, and the rate grid's two tables with both settings'
+figures. Run after rebuilding each folder's summary with `cvqpg bench --preset compression` (or
+`--preset rate`) `--scenes ../shared/scenes --out FOLDER --summary-only`:
 
-    python scripts/compression_doc.py results/compression results/compression-8000
+    python scripts/compression_doc.py results/compression results/compression-8000 results/rate
 """
 
 import shutil
 import sys
 from pathlib import Path
 
-TITLE = "### Rate–distortion: the .cvq codec against JPEG 2000 and JPEG XL on the same field"
+RD_TITLE = "### Rate–distortion: the .cvq codec against JPEG 2000 and JPEG XL on the same field"
+WIDE_TITLE = "### Rate–distortion below the fit:"
 END = "<!-- end generated -->\n"
 GRID_START, LONG_START = "<!-- generated: rd table -->\n", "<!-- generated: long fits -->\n"
+RATE_START = "<!-- generated: rate grid -->\n"
 FIGURE, DOC = "compression_rd_rgb10.png", Path("docs/compression.md")
+RATE_FIGURES = {"gray-10": ("compression_rate_gray10.png", "grayscale 10%"),
+                "rgb-10": ("compression_rate_rgb10.png", "RGB 10%")}
 
 
-def rd_table(folder: Path) -> str:
-    """The rate–distortion table of `folder`'s summary.md, with its caption."""
+def section(folder: Path, title: str, keep_title: bool = False) -> str:
+    """The table of `folder`'s summary.md headed by `title`, with its caption (and its heading line)."""
     summary = (folder / "summary.md").read_text()
-    section = summary[summary.index(TITLE) + len(TITLE):]
-    return section[:section.index("\n### ")].strip()
+    start = summary.index(title)
+    body = summary[start if keep_title else summary.index("\n", start):]
+    return body[:body.index("\n### ", 1)].strip()
 
 
 def paste(doc: str, start: str, block: str) -> str:
@@ -30,13 +36,21 @@ def paste(doc: str, start: str, block: str) -> str:
     return doc[:begin] + start + block + END + doc[end:]
 
 
-def main(grid: Path, long_fits: Path | None = None) -> None:
+def main(grid: Path, long_fits: Path | None = None, rate: Path | None = None) -> None:
     shutil.copy(grid / "rd_rgb-10.png", DOC.parent / FIGURE)
-    doc = paste(DOC.read_text(), GRID_START, f"{rd_table(grid)}\n\n![R-D curves, RGB 10%]({FIGURE})\n")
+    doc = paste(DOC.read_text(), GRID_START, f"{section(grid, RD_TITLE)}\n\n![R-D curves, RGB 10%]({FIGURE})\n")
     if long_fits is not None:
-        doc = paste(doc, LONG_START, f"{rd_table(long_fits)}\n")
+        doc = paste(doc, LONG_START, f"{section(long_fits, RD_TITLE)}\n")
+    if rate is not None:
+        pictures = []
+        for setting, (name, label) in RATE_FIGURES.items():
+            if (rate / f"rd_{setting}.png").is_file():
+                shutil.copy(rate / f"rd_{setting}.png", DOC.parent / name)
+                pictures.append(f"![R-D curves below the fit, {label}]({name})\n")
+        tables = f"{section(rate, WIDE_TITLE, keep_title=True)}\n\n{section(rate, RD_TITLE, keep_title=True)}\n"
+        doc = paste(doc, RATE_START, f"{tables}\n{''.join(pictures)}")
     DOC.write_text(doc)
 
 
 if __name__ == "__main__":
-    main(*(Path(argument) for argument in sys.argv[1:3]))
+    main(*(Path(argument) for argument in sys.argv[1:4]))

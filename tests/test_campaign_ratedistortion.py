@@ -8,7 +8,8 @@ import shutil
 import pytest
 
 from cvqpg.cli import main
-from cvqpg.campaign.ratedistortion import bd_rate, cell_summary, pareto
+from cvqpg.campaign.ratedistortion import (bd_rate, budget_fill, budgets_for, cell_summary, equal_rate_gain, pareto,
+                                           wide_summary)
 
 pytest.importorskip("imagecodecs", reason="the JPEG 2000 / JPEG XL anchors need the `compression` extra")
 
@@ -20,13 +21,15 @@ RECORDS = ("config.json", "spectrum.json", "metrics.json", "rd.json")
 
 @pytest.fixture(scope="module")
 def grids(module_scenes_dir, tmp_path_factory):
-    """A Table 1 grid that fitted the cell, and a compression grid that took its model from there."""
+    """A Table 1 grid that fitted the cell, a compression grid that took its model from there, and a rate grid."""
     root = tmp_path_factory.mktemp("rd")
     scenes = ["--scenes", str(module_scenes_dir)]
     assert main(["bench", "--preset", "paper", "--methods", "cvqpg", "--ratios", "0.1", "--out", str(root / "paper"),
                  *scenes, *TINY]) == 0
     assert main(["bench", "--preset", "compression", "--out", str(root / "rd"), "--fits", str(root / "paper"),
                  "--finetune", "2", *scenes, *TINY]) == 0
+    # the rate grid fits its own cell, large enough for a file of a few primitives within each budget
+    assert main(["bench", "--preset", "rate", "--out", str(root / "rate"), *scenes, *TINY, "--size", "128", "96"]) == 0
     return root
 
 
@@ -55,6 +58,20 @@ def test_a_compression_cell_takes_the_fit_from_another_grid_and_records_its_poin
     row = next(csv.DictReader((grids / "rd" / "rd.csv").open()))
     assert row["cell"] == CELL and row["finetune_steps"] == "2" and float(row["fraction_of_model"]) == pytest.approx(
         cell_summary(record)["fraction"])
+
+
+@pytest.mark.slow
+def test_a_rate_cell_records_the_codec_at_bpp_budgets_that_it_never_exceeds(grids):
+    record = json.loads((grids / "rate" / "cells" / CELL / "rd.json").read_text())
+    budgeted = [p for p in record["points"] if p["budget_bpp"] is not None]
+    assert record["budget_fractions"] == [0.7, 0.5, 0.36, 0.26, 0.19, 0.14] and record["budget_finetune_steps"] == 100
+    assert budgeted and all(p["codec"] == "cvqpg" and p["setting"].startswith("--bpp ") for p in budgeted)
+    assert all(0 < budget_fill(p) <= 1 and p["bytes"] <= p["budget_bpp"] * 128 * 96 / 8 for p in budgeted)
+    assert all(p["primitives"] >= 1 for p in record["points"] if p["codec"] == "cvqpg")
+    summary = (grids / "rate" / "summary.md").read_text()
+    assert "BD-rate over [fit − 3, fit − 0.1] dB" in summary and "rd_gray-10.png" in summary
+    row = next(csv.DictReader((grids / "rate" / "rd.csv").open()))
+    assert float(row["budget_fill_max"]) <= 1 and int(row["primitive_counts"]) == len(wide_summary(record)["counts"])
 
 
 @pytest.mark.slow
@@ -113,3 +130,39 @@ def test_bd_rate_range_is_narrowed_to_both_curves_and_dominated_points_are_dropp
     rate = bd_rate(anchor, test, top_psnr=36.2)
     assert (rate.low, rate.high) == (35.2, 35.6)
     assert bd_rate(anchor, curve([1, 2], [20.0, 21.0]), top_psnr=36.0) is None  # no PSNR in common
+
+
+def test_budgets_are_fractions_of_the_smallest_ladder_file_within_a_tenth_of_a_decibel():
+    from cvqpg.campaign.ratedistortion import Point
+
+    ladder = [Point("cvqpg", str(b), b, b / 10, q, 0.9, 0, 0) for b, q in ((10, 27.0), (20, 29.95), (30, 30.0))]
+    assert budgets_for(ladder, 30.0, (1.0, 0.5)) == pytest.approx([2.0, 1.0])
+    assert budgets_for(ladder, 35.0, (0.5,)) == pytest.approx([1.5])  # none within: the largest file's
+
+
+def test_equal_rate_gain_reads_the_codec_at_the_rate_where_the_anchor_is_2_db_down():
+    anchor = curve([1, 2, 4], [30.0, 32.0, 34.0])  # 32 dB, 2 dB below 34, at 2 bpp
+    codec = curve([1, 4], [31.0, 35.0])  # at 2 bpp, half-way in log rate: 33 dB
+    gain = equal_rate_gain(anchor, codec, top_psnr=34.0)
+    assert gain.bpp == pytest.approx(2.0) and gain.codec_psnr == pytest.approx(33.0) and gain.gain_db == pytest.approx(1.0)
+    assert equal_rate_gain(anchor, curve([3, 4], [33.0, 35.0]), top_psnr=34.0) is None  # the codec starts above 2 bpp
+
+
+def test_budget_fill_is_bytes_over_the_budget_in_whole_bytes():
+    point = {"bytes": 950, "bpp": 8 * 950 / 10_000, "budget_bpp": 0.8}  # 1000 bytes for 10,000 px
+    assert budget_fill(point) == pytest.approx(0.95)
+
+
+def test_the_wide_summary_takes_bd_rate_from_3_db_to_a_tenth_below_the_fit():
+    psnrs = [30.0, 33.0, 35.0, 36.0, 36.5]
+    anchor = curve([1, 2, 3, 4, 5], psnrs)
+    codec = [{**p, "primitives": n} for p, n in zip(curve([0.5, 1, 1.5, 2, 2.5], psnrs), (10, 20, 30, 40, 50))]
+    record = {"fit_psnr": 36.6, "points": [*({**p, "codec": "JPEG XL"} for p in anchor),
+                                           *({**p, "codec": "JPEG 2000"} for p in anchor),
+                                           *({**p, "codec": "cvqpg"} for p in codec)]}
+    summary = wide_summary(record)
+    better = summary["bd_rate"][summary["better_anchor"]]
+    assert better.percent == pytest.approx(-50) and (better.low, better.high) == pytest.approx((33.6, 36.5))
+    assert summary["counts"] == [10, 20, 30, 40, 50] and summary["deepest_db"] == pytest.approx(6.6)
+    assert summary["fills"] == []
+    assert summary["equal_rate"] is None  # JPEG XL is 2 dB down at 2.76 bpp, beyond the codec's largest file

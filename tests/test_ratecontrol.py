@@ -115,6 +115,32 @@ def test_largest_fitting_finds_the_boundary_even_where_sizes_are_not_monotonic()
     assert largest_fitting(sizes.__getitem__, 10, 6) == 1
 
 
+def test_largest_fitting_stops_where_the_successor_does_not_fit_on_any_sizes():
+    generator = torch.Generator().manual_seed(0)
+    for _ in range(200):
+        top = int(torch.randint(2, 400, (1,), generator=generator))
+        steps = torch.randint(-3, 40, (top,), generator=generator)
+        sizes = [0, *(100 + torch.cumsum(steps, 0)).tolist()]
+        max_bytes = int(torch.randint(90, max(sizes) + 20, (1,), generator=generator))
+        count = largest_fitting(sizes.__getitem__, max_bytes, top)
+        if count == 0:
+            assert sizes[1] > max_bytes
+        elif count < top:
+            assert sizes[count] <= max_bytes < sizes[count + 1]
+
+
+def test_largest_fitting_needs_few_encodes_where_sizes_grow_about_linearly():
+    probes = []
+
+    def size(count: int) -> int:
+        probes.append(count)
+        return 700 + 52 * count + (count * 7919) % 13  # a header, bytes per primitive, coding noise
+
+    count = largest_fitting(size, 400_000, 30_000)
+    assert size(count) <= 400_000 < size(count + 1)
+    assert len(probes) - 2 <= 8  # a bisection over 30,000 counts takes 17
+
+
 def test_a_bpp_budget_is_whole_bytes_of_8_bytes_per_pixel():
     config = FitConfig(width=W, height=H)
     assert Budget.of(config, bpp=1.0).max_bytes == W * H // 8

@@ -17,6 +17,7 @@ import signal
 import traceback
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+import dataclasses
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -34,10 +35,12 @@ from ..errors import CvqpgError
 from ..fitting import FitInterrupted, FitState, estimated_peak_bytes
 from ..initialisation import resolved_init
 from ..metrics import radial_error_spectrum
+from ..ratecontrol import RATE_FINETUNE_STEPS
 from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, MODEL_FILE, read_run, scene_from_source, start_run,
                     write_atomic, write_json)
 from ..scenes import SCENES
 from ..targets import check_depth_geometry, load_picture
+from .ratedistortion import BUDGET_FRACTIONS
 
 log = logging.getLogger("cvqpg")
 
@@ -105,6 +108,7 @@ class Preset:
     rate_distortion: bool = False  # each cell also records the R-D points of its model (`rd.json`)
     recipe: str = PAPER_RECIPE  # every grid that compares with the paper pins its recipe
     steps_by_color: tuple[tuple[str, int], ...] = ()  # where a colour has its own step count
+    budget_fractions: tuple[float, ...] = ()  # R-D grids: also the codec at `--bpp` budgets (`RateDistortionOptions`)
 
     def steps_for(self, color: str) -> int:
         return dict(self.steps_by_color).get(color, self.steps)
@@ -124,6 +128,9 @@ PRESETS = {
     "compression": Preset("issue #28: the Table 1 CVQPG cells at {rgb, gray} 10%, each with the R-D points of the "
                           ".cvq codec, JPEG 2000 and JPEG XL on its field, and its float32/float16 model files",
                           COLORS, (0.1,), ("cvqpg",), rate_distortion=True),
+    "rate": Preset("issue #39: the Table 1 CVQPG cells at {rgb, gray} 10%, each with the .cvq codec at `--bpp` budgets "
+                   "from its fit down to below fit − 3 dB (rate control), beside JPEG 2000 and JPEG XL on its field",
+                   COLORS, (0.1,), ("cvqpg",), rate_distortion=True, budget_fractions=BUDGET_FRACTIONS),
     "beyond": Preset("issue #38: the new recipe at 2000 steps, {rgb, gray} 10% × {baseline, cvqpg}, beside the "
                      "paper grid's cells", COLORS, (0.1,), ("baseline", "cvqpg"), recipe=BEYOND_RECIPE),
     "beyond-time": Preset("issue #38: CVQPG with the new recipe for the paper's own training time (8.7 min gray, "
@@ -496,10 +503,12 @@ def run_cell(cell: Cell, folder: Path, stop_requested: Callable[[], bool] | None
 class RateDistortionOptions:
     """How a rate–distortion grid's cells get their points: `fits`, bench folders whose kept models
     they take; `finetune_steps`, the steps of quantisation-aware fine-tuning at some of the codec's
-    budgets (0: none; see `ratedistortion.finetuned_points`)."""
+    budgets (0: none; see `ratedistortion.finetuned_points`); `budget_fractions`, the preset's `--bpp` budgets
+    (`ratedistortion.budget_points`, each fine-tuned for `RATE_FINETUNE_STEPS` as `cvqpg compress --bpp` is)."""
 
     fits: tuple[Path, ...] = ()
     finetune_steps: int = 0
+    budget_fractions: tuple[float, ...] = ()
 
 
 def fitted_model(cell: Cell, fits: Sequence[Path]) -> Path | None:
@@ -539,7 +548,10 @@ def run_rate_distortion_cell(cell: Cell, folder: Path, options: RateDistortionOp
     if stop_requested is not None and stop_requested():
         return INTERRUPTED
     scene = scene_from_source(cell.scene.source, cell.config)
-    write_json(folder / RD_FILE, cell_record(model, scene, finetune_steps=options.finetune_steps))
+    write_json(folder / RD_FILE, cell_record(model, scene, finetune_steps=options.finetune_steps,
+                                             budget_fractions=options.budget_fractions,
+                                             budget_finetune_steps=RATE_FINETUNE_STEPS if options.budget_fractions
+                                             else 0))
     return DONE
 
 
@@ -609,7 +621,9 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
         else:
             todo.append(cell)
     stop = stop_requested or (lambda: False)
-    rd_options = rate_distortion if PRESETS[plan.preset].rate_distortion else None
+    preset = PRESETS[plan.preset]
+    rd_options = (dataclasses.replace(rate_distortion, budget_fractions=preset.budget_fractions)
+                  if preset.rate_distortion else None)
     with tqdm(total=len(todo), desc=f"bench {plan.preset}", unit="cell", disable=not progress,
               dynamic_ncols=True) as bar:
         def record(cell: Cell, status: str, error: str | None) -> None:

@@ -163,9 +163,11 @@ RD_MARKERS = {"cvqpg": "o", "JPEG 2000": "s", "JPEG XL": "^", "model float32": "
 
 
 def rate_distortion_figure(panels: dict[str, tuple[float, dict[str, tuple[list[float], list[float]]]]],
-                           path: Path, span_db: float = 1.0) -> None:
+                           path: Path, shaded_db: tuple[float, float] = (1.0, 0.0)) -> None:
     """One panel per title (title → (the fit's PSNR in dB, codec → (bpp, PSNR) of its Pareto front)):
-    PSNR against bpp (log scale), the BD-rate range (the fit's PSNR and `span_db` below it) shaded."""
+    PSNR against bpp (log scale), the BD-rate range (from `shaded_db[0]` to `shaded_db[1]` dB below the fit's
+    PSNR) shaded, and 1 dB more below it shown."""
+    deepest, shallowest = shaded_db
     plt = _pyplot()
     columns = min(len(panels), 3) or 1
     rows = max(math.ceil(len(panels) / columns), 1)
@@ -173,11 +175,11 @@ def rate_distortion_figure(panels: dict[str, tuple[float, dict[str, tuple[list[f
     for axis in axes.ravel()[len(panels):]:
         axis.set_visible(False)
     for axis, (title, (top, curves)) in zip(axes.ravel(), panels.items()):
-        axis.axhspan(top - span_db, top, color="0.92")
+        axis.axhspan(top - deepest, top - shallowest, color="0.92")
         for codec, (bpp, psnr) in curves.items():
             axis.plot(bpp, psnr, marker=RD_MARKERS.get(codec, "."), markersize=4, linewidth=1, label=codec)
         axis.set_xscale("log")
-        axis.set_ylim(top - 2 * span_db, top + 0.3 * span_db)
+        axis.set_ylim(top - deepest - 1, top + 0.3)
         axis.set_title(title, fontsize=10)
         axis.set_xlabel("bits per hologram pixel")
         axis.set_ylabel("mean PSNR over planes (dB)")

@@ -8,6 +8,7 @@ multi-plane PSNR (dB) and SSIM of the reconstructions against the run's targets.
 
 from __future__ import annotations
 
+import math
 import tempfile
 import time
 from dataclasses import asdict, dataclass
@@ -30,8 +31,8 @@ from ..app.provenance import machine_record
 from ..storage import load_model, save_model
 from ..targets import Scene
 
-JPEG2K_PSNRS = (35, 40, 43, 46, 50, 55, 60, 70)  # OpenJPEG's quality layer, the planes' own PSNR in dB
-JPEGXL_DISTANCES = (8.0, 4.0, 3.0, 2.0, 1.5, 1.0, 0.7, 0.5, 0.25)  # butteraugli distances, smaller is finer
+JPEG2K_PSNRS = (30, 35, 40, 43, 46, 50, 55, 60, 70)  # OpenJPEG's quality layer, the planes' own PSNR in dB
+JPEGXL_DISTANCES = (16.0, 12.0, 8.0, 4.0, 3.0, 2.0, 1.5, 1.0, 0.7, 0.5, 0.25)  # butteraugli distances, smaller is finer
 RANGE_BYTES = 8  # float32 low and high per plane
 MAX_DROPS_DB = (0.1, 0.5)  # the `--max-drop` budgets of a benchmark cell (each search takes tens of renders)
 # The rungs of `LADDER` that a cell fine-tunes: those whose drop without it lies in this range (dB). Rungs
@@ -40,6 +41,11 @@ FINETUNED_DROPS_DB = (0.1, 4.0)
 # The fractions of primitives that a cell prunes (least field energy first) before fine-tuning at the
 # finest of those rungs: fewer primitives, each at the same bits.
 PRUNE_FRACTIONS = (0.05, 0.1, 0.2)
+# The budgets of a rate grid's cell (`--preset rate`), as fractions of the rate of the codec's smallest ladder
+# file within 0.1 dB of the fit: from where the ladder at full N starts to lose (about 0.6) to below fit − 3 dB.
+BUDGET_FRACTIONS = (0.7, 0.5, 0.36, 0.26, 0.19, 0.14)
+# The wide BD-rate range of issue #39: from 3 dB to 0.1 dB below the fit.
+WIDE_RANGE_DB = (3.0, 0.1)
 CODEC, FLOAT32, FLOAT16 = "cvqpg", "model float32", "model float16"
 ANCHORS = ("JPEG 2000", "JPEG XL")
 
@@ -56,6 +62,8 @@ class Point:
     ssim: float
     encode_s: float
     decode_s: float
+    primitives: int | None = None  # in the file (None for the anchors, which code a field)
+    budget_bpp: float | None = None  # the `--bpp` budget that rate control was given
 
 
 def _score(recon: Tensor, targets: Tensor) -> tuple[float, float]:
@@ -63,17 +71,19 @@ def _score(recon: Tensor, targets: Tensor) -> tuple[float, float]:
 
 
 def _point(codec: str, setting: str, size: int, config: FitConfig, recon: Tensor, targets: Tensor,
-           encode_s: float, decode_s: float) -> Point:
+           encode_s: float, decode_s: float, primitives: int | None = None) -> Point:
     return Point(codec, setting, size, 8 * size / (config.width * config.height), *_score(recon, targets),
-                 encode_s, decode_s)
+                 encode_s, decode_s, primitives)
 
 
 def _decoded_point(codec: str, setting: str, data: bytes, config: FitConfig, targets: Tensor,
                    encode_s: float) -> Point:
     """The point of a `.cvq` file's bytes, decoded and rendered as a reader would (timed)."""
     started = time.perf_counter()
-    recon = render(decode(data).primitives, config)[1]
-    return _point(codec, setting, len(data), config, recon, targets, encode_s, time.perf_counter() - started)
+    decoded = decode(data).primitives
+    recon = render(decoded, config)[1]
+    return _point(codec, setting, len(data), config, recon, targets, encode_s, time.perf_counter() - started,
+                  decoded.count)
 
 
 def _describe(bits: BitDepths) -> str:
@@ -127,6 +137,37 @@ def finetuned_points(primitives: Primitives, config: FitConfig, scene: Scene, fi
     return points
 
 
+def budget_points(primitives: Primitives, config: FitConfig, scene: Scene, fit_psnr: float,
+                  budgets_bpp: Sequence[float], steps: int) -> list[Point]:
+    """The `.cvq` codec at each budget of `budgets_bpp` (bits per hologram pixel) as `cvqpg compress --bpp`
+    writes it (`ratecontrol.rate_control`: primitives and bit depths chosen for the budget, then `steps` of
+    quantisation-aware fine-tuning on the scene's targets), the whole rate control counted as encoding time.
+    Budgets below the smallest file the format can write of the model get no point."""
+    from ..ratecontrol import Budget, rate_control, smallest_file
+
+    reference = Reference(scene.targets, "the run's targets", fit_psnr)
+    smallest = smallest_file(primitives, config)
+    points = []
+    for bpp in budgets_bpp:
+        if Budget.of(config, bpp=bpp).max_bytes < smallest:
+            continue
+        started = time.perf_counter()
+        chosen = rate_control(primitives, config, reference, Budget.of(config, bpp=bpp), scene, steps).choice
+        point = _decoded_point(CODEC, f"--bpp {bpp:.3f}: {_describe(chosen.bits)}", chosen.data, config,
+                               scene.targets, time.perf_counter() - started)
+        point.budget_bpp = bpp
+        points.append(point)
+    return points
+
+
+def budgets_for(ladder_points: Sequence[Point], fit_psnr: float, fractions: Sequence[float]) -> list[float]:
+    """`fractions` of the rate (bpp) of the smallest ladder file within 0.1 dB of the fit (the finest rung's
+    where none is)."""
+    held = [point for point in ladder_points if point.psnr >= fit_psnr - 0.1]
+    base = min(held, key=lambda point: point.bytes) if held else max(ladder_points, key=lambda point: point.bytes)
+    return [fraction * base.bpp for fraction in fractions]
+
+
 def model_file_points(primitives: Primitives, config: FitConfig, targets: Tensor) -> list[Point]:
     """The float32 and float16 `model.safetensors` files."""
     points = []
@@ -139,7 +180,8 @@ def model_file_points(primitives: Primitives, config: FitConfig, targets: Tensor
             loaded, _ = load_model(path)
             recon = render(loaded, config)[1]
             points.append(_point(FLOAT32 if dtype == "float32" else FLOAT16, "safetensors", path.stat().st_size,
-                                 config, recon, targets, encoded - started, time.perf_counter() - encoded))
+                                 config, recon, targets, encoded - started, time.perf_counter() - encoded,
+                                 loaded.count))
     return points
 
 
@@ -198,11 +240,14 @@ def rd_points(primitives: Primitives, config: FitConfig, targets: Tensor, ladder
 
 
 def cell_record(model_file: Path, scene: Scene, ladder: Sequence[BitDepths] = LADDER,
-                max_drops: Sequence[float] = MAX_DROPS_DB, finetune_steps: int = 0) -> dict[str, Any]:
+                max_drops: Sequence[float] = MAX_DROPS_DB, finetune_steps: int = 0,
+                budget_fractions: Sequence[float] = (), budget_finetune_steps: int = 0) -> dict[str, Any]:
     """A benchmark cell's R-D record (`rd.json`) for the model in `model_file` against the scene's
     targets: the float32 and float16 model files, the codec at each rung of `ladder`, the anchors, the
     codec at the `--max-drop` budgets, and with `finetune_steps` > 0 the codec fine-tuned, and pruned
-    and fine-tuned, at some rungs (`finetuned_points`); the fit's own PSNR; and how long it all took
+    and fine-tuned, at some rungs (`finetuned_points`); with `budget_fractions`, the codec at those fractions of
+    the rate of its smallest ladder file within 0.1 dB (`budgets_for`), rate-controlled and fine-tuned for
+    `budget_finetune_steps` (`budget_points`); the fit's own PSNR; and how long it all took
     on which machine at which load (wall and process CPU seconds: their ratio shows how shared the
     cores were)."""
     primitives, config = load_model(model_file)
@@ -216,8 +261,12 @@ def cell_record(model_file: Path, scene: Scene, ladder: Sequence[BitDepths] = LA
               *searched_points(primitives, config, targets, fit_psnr, max_drops)]
     if finetune_steps:
         points += finetuned_points(primitives, config, scene, fit_psnr, finetune_steps, ladder, ladder_points)
+    if budget_fractions:
+        points += budget_points(primitives, config, scene, fit_psnr,
+                                budgets_for(ladder_points, fit_psnr, budget_fractions), budget_finetune_steps)
     return {"model_file": str(model_file), "model_bytes": model_file.stat().st_size, "fit_psnr": fit_psnr,
             "finetune_steps": finetune_steps, "prune_fractions": list(PRUNE_FRACTIONS) if finetune_steps else [],
+            "budget_fractions": list(budget_fractions), "budget_finetune_steps": budget_finetune_steps,
             "points": [asdict(p) for p in points],
             "seconds": time.perf_counter() - started, "cpu_seconds": time.process_time() - cpu_started,
             "run": machine_record(torch.device(config.device))}
@@ -289,3 +338,71 @@ def cell_summary(record: dict[str, Any], span_db: float = 1.0, drop_db: float = 
     return {"fit_psnr": top, "bd_rate": rates, "better_anchor": better,
             "held": held, "float32_decode_s": float32["decode_s"],
             "fraction": None if codec_point is None else codec_point["bytes"] / record["model_bytes"]}
+
+
+def _interpolated(xs: Sequence[float], ys: Sequence[float], x: float) -> float | None:
+    """y at `x` on the polyline through (xs, ys), xs increasing; None outside it."""
+    if not xs or not xs[0] <= x <= xs[-1]:
+        return None
+    return float(np.interp(x, xs, ys))
+
+
+def psnr_at_rate(points: Sequence[dict[str, Any]], bpp: float) -> float | None:
+    """PSNR (dB) of the Pareto front of `points` at `bpp`, linear in log(bpp) between its points."""
+    front = pareto(points)
+    return _interpolated([math.log(p["bpp"]) for p in front], [p["psnr"] for p in front], math.log(bpp))
+
+
+def rate_at_psnr(points: Sequence[dict[str, Any]], psnr: float) -> float | None:
+    """bpp of the Pareto front of `points` at `psnr` (dB), linear in log(bpp) between its points."""
+    front = pareto(points)
+    log_rate = _interpolated([p["psnr"] for p in front], [math.log(p["bpp"]) for p in front], psnr)
+    return None if log_rate is None else math.exp(log_rate)
+
+
+@dataclass
+class EqualRate:
+    """At the rate `bpp` where the anchor's front is `drop_db` below the fit, the codec's PSNR and its gain."""
+
+    bpp: float
+    drop_db: float
+    codec_psnr: float
+    gain_db: float
+
+
+def equal_rate_gain(anchor: Sequence[dict[str, Any]], codec: Sequence[dict[str, Any]], top_psnr: float,
+                    drop_db: float = 2.0) -> EqualRate | None:
+    """The codec's PSNR above the anchor's at the rate where the anchor reaches `top_psnr` − `drop_db`; None
+    where either front does not reach there."""
+    rate = rate_at_psnr(anchor, top_psnr - drop_db)
+    psnr = None if rate is None else psnr_at_rate(codec, rate)
+    return None if psnr is None else EqualRate(rate, drop_db, psnr, psnr - (top_psnr - drop_db))
+
+
+def budget_fill(point: dict[str, Any]) -> float:
+    """A rate-controlled point's bytes as a share of its budget's ⌊bpp·W·H/8⌋ bytes (1 at most, honestly)."""
+    pixels = round(8 * point["bytes"] / point["bpp"])
+    return point["bytes"] / math.floor(point["budget_bpp"] * pixels / 8)
+
+
+def wide_summary(record: dict[str, Any], drop_db: float = 2.0) -> dict[str, Any]:
+    """What the rate grid's tables show of one cell (`--preset rate`): the codec's BD-rate over
+    `WIDE_RANGE_DB` below the fit against each anchor and the better one, its gain over JPEG XL at JPEG XL's
+    rate `drop_db` below the fit, and its rate-controlled points: their budget fill, primitive counts and
+    encode seconds."""
+    by_codec: dict[str, list[dict[str, Any]]] = {}
+    for point in record["points"]:
+        by_codec.setdefault(point["codec"], []).append(point)
+    top, (deepest, shallowest) = record["fit_psnr"], WIDE_RANGE_DB
+    codec = by_codec.get(CODEC, [])
+    rates = {anchor: bd_rate(by_codec.get(anchor, []), codec, top - shallowest, deepest - shallowest)
+             for anchor in ANCHORS}
+    known = {anchor: rate for anchor, rate in rates.items() if rate is not None}
+    better = max(known, key=lambda anchor: known[anchor].percent) if known else None
+    budgeted = [point for point in codec if point.get("budget_bpp") is not None]
+    return {"fit_psnr": top, "bd_rate": rates, "better_anchor": better,
+            "equal_rate": equal_rate_gain(by_codec.get("JPEG XL", []), codec, top, drop_db),
+            "fills": [budget_fill(point) for point in budgeted],
+            "counts": sorted({point["primitives"] for point in codec if point.get("primitives") is not None}),
+            "points": len(codec), "deepest_db": top - min((point["psnr"] for point in codec), default=top),
+            "budgeted": budgeted}

@@ -452,12 +452,79 @@ def rate_distortion_table(plan: BenchPlan, results: list[CellResult]) -> tuple[l
                            "", f"{np.mean(betters):+.1f}%" if betters else MISSING, "",
                            f"1/{1 / np.mean(fractions):.1f}" if fractions else MISSING, "", "", "", "", "", ""])
         table.bold.add((len(table.rows) - 1, 6))
-    return [table], rows
+    if not PRESETS[plan.preset].budget_fractions:
+        return [table], rows
+    wide, wide_rows = wide_range_table(plan, results)
+    by_cell = {row["cell"]: row for row in wide_rows}
+    return [table, wide], [{**row, **by_cell.get(row["cell"], {})} for row in rows]
+
+
+def _range_text(values: list[float], digits: int = 3) -> str:
+    return MISSING if not values else f"{min(values):.{digits}f}–{max(values):.{digits}f}"
+
+
+def wide_range_table(plan: BenchPlan, results: list[CellResult]) -> tuple[Table, list[dict[str, Any]]]:
+    """In a rate grid (`--preset rate`), per setting and scene: the codec's BD-rate against each anchor and
+    the better one over [fit − 3, fit − 0.1] dB; its PSNR above JPEG XL at the rate where JPEG XL is 2 dB
+    below the fit; and its `--bpp` points: how full each file is of its budget, how many primitives the
+    codec's points hold, how deep they reach, and their encode seconds. Also the columns it adds to `rd.csv`."""
+    from .ratedistortion import ANCHORS, WIDE_RANGE_DB, wide_summary
+
+    deepest, shallowest = WIDE_RANGE_DB
+    table = Table(f"Rate–distortion below the fit: BD-rate over [fit − {deepest:g}, fit − {shallowest:g}] dB and "
+                  "the `--bpp` budgets",
+                  ["Scene", "Setting", "fit PSNR", *(f"BD-rate vs {a}" for a in ANCHORS), "BD-rate vs the better",
+                   "JPEG XL at fit − 2 dB: bpp", "cvqpg there: dB above", "--bpp files: bytes ÷ budget",
+                   "codec points", "primitive counts", "deepest point", "--bpp encode s"],
+                  note=f"BD-rate as in the table above, over the fit's PSNR − {deepest:g} dB to − {shallowest:g} dB "
+                  "(narrowed to where both fronts have points). cvqpg there: the codec's Pareto front at the rate "
+                  "where JPEG XL's front is 2 dB below the fit (both interpolated linearly in log bpp), minus "
+                  "that PSNR. --bpp files: each rate-controlled file's bytes over its budget's ⌊bpp·W·H/8⌋ "
+                  "(within 0.95–1 is honest); codec points: all of the codec's points (ladder, searched and "
+                  "budgets), with the distinct primitive counts among them and the deepest one's drop below "
+                  "the fit. Encode s: the rate control of one budget (search, fine-tuning, last search), "
+                  "smallest–largest.")
+    rows: list[dict[str, Any]] = []
+    for setting in plan.settings:
+        summaries = [(r, wide_summary(r.rd)) for r in results if r.rd is not None and r.cell.setting == setting]
+        betters, gains = [], []
+        for r, summary in summaries:
+            top, rates = summary["fit_psnr"], summary["bd_rate"]
+            better = rates[summary["better_anchor"]] if summary["better_anchor"] else None
+            equal, counts = summary["equal_rate"], summary["counts"]
+            if better is not None:
+                betters.append(better.percent)
+            if equal is not None:
+                gains.append(equal.gain_db)
+            table.rows.append([r.cell.scene.name, setting_label(setting), f"{top:.3f}",
+                               *(_bd_text(rates[a], top, True) for a in ANCHORS), _bd_text(better, top, True),
+                               NA if equal is None else f"{equal.bpp:.3f}",
+                               NA if equal is None else f"{equal.gain_db:+.2f}",
+                               _range_text(summary["fills"]), str(summary["points"]),
+                               f"{len(counts)}: {counts[0]:,}–{counts[-1]:,}" if counts else MISSING,
+                               f"{-summary['deepest_db']:+.2f} dB",
+                               _range_text([p["encode_s"] for p in summary["budgeted"]], 0)])
+            rows.append({"cell": r.cell.name,
+                         **{f"wide_bd_rate_{a.replace(' ', '').lower()}": "" if rates[a] is None else rates[a].percent
+                            for a in ANCHORS},
+                         "wide_better_anchor": summary["better_anchor"] or "",
+                         "wide_bd_rate_better": "" if better is None else better.percent,
+                         "jpegxl_minus_2db_bpp": "" if equal is None else equal.bpp,
+                         "gain_over_jpegxl_db": "" if equal is None else equal.gain_db,
+                         "budget_fill_min": min(summary["fills"], default=""),
+                         "budget_fill_max": max(summary["fills"], default=""),
+                         "primitive_counts": len(counts)})
+        above = sum(value > 0 for value in betters)
+        table.rows.append([f"mean ({len(summaries)}/{len(plan.scenes)} scenes)", setting_label(setting), "", "", "",
+                           f"{np.mean(betters):+.1f}% ({above} above 0%)" if betters else MISSING, "",
+                           f"{np.mean(gains):+.2f}" if gains else MISSING, "", "", "", "", ""])
+        table.bold.add((len(table.rows) - 1, 5))
+    return table, rows
 
 
 def rate_distortion_figures(plan: BenchPlan, results: list[CellResult]) -> list[Path]:
     """`rd_<setting>.png`: per scene, each codec's Pareto front and the two model files."""
-    from .ratedistortion import FLOAT16, FLOAT32, pareto
+    from .ratedistortion import FLOAT16, FLOAT32, WIDE_RANGE_DB, pareto
 
     drawn = []
     for setting in plan.settings:
@@ -475,7 +542,8 @@ def rate_distortion_figures(plan: BenchPlan, results: list[CellResult]) -> list[
         if panels:
             name = Path(f"rd_{setting}.png")
             figures.rate_distortion_figure({f"{scene}, {setting_label(setting)}": panel
-                                            for scene, panel in panels.items()}, plan.folder / name)
+                                            for scene, panel in panels.items()}, plan.folder / name,
+                                           WIDE_RANGE_DB if PRESETS[plan.preset].budget_fractions else (1.0, 0.0))
             drawn.append(name)
     return drawn
 
