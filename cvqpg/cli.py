@@ -331,7 +331,7 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
                    "cells with the same settings are copied instead of fitted (e.g. the chromatic grid reuses "
                    "results/paper's baseline and CVQPG cells)")
     p.add_argument("--fits", nargs="+", default=[], metavar="DIR", help="rate–distortion grids (--preset "
-                   "compression): bench folders whose finished cells with the same settings kept their "
+                   "compression or rate): bench folders whose finished cells with the same settings kept their "
                    "model.safetensors; a cell takes its model from the first that has it instead of fitting it "
                    "(e.g. runs/bench-paper)")
     p.add_argument("--finetune", type=int, default=0, metavar="STEPS", help="rate–distortion grids: also record "
@@ -806,7 +806,7 @@ def run_bench(args: argparse.Namespace) -> int:
     plan = make_plan(args.preset, args.out, overrides)
     for option, given in (("--fits", bool(args.fits)), ("--finetune", args.finetune != 0)):
         if given and not PRESETS[args.preset].rate_distortion:
-            raise UsageError(f"{option} is for rate–distortion grids (--preset compression), not --preset "
+            raise UsageError(f"{option} is for rate–distortion grids (--preset compression or rate), not --preset "
                              f"{args.preset}")
     if args.finetune < 0:
         raise UsageError(f"--finetune {args.finetune}: give a number of steps ≥ 0")

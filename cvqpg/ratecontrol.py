@@ -1,10 +1,12 @@
 """Rate control: a `.cvq` file of at most a given size (`cvqpg compress --bpp`/`--max-bytes`, `cvqpg encode`).
 
 The file never exceeds the budget, because every size is measured by encoding, never estimated. At each
-rung of `RUNGS`, a bisection over how many primitives are kept (those of most field energy) finds the
-largest model that fits; the rung whose decoded render scores best among those within 5% below the budget
-wins (`CLOSE`; where none is, the largest file), and where it keeps every primitive the rest of the budget goes
-to finer bit depths, one attribute at a time. Fine-tuning with the quantisers in the loop (`finetune`) at
+rung of `RUNGS`, a search over how many primitives are kept (those of most field energy) finds the
+largest model that fits. The finest rung that keeps every primitive is also filled up to the budget with
+finer bit depths, one attribute at a time, since dropping primitives costs far more than coarser bits (on a
+640×480 grayscale fit, dropping the weakest 8% cost 2.9 dB where one rung coarser for all cost 0.9 dB).
+The candidate whose decoded render scores best among those within 5% below the budget wins (`CLOSE`; where
+none is, the largest file). Fine-tuning with the quantisers in the loop (`finetune`) at
 those depths starts from a few more primitives than fit (`TUNING_HEADROOM`), since tuning moves the
 entropy-coded size a little either way, and a last bisection keeps as many of the tuned primitives as fit.
 Those that set the codec's ranges are kept first, so that the file's bins stay the ones the tuning trained
@@ -199,9 +201,11 @@ def rate_control(primitives: Primitives, config: FitConfig, reference: Reference
                 rungs.append(trial(kept(primitives, order, count), config, bits, reference))
                 show(rungs[-1])
             bar.update()
+        whole = [choice for choice in rungs if choice.decoded.count == primitives.count]
+        if whole:  # the finest rung that keeps every primitive, filled up to the budget
+            rungs.append(_finer_while_fitting(primitives, config, reference, budget,
+                                              max(whole, key=lambda choice: len(choice.data))))
         best = _best(rungs, budget)
-        if best.decoded.count == primitives.count:
-            best = _finer_while_fitting(primitives, config, reference, budget, best)
         show(best)
         if not steps:
             return RateChoice(best, 0, False)

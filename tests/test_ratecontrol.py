@@ -12,11 +12,11 @@ from PIL import Image
 from cvqpg import FitConfig
 from cvqpg.cli import main
 from cvqpg.codec import BitDepths, encode, quantise, range_holders
-from cvqpg.compression import kept, strongest_first
+from cvqpg.compression import kept, reference_for, strongest_first, trial
 from cvqpg.errors import ConfigError
 from cvqpg.primitives import activate, init_gaussians
-from cvqpg.ratecontrol import (RUNGS, Budget, compress_to_budget, largest_fitting, primitives_for_budget,
-                               smallest_file, stand_in)
+from cvqpg.ratecontrol import (CLOSE, RUNGS, Budget, compress_to_budget, largest_fitting, primitives_for_budget,
+                               _finer_while_fitting, rate_control, smallest_file, stand_in)
 from cvqpg.storage import load_model, read_compressed
 
 W, H = 48, 36
@@ -46,6 +46,19 @@ def test_the_file_never_exceeds_the_budget_and_lands_within_5_percent_below_it(r
     assert 0.95 * max_bytes <= out.stat().st_size == record["bytes"] <= max_bytes
     assert record["bits_per_pixel"] <= bpp
     assert read_compressed(out).primitives.count == record["num_primitives"] <= load_model(run / "model.safetensors")[0].count
+
+
+def test_every_primitive_filled_up_to_the_budget_is_a_candidate_even_where_its_rung_lands_far_below():
+    config = FitConfig(width=W, height=H, ratio=0.5).validate()
+    primitives = stand_in(config, config.primitive_count)  # all about equally strong: pruning costs most
+    reference = reference_for(primitives, config, None)
+    sizes = [len(encode(primitives, config, bits)) for bits in RUNGS[:3]]
+    budget = Budget(round(sizes[1] + 0.6 * (sizes[2] - sizes[1])), "a budget between two rungs")
+    assert sizes[1] < CLOSE * budget.max_bytes  # rung 1 lands more than 5% below the budget
+    filled = _finer_while_fitting(primitives, config, reference, budget, trial(primitives, config, RUNGS[1], reference))
+    assert filled.decoded.count == primitives.count and len(filled.data) >= CLOSE * budget.max_bytes
+    chosen = rate_control(primitives, config, reference, budget).choice
+    assert len(chosen.data) <= budget.max_bytes and chosen.psnr >= filled.psnr  # pruned rungs score ~4 dB less
 
 
 def test_a_budget_beyond_the_whole_model_at_the_finest_depths_gets_that_file(run, tmp_path):
