@@ -26,6 +26,7 @@ from ..finetune import finetune
 from ..fitting import hologram, render
 from ..metrics import mean_psnr, mean_ssim
 from ..optics import reconstruct
+from ..ratecontrol import Budget, rate_control, smallest_file
 from ..primitives import Primitives
 from ..app.provenance import machine_record
 from ..storage import load_model, save_model
@@ -143,16 +144,15 @@ def budget_points(primitives: Primitives, config: FitConfig, scene: Scene, fit_p
     writes it (`ratecontrol.rate_control`: primitives and bit depths chosen for the budget, then `steps` of
     quantisation-aware fine-tuning on the scene's targets), the whole rate control counted as encoding time.
     Budgets below the smallest file the format can write of the model get no point."""
-    from ..ratecontrol import Budget, rate_control, smallest_file
-
     reference = Reference(scene.targets, "the run's targets", fit_psnr)
     smallest = smallest_file(primitives, config)
     points = []
     for bpp in budgets_bpp:
-        if Budget.of(config, bpp=bpp).max_bytes < smallest:
+        budget = Budget.of(config, bpp=bpp)
+        if budget.max_bytes < smallest:
             continue
         started = time.perf_counter()
-        chosen = rate_control(primitives, config, reference, Budget.of(config, bpp=bpp), scene, steps).choice
+        chosen = rate_control(primitives, config, reference, budget, scene, steps).choice
         point = _decoded_point(CODEC, f"--bpp {bpp:.3f}: {_describe(chosen.bits)}", chosen.data, config,
                                scene.targets, time.perf_counter() - started)
         point.budget_bpp = bpp
