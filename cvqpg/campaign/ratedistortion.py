@@ -321,17 +321,30 @@ def smallest_within(points: Sequence[dict[str, Any]], top_psnr: float, drop_db: 
     return min(held, key=lambda p: p["bytes"]) if held else None
 
 
+def _by_codec(record: dict[str, Any]) -> dict[str, list[dict[str, Any]]]:
+    by_codec: dict[str, list[dict[str, Any]]] = {}
+    for point in record["points"]:
+        by_codec.setdefault(point["codec"], []).append(point)
+    return by_codec
+
+
+def _against_anchors(by_codec: dict[str, list[dict[str, Any]]], top_psnr: float, span_db: float
+                     ) -> tuple[dict[str, BdRate | None], str | None]:
+    """The codec's BD-rate against each anchor over `span_db` below `top_psnr` (`bd_rate`), and the better
+    anchor: the one against which the codec saves least (None where no BD-rate could be taken)."""
+    rates = {anchor: bd_rate(by_codec.get(anchor, []), by_codec.get(CODEC, []), top_psnr, span_db)
+             for anchor in ANCHORS}
+    known = {anchor: rate for anchor, rate in rates.items() if rate is not None}
+    return rates, max(known, key=lambda anchor: known[anchor].percent) if known else None
+
+
 def cell_summary(record: dict[str, Any], span_db: float = 1.0, drop_db: float = 0.1) -> dict[str, Any]:
     """What the tables show of one cell's record: the codec's BD-rate against each anchor and against
     the better one (the anchor against which the codec saves least), and the smallest files within
     `drop_db` of the fit, the codec's as a fraction of the fit's `model.safetensors`, with its times."""
-    by_codec: dict[str, list[dict[str, Any]]] = {}
-    for point in record["points"]:
-        by_codec.setdefault(point["codec"], []).append(point)
+    by_codec = _by_codec(record)
     top = record["fit_psnr"]
-    rates = {anchor: bd_rate(by_codec.get(anchor, []), by_codec.get(CODEC, []), top, span_db) for anchor in ANCHORS}
-    known = {anchor: rate for anchor, rate in rates.items() if rate is not None}
-    better = max(known, key=lambda anchor: known[anchor].percent) if known else None
+    rates, better = _against_anchors(by_codec, top, span_db)
     float32 = by_codec[FLOAT32][0]
     held = {codec: smallest_within(by_codec.get(codec, []), top, drop_db) for codec in (CODEC, *ANCHORS)}
     codec_point = held[CODEC]
@@ -390,15 +403,10 @@ def wide_summary(record: dict[str, Any], drop_db: float = 2.0) -> dict[str, Any]
     `WIDE_RANGE_DB` below the fit against each anchor and the better one, its gain over JPEG XL at JPEG XL's
     rate `drop_db` below the fit, and its rate-controlled points: their budget fill, primitive counts and
     encode seconds."""
-    by_codec: dict[str, list[dict[str, Any]]] = {}
-    for point in record["points"]:
-        by_codec.setdefault(point["codec"], []).append(point)
+    by_codec = _by_codec(record)
     top, (deepest, shallowest) = record["fit_psnr"], WIDE_RANGE_DB
     codec = by_codec.get(CODEC, [])
-    rates = {anchor: bd_rate(by_codec.get(anchor, []), codec, top - shallowest, deepest - shallowest)
-             for anchor in ANCHORS}
-    known = {anchor: rate for anchor, rate in rates.items() if rate is not None}
-    better = max(known, key=lambda anchor: known[anchor].percent) if known else None
+    rates, better = _against_anchors(by_codec, top - shallowest, deepest - shallowest)
     budgeted = [point for point in codec if point.get("budget_bpp") is not None]
     return {"fit_psnr": top, "bd_rate": rates, "better_anchor": better,
             "equal_rate": equal_rate_gain(by_codec.get("JPEG XL", []), codec, top, drop_db),
