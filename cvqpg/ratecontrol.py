@@ -8,7 +8,7 @@ finer bit depths, one attribute at a time, since dropping primitives costs far m
 The candidate whose decoded render scores best among those within 5% below the budget wins (`CLOSE`; where
 none is, the largest file). Fine-tuning with the quantisers in the loop (`finetune`) at
 those depths starts from a few more primitives than fit (`TUNING_HEADROOM`), since tuning moves the
-entropy-coded size a little either way, and a last bisection keeps as many of the tuned primitives as fit.
+entropy-coded size a little either way, and a last search keeps as many of the tuned primitives as fit.
 Those that set the codec's ranges are kept first, so that the file's bins stay the ones the tuning trained
 on. The tuned file is kept where the same rule prefers it: it scores better when both land within 5% below
 the budget, and otherwise the larger file wins.
@@ -41,7 +41,7 @@ from .targets import Scene
 # Fine-tuning steps at the chosen rung where the caller gives none (the rate–distortion benchmark's).
 RATE_FINETUNE_STEPS = 100
 # Fine-tuning moves a file's size by a few percent (small fits grew by 1–5%); tuning a model 4% above the
-# budget leaves the last bisection primitives to drop where it shrinks, rather than a file well below it.
+# budget leaves the last search primitives to drop where it shrinks, rather than a file well below it.
 TUNING_HEADROOM = 0.04
 # `cvqpg encode` fits more primitives than the budget holds at the default bit depths, so that the rate
 # search can choose between coarser depths for all of them and the default depths for the strongest.
