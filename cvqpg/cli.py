@@ -28,7 +28,7 @@ from .app.runner import CHECKPOINT_SECONDS, fit_in_folder, resumed_state, timed_
 from .campaign.bench import (CELLS_DIR, METHODS, PRESETS, Overrides, RateDistortionOptions, describe_cells, make_plan,
                              parse_shard, peak_bytes, run_plan)
 from .campaign.report import write_summary
-from .campaign.results import document
+from .campaign.results import document, write_figures
 from .codec import SUFFIX, BitDepths
 from .compression import ASSUMED_FIT_PSNR_DB, check_compression_settings, compress_model, decompress_file
 from .config import BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITIVES, QPFS, RECIPES, FitConfig
@@ -350,7 +350,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     _fit_parser(sub)
     _bench_parser(sub)
-    p = sub.add_parser("results", help="write docs/results.md from the cell records in results/",
+    p = sub.add_parser("results", help="write docs/results.md (and its figures) from the cell records in results/",
                        description="Tabulate the recorded cells of results/ (Table 1, per scene, ablation, "
                        "chromatic, frequency, runtime) beside the paper's numbers, with one line per claim.")
     p.add_argument("--root", default="results", metavar="DIR", help="the recorded bench folders [default: results]")
@@ -848,8 +848,9 @@ def run_results(args: argparse.Namespace) -> int:
     if not Path(args.root).is_dir():
         raise UsageError(f"--root {args.root} is not a folder of recorded bench folders (e.g. results)")
     out = check_output_file(args.out, [], args.overwrite)
+    figures = write_figures(Path(args.root), out.parent, args.overwrite)
     write_atomic(out, document(Path(args.root)))
-    print(f"cvqpg results: {args.out}")
+    print(f"cvqpg results: {', '.join(map(str, [out, *figures]))}")
     return 0
 
 

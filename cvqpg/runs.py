@@ -30,6 +30,8 @@ CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.json"
 MODEL_FILE = "model.safetensors"
 CHECKPOINT_FILE = "checkpoint.pt"
+HISTORY_FILE = "history.csv"
+HISTORY_ROWS = 1000  # at most about this many steps per history.csv: a bench cell keeps it in git
 PLANE_IMAGES = ("target_plane*.png", "recon_plane*.png")
 # What every config.json has held since the first version: without them a run would take the defaults.
 RUN_KEYS = ("source", "width", "height", "color", "primitive", "pixel_pitch", "num_planes", "plane_center",
@@ -93,6 +95,25 @@ def save_curve(history: dict[str, list[float]], path: Path) -> None:
     plt.close(figure)
 
 
+def save_history(history: dict[str, list[float]], seconds: float, path: Path) -> None:
+    """`step,seconds,loss,psnr` at every k-th update and the last, k chosen for at most `HISTORY_ROWS` + 1 rows.
+
+    `seconds` is the step's share of the loop's `seconds` (its updates cost alike), so that runs of
+    different lengths and speeds can share a PSNR-against-seconds plot."""
+    updates = len(history["psnr"])
+    stride = max(1, math.ceil(updates / HISTORY_ROWS))
+    rows = ["step,seconds,loss,psnr"]
+    for step in sorted({*range(0, updates, stride), updates - 1} if updates else ()):
+        rows.append(f"{step},{seconds * (step + 1) / updates:.3f},{history['loss'][step]:.6g},{history['psnr'][step]:.4f}")
+    write_atomic(path, "\n".join(rows) + "\n")
+
+
+def read_history(path: Path) -> dict[str, np.ndarray]:
+    """A `history.csv` (see `save_history`) as arrays `step`, `seconds`, `loss` and `psnr`."""
+    table = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    return dict(zip(("step", "seconds", "loss", "psnr"), table.T))
+
+
 def metrics_record(report: MetricReport, config: FitConfig, seconds: float,
                    extra: dict[str, Any] | None = None) -> dict[str, Any]:
     return {**report.to_dict(), "steps": config.steps, "num_gaussians": config.primitive_count,
@@ -105,7 +126,7 @@ def start_run(folder: str | Path, config: FitConfig, source: dict[str, Any], kee
     (and its checkpoint, unless `keep_checkpoint`)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    for pattern in (METRICS_FILE, MODEL_FILE, *PLANE_IMAGES, *(() if keep_checkpoint else (CHECKPOINT_FILE,))):
+    for pattern in (METRICS_FILE, MODEL_FILE, HISTORY_FILE, *PLANE_IMAGES, *(() if keep_checkpoint else (CHECKPOINT_FILE,))):
         for stale in folder.glob(pattern):
             stale.unlink()
     write_json(folder / CONFIG_FILE, {"cvqpg_version": __version__, "source": source, **config.to_dict()})
@@ -149,7 +170,7 @@ def read_run(folder: str | Path) -> tuple[FitConfig, dict[str, Any]]:
 
 def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[str, Any],
               run: dict[str, Any] | None = None) -> Path:
-    """Save config, metrics, model, per-plane targets and reconstructions, hologram and curve; `run`
+    """Save config, metrics, model, per-plane targets and reconstructions, hologram, curve and history; `run`
     is what `metrics.json` records about the code and machine (`cvqpg.app.provenance.run_record`).
 
     The checkpoint goes only once `metrics.json`, the mark of a finished run, is written: a run
@@ -162,6 +183,7 @@ def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[
         to_8bit(image).save(folder / f"recon_plane{plane}.png")
     save_hologram_images(result.hologram, folder)
     save_curve(result.history, folder / "curve.png")
+    save_history(result.history, result.seconds, folder / HISTORY_FILE)
     history = result.history["psnr"]
     write_json(folder / METRICS_FILE, metrics_record(
         result.metrics, config, result.seconds,

@@ -15,7 +15,7 @@ from cvqpg.storage import load_checkpoint, save_checkpoint
 
 SMALL = ["--size", "48", "36", "--steps", "3", "--curvature-warmup", "1", "--quiet"]
 RUN_FILES = {"config.json", "metrics.json", "model.safetensors", "target_plane0.png", "target_plane1.png",
-             "recon_plane0.png", "recon_plane1.png", "amplitude.png", "phase.png", "curve.png"}
+             "recon_plane0.png", "recon_plane1.png", "amplitude.png", "phase.png", "curve.png", "history.csv"}
 
 
 @pytest.fixture(scope="module")
@@ -27,6 +27,8 @@ def demo_run(tmp_path_factory):
 
 def test_fit_writes_the_whole_run_folder(demo_run):
     assert RUN_FILES <= {p.name for p in demo_run.iterdir()}
+    history = (demo_run / "history.csv").read_text().splitlines()
+    assert history[0] == "step,seconds,loss,psnr" and [row.split(",")[0] for row in history[1:]] == ["0", "1", "2", "3"]
     config = json.loads((demo_run / "config.json").read_text())
     assert config["seed"] == 100 and config["cvqpg_version"] and config["source"] == {"scene": "demo"}
     assert config["pixel_pitch"] == 3.74e-6 and config["width"] == 48

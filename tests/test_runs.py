@@ -82,3 +82,17 @@ def test_a_model_fitted_for_other_targets_is_refused_in_one_line(tmp_path, comma
     assert (f"{model} was fitted for 32×24 gray, the run folder {folder} is 64×48 rgb: use it with its own run "
             "folder") in error
     assert sorted(folder.rglob("*")) == before
+
+
+def test_the_history_keeps_every_kth_step_and_the_last_with_its_share_of_the_seconds(tmp_path):
+    from cvqpg.runs import HISTORY_ROWS, read_history, save_history
+
+    updates = 2 * HISTORY_ROWS + 3
+    history = {"loss": [1.0 / (s + 1) for s in range(updates)], "psnr": [10.0 + s / 100 for s in range(updates)]}
+    save_history(history, 60.0, tmp_path / "history.csv")
+    table = read_history(tmp_path / "history.csv")
+    assert list(table["step"][:3]) == [0, 3, 6] and table["step"][-1] == updates - 1
+    assert len(table["step"]) <= HISTORY_ROWS + 1
+    assert table["seconds"][-1] == pytest.approx(60.0) and table["seconds"][0] == pytest.approx(60.0 / updates, abs=1e-3)
+    assert table["psnr"][1] == pytest.approx(10.03) and table["loss"][2] == pytest.approx(1 / 7, rel=1e-5)
+

@@ -36,8 +36,8 @@ from ..fitting import FitInterrupted, FitState, estimated_peak_bytes
 from ..initialisation import resolved_init
 from ..metrics import radial_error_spectrum
 from ..ratecontrol import RATE_FINETUNE_STEPS
-from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, MODEL_FILE, read_run, scene_from_source, start_run,
-                    write_atomic, write_json)
+from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, HISTORY_FILE, METRICS_FILE, MODEL_FILE, read_run, scene_from_source,
+                    start_run, write_atomic, write_json)
 from ..scenes import SCENES
 from ..targets import check_depth_geometry, load_picture
 from .ratedistortion import BUDGET_FRACTIONS
@@ -56,8 +56,9 @@ COLORS = ("rgb", "gray")
 DONE, SKIPPED, INTERRUPTED, NOT_STARTED, FAILED = "done", "skipped", "interrupted", "not started", "failed"
 FITTED = "fitted"  # a rate–distortion cell whose fit is done and whose R-D points are not
 REUSED = "reused"
-# What a finished cell keeps in git (results/): enough to rebuild every table; metrics.json last (the done mark).
-RECORD_FILES = (CONFIG_FILE, SPECTRUM_FILE, RD_FILE, METRICS_FILE)
+# What a finished cell keeps in git (results/): enough to rebuild every table and figure; metrics.json last (the done
+# mark). Cells fitted before history.csv existed lack it.
+RECORD_FILES = (CONFIG_FILE, SPECTRUM_FILE, RD_FILE, HISTORY_FILE, METRICS_FILE)
 STARTED, MISSING = "started", "missing"
 # The paper's training time for grayscale and RGB 10% (8.7 and 17.0 min, its runtime table) as steps of the new
 # recipe on our 2-core CPU with 2 threads and the machine to itself, measured once (docs/beyond.md).

@@ -186,3 +186,23 @@ def rate_distortion_figure(panels: dict[str, tuple[float, dict[str, tuple[list[f
     axes.ravel()[0].legend(fontsize=8, loc="lower right")
     figure.tight_layout()
     save_figure(figure, path)
+
+
+def psnr_seconds_figure(curves: dict[str, tuple[np.ndarray, np.ndarray]], title: str, path: Path) -> None:
+    """The progress PSNR (dB, mean over the planes, before clamping) against the fit's minutes, one curve per
+    label (label → (seconds, PSNR)), each ending in a dot."""
+    plt = _pyplot()
+    figure, axis = plt.subplots(figsize=(6.4, 3.8), dpi=110)
+    for label, (seconds, psnr) in curves.items():
+        line, = axis.plot(seconds / 60, psnr, linewidth=1, label=label)
+        axis.plot(seconds[-1:] / 60, psnr[-1:], marker="o", markersize=4, color=line.get_color())
+    ends = [psnr[-1] for _, psnr in curves.values()]
+    if ends:
+        axis.set_ylim(min(ends) - 6, max(ends) + 0.5)
+        axis.legend(fontsize=8, loc="lower right")
+    axis.set_xlabel("minutes of the fit's loop")
+    axis.set_ylabel("PSNR during the fit (dB)")
+    axis.set_title(title, fontsize=10)
+    axis.grid(alpha=0.3)
+    figure.tight_layout()
+    save_figure(figure, path)

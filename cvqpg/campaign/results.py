@@ -17,11 +17,14 @@ from typing import Any
 
 import numpy as np
 
+from ..app.outputs import check_output_file
+from ..runs import HISTORY_FILE, read_history
 from .bench import (DONE, FOLDER_SCENE_PLANES, METHODS, PRESETS, BenchPlan, BenchScene, Cell, cell_config,
                     config_differences, setting_label)
 from ..config import FitConfig
 from ..initialisation import TARGETS_INIT_MAX_STEPS
 from ..errors import CvqpgError
+from .figures import psnr_seconds_figure
 from .report import (DECIMALS, TABLE1_METHODS, CellResult, Metrics, Table, baseline_gain, channel_frequency_curves,
                      collect, frequency_curves, frequency_lines, paired_delta, paper_numbers, paper_scene_mean,
                      primitive_count, scene_values, setting_methods, shared_means, variant_tables, waiting_note)
@@ -575,6 +578,56 @@ def timed_table(timed: GridResults, setting: str) -> Table:
     return table
 
 
+SECONDS_SCENE = "sushi"  # the scene of the PSNR-against-seconds figures
+
+
+def seconds_figure_name(setting: str) -> str:
+    """E.g. `beyond_seconds_gray10.png`, beside docs/results.md."""
+    return f"beyond_seconds_{setting.replace('-', '')}.png"
+
+
+def seconds_curves(beyond: GridResults, timed: GridResults, setting: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """`SECONDS_SCENE`'s CVQPG cells of the 2000-step grid (which fits as the paper's recipe) and of the timed grid
+    as label → (seconds, progress PSNR) from their `history.csv`; cells without one are left out."""
+    curves = {}
+    for grid, label in ((beyond, "the paper's recipe, {steps} steps"),
+                        (timed, "the new recipe, the paper's training time ({steps} steps)")):
+        cell = next((r.cell for r in grid.done if r.cell.setting == setting and r.cell.method == "cvqpg"
+                     and r.cell.scene.name == SECONDS_SCENE), None)
+        path = None if cell is None else grid.plan.cell_dir(cell) / HISTORY_FILE
+        if path is not None and path.is_file():
+            history = read_history(path)
+            curves[label.format(steps=f"{cell.config.steps:,}")] = (history["seconds"], history["psnr"])
+    return curves
+
+
+def seconds_lines(beyond: GridResults, timed: GridResults) -> list[str]:
+    """The PSNR-against-seconds figures that `write_figures` draws, or what each still waits for."""
+    lines = []
+    for setting in BEYOND_SETTINGS:
+        name, label = seconds_figure_name(setting), setting_label(setting)
+        if len(seconds_curves(beyond, timed, setting)) == 2:
+            lines += [f"![PSNR against minutes, {SECONDS_SCENE}, {label}]({name})", ""]
+        else:
+            lines += [f"PSNR against minutes, {SECONDS_SCENE}, {label}: waits for both CVQPG cells with a "
+                      f"`{HISTORY_FILE}` (cells fitted before it existed have none; refit them to draw it).", ""]
+    return lines
+
+
+def write_figures(root: Path, folder: Path, overwrite: bool = False) -> list[Path]:
+    """Draw into `folder` the PSNR-against-seconds figures whose curves the records under `root` hold; returns them.
+    An existing figure is replaced only with `overwrite` (`InputError` otherwise, before anything is drawn)."""
+    beyond, timed = (load_grid(next(g for g in CAMPAIGN if g.preset == p), root) for p in ("beyond", "beyond-time"))
+    drawn = {folder / seconds_figure_name(s): (s, curves) for s in BEYOND_SETTINGS
+             if len(curves := seconds_curves(beyond, timed, s)) == 2}
+    for path in drawn:
+        check_output_file(path, [], overwrite)
+    for path, (setting, curves) in drawn.items():
+        psnr_seconds_figure(curves, f"{SECONDS_SCENE}, CVQPG, {setting_label(setting)}: one thread, two fits at a "
+                            "time", path)
+    return list(drawn)
+
+
 def beyond_claims(paper: GridResults, beyond: GridResults, timed: GridResults) -> list[str]:
     """Issue #38's targets, met or not, or how they stand while cells are missing."""
     lines = []
@@ -658,5 +711,7 @@ def document(root: Path) -> str:
              *(f"- {line}" for line in beyond_claims(paper, beyond, timed)), "",
              *(beyond_table(paper, beyond, s).markdown() for s in BEYOND_SETTINGS),
              *(timed_table(timed, s).markdown() for s in BEYOND_SETTINGS),
+             "The progress PSNR (mean over the planes, before clamping) against the minutes of the fit's loop, "
+             "from the cells' `history.csv`:", "", *seconds_lines(beyond, timed),
              "## Runtime", "", runtime_table(paper, with_paper=True).markdown()]
     return "\n".join(parts).rstrip() + "\n"
