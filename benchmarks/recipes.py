@@ -49,6 +49,9 @@ VARIANTS = {
     "init-targets": {"init": "targets"},
     "density-2pct-every-5pct": {"density": DensityControl(every=0.05, until=0.6, fraction=0.02)},
     "density-5pct-every-2.5pct": {"density": DensityControl(every=0.025, until=0.6, fraction=0.05)},
+    "loss-mse-ssim": {"focus_weight": 0.0, "product_weight": 0.0},
+    "loss-mse-only": {"focus_weight": 0.0, "product_weight": 0.0, "ssim_weight": 0.0},
+    "loss-mse-ssim-3x": {"focus_weight": 0.0, "product_weight": 0.0, "ssim_weight": 0.015},
 }
 
 

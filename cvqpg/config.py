@@ -103,6 +103,9 @@ class FitConfig:
     adan_eps: float = 1e-8
     grad_clip_norm: float = 1.0
     ssim_weight: float = 0.005
+    # The weights of the loss's masked and correlation MSE terms (method.md §6: 1 each), as `lr`.
+    focus_weight: float = field(default_factory=lambda: RECIPES[DEFAULT_RECIPE]["focus_weight"])
+    product_weight: float = field(default_factory=lambda: RECIPES[DEFAULT_RECIPE]["product_weight"])
     target_noise: float = 1e-3
     guard_band_px: int = 144
     pad_multiple_px: int = 64
@@ -188,7 +191,7 @@ class FitConfig:
         (a run's `source`, settings that no longer exist) are ignored."""
         known = {f.name for f in dataclasses.fields(cls)}
         data = {RENAMED_FIELDS.get(k, k): v for k, v in data.items()}
-        # A record older than recipes is the paper's.
+        # A record older than a recipe's setting has the paper's value for it.
         values = {**RECIPES[PAPER_RECIPE], **{k: v for k, v in data.items() if k in known}}
         if isinstance(values.get("density"), dict):
             values["density"] = DensityControl(**values["density"])
@@ -216,7 +219,8 @@ class FitConfig:
         numbers = {"ratio": self.ratio, "pixel_pitch": self.pixel_pitch, "plane_center": self.plane_center,
                    "plane_span": self.plane_span, "eta": self.eta, "global_bound": self.global_bound,
                    "adan_eps": self.adan_eps, "grad_clip_norm": self.grad_clip_norm,
-                   "ssim_weight": self.ssim_weight, "target_noise": self.target_noise,
+                   "ssim_weight": self.ssim_weight, "focus_weight": self.focus_weight,
+                   "product_weight": self.product_weight, "target_noise": self.target_noise,
                    "defocus_sigma_px": self.defocus_sigma_px, "depth_exponent": self.depth_exponent,
                    **{f"lr.{k}": v for k, v in dataclasses.asdict(self.lr).items()},
                    **{f"betas[{i}]": b for i, b in enumerate(self.betas)},
@@ -231,8 +235,9 @@ class FitConfig:
         for name, value in positive.items():
             if not value > 0:
                 raise ConfigError(f"`{name}` must be positive, got {value}")
-        if self.seed < 0:
-            raise ConfigError(f"`seed` must be 0 or more, got {self.seed}")
+        for name in ("seed", "ssim_weight", "focus_weight", "product_weight"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"`{name}` must be 0 or more, got {getattr(self, name)}")
         if self.density is not None and not (0 < self.density.every <= 1 and 0 <= self.density.until <= 1
                                              and 0 <= self.density.fraction < 1):
             raise ConfigError(f"`density` {self.density}: `every` must lie in (0, 1], `until` in [0, 1] (shares of "
@@ -268,8 +273,10 @@ class FitConfig:
 # The recorded choices of a fit beyond its problem (method.md §6; docs/beyond.md): `FitConfig.with_recipe`.
 PAPER_RECIPE, BEYOND_RECIPE = "paper", "beyond"
 RECIPES: dict[str, dict[str, Any]] = {
-    PAPER_RECIPE: {"lr": LearningRates(), "init": "uniform", "density": None},
-    BEYOND_RECIPE: {"lr": LearningRates(), "init": "auto", "density": None},
+    PAPER_RECIPE: {"lr": LearningRates(), "init": "uniform", "density": None, "focus_weight": 1.0,
+                   "product_weight": 1.0},
+    BEYOND_RECIPE: {"lr": LearningRates(), "init": "auto", "density": None, "focus_weight": 0.0,
+                    "product_weight": 0.0},
 }
 DEFAULT_RECIPE = BEYOND_RECIPE  # measured better than the paper's on every scene (docs/beyond.md)
 

@@ -39,6 +39,12 @@ def test_non_finite_numbers_are_refused(name, value):
         FitConfig(**{name: value}).validate()
 
 
+@pytest.mark.parametrize("name", ["ssim_weight", "focus_weight", "product_weight"])
+def test_negative_loss_weights_are_refused(name):
+    with pytest.raises(ConfigError, match=f"`{name}` must be 0 or more"):
+        FitConfig(**{name: -0.5}).validate()
+
+
 @pytest.mark.parametrize("changes", [{"steps": 2.5}, {"num_planes": True}, {"width": "640"}, {"num_gaussians": 1.5}])
 def test_counts_must_be_whole_numbers(changes):
     with pytest.raises(ConfigError, match=f"`{next(iter(changes))}`"):

@@ -106,11 +106,13 @@ def test_ssim_term_matches_independent_ssim():
     assert float(ssim_per_plane(targets, targets).min()) == pytest.approx(1.0, abs=1e-5)
 
 
-def test_multiplane_loss_matches_spec_term_by_term():
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+@pytest.mark.parametrize("focus_weight, product_weight", [(1.0, 1.0), (0.3, 2.0), (0.0, 0.0)])
+def test_multiplane_loss_matches_spec_term_by_term(backend, focus_weight, product_weight):
     recon, targets, masks, normal = loss_inputs(2)
     noisy = noisy_targets(targets, normal, 1e-3)
     weight = 0.005
-    loss, mse = multiplane_loss(recon, targets, masks, noisy, weight)
+    loss, mse = multiplane_loss(recon, targets, masks, noisy, weight, backend, focus_weight, product_weight)
     r, t, n, k = (a.double().numpy() for a in (recon, targets, noisy, masks))
     total = 0.0
     expected_mse = []
@@ -122,7 +124,7 @@ def test_multiplane_loss_matches_spec_term_by_term():
         term_ssim = weight * (1 - independent_ssim(r[m], t[m]))
         expected_mse.append(term_mse)
         assert term_masked != pytest.approx(term_mse, rel=1e-3)  # the mask matters
-        total += term_mse + term_masked + term_correlation + term_ssim
+        total += term_mse + focus_weight * term_masked + product_weight * term_correlation + term_ssim
     assert loss.ndim == 0
     assert float(loss) == pytest.approx(total, rel=1e-5, abs=1e-7)
     np.testing.assert_allclose(mse.numpy(), expected_mse, rtol=1e-5)
@@ -196,15 +198,16 @@ def test_fast_ssim_gradient_matches_finite_differences():
     assert torch.autograd.gradcheck(lambda x: ssim_per_plane(x, targets, "numba"), (recon,))
 
 
-@pytest.mark.parametrize("seed", [15, 16])
-def test_fused_loss_matches_reference_in_value_and_gradient(seed):
-    """The CPU kernels' loss against the plain PyTorch formula with pytorch-msssim (backend torch)."""
+@pytest.mark.parametrize("seed, weights", [(15, (1.0, 1.0)), (16, (1.0, 1.0)), (16, (0.25, 0.0)), (15, (0.0, 3.0))])
+def test_fused_loss_matches_reference_in_value_and_gradient(seed, weights):
+    """The CPU kernels' loss against the plain PyTorch formula with pytorch-msssim (backend torch), at the
+    paper's weights of the masked and correlation terms and at others."""
     recon, targets, masks, normal = loss_inputs(seed)
     noisy = noisy_targets(targets, normal, 1e-3)
     results = {}
     for backend in ("numba", "torch"):
         leaf = recon.clone().requires_grad_(True)
-        loss, mse = multiplane_loss(leaf, targets, masks, noisy, 0.5, backend)
+        loss, mse = multiplane_loss(leaf, targets, masks, noisy, 0.5, backend, *weights)
         (gradient,) = torch.autograd.grad(loss, leaf)
         results[backend] = (loss.detach(), mse, gradient)
     fused, reference = results["numba"], results["torch"]
@@ -220,8 +223,9 @@ def test_fused_loss_gradient_matches_finite_differences():
     noisy = noisy_targets(targets, normal, 1e-3)
     leaf = recon[:, :, :13, :14].clone().requires_grad_(True)
     crop = (targets[:, :, :13, :14], masks[:, :13, :14], noisy[:, :, :13, :14])
-    assert torch.autograd.gradcheck(lambda x: multiplane_loss(x, crop[0], crop[1], crop[2], 0.5, "numba")[0],
-                                    (leaf,))
+    for weights in ((1.0, 1.0), (0.5, 2.0)):
+        assert torch.autograd.gradcheck(lambda x: multiplane_loss(x, crop[0], crop[1], crop[2], 0.5, "numba",
+                                                                  *weights)[0], (leaf,))
 
 
 def test_ssim_of_images_narrower_than_the_window_uses_the_reference():

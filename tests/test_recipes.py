@@ -29,9 +29,17 @@ def test_the_default_configuration_is_the_default_recipe_and_each_recipe_is_reco
 
 def test_a_record_older_than_recipes_reads_as_the_paper_s():
     record = FitConfig().with_recipe(BEYOND_RECIPE).to_dict()
-    for key in ("lr", "init", "density"):
+    for key in RECIPES[BEYOND_RECIPE]:
         record.pop(key)
     assert FitConfig.from_dict(record).recipe == "paper"
+
+
+def test_a_record_older_than_the_loss_weights_has_the_paper_s_loss():
+    record = FitConfig().with_recipe(BEYOND_RECIPE).to_dict()
+    for key in ("focus_weight", "product_weight"):
+        record.pop(key)
+    config = FitConfig.from_dict(record)
+    assert (config.focus_weight, config.product_weight) == (1.0, 1.0) and config.recipe == "custom"
 
 
 def test_a_recorded_density_control_reads_back():

@@ -85,7 +85,7 @@ CAMPAIGN = (
          (_bench("ablation", "--scene-names " + " ".join(ABLATION_SCENES), reuse=True),)),
     Grid("beyond", "Beyond the paper: the new recipe, 2000 steps", SCENES,
          (Block("gray", (0.1,), BEYOND_METHODS), Block("rgb", (0.1,), BEYOND_METHODS)),
-         (_bench("beyond", "", reuse=True),)),
+         (_bench("beyond", "--colors gray"), _bench("beyond", "--colors rgb"))),
     Grid("beyond-time", "Beyond the paper: the new recipe, the paper's training time", SCENES,
          (Block("gray", (0.1,), ("cvqpg",)), Block("rgb", (0.1,), ("cvqpg",))),
          (_bench("beyond-time", "--colors gray"), _bench("beyond-time", "--colors rgb"))),

@@ -101,16 +101,17 @@ def ssim_per_plane(recon: Tensor, targets: Tensor, backend: str = "auto") -> Ten
 
 
 class _FusedPixelTerms(torch.autograd.Function):
-    """Per plane [M]: MSE(Î,T) + MSE(Î·Mask, T̃·Mask) + MSE(Î·T̃, T̃·T̃), and MSE(Î,T) alone (not
-    differentiated). The gradient is formed in the same pass as the value and scaled in backward."""
+    """Per plane [M]: MSE(Î,T) + MSE(Î·a, T̃·a) + MSE(Î·b, T̃·b), and MSE(Î,T) alone (not differentiated),
+    with a the focus weight [M, H, W] and b the guide [M, C, H, W] (`multiplane_loss` passes √w_f·Mask and
+    √w_p·T̃). The gradient is formed in the same pass as the value and scaled in backward."""
 
     @staticmethod
-    def forward(ctx, recon: Tensor, targets: Tensor, noisy: Tensor, masks: Tensor) -> tuple[Tensor, Tensor]:
+    def forward(ctx, recon: Tensor, targets: Tensor, noisy: Tensor, focus: Tensor, guide: Tensor
+                ) -> tuple[Tensor, Tensor]:
         x = cpu_array(recon)
         gradient = np.empty_like(x)
-        sums = cpu.pixel_terms(x, cpu_array(targets).astype(x.dtype, copy=False),
-                               cpu_array(noisy).astype(x.dtype, copy=False),
-                               cpu_array(masks).astype(x.dtype, copy=False), gradient)
+        sums = cpu.pixel_terms(x, *(cpu_array(t).astype(x.dtype, copy=False) for t in (targets, noisy, focus, guide)),
+                               gradient)
         count = x[0].size
         ctx.gradient, ctx.count = gradient, count
         values, mse = (torch.from_numpy(v / count).to(recon.device, recon.dtype) for v in (sums.sum(axis=1), sums[:, 0]))
@@ -118,14 +119,21 @@ class _FusedPixelTerms(torch.autograd.Function):
         return values, mse
 
     @staticmethod
-    def backward(ctx, grad: Tensor, _: Tensor) -> tuple[Tensor, None, None, None]:
+    def backward(ctx, grad: Tensor, _: Tensor) -> tuple[Tensor, None, None, None, None]:
         scale = (grad / ctx.count).view(-1, 1, 1, 1)
-        return torch.from_numpy(ctx.gradient).to(grad.device) * scale, None, None, None
+        return torch.from_numpy(ctx.gradient).to(grad.device) * scale, None, None, None, None
 
 
-def multiplane_loss(recon: Tensor, targets: Tensor, masks: Tensor, noisy: Tensor,
-                    ssim_weight: float = 0.005, backend: str = "auto") -> tuple[Tensor, Tensor]:
-    """Σ_m [MSE(Î,T) + MSE(Î·Mask, T̃·Mask) + MSE(Î·T̃, T̃·T̃) + w·(1 − SSIM(Î,T))].
+def _scaled(values: Tensor, weight: float) -> Tensor:
+    """√weight·values; `values` itself at weight 1, so that the paper's loss keeps its arithmetic bit for bit."""
+    return values if weight == 1 else values * math.sqrt(weight)
+
+
+def multiplane_loss(recon: Tensor, targets: Tensor, masks: Tensor, noisy: Tensor, ssim_weight: float = 0.005,
+                    backend: str = "auto", focus_weight: float = 1.0, product_weight: float = 1.0
+                    ) -> tuple[Tensor, Tensor]:
+    """Σ_m [MSE(Î,T) + w_f·MSE(Î·Mask, T̃·Mask) + w_p·MSE(Î·T̃, T̃·T̃) + w·(1 − SSIM(Î,T))], the paper's
+    with w_f = w_p = 1 (method.md §6), weights ≥ 0.
 
     recon, targets, noisy: [M, C, H, W]; masks: [M, H, W]. Returns the loss and the plain
     per-plane MSE(Î, T) [M] (detached), from which progress PSNR is read at no extra cost. `backend`
@@ -133,7 +141,8 @@ def multiplane_loss(recon: Tensor, targets: Tensor, masks: Tensor, noisy: Tensor
     """
     structure = ssim_weight * (1 - ssim_per_plane(recon, targets, backend))
     if resolve_backend(backend, recon.device) == "numba":
-        pixel, mse = _FusedPixelTerms.apply(recon, targets, noisy, masks)
+        pixel, mse = _FusedPixelTerms.apply(recon, targets, noisy, _scaled(masks, focus_weight),
+                                            _scaled(noisy, product_weight))
         return (pixel + structure).sum(), mse
-    pixel, mse = reference.pixel_terms(recon, targets, noisy, masks)
+    pixel, mse = reference.pixel_terms(recon, targets, noisy, masks, focus_weight, product_weight)
     return (pixel + structure).sum(), mse

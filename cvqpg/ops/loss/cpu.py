@@ -114,12 +114,13 @@ def _run_sums(rows, runs):
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
-def pixel_terms(recon, targets, noisy, masks, gradient):
-    """Per-plane sums over [C, H, W] of `(x − t)²` and of `(m² + ñ²)(x − ñ)²` ([M, 2], float64).
+def pixel_terms(recon, targets, noisy, focus, guide, gradient):
+    """Per-plane sums over [C, H, W] of `(x − t)²` and of `(a² + b²)(x − ñ)²` ([M, 2], float64).
 
-    With x the reconstruction, t the target, ñ the noisy target and m the plane's mask, the second
-    sum is the masked and the correlation MSE terms together: (x·m − ñ·m)² + (x·ñ − ñ·ñ)². Writes
-    the derivative of both sums with respect to x, `2(x − t) + 2(m² + ñ²)(x − ñ)`, into `gradient`.
+    With x the reconstruction, t the target, ñ the noisy target, a the focus weight [M, H, W] and b the
+    guide [M, C, H, W], the second sum is the masked and the correlation MSE terms together:
+    (x·a − ñ·a)² + (x·b − ñ·b)², the paper's with a the plane's mask and b = ñ. Writes the derivative
+    of both sums with respect to x, `2(x − t) + 2(a² + b²)(x − ñ)`, into `gradient`.
     """
     planes, channels, height, width = recon.shape
     rows = np.zeros((planes * height, 2))
@@ -128,8 +129,8 @@ def pixel_terms(recon, targets, noisy, masks, gradient):
         plain = weighted = 0.0
         for c in range(channels):
             for j in range(width):
-                x, n = recon[m, c, i, j], noisy[m, c, i, j]
-                weight = masks[m, i, j] * masks[m, i, j] + n * n
+                x, n, b = recon[m, c, i, j], noisy[m, c, i, j], guide[m, c, i, j]
+                weight = focus[m, i, j] * focus[m, i, j] + b * b
                 error, noisy_error = x - targets[m, c, i, j], x - n
                 plain += error * error
                 weighted += weight * noisy_error * noisy_error

@@ -20,15 +20,16 @@ SSIM_SIGMA_PX = 1.5
 SSIM_K1, SSIM_K2 = 0.01, 0.03  # stabilisers, as fractions of the data range (1)
 
 
-def pixel_terms(recon: Tensor, targets: Tensor, noisy: Tensor, masks: Tensor) -> tuple[Tensor, Tensor]:
-    """Per plane [M]: MSE(Î,T) + MSE(Î·Mask, T̃·Mask) + MSE(Î·T̃, T̃·T̃), and MSE(Î,T) alone (detached).
-    recon, targets, noisy: [M, C, H, W]; masks: [M, H, W]."""
+def pixel_terms(recon: Tensor, targets: Tensor, noisy: Tensor, masks: Tensor, focus_weight: float = 1.0,
+                product_weight: float = 1.0) -> tuple[Tensor, Tensor]:
+    """Per plane [M]: MSE(Î,T) + w_f·MSE(Î·Mask, T̃·Mask) + w_p·MSE(Î·T̃, T̃·T̃), and MSE(Î,T) alone (detached).
+    recon, targets, noisy: [M, C, H, W]; masks: [M, H, W]; the paper's weights are 1."""
     dims = (1, 2, 3)
     mask = masks[:, None]
     mse = ((recon - targets) ** 2).mean(dim=dims)
     masked = ((recon * mask - noisy * mask) ** 2).mean(dim=dims)
     correlation = ((recon * noisy - noisy * noisy) ** 2).mean(dim=dims)
-    return mse + masked + correlation, mse.detach()
+    return mse + focus_weight * masked + product_weight * correlation, mse.detach()
 
 
 # Newer torch's oneDNN flags take `allow_tf32`; torch 2.4's take only `enabled`.
