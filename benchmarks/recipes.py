@@ -4,7 +4,7 @@
     python benchmarks/recipes.py SCENE_DIR --size 640 480 --variants paper init-targets
     python benchmarks/recipes.py SCENE_DIR --steps 300 --variants paper init-targets
 
-Each variant is the paper's recipe with one set of `FitConfig` changes; every fit is grayscale 10%,
+Each variant is the paper's recipe with one set of `FitConfig` changes (`beyond`: the whole beyond recipe); every fit is grayscale 10%,
 CVQPG, seed 100, on SCENE_DIR's image.* and depth.png. The fits' PSNR does not depend on the machine's
 load, only on its CPU and thread count; run it with OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 to compare
 with docs/beyond.md's table. Prints one JSON line per variant: its PSNR, SSIM and difference to `paper`.
@@ -18,7 +18,7 @@ import json
 from pathlib import Path
 
 from cvqpg import FitConfig
-from cvqpg.config import DensityControl, LearningRates
+from cvqpg.config import BEYOND_RECIPE, RECIPES, DensityControl, LearningRates
 from cvqpg.fitting import fit_scene
 from cvqpg.targets import load_scene
 
@@ -52,6 +52,7 @@ VARIANTS = {
     "loss-mse-ssim": {"focus_weight": 0.0, "product_weight": 0.0},
     "loss-mse-only": {"focus_weight": 0.0, "product_weight": 0.0, "ssim_weight": 0.0},
     "loss-mse-ssim-3x": {"focus_weight": 0.0, "product_weight": 0.0, "ssim_weight": 0.015},
+    "beyond": RECIPES[BEYOND_RECIPE],  # the whole recipe
 }
 
 

@@ -188,7 +188,7 @@ def stage_actions(config: FitConfig, primitives: Primitives | None = None,
         noise = standard_normal(scene.targets.shape, generator, config.backend)
         value, _ = multiplane_loss(recon, scene.targets, scene.masks,
                                    noisy_targets(scene.targets, noise, config.target_noise), config.ssim_weight,
-                                   config.backend, config.focus_weight, config.product_weight)
+                                   config.backend, *config.loss_weights)
         value.backward()
 
     render_hologram(gaussians, config).backward(hologram_grad)

@@ -103,9 +103,10 @@ class FitConfig:
     adan_eps: float = 1e-8
     grad_clip_norm: float = 1.0
     ssim_weight: float = 0.005
-    # The weights of the loss's masked and correlation MSE terms (method.md §6: 1 each), as `lr`.
-    focus_weight: float = field(default_factory=lambda: RECIPES[DEFAULT_RECIPE]["focus_weight"])
-    product_weight: float = field(default_factory=lambda: RECIPES[DEFAULT_RECIPE]["product_weight"])
+    # The weights of the loss's masked and correlation MSE terms (method.md §6: 1 each), as `lr`; None:
+    # `loss_weights` resolves them by the run's length.
+    focus_weight: float | None = field(default_factory=lambda: RECIPES[DEFAULT_RECIPE]["focus_weight"])
+    product_weight: float | None = field(default_factory=lambda: RECIPES[DEFAULT_RECIPE]["product_weight"])
     target_noise: float = 1e-3
     guard_band_px: int = 144
     pad_multiple_px: int = 64
@@ -126,6 +127,13 @@ class FitConfig:
         if name not in RECIPES:
             raise choices_error("recipe", name, tuple(RECIPES))
         return self.replace(**RECIPES[name])
+
+    @property
+    def loss_weights(self) -> tuple[float, float]:
+        """The weights of the loss's masked and correlation MSE terms; one that is None is 0 in runs of at most
+        `SHORT_RUN_STEPS` steps and the paper's 1 in longer ones (docs/beyond.md, "The loss")."""
+        auto = 0.0 if self.steps <= SHORT_RUN_STEPS else 1.0
+        return tuple(auto if w is None else w for w in (self.focus_weight, self.product_weight))
 
     @property
     def curvature_warmup_steps(self) -> int:
@@ -219,13 +227,14 @@ class FitConfig:
         numbers = {"ratio": self.ratio, "pixel_pitch": self.pixel_pitch, "plane_center": self.plane_center,
                    "plane_span": self.plane_span, "eta": self.eta, "global_bound": self.global_bound,
                    "adan_eps": self.adan_eps, "grad_clip_norm": self.grad_clip_norm,
-                   "ssim_weight": self.ssim_weight, "focus_weight": self.focus_weight,
-                   "product_weight": self.product_weight, "target_noise": self.target_noise,
+                   "ssim_weight": self.ssim_weight, "target_noise": self.target_noise,
                    "defocus_sigma_px": self.defocus_sigma_px, "depth_exponent": self.depth_exponent,
                    **{f"lr.{k}": v for k, v in dataclasses.asdict(self.lr).items()},
                    **{f"betas[{i}]": b for i, b in enumerate(self.betas)},
                    **{f"density.{k}": v for k, v in (dataclasses.asdict(self.density) if self.density else {}).items()},
-                   **{f"wavelengths_m[{i}]": w for i, w in enumerate(self.wavelengths_m or ())}}
+                   **{f"wavelengths_m[{i}]": w for i, w in enumerate(self.wavelengths_m or ())},
+                   **{k: w for k, w in (("focus_weight", self.focus_weight), ("product_weight", self.product_weight))
+                      if w is not None}}
         for name, value in numbers.items():
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
                 raise ConfigError(f"`{name}` must be a finite number, got {value!r}")
@@ -236,7 +245,7 @@ class FitConfig:
             if not value > 0:
                 raise ConfigError(f"`{name}` must be positive, got {value}")
         for name in ("seed", "ssim_weight", "focus_weight", "product_weight"):
-            if getattr(self, name) < 0:
+            if getattr(self, name) is not None and getattr(self, name) < 0:
                 raise ConfigError(f"`{name}` must be 0 or more, got {getattr(self, name)}")
         if self.density is not None and not (0 < self.density.every <= 1 and 0 <= self.density.until <= 1
                                              and 0 <= self.density.fraction < 1):
@@ -270,13 +279,16 @@ class FitConfig:
         return self
 
 
+# A run of at most this many steps is short: the default recipe starts it from the targets and trains it without
+# the masked and correlation terms; both pay there and not in longer runs (docs/beyond.md).
+SHORT_RUN_STEPS = 400
 # The recorded choices of a fit beyond its problem (method.md §6; docs/beyond.md): `FitConfig.with_recipe`.
 PAPER_RECIPE, BEYOND_RECIPE = "paper", "beyond"
 RECIPES: dict[str, dict[str, Any]] = {
     PAPER_RECIPE: {"lr": LearningRates(), "init": "uniform", "density": None, "focus_weight": 1.0,
                    "product_weight": 1.0},
-    BEYOND_RECIPE: {"lr": LearningRates(), "init": "auto", "density": None, "focus_weight": 0.0,
-                    "product_weight": 0.0},
+    BEYOND_RECIPE: {"lr": LearningRates(), "init": "auto", "density": None, "focus_weight": None,
+                    "product_weight": None},
 }
 DEFAULT_RECIPE = BEYOND_RECIPE  # measured better than the paper's on every scene (docs/beyond.md)
 

@@ -222,7 +222,7 @@ def hologram_loss(field: Tensor, scene: Scene, config: FitConfig,
     noise = standard_normal(scene.targets.shape, generator, config.backend)
     return multiplane_loss(reconstruct(field, config), scene.targets, scene.masks,
                            noisy_targets(scene.targets, noise, config.target_noise), config.ssim_weight,
-                           config.backend, config.focus_weight, config.product_weight)
+                           config.backend, *config.loss_weights)
 
 
 @dataclass

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .config import FitConfig
+from .config import SHORT_RUN_STEPS, FitConfig
 from .errors import ConfigError
 from .ops.propagation.reference import propagate
 from .primitives import Gaussians, init_gaussians, raw_positions
@@ -15,14 +15,11 @@ from .targets import Scene
 SEED_OFFSET = 0x1417  # the position draws have their own generator: the paper's draws stay as they are
 # `init="auto"` starts from the targets in runs of at most this many steps, where it pays, and from the
 # paper's draws in longer ones, where it costs (docs/beyond.md).
-TARGETS_INIT_MAX_STEPS = 400
-
-
 def resolved_init(config: FitConfig) -> str:
     """`uniform` or `targets`: `config.init`, with `auto` resolved by the run's length."""
     if config.init != "auto":
         return config.init
-    return "targets" if config.steps <= TARGETS_INIT_MAX_STEPS else "uniform"
+    return "targets" if config.steps <= SHORT_RUN_STEPS else "uniform"
 
 
 def implied_slm_field(scene: Scene, config: FitConfig) -> Tensor:

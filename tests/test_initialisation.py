@@ -8,7 +8,8 @@ import torch
 
 from cvqpg import FitConfig, builtin_scene
 from cvqpg.errors import ConfigError
-from cvqpg.initialisation import (TARGETS_INIT_MAX_STEPS, implied_slm_field, initial_gaussians, positions_from_energy,
+from cvqpg.config import SHORT_RUN_STEPS
+from cvqpg.initialisation import (implied_slm_field, initial_gaussians, positions_from_energy,
                                   resolved_init)
 from cvqpg.ops.propagation.reference import propagate
 from cvqpg.primitives import init_gaussians, positions_px
@@ -56,8 +57,8 @@ def test_only_positions_move_and_the_paper_s_draws_stay():
 
 
 def test_auto_starts_from_the_targets_in_short_runs_only():
-    assert resolved_init(CONFIG.replace(init="auto", steps=TARGETS_INIT_MAX_STEPS)) == "targets"
-    assert resolved_init(CONFIG.replace(init="auto", steps=TARGETS_INIT_MAX_STEPS + 1)) == "uniform"
+    assert resolved_init(CONFIG.replace(init="auto", steps=SHORT_RUN_STEPS)) == "targets"
+    assert resolved_init(CONFIG.replace(init="auto", steps=SHORT_RUN_STEPS + 1)) == "uniform"
     assert FitConfig().init == "auto" and FitConfig().with_recipe("paper").init == "uniform"
 
 

@@ -12,7 +12,7 @@ from cvqpg.app.runner import timed_config
 from cvqpg.campaign.bench import PRESETS, make_plan
 from cvqpg.campaign.results import CAMPAIGN, campaign_plan
 from cvqpg.cli import main
-from cvqpg.config import BEYOND_RECIPE, DEFAULT_RECIPE, RECIPES, DensityControl
+from cvqpg.config import BEYOND_RECIPE, DEFAULT_RECIPE, RECIPES, SHORT_RUN_STEPS, DensityControl
 from cvqpg.errors import ConfigError
 from cvqpg.fitting import steps_within
 from cvqpg.scenes import builtin_scene
@@ -105,3 +105,11 @@ def test_steps_and_time_together_are_one_line(capsys, tmp_path):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--steps or --time" in err[0]
     assert not (tmp_path / "r").exists()
+
+
+def test_the_default_recipe_drops_the_masked_and_correlation_terms_in_short_runs_only():
+    beyond = FitConfig().with_recipe(BEYOND_RECIPE)
+    assert beyond.replace(steps=SHORT_RUN_STEPS).validate().loss_weights == (0.0, 0.0)
+    assert beyond.replace(steps=SHORT_RUN_STEPS + 1).validate().loss_weights == (1.0, 1.0)
+    assert FitConfig().with_recipe("paper").replace(steps=300).loss_weights == (1.0, 1.0)
+    assert beyond.replace(focus_weight=0.5, steps=300).loss_weights == (0.5, 0.0)

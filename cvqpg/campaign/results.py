@@ -22,7 +22,7 @@ from ..runs import HISTORY_FILE, read_history
 from .bench import (DONE, FOLDER_SCENE_PLANES, METHODS, PRESETS, BenchPlan, BenchScene, Cell, cell_config,
                     config_differences, setting_label)
 from ..config import FitConfig
-from ..initialisation import TARGETS_INIT_MAX_STEPS
+from ..config import SHORT_RUN_STEPS
 from ..errors import CvqpgError
 from .figures import psnr_seconds_figure
 from .report import (DECIMALS, TABLE1_METHODS, CellResult, Metrics, Table, baseline_gain, channel_frequency_curves,
@@ -85,7 +85,7 @@ CAMPAIGN = (
          (_bench("ablation", "--scene-names " + " ".join(ABLATION_SCENES), reuse=True),)),
     Grid("beyond", "Beyond the paper: the new recipe, 2000 steps", SCENES,
          (Block("gray", (0.1,), BEYOND_METHODS), Block("rgb", (0.1,), BEYOND_METHODS)),
-         (_bench("beyond", "--colors gray"), _bench("beyond", "--colors rgb"))),
+         (_bench("beyond", "", reuse=True),)),
     Grid("beyond-time", "Beyond the paper: the new recipe, the paper's training time", SCENES,
          (Block("gray", (0.1,), ("cvqpg",)), Block("rgb", (0.1,), ("cvqpg",))),
          (_bench("beyond-time", "--colors gray"), _bench("beyond-time", "--colors rgb"))),
@@ -586,11 +586,12 @@ def seconds_figure_name(setting: str) -> str:
     return f"beyond_seconds_{setting.replace('-', '')}.png"
 
 
-def seconds_curves(beyond: GridResults, timed: GridResults, setting: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """`SECONDS_SCENE`'s CVQPG cells of the 2000-step grid (which fits as the paper's recipe) and of the timed grid
-    as label → (seconds, progress PSNR) from their `history.csv`; cells without one are left out."""
+def seconds_curves(paper: GridResults, timed: GridResults, setting: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """`SECONDS_SCENE`'s CVQPG cells of the paper grid and of the new recipe's timed grid as label → (seconds,
+    progress PSNR) from their `history.csv`; cells without one are left out. (The new recipe's 2000-step
+    cells are the paper grid's.)"""
     curves = {}
-    for grid, label in ((beyond, "the paper's recipe, {steps} steps"),
+    for grid, label in ((paper, "the paper's recipe, {steps} steps"),
                         (timed, "the new recipe, the paper's training time ({steps} steps)")):
         cell = next((r.cell for r in grid.done if r.cell.setting == setting and r.cell.method == "cvqpg"
                      and r.cell.scene.name == SECONDS_SCENE), None)
@@ -601,25 +602,29 @@ def seconds_curves(beyond: GridResults, timed: GridResults, setting: str) -> dic
     return curves
 
 
-def seconds_lines(beyond: GridResults, timed: GridResults) -> list[str]:
+SECONDS_GRIDS = ("paper", "beyond-time")
+
+
+def seconds_lines(grids: dict[str, GridResults]) -> list[str]:
     """The PSNR-against-seconds figures that `write_figures` draws, or what each still waits for."""
     lines = []
     for setting in BEYOND_SETTINGS:
         name, label = seconds_figure_name(setting), setting_label(setting)
-        if len(seconds_curves(beyond, timed, setting)) == 2:
+        if len(seconds_curves(*(grids[g] for g in SECONDS_GRIDS), setting)) == len(SECONDS_GRIDS):
             lines += [f"![PSNR against minutes, {SECONDS_SCENE}, {label}]({name})", ""]
         else:
-            lines += [f"PSNR against minutes, {SECONDS_SCENE}, {label}: waits for both CVQPG cells with a "
-                      f"`{HISTORY_FILE}` (cells fitted before it existed have none; refit them to draw it).", ""]
+            lines += [f"PSNR against minutes, {SECONDS_SCENE}, {label}: waits for a `{HISTORY_FILE}` in each of its "
+                      f"CVQPG cells in {', '.join(f'`results/{g}`' for g in SECONDS_GRIDS)} (cells fitted before it "
+                      "existed have none; refit them to draw it).", ""]
     return lines
 
 
 def write_figures(root: Path, folder: Path, overwrite: bool = False) -> list[Path]:
     """Draw into `folder` the PSNR-against-seconds figures whose curves the records under `root` hold; returns them.
     An existing figure is replaced only with `overwrite` (`InputError` otherwise, before anything is drawn)."""
-    beyond, timed = (load_grid(next(g for g in CAMPAIGN if g.preset == p), root) for p in ("beyond", "beyond-time"))
+    grids = [load_grid(next(g for g in CAMPAIGN if g.preset == p), root) for p in SECONDS_GRIDS]
     drawn = {folder / seconds_figure_name(s): (s, curves) for s in BEYOND_SETTINGS
-             if len(curves := seconds_curves(beyond, timed, s)) == 2}
+             if len(curves := seconds_curves(*grids, s)) == len(SECONDS_GRIDS)}
     for path in drawn:
         check_output_file(path, [], overwrite)
     for path, (setting, curves) in drawn.items():
@@ -703,15 +708,16 @@ def document(root: Path) -> str:
                if chromatic.done), "", runtime_table(chromatic, with_paper=False).markdown(),
              "## Beyond the paper: the new recipe", "",
              f"`--recipe {PRESETS['beyond'].recipe}` (docs/beyond.md) at equal N against the paper grid's cells above, "
-             "evaluated alike (mean PSNR over the planes against the noise-free targets). Its one change, the "
-             f"initialisation from the targets, applies to runs of at most {TARGETS_INIT_MAX_STEPS} steps only, so "
-             "at 2000 steps and at the paper's training time it fits exactly as the paper's recipe does: its "
-             "2000-step cells are the paper grid's, adopted with `--reuse results/paper`, and the timed cells "
-             "are the paper's recipe run for the paper's training time on our CPU.", "",
+             "evaluated alike (mean PSNR over the planes against the noise-free targets). Its changes apply to "
+             f"runs of at most {SHORT_RUN_STEPS} steps only (initialisation from the targets, and a loss without "
+             "the masked and correlation terms), so at 2000 steps and at the paper's training time it fits exactly "
+             "as the paper's recipe does: its 2000-step cells are the paper grid's, adopted with "
+             "`--reuse results/paper`, and the timed cells are the paper's recipe run for the paper's training "
+             "time on our CPU.", "",
              *(f"- {line}" for line in beyond_claims(paper, beyond, timed)), "",
              *(beyond_table(paper, beyond, s).markdown() for s in BEYOND_SETTINGS),
              *(timed_table(timed, s).markdown() for s in BEYOND_SETTINGS),
              "The progress PSNR (mean over the planes, before clamping) against the minutes of the fit's loop, "
-             "from the cells' `history.csv`:", "", *seconds_lines(beyond, timed),
+             "from the cells' `history.csv`:", "", *seconds_lines(grids),
              "## Runtime", "", runtime_table(paper, with_paper=True).markdown()]
     return "\n".join(parts).rstrip() + "\n"
