@@ -13,10 +13,11 @@ from .primitives import Gaussians, init_gaussians, raw_positions
 from .targets import Scene
 
 SEED_OFFSET = 0x1417  # the position draws have their own generator: the paper's draws stay as they are
-# `init="auto"` starts from the targets in runs of at most this many steps, where it pays, and from the
-# paper's draws in longer ones, where it costs (docs/beyond.md).
+
+
 def resolved_init(config: FitConfig) -> str:
-    """`uniform` or `targets`: `config.init`, with `auto` resolved by the run's length."""
+    """`uniform` or `targets`: `config.init`, with `auto` resolved by the run's length: from the targets in short
+    runs (`SHORT_RUN_STEPS`), where it pays, and the paper's draws in longer ones, where it costs."""
     if config.init != "auto":
         return config.init
     return "targets" if config.steps <= SHORT_RUN_STEPS else "uniform"

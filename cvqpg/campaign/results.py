@@ -21,8 +21,7 @@ from ..app.outputs import check_output_file
 from ..runs import HISTORY_FILE, read_history
 from .bench import (DONE, FOLDER_SCENE_PLANES, METHODS, PRESETS, BenchPlan, BenchScene, Cell, cell_config,
                     config_differences, setting_label)
-from ..config import FitConfig
-from ..config import SHORT_RUN_STEPS
+from ..config import SHORT_RUN_STEPS, FitConfig
 from ..errors import CvqpgError
 from .figures import psnr_seconds_figure
 from .report import (DECIMALS, TABLE1_METHODS, CellResult, Metrics, Table, baseline_gain, channel_frequency_curves,
