@@ -218,11 +218,15 @@ def state_from_payload(payload: dict, config: FitConfig, name: str = "the checkp
 def hologram_loss(field: Tensor, scene: Scene, config: FitConfig,
                   generator: torch.Generator) -> tuple[Tensor, Tensor]:
     """method.md §6's training loss of a complex hologram [C, H, W]: propagated to the scene's planes and
-    compared with its targets under fresh noise drawn from `generator`; returns it and the plain MSE."""
-    noise = standard_normal(scene.targets.shape, generator, config.backend)
-    return multiplane_loss(reconstruct(field, config), scene.targets, scene.masks,
-                           noisy_targets(scene.targets, noise, config.target_noise), config.ssim_weight,
-                           config.backend, *config.loss_weights)
+    compared with its targets under fresh noise drawn from `generator`; returns it and the plain MSE. Where
+    both terms that see the noisy targets weigh 0, no noise is drawn: it would enter nothing."""
+    weights = config.loss_weights
+    noisy = scene.targets
+    if any(weights):
+        noise = standard_normal(scene.targets.shape, generator, config.backend)
+        noisy = noisy_targets(scene.targets, noise, config.target_noise)
+    return multiplane_loss(reconstruct(field, config), scene.targets, scene.masks, noisy, config.ssim_weight,
+                           config.backend, *weights)
 
 
 @dataclass

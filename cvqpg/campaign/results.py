@@ -604,12 +604,19 @@ def seconds_curves(paper: GridResults, timed: GridResults, setting: str) -> dict
 SECONDS_GRIDS = ("paper", "beyond-time")
 
 
+def drawable_seconds_curves(grids: dict[str, GridResults]) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """Setting → its curves (`seconds_curves`), for the settings whose every curve is recorded."""
+    curves = {s: seconds_curves(*(grids[g] for g in SECONDS_GRIDS), s) for s in BEYOND_SETTINGS}
+    return {s: c for s, c in curves.items() if len(c) == len(SECONDS_GRIDS)}
+
+
 def seconds_lines(grids: dict[str, GridResults]) -> list[str]:
     """The PSNR-against-seconds figures that `write_figures` draws, or what each still waits for."""
     lines = []
+    drawable = drawable_seconds_curves(grids)
     for setting in BEYOND_SETTINGS:
         name, label = seconds_figure_name(setting), setting_label(setting)
-        if len(seconds_curves(*(grids[g] for g in SECONDS_GRIDS), setting)) == len(SECONDS_GRIDS):
+        if setting in drawable:
             lines += [f"![PSNR against minutes, {SECONDS_SCENE}, {label}]({name})", ""]
         else:
             lines += [f"PSNR against minutes, {SECONDS_SCENE}, {label}: waits for a `{HISTORY_FILE}` in each of its "
@@ -621,9 +628,8 @@ def seconds_lines(grids: dict[str, GridResults]) -> list[str]:
 def write_figures(root: Path, folder: Path, overwrite: bool = False) -> list[Path]:
     """Draw into `folder` the PSNR-against-seconds figures whose curves the records under `root` hold; returns them.
     An existing figure is replaced only with `overwrite` (`InputError` otherwise, before anything is drawn)."""
-    grids = [load_grid(next(g for g in CAMPAIGN if g.preset == p), root) for p in SECONDS_GRIDS]
-    drawn = {folder / seconds_figure_name(s): (s, curves) for s in BEYOND_SETTINGS
-             if len(curves := seconds_curves(*grids, s)) == len(SECONDS_GRIDS)}
+    grids = {p: load_grid(next(g for g in CAMPAIGN if g.preset == p), root) for p in SECONDS_GRIDS}
+    drawn = {folder / seconds_figure_name(s): (s, curves) for s, curves in drawable_seconds_curves(grids).items()}
     for path in drawn:
         check_output_file(path, [], overwrite)
     for path, (setting, curves) in drawn.items():
