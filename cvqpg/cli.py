@@ -805,9 +805,9 @@ def run_bench(args: argparse.Namespace) -> int:
                           curvature_warmup=args.curvature_warmup, device=args.device, backend=args.backend)
     plan = make_plan(args.preset, args.out, overrides)
     for option, given in (("--fits", bool(args.fits)), ("--finetune", args.finetune != 0)):
-        if given and not PRESETS[args.preset].rate_distortion:
-            raise UsageError(f"{option} is for rate–distortion grids (--preset compression or rate), not --preset "
-                             f"{args.preset}")
+        if given and (not PRESETS[args.preset].rate_distortion or PRESETS[args.preset].encode_fractions):
+            raise UsageError(f"{option} is for the rate–distortion grids of fitted models (--preset compression or "
+                             f"rate), not --preset {args.preset}")
     if args.finetune < 0:
         raise UsageError(f"--finetune {args.finetune}: give a number of steps ≥ 0")
     for option, folders in (("--fits", args.fits), ("--reuse", args.reuse)):

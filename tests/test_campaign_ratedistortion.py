@@ -9,7 +9,7 @@ import pytest
 
 from cvqpg.cli import main
 from cvqpg.campaign.ratedistortion import (bd_rate, budget_fill, budgets_for, cell_summary, equal_rate_gain, pareto,
-                                           wide_summary)
+                                           rate_base, wide_summary)
 
 pytest.importorskip("imagecodecs", reason="the JPEG 2000 / JPEG XL anchors need the `compression` extra")
 
@@ -30,6 +30,10 @@ def grids(module_scenes_dir, tmp_path_factory):
                  "--finetune", "2", *scenes, *TINY]) == 0
     # the rate grid fits its own cell, large enough for a file of a few primitives within each budget
     assert main(["bench", "--preset", "rate", "--out", str(root / "rate"), *scenes, *TINY, "--size", "128", "96"]) == 0
+    # the encode grid runs into a copy of the rate grid's folder
+    shutil.copytree(root / "rate", root / "encode")
+    assert main(["bench", "--preset", "encode", "--out", str(root / "encode"), *scenes, *TINY,
+                 "--size", "128", "96"]) == 0
     return root
 
 
@@ -75,6 +79,50 @@ def test_a_rate_cell_records_the_codec_at_bpp_budgets_that_it_never_exceeds(grid
 
 
 @pytest.mark.slow
+def test_an_encode_cell_fits_afresh_at_the_rate_grids_budgets_and_its_tables_show_both(grids, module_scenes_dir,
+                                                                                        capsys):
+    rated = json.loads((grids / "rate" / "cells" / CELL / "rd.json").read_text())
+    cell = grids / "encode" / "cells" / CELL
+    record = json.loads((cell / "encode.json").read_text())
+    assert not (cell / "encode.partial.json").exists()
+    base = rate_base(rated)
+    budgets = sorted(p["budget_bpp"] for p in rated["points"] if p["budget_bpp"] is not None)
+    assert base * 0.7 == pytest.approx(budgets[-1])
+    assert record["fractions"] == [0.7, 0.5, 0.36, 0.26] and record["base_bpp"] == pytest.approx(base)
+    assert len(record["points"]) + len(record["skipped_bpp"]) == 4 and record["points"]
+    assert all(p["codec"] == "cvqpg encode" and 0 < budget_fill(p) <= 1 for p in record["points"])
+    assert [p["budget_bpp"] for p in record["points"]] == pytest.approx([base * f for f in (0.7, 0.5, 0.36, 0.26)
+                                                                         ][:len(record["points"])])
+    # each point is a fit of its own primitive count, not a pruning of the cell's fit
+    fitted = [int(p["setting"].split(": ")[1].split()[0]) for p in record["points"]]
+    assert fitted == sorted(fitted, reverse=True) and len(set(fitted)) == len(fitted)
+    assert all(p["primitives"] <= n for p, n in zip(record["points"], fitted))
+    summary = (grids / "encode" / "summary.md").read_text()
+    assert "with cvqpg encode: BD-rate vs the better" in summary
+    written = (grids / "encode" / "rd.csv").read_text()
+    row = next(csv.DictReader(written.splitlines()))
+    expected = wide_summary({**rated, "points": rated["points"] + record["points"]})["bd_rate_with_encoder"]
+    if expected is None:
+        assert row["wide_bd_rate_with_encoder"] == ""
+    else:
+        assert float(row["wide_bd_rate_with_encoder"]) == pytest.approx(expected.percent)
+    # the rate preset's tables of the same folder read the encode points as well
+    assert main(["bench", "--preset", "rate", "--out", str(grids / "encode"), "--summary-only", *TINY]) == 0
+    assert (grids / "encode" / "rd.csv").read_text() == written
+    capsys.readouterr()
+    assert main(["bench", "--preset", "encode", "--scenes", str(module_scenes_dir), "--out", str(grids / "encode"),
+                 *TINY, "--size", "128", "96"]) == 0
+    assert "0 done, 1 skipped" in capsys.readouterr().out
+
+
+def test_an_encode_grid_needs_the_rate_grid_first(module_scenes_dir, tmp_path, capsys):
+    assert main(["bench", "--preset", "encode", "--scenes", str(module_scenes_dir), "--out", str(tmp_path / "b"),
+                 *TINY]) == 2
+    error = capsys.readouterr().err
+    assert "run `cvqpg bench --preset rate` into the same --out first" in error and error.count("\n") == 1
+
+
+@pytest.mark.slow
 def test_summary_only_rebuilds_the_tables_from_the_records_alone(grids, tmp_path, capsys):
     recorded = tmp_path / "results" / "compression"
     (recorded / "cells" / CELL).mkdir(parents=True)
@@ -99,10 +147,11 @@ def test_a_compression_cell_without_a_kept_fit_fits_it_first(module_scenes_dir, 
 
 
 @pytest.mark.parametrize("arguments, message", [
-    (["--preset", "paper", "--fits", "."], "--fits is for rate–distortion grids"),
+    (["--preset", "paper", "--fits", "."], "--fits is for the rate–distortion grids of fitted models"),
     (["--preset", "compression", "--fits", "no-such-folder"], "--fits no-such-folder: not a bench folder"),
-    (["--preset", "paper", "--finetune", "5"], "--finetune is for rate–distortion grids"),
+    (["--preset", "paper", "--finetune", "5"], "--finetune is for the rate–distortion grids of fitted models"),
     (["--preset", "compression", "--finetune", "-1"], "--finetune -1: give a number of steps ≥ 0"),
+    (["--preset", "encode", "--finetune", "5"], "--finetune is for the rate–distortion grids of fitted models"),
 ])
 def test_bad_fits_are_one_line_and_exit_code_2(arguments, message, module_scenes_dir, tmp_path, capsys):
     assert main(["bench", *arguments, "--scenes", str(module_scenes_dir), "--out", str(tmp_path / "b"), "--quiet"]) == 2
@@ -166,3 +215,31 @@ def test_the_wide_summary_takes_bd_rate_from_3_db_to_a_tenth_below_the_fit():
     assert summary["counts"] == [10, 20, 30, 40, 50] and summary["deepest_db"] == pytest.approx(6.6)
     assert summary["fills"] == []
     assert summary["equal_rate"] is None  # JPEG XL is 2 dB down at 2.76 bpp, beyond the codec's largest file
+    assert summary["encoded"] == [] and summary["bd_rate_with_encoder"] is None
+
+
+def test_the_wide_summary_sets_the_encoders_points_beside_the_codecs():
+    psnrs = [30.0, 33.0, 35.0, 36.0, 36.5]
+    anchor = curve([1, 2, 3, 4, 5], psnrs)
+    # the codec's own points reach only the top of the range; the encoder's take a quarter of the bits below it
+    codec = curve([4, 5], [36.0, 36.5])
+    encoded = [{"codec": "cvqpg encode", "bpp": bpp, "bytes": 1250 * bpp, "psnr": psnr, "budget_bpp": bpp / 0.98}
+               for bpp, psnr in zip([0.25, 0.5, 0.75, 1.0], psnrs[:4])]  # files of 10,000 px
+    record = {"fit_psnr": 36.6, "points": [*({**p, "codec": "JPEG XL"} for p in anchor),
+                                           *({**p, "codec": "JPEG 2000"} for p in anchor),
+                                           *({**p, "codec": "cvqpg"} for p in codec), *encoded]}
+    summary = wide_summary(record)
+    assert summary["bd_rate"][summary["better_anchor"]].percent == pytest.approx(0, abs=1)  # 36 … 36.5 dB only
+    both = summary["bd_rate_with_encoder"]
+    assert (both.low, both.high) == pytest.approx((33.6, 36.5)) and -75 < both.percent < 0
+    assert summary["fills"] == pytest.approx([0.98] * 4, abs=0.01)
+    assert summary["equal_rate_with_encoder"].gain_db > 0 and summary["equal_rate"] is None
+
+
+def test_rate_base_reads_the_budgets_fractions_back():
+    record = {"budget_fractions": [0.7, 0.5], "points": [{"codec": "JPEG XL", "budget_bpp": None},
+                                                         {"codec": "cvqpg", "budget_bpp": 1.4},
+                                                         {"codec": "cvqpg", "budget_bpp": 1.0}]}
+    assert rate_base(record) == pytest.approx(2.0)
+    with pytest.raises(ValueError, match="no `--bpp` budget points"):
+        rate_base({"budget_fractions": [], "points": []})

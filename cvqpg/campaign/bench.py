@@ -28,7 +28,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ..app.allocator import keep_freed_memory
-from ..app.provenance import available_cores
+from ..app.provenance import available_cores, machine_record
 from ..app.runner import fit_in_folder, resumed_state, write_fitted_run
 from ..config import BEYOND_RECIPE, PAPER_RECIPE, FitConfig, default_curvature_warmup
 from ..errors import CvqpgError
@@ -36,17 +36,19 @@ from ..fitting import FitInterrupted, FitState, estimated_peak_bytes
 from ..initialisation import resolved_init
 from ..metrics import radial_error_spectrum
 from ..ratecontrol import RATE_FINETUNE_STEPS
-from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, HISTORY_FILE, METRICS_FILE, MODEL_FILE, read_run, scene_from_source,
-                    start_run, write_atomic, write_json)
+from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, HISTORY_FILE, METRICS_FILE, MODEL_FILE, read_record, read_run,
+                    scene_from_source, start_run, write_atomic, write_json)
 from ..scenes import SCENES
 from ..targets import check_depth_geometry, load_picture
-from .ratedistortion import BUDGET_FRACTIONS
+from .ratedistortion import BUDGET_FRACTIONS, ENCODE_FRACTIONS
 
 log = logging.getLogger("cvqpg")
 
 CELLS_DIR = "cells"
 SPECTRUM_FILE = "spectrum.json"
 RD_FILE = "rd.json"
+ENCODE_FILE = "encode.json"  # the `cvqpg encode` points of a rate grid's cell (`--preset encode`)
+ENCODE_PARTIAL_FILE = "encode.partial.json"  # its points so far, each a whole fit: kept in git between sessions
 ERROR_FILE = "error.log"
 SPECTRUM_BINS = 32
 FOLDER_SCENE_PLANES = 2
@@ -58,8 +60,9 @@ FITTED = "fitted"  # a rate–distortion cell whose fit is done and whose R-D po
 REUSED = "reused"
 # What a finished cell keeps in git (results/): enough to rebuild every table and figure; metrics.json last (the done
 # mark). Cells fitted before history.csv existed lack it.
-RECORD_FILES = (CONFIG_FILE, SPECTRUM_FILE, RD_FILE, HISTORY_FILE, METRICS_FILE)
+RECORD_FILES = (CONFIG_FILE, SPECTRUM_FILE, RD_FILE, ENCODE_PARTIAL_FILE, ENCODE_FILE, HISTORY_FILE, METRICS_FILE)
 STARTED, MISSING = "started", "missing"
+RESTORE_ENCODE = "restore it from git, or delete the encode grid's files of the cell to encode it again"
 # The paper's training time for grayscale and RGB 10% (8.7 and 17.0 min, its runtime table) as steps of the new
 # recipe on our 2-core CPU with 2 threads and the machine to itself, measured once (docs/beyond.md).
 PAPER_TIME_STEPS = {"gray": 7745, "rgb": 4503}
@@ -110,6 +113,7 @@ class Preset:
     recipe: str = PAPER_RECIPE  # every grid that compares with the paper pins its recipe
     steps_by_color: tuple[tuple[str, int], ...] = ()  # where a colour has its own step count
     budget_fractions: tuple[float, ...] = ()  # R-D grids: also the codec at `--bpp` budgets (`RateDistortionOptions`)
+    encode_fractions: tuple[float, ...] = ()  # a rate grid's cells also encoded afresh at these budgets (`run_encode_cell`)
 
     def steps_for(self, color: str) -> int:
         return dict(self.steps_by_color).get(color, self.steps)
@@ -132,6 +136,10 @@ PRESETS = {
     "rate": Preset("issue #39: the Table 1 CVQPG cells at {rgb, gray} 10%, each with the .cvq codec at `--bpp` budgets "
                    "from its fit down to below fit − 3 dB (rate control), beside JPEG 2000 and JPEG XL on its field",
                    COLORS, (0.1,), ("cvqpg",), rate_distortion=True, budget_fractions=BUDGET_FRACTIONS),
+    "encode": Preset("issue #39: `cvqpg encode --bpp` at four of the rate grid's budgets per cell, each a fit at the "
+                     "budget's primitive count rate-controlled into it; run into the rate grid's folder after "
+                     "`--preset rate`, whose tables then show both", COLORS, (0.1,), ("cvqpg",), rate_distortion=True,
+                     budget_fractions=BUDGET_FRACTIONS, encode_fractions=ENCODE_FRACTIONS),
     "beyond": Preset("issue #38: the new recipe at 2000 steps, {rgb, gray} 10% × {baseline, cvqpg}, beside the "
                      "paper grid's cells", COLORS, (0.1,), ("baseline", "cvqpg"), recipe=BEYOND_RECIPE),
     "beyond-time": Preset("issue #38: CVQPG with the new recipe for the paper's own training time (8.7 min gray, "
@@ -203,8 +211,10 @@ class BenchPlan:
 
     @property
     def done_file(self) -> str:
-        """The file whose presence marks a cell done: `rd.json` in a rate–distortion grid, else `metrics.json`."""
-        return RD_FILE if PRESETS[self.preset].rate_distortion else METRICS_FILE
+        """The file whose presence marks a cell done: `encode.json` in the encode grid, `rd.json` in another
+        rate–distortion grid, else `metrics.json`."""
+        preset = PRESETS[self.preset]
+        return ENCODE_FILE if preset.encode_fractions else RD_FILE if preset.rate_distortion else METRICS_FILE
 
     def shard(self, index: int, count: int) -> tuple[Cell, ...]:
         """Cells of shard `index` of `count` (1-based): every `count`-th cell from position index − 1."""
@@ -406,6 +416,12 @@ def check_inputs(plan: BenchPlan, cells: tuple[Cell, ...]) -> None:
         if "image" in scene.source:
             check_depth_geometry(load_picture(scene.source["image"]),
                                  load_picture(scene.source["depth"], "depth map"), resize_depth=False)
+    if PRESETS[plan.preset].encode_fractions:
+        unrated = [c.name for c in todo if not (plan.cell_dir(c) / RD_FILE).is_file()]
+        if unrated:
+            raise BenchError(f"{plan.folder} is not a finished rate grid ({len(unrated)} cells without {RD_FILE}, "
+                             f"e.g. {unrated[0]}): run `cvqpg bench --preset rate` into the same --out first, "
+                             "whose budgets and anchors the encode grid's points are set beside")
     for cell in cells:
         folder = plan.cell_dir(cell)
         if cell_status(folder) == DONE:
@@ -506,11 +522,13 @@ class RateDistortionOptions:
     """How a rate–distortion grid's cells get their points: `fits`, bench folders whose kept models
     they take; `finetune_steps`, the steps of quantisation-aware fine-tuning at some of the codec's
     budgets (0: none; see `ratedistortion.finetuned_points`); `budget_fractions`, the preset's `--bpp` budgets
-    (`ratedistortion.budget_points`, each fine-tuned for `RATE_FINETUNE_STEPS` as `cvqpg compress --bpp` is)."""
+    (`ratedistortion.budget_points`, each fine-tuned for `RATE_FINETUNE_STEPS` as `cvqpg compress --bpp` is);
+    `encode_fractions`, those of the encode grid (`run_encode_cell`)."""
 
     fits: tuple[Path, ...] = ()
     finetune_steps: int = 0
     budget_fractions: tuple[float, ...] = ()
+    encode_fractions: tuple[float, ...] = ()
 
 
 def fitted_model(cell: Cell, fits: Sequence[Path]) -> Path | None:
@@ -557,11 +575,47 @@ def run_rate_distortion_cell(cell: Cell, folder: Path, options: RateDistortionOp
     return DONE
 
 
+def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float],
+                    stop_requested: Callable[[], bool] | None = None) -> str:
+    """An encode grid's cell: `cvqpg encode --bpp` of the cell's scene (`ratedistortion.encode_point`, the default
+    recipe) at `fractions` of the rate its rate grid cell's budgets are fractions of, into `encode.json`. Each
+    point is a whole fit; the finished ones are kept in `encode.partial.json`, so a stopped cell resumes at the
+    next budget."""
+    from .ratedistortion import encode_point, rate_base
+
+    if (folder / ENCODE_FILE).is_file():
+        return SKIPPED
+    base = rate_base(read_record(folder / RD_FILE, RESTORE_ENCODE))
+    partial = folder / ENCODE_PARTIAL_FILE
+    record = read_record(partial, RESTORE_ENCODE) if partial.is_file() else {"fractions": list(fractions), "base_bpp": base,
+                                                           "points": [], "skipped_bpp": []}
+    config = cell.config.with_recipe(BEYOND_RECIPE).validate()
+    scene = scene_from_source(cell.scene.source, config)
+    for fraction in fractions:
+        bpp = fraction * base
+        if any(math.isclose(bpp, done) for done in [p["budget_bpp"] for p in record["points"]]
+               + record["skipped_bpp"]):
+            continue
+        if stop_requested is not None and stop_requested():
+            return INTERRUPTED
+        point = encode_point(scene, config, bpp)
+        if point is None:
+            record["skipped_bpp"].append(bpp)
+        else:
+            record["points"].append(dataclasses.asdict(point))
+        write_json(partial, record)
+    write_json(folder / ENCODE_FILE, {**record, "run": machine_record(torch.device(config.device))})
+    partial.unlink()
+    return DONE
+
+
 def _attempt(cell: Cell, folder: Path, stop_requested: Callable[[], bool] | None,
              rate_distortion: RateDistortionOptions | None = None) -> tuple[str, str | None]:
     """`run_cell`, or `run_rate_distortion_cell` where `rate_distortion` is given, with a failure turned
     into a status, its traceback kept in the cell's `error.log`."""
     try:
+        if rate_distortion is not None and rate_distortion.encode_fractions:
+            return run_encode_cell(cell, folder, rate_distortion.encode_fractions, stop_requested), None
         if rate_distortion is not None:
             return run_rate_distortion_cell(cell, folder, rate_distortion, stop_requested), None
         return run_cell(cell, folder, stop_requested), None
@@ -624,7 +678,8 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
             todo.append(cell)
     stop = stop_requested or (lambda: False)
     preset = PRESETS[plan.preset]
-    rd_options = (dataclasses.replace(rate_distortion, budget_fractions=preset.budget_fractions)
+    rd_options = (dataclasses.replace(rate_distortion, budget_fractions=preset.budget_fractions,
+                                      encode_fractions=preset.encode_fractions)
                   if preset.rate_distortion else None)
     with tqdm(total=len(todo), desc=f"bench {plan.preset}", unit="cell", disable=not progress,
               dynamic_ncols=True) as bar:

@@ -26,7 +26,8 @@ from ..finetune import finetune
 from ..fitting import hologram, render
 from ..metrics import mean_psnr, mean_ssim
 from ..optics import reconstruct
-from ..ratecontrol import Budget, rate_control, smallest_file
+from ..errors import ConfigError
+from ..ratecontrol import RATE_FINETUNE_STEPS, Budget, encode_budget, encode_scene, rate_control, smallest_file
 from ..primitives import Primitives
 from ..app.provenance import machine_record
 from ..storage import load_model, save_model
@@ -45,9 +46,13 @@ PRUNE_FRACTIONS = (0.05, 0.1, 0.2)
 # The budgets of a rate grid's cell (`--preset rate`), as fractions of the rate of the codec's smallest ladder
 # file within 0.1 dB of the fit: from where the ladder at full N starts to lose (about 0.6) to below fit − 3 dB.
 BUDGET_FRACTIONS = (0.7, 0.5, 0.36, 0.26, 0.19, 0.14)
+# The budgets at which the encode grid (`--preset encode`) fits each cell's image afresh, as `cvqpg encode --bpp`
+# does: those of `BUDGET_FRACTIONS` that span fit − 3 dB, since each is a whole fit.
+ENCODE_FRACTIONS = (0.7, 0.5, 0.36, 0.26)
 # The wide BD-rate range of issue #39: from 3 dB to 0.1 dB below the fit.
 WIDE_RANGE_DB = (3.0, 0.1)
 CODEC, FLOAT32, FLOAT16 = "cvqpg", "model float32", "model float16"
+ENCODER = "cvqpg encode"  # `.cvq` files of a fit at the budget's primitive count, not of the cell's fit
 ANCHORS = ("JPEG 2000", "JPEG XL")
 
 
@@ -158,6 +163,34 @@ def budget_points(primitives: Primitives, config: FitConfig, scene: Scene, fit_p
         point.budget_bpp = bpp
         points.append(point)
     return points
+
+
+def encode_point(scene: Scene, config: FitConfig, bpp: float,
+                 finetune_steps: int = RATE_FINETUNE_STEPS) -> Point | None:
+    """The file `cvqpg encode --bpp` writes of `scene` with `config`'s settings (`ratecontrol.encode_scene`: a fit
+    at the budget's primitive count, rate control, `finetune_steps` of fine-tuning), the whole of it counted as
+    encoding time; None where the budget is below the smallest file of a model of the fit's shape."""
+    try:
+        budget = encode_budget(config, bpp=bpp)
+    except ConfigError:
+        return None
+    started = time.perf_counter()
+    encoded = encode_scene(scene, config, budget, finetune_steps)
+    chosen = encoded.rate.choice
+    point = _decoded_point(ENCODER, f"--bpp {bpp:.3f}: {encoded.fit.config.primitive_count} fitted, "
+                           f"{_describe(chosen.bits)}", chosen.data, config, scene.targets,
+                           time.perf_counter() - started)
+    point.budget_bpp = bpp
+    return point
+
+
+def rate_base(record: dict[str, Any]) -> float:
+    """The rate (bpp) that a rate grid cell's `--bpp` budgets are fractions of (`budgets_for`), read back from
+    its record: its first budget, that of the largest fraction, which no model's smallest file exceeds."""
+    first = next((point for point in record["points"] if point.get("budget_bpp") is not None), None)
+    if first is None or not record.get("budget_fractions"):
+        raise ValueError("the record holds no `--bpp` budget points (not a rate grid cell)")
+    return first["budget_bpp"] / record["budget_fractions"][0]
 
 
 def budgets_for(ladder_points: Sequence[Point], fit_psnr: float, fractions: Sequence[float]) -> list[float]:
@@ -328,12 +361,13 @@ def _by_codec(record: dict[str, Any]) -> dict[str, list[dict[str, Any]]]:
     return by_codec
 
 
-def _against_anchors(by_codec: dict[str, list[dict[str, Any]]], top_psnr: float, span_db: float
-                     ) -> tuple[dict[str, BdRate | None], str | None]:
-    """The codec's BD-rate against each anchor over `span_db` below `top_psnr` (`bd_rate`), and the better
-    anchor: the one against which the codec saves least (None where no BD-rate could be taken)."""
-    rates = {anchor: bd_rate(by_codec.get(anchor, []), by_codec.get(CODEC, []), top_psnr, span_db)
-             for anchor in ANCHORS}
+def _against_anchors(by_codec: dict[str, list[dict[str, Any]]], top_psnr: float, span_db: float,
+                     codecs: Sequence[str] = (CODEC,)) -> tuple[dict[str, BdRate | None], str | None]:
+    """The BD-rate of the points of `codecs` together against each anchor over `span_db` below `top_psnr`
+    (`bd_rate`), and the better anchor: the one against which they save least (None where no BD-rate could be
+    taken)."""
+    tested = [point for codec in codecs for point in by_codec.get(codec, [])]
+    rates = {anchor: bd_rate(by_codec.get(anchor, []), tested, top_psnr, span_db) for anchor in ANCHORS}
     known = {anchor: rate for anchor, rate in rates.items() if rate is not None}
     return rates, max(known, key=lambda anchor: known[anchor].percent) if known else None
 
@@ -402,15 +436,23 @@ def wide_summary(record: dict[str, Any], drop_db: float = 2.0) -> dict[str, Any]
     """What the rate grid's tables show of one cell (`--preset rate`): the codec's BD-rate over
     `WIDE_RANGE_DB` below the fit against each anchor and the better one, its gain over JPEG XL at JPEG XL's
     rate `drop_db` below the fit, and its rate-controlled points: their budget fill, primitive counts and
-    encode seconds."""
+    encode seconds. Where the cell has `cvqpg encode` points (`--preset encode`), also the BD-rate against the
+    better anchor and the gain of the codec's points and those together."""
     by_codec = _by_codec(record)
     top, (deepest, shallowest) = record["fit_psnr"], WIDE_RANGE_DB
     codec = by_codec.get(CODEC, [])
     rates, better = _against_anchors(by_codec, top - shallowest, deepest - shallowest)
     budgeted = [point for point in codec if point.get("budget_bpp") is not None]
+    encoded = by_codec.get(ENCODER, [])
+    with_encoder, better_with_encoder = _against_anchors(by_codec, top - shallowest, deepest - shallowest,
+                                                         (CODEC, ENCODER))
     return {"fit_psnr": top, "bd_rate": rates, "better_anchor": better,
             "equal_rate": equal_rate_gain(by_codec.get("JPEG XL", []), codec, top, drop_db),
-            "fills": [budget_fill(point) for point in budgeted],
+            "encoded": encoded,
+            "bd_rate_with_encoder": with_encoder[better_with_encoder] if encoded and better_with_encoder else None,
+            "equal_rate_with_encoder": equal_rate_gain(by_codec.get("JPEG XL", []), codec + encoded, top, drop_db)
+            if encoded else None,
+            "fills": [budget_fill(point) for point in budgeted + encoded],
             "counts": sorted({point["primitives"] for point in codec if point.get("primitives") is not None}),
             "points": len(codec), "deepest_db": top - min((point["psnr"] for point in codec), default=top),
             "budgeted": budgeted}

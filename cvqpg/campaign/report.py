@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 
 from . import figures
-from .bench import (CELLS_DIR, DONE, METHODS, METRICS_FILE, PRESETS, RD_FILE, SPECTRUM_FILE, BenchPlan, Cell,
-                    cell_status, setting_label)
+from .bench import (CELLS_DIR, DONE, ENCODE_FILE, METHODS, METRICS_FILE, PRESETS, RD_FILE, SPECTRUM_FILE, BenchPlan,
+                    Cell, cell_status, setting_label)
 from ..errors import InputError
 from ..runs import read_record, write_atomic
 from ..view import VIEW_FILE
@@ -44,7 +44,8 @@ Metrics = dict[str, float | None]
 RUN_RECORD_KEYS = ("commit", "device", "torch_threads", "numba_threads", "loop_seconds", "peak_memory_bytes")
 RECORD_KEYS = {METRICS_FILE: ("mean", *(f"mean.{m}" for m in TABLE_METRICS), *(f"run.{k}" for k in RUN_RECORD_KEYS)),
                SPECTRUM_FILE: ("edges", "power"),
-               RD_FILE: ("points", "fit_psnr", "model_bytes", "run", "run.load_average")}
+               RD_FILE: ("points", "fit_psnr", "model_bytes", "run", "run.load_average"),
+               ENCODE_FILE: ("points", "run")}
 RESTORE_CELL = "restore it, or delete the cell folder to fit the cell again"
 
 
@@ -116,6 +117,15 @@ def read_cell_record(path: Path) -> dict[str, Any] | None:
     return record
 
 
+def rate_distortion_record(folder: Path) -> dict[str, Any] | None:
+    """A rate–distortion cell's `rd.json`, with the points of its `encode.json` where the encode grid finished it."""
+    record = read_cell_record(folder / RD_FILE)
+    encoded = read_cell_record(folder / ENCODE_FILE)
+    if record is None or encoded is None:
+        return record
+    return {**record, "points": record["points"] + encoded["points"]}
+
+
 def collect(plan: BenchPlan) -> list[CellResult]:
     """Every cell of the plan with its status, and its metrics and spectrum once done."""
     results = []
@@ -125,7 +135,7 @@ def collect(plan: BenchPlan) -> list[CellResult]:
         fitted = (folder / METRICS_FILE).is_file()
         results.append(CellResult(cell, status, read_cell_record(folder / METRICS_FILE) if fitted else None,
                                   read_cell_record(folder / SPECTRUM_FILE) if fitted else None,
-                                  read_cell_record(folder / RD_FILE) if status == DONE else None))
+                                  rate_distortion_record(folder) if status == DONE else None))
     return results
 
 
@@ -463,6 +473,14 @@ def _range_text(values: list[float], digits: int = 3) -> str:
     return MISSING if not values else f"{min(values):.{digits}f}–{max(values):.{digits}f}"
 
 
+def _mean_bd_text(values: list[float], cells: int | None = None) -> str:
+    """The mean of BD-rates (%) with how many lie above 0%, and over how many cells where not all of `cells`."""
+    if not values:
+        return MISSING
+    share = "" if cells is None or len(values) == cells else f" over {len(values)}"
+    return f"{np.mean(values):+.1f}%{share} ({sum(value > 0 for value in values)} above 0%)"
+
+
 def wide_range_table(plan: BenchPlan, results: list[CellResult]) -> tuple[Table, list[dict[str, Any]]]:
     """In a rate grid (`--preset rate`), per setting and scene: the codec's BD-rate against each anchor and
     the better one over [fit − 3, fit − 0.1] dB; its PSNR above JPEG XL at the rate where JPEG XL is 2 dB
@@ -474,8 +492,9 @@ def wide_range_table(plan: BenchPlan, results: list[CellResult]) -> tuple[Table,
     table = Table(f"Rate–distortion below the fit: BD-rate over [fit − {deepest:g}, fit − {shallowest:g}] dB and "
                   "the `--bpp` budgets",
                   ["Scene", "Setting", "fit PSNR", *(f"BD-rate vs {a}" for a in ANCHORS), "BD-rate vs the better",
-                   "JPEG XL at fit − 2 dB: bpp", "cvqpg there: dB above", "--bpp files: bytes ÷ budget",
-                   "codec points", "primitive counts", "deepest point", "--bpp encode s"],
+                   "JPEG XL at fit − 2 dB: bpp", "cvqpg there: dB above", "with cvqpg encode: BD-rate vs the better",
+                   "with cvqpg encode: dB above", "--bpp files: bytes ÷ budget",
+                   "codec points", "primitive counts", "deepest point", "--bpp encode s", "cvqpg encode s"],
                   note=f"BD-rate as in the table above, over the fit's PSNR − {deepest:g} dB to − {shallowest:g} dB "
                   "(narrowed to where both fronts have points). cvqpg there: the codec's Pareto front at the rate "
                   "where JPEG XL's front is 2 dB below the fit (both interpolated linearly in log bpp), minus "
@@ -483,27 +502,37 @@ def wide_range_table(plan: BenchPlan, results: list[CellResult]) -> tuple[Table,
                   "(within 0.95–1 is honest); codec points: all of the codec's points (ladder, searched and "
                   "budgets), with the distinct primitive counts among them and the deepest one's drop below "
                   "the fit. Encode s: the rate control of one budget (search, fine-tuning, last search), "
-                  "smallest–largest.")
+                  "smallest–largest. With cvqpg encode: the same figures for the codec's points together with "
+                  "those of `cvqpg encode --bpp` at the budgets of `--preset encode` (a fit at each budget's "
+                  "primitive count, rate-controlled into it), whose whole time is cvqpg encode s.")
     rows: list[dict[str, Any]] = []
     for setting in plan.settings:
         summaries = [(r, wide_summary(r.rd)) for r in results if r.rd is not None and r.cell.setting == setting]
-        betters, gains = [], []
+        betters, gains, encoder_betters, encoder_gains = [], [], [], []
         for r, summary in summaries:
             top, rates = summary["fit_psnr"], summary["bd_rate"]
             better = rates[summary["better_anchor"]] if summary["better_anchor"] else None
             equal, counts = summary["equal_rate"], summary["counts"]
+            with_encoder, equal_with_encoder = summary["bd_rate_with_encoder"], summary["equal_rate_with_encoder"]
             if better is not None:
                 betters.append(better.percent)
             if equal is not None:
                 gains.append(equal.gain_db)
+            if with_encoder is not None:
+                encoder_betters.append(with_encoder.percent)
+            if equal_with_encoder is not None:
+                encoder_gains.append(equal_with_encoder.gain_db)
             table.rows.append([r.cell.scene.name, setting_label(setting), f"{top:.3f}",
                                *(_bd_text(rates[a], top, True) for a in ANCHORS), _bd_text(better, top, True),
                                NA if equal is None else f"{equal.bpp:.3f}",
                                NA if equal is None else f"{equal.gain_db:+.2f}",
+                               _bd_text(with_encoder, top, True) if summary["encoded"] else MISSING,
+                               NA if equal_with_encoder is None else f"{equal_with_encoder.gain_db:+.2f}",
                                _range_text(summary["fills"]), str(summary["points"]),
                                f"{len(counts)}: {counts[0]:,}–{counts[-1]:,}" if counts else MISSING,
                                f"{-summary['deepest_db']:+.2f} dB",
-                               _range_text([p["encode_s"] for p in summary["budgeted"]], 0)])
+                               _range_text([p["encode_s"] for p in summary["budgeted"]], 0),
+                               _range_text([p["encode_s"] for p in summary["encoded"]], 0)])
             rows.append({"cell": r.cell.name,
                          **{f"wide_bd_rate_{a.replace(' ', '').lower()}": "" if rates[a] is None else rates[a].percent
                             for a in ANCHORS},
@@ -511,14 +540,18 @@ def wide_range_table(plan: BenchPlan, results: list[CellResult]) -> tuple[Table,
                          "wide_bd_rate_better": "" if better is None else better.percent,
                          "jpegxl_minus_2db_bpp": "" if equal is None else equal.bpp,
                          "gain_over_jpegxl_db": "" if equal is None else equal.gain_db,
+                         "wide_bd_rate_with_encoder": "" if with_encoder is None else with_encoder.percent,
+                         "gain_over_jpegxl_with_encoder_db": "" if equal_with_encoder is None
+                         else equal_with_encoder.gain_db,
                          "budget_fill_min": min(summary["fills"], default=""),
                          "budget_fill_max": max(summary["fills"], default=""),
                          "primitive_counts": len(counts)})
-        above = sum(value > 0 for value in betters)
         table.rows.append([f"mean ({len(summaries)}/{len(plan.scenes)} scenes)", setting_label(setting), "", "", "",
-                           f"{np.mean(betters):+.1f}% ({above} above 0%)" if betters else MISSING, "",
-                           f"{np.mean(gains):+.2f}" if gains else MISSING, "", "", "", "", ""])
-        table.bold.add((len(table.rows) - 1, 5))
+                           _mean_bd_text(betters), "", f"{np.mean(gains):+.2f}" if gains else MISSING,
+                           _mean_bd_text(encoder_betters, len(summaries)),
+                           f"{np.mean(encoder_gains):+.2f} ({len(encoder_gains)})" if encoder_gains else MISSING,
+                           "", "", "", "", "", ""])
+        table.bold.update({(len(table.rows) - 1, 5), (len(table.rows) - 1, 8)})
     return table, rows
 
 

@@ -1,0 +1,65 @@
+"""`cvqpg encode` against a Table 1 fit of the same setting, timed side by side (issue #39's encode target).
+
+    python benchmarks/encode_time.py ../shared/scenes/bento                  # RGB 10%, 640×480, 2000 steps, 1 bpp
+    python benchmarks/encode_time.py ../shared/scenes/bento --steps 200     # a shorter run of both
+    python benchmarks/encode_time.py ../shared/scenes/bento --color gray --bpp 0.5
+
+Times, in turns, the Table 1 fit (the paper's recipe, ratio 0.1, CVQPG, seed 100) and `ratecontrol.encode_scene`
+at the budget with the default recipe and fine-tuning (what `cvqpg encode --bpp B` runs, without writing the
+file). Both fit for `--steps`; a shorter run than 2000 steps weighs the encoder's fixed cost (rate control
+and fine-tuning) more, so its ratio is an upper bound of the 2000-step one. Prints one JSON line per run, then
+the ratio of the encoder's seconds to the fit's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from cvqpg import FitConfig
+from cvqpg.app.compilation import prepare_kernels
+from cvqpg.fitting import fit_scene
+from cvqpg.ratecontrol import encode_budget, encode_scene
+from cvqpg.targets import load_scene
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("scene", type=Path, help="folder with image.* and depth.png (e.g. ../shared/scenes/bento)")
+    parser.add_argument("--color", choices=("rgb", "gray"), default="rgb")
+    parser.add_argument("--bpp", type=float, default=1.0, help="the encoder's budget in bits per hologram pixel")
+    parser.add_argument("--steps", type=int, default=2000)
+    parser.add_argument("--size", type=int, nargs=2, default=(640, 480), metavar=("W", "H"))
+    parser.add_argument("--rounds", type=int, default=1, help="turns of (fit, encode); medians are not taken")
+    args = parser.parse_args()
+    table1 = FitConfig(width=args.size[0], height=args.size[1], color=args.color, ratio=0.1,
+                       steps=args.steps).with_recipe("paper").validate()
+    encoder = FitConfig(width=args.size[0], height=args.size[1], color=args.color, ratio=0.1,
+                        steps=args.steps).validate()
+    scene = load_scene(next(args.scene.glob("image.*")), args.scene / "depth.png", table1)
+    prepare_kernels(table1, show_status=False)
+    budget = encode_budget(encoder, bpp=args.bpp)
+    seconds: dict[str, float] = {"fit": 0.0, "encode": 0.0}
+    for _ in range(args.rounds):
+        started = time.perf_counter()
+        fitted = fit_scene(scene, table1, progress=False)
+        elapsed = time.perf_counter() - started
+        seconds["fit"] += elapsed
+        print(json.dumps({"run": "Table 1 fit", "primitives": table1.primitive_count, "seconds": round(elapsed, 1),
+                          "psnr": round(fitted.metrics.mean["psnr"], 3)}), flush=True)
+        started = time.perf_counter()
+        encoded = encode_scene(scene, encoder, budget)
+        elapsed = time.perf_counter() - started
+        seconds["encode"] += elapsed
+        print(json.dumps({"run": f"encode --bpp {args.bpp:g}", "primitives": encoded.fit.config.primitive_count,
+                          "seconds": round(elapsed, 1), "fit_seconds": round(encoded.fit.seconds, 1),
+                          "bytes": len(encoded.rate.choice.data), "max_bytes": budget.max_bytes,
+                          "psnr": round(encoded.rate.choice.psnr, 3)}), flush=True)
+    print(f"encode / fit: {seconds['encode'] / seconds['fit']:.3f} ({args.color}, {args.size[0]}×{args.size[1]}, "
+          f"{args.steps} steps, {args.bpp:g} bpp)")
+
+
+if __name__ == "__main__":
+    main()
