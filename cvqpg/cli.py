@@ -306,7 +306,8 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
         f"{name}: {preset.description}" for name, preset in PRESETS.items()).replace("%", "%%"))
     p.add_argument("--scenes", metavar="DIR", help="folder of <name>/image.* + <name>/depth.png (e.g. "
                    "../shared/scenes); needed by paper and ablation, replaces the built-in scenes of star and quick")
-    p.add_argument("--out", metavar="DIR", help="bench folder [default: runs/bench-<preset>]")
+    p.add_argument("--out", metavar="DIR",
+                   help="bench folder [default: runs/bench-<preset>; runs/bench-rate for encode]")
     p.add_argument("--scene-names", nargs="+", metavar="NAME", help="only these scenes [default: all]")
     p.add_argument("--colors", nargs="+", metavar="COLOR", help="rgb and/or gray [default: the preset's]")
     p.add_argument("--ratios", nargs="+", type=finite, metavar="R", help="primitive ratios [default: the preset's]")

@@ -243,3 +243,26 @@ def test_rate_base_reads_the_budgets_fractions_back():
     assert rate_base(record) == pytest.approx(2.0)
     with pytest.raises(ValueError, match="no `--bpp` budget points"):
         rate_base({"budget_fractions": [], "points": []})
+
+
+def test_an_encode_cell_resumes_at_the_first_budget_it_has_no_point_for(tmp_path, monkeypatch):
+    from cvqpg import FitConfig
+    from cvqpg.campaign import bench, ratedistortion
+
+    folder = tmp_path / CELL
+    folder.mkdir()
+    (folder / "rd.json").write_text(json.dumps({"budget_fractions": [0.7, 0.5],
+                                                "points": [{"codec": "cvqpg", "budget_bpp": 1.4}]}))
+    done = {"codec": "cvqpg encode", "budget_bpp": 1.4, "bpp": 1.39}
+    (folder / "encode.partial.json").write_text(json.dumps({"fractions": [0.7, 0.5, 0.36], "base_bpp": 2.0,
+                                                            "points": [done], "skipped_bpp": [1.0]}))
+    encoded = []
+    monkeypatch.setattr(ratedistortion, "encode_point", lambda scene, config, bpp: encoded.append(bpp))
+    monkeypatch.setattr(bench, "scene_from_source", lambda source, config: None)
+    cell = bench.Cell(bench.BenchScene("sushi", {}, 2), "cvqpg", FitConfig(color="gray", ratio=0.1))
+    assert bench.run_encode_cell(cell, folder, (0.7, 0.5, 0.36)) == bench.DONE
+    assert encoded == [pytest.approx(0.72)]  # 1.4 bpp has its point and 1.0 was below the smallest file
+    record = json.loads((folder / "encode.json").read_text())
+    assert record["points"] == [done] and record["skipped_bpp"] == pytest.approx([1.0, 0.72])
+    assert "load_average" in record["run"] and not (folder / "encode.partial.json").exists()
+    assert bench.run_encode_cell(cell, folder, (0.7, 0.5, 0.36)) == bench.SKIPPED

@@ -113,7 +113,7 @@ class Preset:
     recipe: str = PAPER_RECIPE  # every grid that compares with the paper pins its recipe
     steps_by_color: tuple[tuple[str, int], ...] = ()  # where a colour has its own step count
     budget_fractions: tuple[float, ...] = ()  # R-D grids: also the codec at `--bpp` budgets (`RateDistortionOptions`)
-    encode_fractions: tuple[float, ...] = ()  # a rate grid's cells also encoded afresh at these budgets (`run_encode_cell`)
+    encode_fractions: tuple[float, ...] = ()  # the rate grid's cells encoded afresh at these (`run_encode_cell`)
 
     def steps_for(self, color: str) -> int:
         return dict(self.steps_by_color).get(color, self.steps)
@@ -344,7 +344,8 @@ def make_plan(preset: str, folder: str | Path | None = None, overrides: Override
 
 
 def default_folder(preset: str, folder: str | Path | None) -> Path:
-    return Path(folder) if folder else Path("runs") / f"bench-{preset}"
+    """`folder`, else `runs/bench-<preset>`; the encode grid works in the rate grid's folder."""
+    return Path(folder) if folder else Path("runs") / f"bench-{'rate' if PRESETS[preset].encode_fractions else preset}"
 
 
 def recorded_scenes(folder: Path) -> dict[str, BenchScene]:
@@ -587,14 +588,14 @@ def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float],
         return SKIPPED
     base = rate_base(read_record(folder / RD_FILE, RESTORE_ENCODE))
     partial = folder / ENCODE_PARTIAL_FILE
-    record = read_record(partial, RESTORE_ENCODE) if partial.is_file() else {"fractions": list(fractions), "base_bpp": base,
-                                                           "points": [], "skipped_bpp": []}
+    record = (read_record(partial, RESTORE_ENCODE) if partial.is_file()
+              else {"fractions": list(fractions), "base_bpp": base, "points": [], "skipped_bpp": []})
     config = cell.config.with_recipe(BEYOND_RECIPE).validate()
     scene = scene_from_source(cell.scene.source, config)
     for fraction in fractions:
         bpp = fraction * base
-        if any(math.isclose(bpp, done) for done in [p["budget_bpp"] for p in record["points"]]
-               + record["skipped_bpp"]):
+        finished = [point["budget_bpp"] for point in record["points"]] + record["skipped_bpp"]
+        if any(math.isclose(bpp, done) for done in finished):
             continue
         if stop_requested is not None and stop_requested():
             return INTERRUPTED

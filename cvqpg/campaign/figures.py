@@ -159,7 +159,8 @@ def frequency_figure(curves: dict[str, tuple[np.ndarray, np.ndarray]], path: Pat
     save_figure(figure, path)
 
 
-RD_MARKERS = {"cvqpg": "o", "JPEG 2000": "s", "JPEG XL": "^", "model float32": "*", "model float16": "P"}
+RD_MARKERS = {"cvqpg": "o", "cvqpg encode": "D", "JPEG 2000": "s", "JPEG XL": "^", "model float32": "*",
+              "model float16": "P"}
 
 
 def rate_distortion_figure(panels: dict[str, tuple[float, dict[str, tuple[list[float], list[float]]]]],
