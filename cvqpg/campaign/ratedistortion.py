@@ -22,11 +22,11 @@ from torch import Tensor
 from ..codec import BitDepths, decode, encode
 from ..compression import LADDER, Reference, choose_bits, prune
 from ..config import FitConfig
+from ..errors import ConfigError
 from ..finetune import finetune
 from ..fitting import hologram, render
 from ..metrics import mean_psnr, mean_ssim
 from ..optics import reconstruct
-from ..errors import ConfigError
 from ..ratecontrol import RATE_FINETUNE_STEPS, Budget, encode_budget, encode_scene, rate_control, smallest_file
 from ..primitives import Primitives
 from ..app.provenance import machine_record
@@ -437,7 +437,8 @@ def wide_summary(record: dict[str, Any], drop_db: float = 2.0) -> dict[str, Any]
     `WIDE_RANGE_DB` below the fit against each anchor and the better one, its gain over JPEG XL at JPEG XL's
     rate `drop_db` below the fit, and its rate-controlled points: their budget fill, primitive counts and
     encode seconds. Where the cell has `cvqpg encode` points (`--preset encode`), also the BD-rate against the
-    better anchor and the gain of the codec's points and those together."""
+    better anchor and the gain of the codec's points and those together; the budget fills, primitive counts,
+    point count and deepest point then count those points as well."""
     by_codec = _by_codec(record)
     top, (deepest, shallowest) = record["fit_psnr"], WIDE_RANGE_DB
     codec = by_codec.get(CODEC, [])
@@ -453,6 +454,7 @@ def wide_summary(record: dict[str, Any], drop_db: float = 2.0) -> dict[str, Any]
             "equal_rate_with_encoder": equal_rate_gain(by_codec.get("JPEG XL", []), codec + encoded, top, drop_db)
             if encoded else None,
             "fills": [budget_fill(point) for point in budgeted + encoded],
-            "counts": sorted({point["primitives"] for point in codec if point.get("primitives") is not None}),
-            "points": len(codec), "deepest_db": top - min((point["psnr"] for point in codec), default=top),
+            "counts": sorted({point["primitives"] for point in codec + encoded if point.get("primitives") is not None}),
+            "points": len(codec + encoded),
+            "deepest_db": top - min((point["psnr"] for point in codec + encoded), default=top),
             "budgeted": budgeted}

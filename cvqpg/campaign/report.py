@@ -499,9 +499,9 @@ def wide_range_table(plan: BenchPlan, results: list[CellResult]) -> tuple[Table,
                   "(narrowed to where both fronts have points). cvqpg there: the codec's Pareto front at the rate "
                   "where JPEG XL's front is 2 dB below the fit (both interpolated linearly in log bpp), minus "
                   "that PSNR. --bpp files: each rate-controlled file's bytes over its budget's ⌊bpp·W·H/8⌋ "
-                  "(within 0.95–1 is honest); codec points: all of the codec's points (ladder, searched and "
-                  "budgets), with the distinct primitive counts among them and the deepest one's drop below "
-                  "the fit. Encode s: the rate control of one budget (search, fine-tuning, last search), "
+                  "(within 0.95–1 is honest); codec points: all of the codec's points (ladder, searched, "
+                  "budgets and cvqpg encode), with the distinct primitive counts among them and the deepest one's "
+                  "drop below the fit. Encode s: the rate control of one budget (search, fine-tuning, last search), "
                   "smallest–largest. With cvqpg encode: the same figures for the codec's points together with "
                   "those of `cvqpg encode --bpp` at the budgets of `--preset encode` (a fit at each budget's "
                   "primitive count, rate-controlled into it), whose whole time is cvqpg encode s.")
