@@ -289,13 +289,14 @@ class Encoding:
 
 
 def encode_scene(scene: Scene, config: FitConfig, budget: Budget, finetune_steps: int = RATE_FINETUNE_STEPS,
-                 progress: bool = False) -> Encoding:
+                 progress: bool = False, stop_requested: Callable[[], bool] | None = None) -> Encoding:
     """Fit `scene` with the primitive count `primitives_for_budget` picks (replacing `config`'s) and
     rate-control the model into a file within `budget` (`encode_budget`), fine-tuned for `finetune_steps` on
-    the scene's targets. Progress bars (`progress`) show the fit's PSNR, then the rate search's bpp and PSNR."""
+    the scene's targets. Progress bars (`progress`) show the fit's PSNR, then the rate search's bpp and PSNR.
+    When `stop_requested()` turns true the fit stops between two steps (`fitting.FitInterrupted`)."""
     check_compression_settings(None, finetune_steps, 0.0)
     config = config.replace(num_gaussians=primitives_for_budget(config, budget.max_bytes)).validate()
-    fitted = fit_scene(scene, config, progress=progress)
+    fitted = fit_scene(scene, config, progress=progress, stop_requested=stop_requested)
     primitives = fitted.primitives
     reference = reference_for(primitives, config, scene.targets, "the scene's targets")
     return Encoding(fitted, reference, rate_control(primitives, config, reference, budget, scene, finetune_steps,

@@ -257,7 +257,8 @@ def test_an_encode_cell_resumes_at_the_first_budget_it_has_no_point_for(tmp_path
     (folder / "encode.partial.json").write_text(json.dumps({"fractions": [0.7, 0.5, 0.36], "base_bpp": 2.0,
                                                             "points": [done], "skipped_bpp": [1.0]}))
     encoded = []
-    monkeypatch.setattr(ratedistortion, "encode_point", lambda scene, config, bpp: encoded.append(bpp))
+    monkeypatch.setattr(ratedistortion, "encode_point",
+                        lambda scene, config, bpp, stop_requested=None: encoded.append(bpp))
     monkeypatch.setattr(bench, "scene_from_source", lambda source, config: None)
     cell = bench.Cell(bench.BenchScene("sushi", {}, 2), "cvqpg", FitConfig(color="gray", ratio=0.1))
     assert bench.run_encode_cell(cell, folder, (0.7, 0.5, 0.36)) == bench.DONE
@@ -266,3 +267,26 @@ def test_an_encode_cell_resumes_at_the_first_budget_it_has_no_point_for(tmp_path
     assert record["points"] == [done] and record["skipped_bpp"] == pytest.approx([1.0, 0.72])
     assert "load_average" in record["run"] and not (folder / "encode.partial.json").exists()
     assert bench.run_encode_cell(cell, folder, (0.7, 0.5, 0.36)) == bench.SKIPPED
+
+
+def test_a_stopped_encode_cell_keeps_its_finished_points_and_is_interrupted(tmp_path, monkeypatch):
+    from cvqpg import FitConfig
+    from cvqpg.campaign import bench, ratedistortion
+    from cvqpg.fitting import FitInterrupted
+
+    folder = tmp_path / CELL
+    folder.mkdir()
+    (folder / "rd.json").write_text(json.dumps({"budget_fractions": [0.7], "points": [{"budget_bpp": 1.4}]}))
+
+    def encode_point(scene, config, bpp, stop_requested=None):
+        if stop_requested():
+            raise FitInterrupted(3)
+        return ratedistortion.Point("cvqpg encode", "--bpp", 10, bpp, 30.0, 0.9, 1.0, 0.1, 5, bpp)
+
+    monkeypatch.setattr(ratedistortion, "encode_point", encode_point)
+    monkeypatch.setattr(bench, "scene_from_source", lambda source, config: None)
+    cell = bench.Cell(bench.BenchScene("sushi", {}, 2), "cvqpg", FitConfig(color="gray", ratio=0.1))
+    calls = iter([False, False, False, True])  # the second budget's fit is stopped
+    assert bench.run_encode_cell(cell, folder, (0.7, 0.5), lambda: next(calls)) == bench.INTERRUPTED
+    record = json.loads((folder / "encode.partial.json").read_text())
+    assert [p["budget_bpp"] for p in record["points"]] == [pytest.approx(1.4)] and not (folder / "encode.json").exists()

@@ -580,8 +580,8 @@ def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float],
                     stop_requested: Callable[[], bool] | None = None) -> str:
     """An encode grid's cell: `cvqpg encode --bpp` of the cell's scene (`ratedistortion.encode_point`, the default
     recipe) at `fractions` of the rate its rate grid cell's budgets are fractions of, into `encode.json`. Each
-    point is a whole fit; the finished ones are kept in `encode.partial.json`, so a stopped cell resumes at the
-    next budget."""
+    point is a whole fit; the finished ones are kept in `encode.partial.json`, so a stopped cell (which stops
+    its fit between two steps) resumes at its first budget without a point."""
     from .ratedistortion import encode_point, rate_base
 
     if (folder / ENCODE_FILE).is_file():
@@ -599,7 +599,10 @@ def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float],
             continue
         if stop_requested is not None and stop_requested():
             return INTERRUPTED
-        point = encode_point(scene, config, bpp)
+        try:
+            point = encode_point(scene, config, bpp, stop_requested=stop_requested)
+        except FitInterrupted:
+            return INTERRUPTED
         if point is None:
             record["skipped_bpp"].append(bpp)
         else:

@@ -165,17 +165,18 @@ def budget_points(primitives: Primitives, config: FitConfig, scene: Scene, fit_p
     return points
 
 
-def encode_point(scene: Scene, config: FitConfig, bpp: float,
-                 finetune_steps: int = RATE_FINETUNE_STEPS) -> Point | None:
+def encode_point(scene: Scene, config: FitConfig, bpp: float, finetune_steps: int = RATE_FINETUNE_STEPS,
+                 stop_requested: Callable[[], bool] | None = None) -> Point | None:
     """The file `cvqpg encode --bpp` writes of `scene` with `config`'s settings (`ratecontrol.encode_scene`: a fit
     at the budget's primitive count, rate control, `finetune_steps` of fine-tuning), the whole of it counted as
-    encoding time; None where the budget is below the smallest file of a model of the fit's shape."""
+    encoding time; None where the budget is below the smallest file of a model of the fit's shape. The fit
+    raises `fitting.FitInterrupted` once `stop_requested()` turns true."""
     try:
         budget = encode_budget(config, bpp=bpp)
     except ConfigError:
         return None
     started = time.perf_counter()
-    encoded = encode_scene(scene, config, budget, finetune_steps)
+    encoded = encode_scene(scene, config, budget, finetune_steps, stop_requested=stop_requested)
     chosen = encoded.rate.choice
     point = _decoded_point(ENCODER, f"--bpp {bpp:.3f}: {encoded.fit.config.primitive_count} fitted, "
                            f"{_describe(chosen.bits)}", chosen.data, config, scene.targets,
