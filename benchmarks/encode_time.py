@@ -34,10 +34,9 @@ def main() -> None:
     parser.add_argument("--size", type=int, nargs=2, default=(640, 480), metavar=("W", "H"))
     parser.add_argument("--rounds", type=int, default=1, help="turns of (fit, encode); medians are not taken")
     args = parser.parse_args()
-    table1 = FitConfig(width=args.size[0], height=args.size[1], color=args.color, ratio=0.1,
-                       steps=args.steps).with_recipe("paper").validate()
     encoder = FitConfig(width=args.size[0], height=args.size[1], color=args.color, ratio=0.1,
                         steps=args.steps).validate()
+    table1 = encoder.with_recipe("paper").validate()
     scene = load_scene(next(args.scene.glob("image.*")), args.scene / "depth.png", table1)
     prepare_kernels(table1, show_status=False)
     budget = encode_budget(encoder, bpp=args.bpp)

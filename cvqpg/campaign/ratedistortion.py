@@ -446,14 +446,14 @@ def wide_summary(record: dict[str, Any], drop_db: float = 2.0) -> dict[str, Any]
     rates, better = _against_anchors(by_codec, top - shallowest, deepest - shallowest)
     budgeted = [point for point in codec if point.get("budget_bpp") is not None]
     encoded = by_codec.get(ENCODER, [])
-    with_encoder, better_with_encoder = _against_anchors(by_codec, top - shallowest, deepest - shallowest,
-                                                         (CODEC, ENCODER))
+    bd_with_encoder = equal_with_encoder = None
+    if encoded:
+        both, better_of_both = _against_anchors(by_codec, top - shallowest, deepest - shallowest, (CODEC, ENCODER))
+        bd_with_encoder = both[better_of_both] if better_of_both else None
+        equal_with_encoder = equal_rate_gain(by_codec.get("JPEG XL", []), codec + encoded, top, drop_db)
     return {"fit_psnr": top, "bd_rate": rates, "better_anchor": better,
             "equal_rate": equal_rate_gain(by_codec.get("JPEG XL", []), codec, top, drop_db),
-            "encoded": encoded,
-            "bd_rate_with_encoder": with_encoder[better_with_encoder] if encoded and better_with_encoder else None,
-            "equal_rate_with_encoder": equal_rate_gain(by_codec.get("JPEG XL", []), codec + encoded, top, drop_db)
-            if encoded else None,
+            "encoded": encoded, "bd_rate_with_encoder": bd_with_encoder, "equal_rate_with_encoder": equal_with_encoder,
             "fills": [budget_fill(point) for point in budgeted + encoded],
             "counts": sorted({point["primitives"] for point in codec + encoded if point.get("primitives") is not None}),
             "points": len(codec + encoded),
