@@ -15,7 +15,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NoReturn, Sequence
+from typing import Callable, NoReturn, Sequence
 
 import torch
 from PIL import Image
@@ -24,7 +24,8 @@ from . import __version__
 from .app.allocator import keep_freed_memory
 from .app.compilation import compile_all, prepare_kernels
 from .app.outputs import check_new_folder, check_output_file, check_output_folder, is_run_folder
-from .app.runner import CHECKPOINT_SECONDS, fit_in_folder, resumed_state, timed_config, write_fitted_run
+from .app.runner import (CHECKPOINT_SECONDS, encode_in_folder, fit_in_folder, read_encode, resumed_state,
+                         start_encode, timed_config, write_fitted_run)
 from .campaign.bench import (CELLS_DIR, METHODS, PRESETS, Overrides, RateDistortionOptions, describe_cells, make_plan,
                              parse_shard, peak_bytes, run_plan)
 from .campaign.report import write_summary
@@ -37,7 +38,7 @@ from .errors import CvqpgError
 from .files import replace_folder, staged_folder
 from .export import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
 from .fitting import FitInterrupted, FitState, estimated_peak_bytes
-from .ratecontrol import (RATE_FINETUNE_STEPS, check_budget_values, compress_to_budget, encode_budget, encode_scene,
+from .ratecontrol import (RATE_FINETUNE_STEPS, check_budget_values, compress_to_budget, encode_budget, encode_config,
                           encoding_record)
 from .runs import (CHECKPOINT_FILE, CONFIG_FILE, EXPORT_FOLDER, HALF_MODEL_FILE, METRICS_FILE, MODEL_FILE,
                    RENDER_FOLDER, evaluate_run, export_run, half_precision_model, model_path, read_run, render_model,
@@ -271,13 +272,17 @@ def _compression_parsers(sub: argparse._SubParsersAction) -> None:
                        description=f"Fit an image (or a built-in --scene) with as many primitives as the budget "
                        "holds at the default bit depths (bytes per primitive measured with the codec, plus headroom), "
                        f"then write a {SUFFIX} file of at most --bpp bits per hologram pixel or --max-bytes bytes, as "
-                       "`cvqpg compress --bpp` does. Writes FILE only.",
+                       "`cvqpg compress --bpp` does. The fit keeps a checkpoint in the folder FILE.partial (every "
+                       f"{CHECKPOINT_SECONDS / 60:g} minutes of work, and when Ctrl-C stops it), from which --resume "
+                       "continues it; once FILE is written that folder is removed.",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     _fit_options(e)
-    _rate_arguments(e.add_mutually_exclusive_group(required=True))
+    _rate_arguments(e.add_mutually_exclusive_group())
     e.add_argument("--finetune", type=int, default=RATE_FINETUNE_STEPS, metavar="STEPS",
                    help="quantisation-aware fine-tuning steps at the chosen bit depths; kept only if it pays")
-    e.add_argument("--out", metavar="FILE", required=True, help=f"the {SUFFIX} file")
+    e.add_argument("--out", metavar="FILE", help=f"the {SUFFIX} file (required, but with --resume)")
+    e.add_argument("--resume", metavar=f"FILE{PARTIAL_SUFFIX}", help="continue an interrupted encode from the "
+                   "checkpoint in its folder, with its own settings and budget (other options are ignored)")
     _overwrite_argument(e, "the output file")
     e.add_argument("--quiet", action="store_true", help="no progress bars or summary")
     e.set_defaults(ratio=DEFAULTS.ratio, num_gaussians=None)  # the count follows from the budget
@@ -557,37 +562,48 @@ def _scene_and_depth(source: dict, config: FitConfig) -> tuple[Scene, Image.Imag
     return load_scene(source["image"], depth, config), depth
 
 
-def _fit(plan: FitPlan, args: argparse.Namespace) -> int:
-    """Fit in `plan.work` and put the run at `plan.final`. A failure removes what this command made,
-    unless a checkpoint holds work worth resuming; an interruption keeps the checkpoint."""
-    every = args.checkpoint_every
-    created = [folder for folder in (plan.work, *plan.work.parents) if not folder.exists()]
+def _resumable(work: Path, command: str, body: Callable[[Callable[[], bool]], None]) -> int:
+    """Run `body(stop_requested)`, which fits in `work` with checkpoints: 0 when it finishes. A stop request
+    (Ctrl-C, SIGTERM) keeps the checkpoint and returns the signal's exit code, with the line that resumes it; a
+    failure removes what this command made, unless a checkpoint holds work worth resuming."""
+    created = [folder for folder in (work, *work.parents) if not folder.exists()]
     try:
-        if plan.state is None:
-            start_run(plan.work, plan.config, plan.source)
-        if plan.depth is not None:
-            plan.depth.save(plan.work / DEPTH_FILE)
         with StopRequest() as stop_requested:
-            result = fit_in_folder(plan.work, plan.scene, plan.config, plan.state, progress=not args.quiet,
-                                   checkpoint_every_steps=every if every else None,
-                                   checkpoint_every_seconds=None if every == 0 else CHECKPOINT_SECONDS,
-                                   stop_requested=stop_requested)
-        write_fitted_run(plan.work, result, plan.scene, plan.source)
+            body(stop_requested)
     except FitInterrupted as stop:
-        print(f"cvqpg fit: stopped before step {stop.step}; checkpoint saved. Continue with: "
-              f"cvqpg fit --resume {plan.work}", file=sys.stderr)
+        print(f"cvqpg {command}: stopped before step {stop.step}; checkpoint saved. Continue with: "
+              f"cvqpg {command} --resume {work}", file=sys.stderr)
         return 128 + stop_requested.signals[0]
     except BaseException:
-        if (plan.work / CHECKPOINT_FILE).is_file():
-            print(f"cvqpg fit: the fit failed; its last checkpoint is kept: cvqpg fit --resume {plan.work}",
+        if (work / CHECKPOINT_FILE).is_file():
+            print(f"cvqpg {command}: failed; the fit's last checkpoint is kept: cvqpg {command} --resume {work}",
                   file=sys.stderr)
         else:
             for folder in created:
                 shutil.rmtree(folder, ignore_errors=True)
         raise
-    if plan.final != plan.work:
-        replace_folder(plan.work, plan.final)
     return 0
+
+
+def _fit(plan: FitPlan, args: argparse.Namespace) -> int:
+    """Fit in `plan.work` (`_resumable`) and put the run at `plan.final`."""
+    every = args.checkpoint_every
+
+    def body(stop_requested: Callable[[], bool]) -> None:
+        if plan.state is None:
+            start_run(plan.work, plan.config, plan.source)
+        if plan.depth is not None:
+            plan.depth.save(plan.work / DEPTH_FILE)
+        result = fit_in_folder(plan.work, plan.scene, plan.config, plan.state, progress=not args.quiet,
+                               checkpoint_every_steps=every if every else None,
+                               checkpoint_every_seconds=None if every == 0 else CHECKPOINT_SECONDS,
+                               stop_requested=stop_requested)
+        write_fitted_run(plan.work, result, plan.scene, plan.source)
+
+    code = _resumable(plan.work, "fit", body)
+    if not code and plan.final != plan.work:
+        replace_folder(plan.work, plan.final)
+    return code
 
 
 def run_fit(args: argparse.Namespace) -> int:
@@ -775,20 +791,59 @@ def _rate_summary(r: dict) -> str:
                if r["finetune_steps"] else "; not fine-tuned"))
 
 
+def _source_files(source: dict) -> list[Path]:
+    """The input files a run's `source` names, which no output may replace."""
+    return [Path(source[key]) for key in ("image", "depth") if key in source]
+
+
 def run_encode(args: argparse.Namespace) -> int:
-    config, source = _config_and_source(args)
-    check_device(config.device)
-    check_compression_settings(None, args.finetune, 0.0)
-    budget = encode_budget(config, args.bpp, args.max_bytes)
-    out = check_output_file(args.out, [Path(source[key]) for key in ("image", "depth") if key in source],
-                            args.overwrite)
-    check_memory(config, device_memory_bytes(config.device))
-    scene, _ = _scene_and_depth(source, config)
-    prepare_kernels(config, show_status=not args.quiet)
-    encoded = encode_scene(scene, config, budget, args.finetune, progress=not args.quiet)
-    write_atomic(out, encoded.rate.choice.data)
+    depth = None
+    if args.resume:
+        work = Path(args.resume)
+        config, source, budget, finetune_steps = read_encode(work)
+        if not work.name.endswith(PARTIAL_SUFFIX):
+            raise UsageError(f"--resume {work}: an encode's folder is named after its file, FILE{PARTIAL_SUFFIX}")
+        check_device(config.device)
+        out = check_output_file(work.with_name(work.name[:-len(PARTIAL_SUFFIX)]), _source_files(source),
+                                args.overwrite)
+        scene = scene_from_source(source, config)
+    else:
+        if args.bpp is None and args.max_bytes is None:
+            raise UsageError("one of the arguments --bpp --max-bytes is required")
+        if args.out is None:
+            raise UsageError(f"give the {SUFFIX} file to write with --out FILE")
+        config, source = _config_and_source(args)
+        check_device(config.device)
+        check_compression_settings(None, args.finetune, 0.0)
+        budget, finetune_steps = encode_budget(config, args.bpp, args.max_bytes), args.finetune
+        out = check_output_file(args.out, _source_files(source), args.overwrite)
+        work = out.with_name(out.name + PARTIAL_SUFFIX)
+        if work.exists():
+            raise UsageError(f"{work} holds an interrupted encode; continue it with cvqpg encode --resume {work}, "
+                             "or delete it")
+        config = encode_config(config, budget)
+        check_memory(config, device_memory_bytes(config.device))
+        scene, depth = _scene_and_depth(source, config)
+        if depth is not None:
+            source["depth"] = DEPTH_FILE  # kept in the encode's folder until the file is written
+    records = []
+
+    def body(stop_requested: Callable[[], bool]) -> None:
+        if not args.resume:
+            start_encode(work, config, source, budget, finetune_steps)
+        if depth is not None:
+            depth.save(work / DEPTH_FILE)
+        encoded = encode_in_folder(work, scene, config, budget, finetune_steps, progress=not args.quiet,
+                                   stop_requested=stop_requested)
+        write_atomic(out, encoded.rate.choice.data)
+        records.append(encoding_record(encoded, out, budget))
+
+    code = _resumable(work, "encode", body)
+    if code:
+        return code
+    shutil.rmtree(work)
     if not args.quiet:
-        print(f"{out}: {_rate_summary(encoding_record(encoded, out, budget))}")
+        print(f"{out}: {_rate_summary(records[0])}")
     return 0
 
 

@@ -279,28 +279,48 @@ def primitives_for_budget(config: FitConfig, max_bytes: int) -> int:
     return min(max(round(count * ENCODE_HEADROOM), 1), config.width * config.height)
 
 
+def encode_config(config: FitConfig, budget: Budget) -> FitConfig:
+    """`config` with the primitive count that `primitives_for_budget` picks for `budget`: the fit `cvqpg encode`
+    runs."""
+    return config.replace(num_gaussians=primitives_for_budget(config, budget.max_bytes)).validate()
+
+
 @dataclass
 class Encoding:
-    """What `encode_scene` made: the fit (its settings name the primitives fitted) and the file chosen."""
+    """What `encode_fitted` made: the fit (its settings name the primitives fitted), the file chosen, and the
+    seconds of rate control and fine-tuning."""
 
     fit: FitResult
     reference: Reference
     rate: RateChoice
+    rate_seconds: float
+
+    @property
+    def seconds(self) -> float:
+        """Encoding time (s): the fit's loop, over every segment of a resumed fit, and rate control."""
+        return self.fit.seconds + self.rate_seconds
+
+
+def encode_fitted(fitted: FitResult, scene: Scene, budget: Budget, finetune_steps: int = RATE_FINETUNE_STEPS,
+                  progress: bool = False) -> Encoding:
+    """Rate-control a fit of `scene` (of `encode_config`'s settings) into a file within `budget`, fine-tuned for
+    `finetune_steps` on the scene's targets; a progress bar (`progress`) shows the search's bpp and PSNR."""
+    check_compression_settings(None, finetune_steps, 0.0)
+    started = time.perf_counter()
+    reference = reference_for(fitted.primitives, fitted.config, scene.targets, "the scene's targets")
+    rate = rate_control(fitted.primitives, fitted.config, reference, budget, scene, finetune_steps, progress)
+    return Encoding(fitted, reference, rate, time.perf_counter() - started)
 
 
 def encode_scene(scene: Scene, config: FitConfig, budget: Budget, finetune_steps: int = RATE_FINETUNE_STEPS,
                  progress: bool = False, stop_requested: Callable[[], bool] | None = None) -> Encoding:
-    """Fit `scene` with the primitive count `primitives_for_budget` picks (replacing `config`'s) and
-    rate-control the model into a file within `budget` (`encode_budget`), fine-tuned for `finetune_steps` on
-    the scene's targets. Progress bars (`progress`) show the fit's PSNR, then the rate search's bpp and PSNR.
-    When `stop_requested()` turns true the fit stops between two steps (`fitting.FitInterrupted`)."""
+    """Fit `scene` with `encode_config`'s primitive count (replacing `config`'s) and `encode_fitted` the model
+    into a file within `budget` (`encode_budget`). Progress bars (`progress`) show the fit's PSNR, then the rate
+    search's bpp and PSNR. When `stop_requested()` turns true the fit stops between two steps
+    (`fitting.FitInterrupted`); `app.runner.encode_in_folder` runs the same with checkpoints."""
     check_compression_settings(None, finetune_steps, 0.0)
-    config = config.replace(num_gaussians=primitives_for_budget(config, budget.max_bytes)).validate()
-    fitted = fit_scene(scene, config, progress=progress, stop_requested=stop_requested)
-    primitives = fitted.primitives
-    reference = reference_for(primitives, config, scene.targets, "the scene's targets")
-    return Encoding(fitted, reference, rate_control(primitives, config, reference, budget, scene, finetune_steps,
-                                                    progress))
+    fitted = fit_scene(scene, encode_config(config, budget), progress=progress, stop_requested=stop_requested)
+    return encode_fitted(fitted, scene, budget, finetune_steps, progress)
 
 
 def encoding_record(encoded: Encoding, out: str | Path, budget: Budget) -> dict[str, Any]:

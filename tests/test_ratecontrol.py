@@ -2,6 +2,7 @@
 its budget and lands within 5% below it; budgets that cannot work are one line and exit code 2."""
 
 import json
+import signal
 from dataclasses import asdict
 
 import numpy as np
@@ -10,6 +11,7 @@ import torch
 from PIL import Image
 
 from cvqpg import FitConfig
+from cvqpg import cli
 from cvqpg.cli import main
 from cvqpg.codec import BitDepths, encode, quantise, range_holders
 from cvqpg.compression import kept, reference_for, strongest_first, trial
@@ -206,6 +208,57 @@ def test_encode_writes_one_file_within_the_budget_that_decompress_and_info_read(
     before = out.read_bytes()
     assert main([*ENCODE, str(picture), "--bpp", "4", "--out", str(out), "--quiet"]) == 2
     assert "exists" in one_line_error(capsys) and out.read_bytes() == before
+
+
+def test_a_stopped_encode_resumes_from_its_checkpoint_to_the_same_file(picture, tmp_path, monkeypatch, capsys):
+    command = [*ENCODE, str(picture), "--bpp", "4", "--quiet", "--steps", "12"]
+    whole = tmp_path / "whole" / "ramp.cvq"
+    whole.parent.mkdir()
+    assert main([*command, "--out", str(whole)]) == 0
+    out, work = tmp_path / "ramp.cvq", tmp_path / "ramp.cvq.partial"
+    asked = []
+
+    class StopAtTheFifthStep(cli.StopRequest):
+        def __call__(self) -> bool:
+            asked.append(True)
+            self.signals = [signal.SIGINT] if len(asked) > 5 else []
+            return bool(self.signals)
+
+    monkeypatch.setattr(cli, "StopRequest", StopAtTheFifthStep)
+    assert main([*command, "--out", str(out)]) == 128 + signal.SIGINT
+    assert f"stopped before step 5; checkpoint saved. Continue with: cvqpg encode --resume {work}" in one_line_error(capsys)
+    assert not out.exists() and sorted(p.name for p in work.iterdir()) == ["budget.json", "checkpoint.pt", "config.json"]
+    assert main([*command, "--out", str(out)]) == 2  # the same encode again is told where its work is
+    assert f"{work} holds an interrupted encode; continue it with cvqpg encode --resume {work}" in one_line_error(capsys)
+    monkeypatch.undo()
+    assert main(["encode", "--resume", str(work), "--quiet"]) == 0
+    assert out.read_bytes() == whole.read_bytes() and not work.exists()
+
+
+@pytest.mark.parametrize("checkpointed", [False, True])
+def test_a_failed_encode_keeps_its_folder_only_where_a_checkpoint_is_worth_resuming(picture, tmp_path, monkeypatch,
+                                                                                   capsys, checkpointed):
+    work = tmp_path / "ramp.cvq.partial"
+
+    def failing(folder, *args, **kwargs):
+        if checkpointed:
+            (folder / "checkpoint.pt").write_bytes(b"")
+        raise RuntimeError("a failure after the fit started")
+
+    monkeypatch.setattr(cli, "encode_in_folder", failing)
+    assert main([*ENCODE, str(picture), "--bpp", "4", "--out", str(tmp_path / "ramp.cvq"), "--quiet"]) == 1
+    error = capsys.readouterr().err
+    assert "internal error (RuntimeError: a failure after the fit started)" in error
+    assert (f"failed; the fit's last checkpoint is kept: cvqpg encode --resume {work}" in error) == checkpointed
+    assert sorted(p.name for p in tmp_path.iterdir()) == (["ramp.cvq.partial"] if checkpointed else [])
+
+
+def test_encode_needs_a_file_to_write_and_resumes_only_an_encodes_folder(picture, tmp_path, capsys):
+    assert main([*ENCODE, str(picture), "--bpp", "4"]) == 2
+    assert "give the .cvq file to write with --out FILE" in one_line_error(capsys)
+    assert main(["encode", "--resume", str(tmp_path)]) == 2
+    assert "holds no encode (no budget.json)" in one_line_error(capsys)
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize("arguments, message", [

@@ -576,12 +576,18 @@ def run_rate_distortion_cell(cell: Cell, folder: Path, options: RateDistortionOp
     return DONE
 
 
+def encode_work_folder(bpp: float) -> str:
+    """The folder, in an encode cell's, of the fit at `bpp` while it runs: its checkpoint, kept when the cell stops
+    (not in git, which keeps the finished points only)."""
+    return f"encode-{bpp:.4f}bpp.partial"
+
+
 def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float],
                     stop_requested: Callable[[], bool] | None = None) -> str:
     """An encode grid's cell: `cvqpg encode --bpp` of the cell's scene (`ratedistortion.encode_point`, the default
     recipe) at `fractions` of the rate its rate grid cell's budgets are fractions of, into `encode.json`. Each
-    point is a whole fit; the finished ones are kept in `encode.partial.json`, so a stopped cell (which stops
-    its fit between two steps) resumes at its first budget without a point."""
+    point is a whole fit; the finished ones are kept in `encode.partial.json`, so a stopped cell resumes at its
+    first budget without a point, whose fit continues from the checkpoint in its folder (`encode_work_folder`)."""
     from .ratedistortion import encode_point, rate_base
 
     if (folder / ENCODE_FILE).is_file():
@@ -600,7 +606,8 @@ def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float],
         if stop_requested is not None and stop_requested():
             return INTERRUPTED
         try:
-            point = encode_point(scene, config, bpp, stop_requested=stop_requested)
+            point = encode_point(scene, config, cell.scene.source, bpp, folder / encode_work_folder(bpp),
+                                 stop_requested=stop_requested)
         except FitInterrupted:
             return INTERRUPTED
         if point is None:

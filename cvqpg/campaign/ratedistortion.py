@@ -9,6 +9,7 @@ multi-plane PSNR (dB) and SSIM of the reconstructions against the run's targets.
 from __future__ import annotations
 
 import math
+import shutil
 import tempfile
 import time
 from dataclasses import asdict, dataclass
@@ -27,9 +28,11 @@ from ..finetune import finetune
 from ..fitting import hologram, render
 from ..metrics import mean_psnr, mean_ssim
 from ..optics import reconstruct
-from ..ratecontrol import RATE_FINETUNE_STEPS, Budget, encode_budget, encode_scene, rate_control, smallest_file
+from ..ratecontrol import RATE_FINETUNE_STEPS, Budget, encode_budget, encode_config, rate_control, smallest_file
 from ..primitives import Primitives
 from ..app.provenance import machine_record
+from ..app.runner import encode_in_folder, start_encode
+from ..runs import CONFIG_FILE
 from ..storage import load_model, save_model
 from ..targets import Scene
 
@@ -165,23 +168,29 @@ def budget_points(primitives: Primitives, config: FitConfig, scene: Scene, fit_p
     return points
 
 
-def encode_point(scene: Scene, config: FitConfig, bpp: float, finetune_steps: int = RATE_FINETUNE_STEPS,
-                 stop_requested: Callable[[], bool] | None = None) -> Point | None:
-    """The file `cvqpg encode --bpp` writes of `scene` with `config`'s settings (`ratecontrol.encode_scene`: a fit
-    at the budget's primitive count, rate control, `finetune_steps` of fine-tuning), the whole of it counted as
-    encoding time; None where the budget is below the smallest file of a model of the fit's shape. The fit
-    raises `fitting.FitInterrupted` once `stop_requested()` turns true."""
+def encode_point(scene: Scene, config: FitConfig, source: dict[str, Any], bpp: float, work: Path,
+                 finetune_steps: int = RATE_FINETUNE_STEPS, stop_requested: Callable[[], bool] | None = None
+                 ) -> Point | None:
+    """The file `cvqpg encode --bpp` writes of `scene` (its inputs `source`) with `config`'s settings: a fit at the
+    budget's primitive count in the folder `work` (`app.runner.encode_in_folder`), rate control and
+    `finetune_steps` of fine-tuning; None where the budget is below the smallest file of a model of the fit's
+    shape. The fit raises `fitting.FitInterrupted` once `stop_requested()` turns true, after saving its
+    checkpoint, from which the same call resumes; `work` is removed once the point is made. Its encode time is
+    the fit's, over every segment, and the rate control's (`ratecontrol.Encoding.seconds`)."""
     try:
         budget = encode_budget(config, bpp=bpp)
     except ConfigError:
         return None
-    started = time.perf_counter()
-    encoded = encode_scene(scene, config, budget, finetune_steps, stop_requested=stop_requested)
+    fitted = encode_config(config, budget)
+    if not (work / CONFIG_FILE).is_file():
+        start_encode(work, fitted, source, budget, finetune_steps)
+    encoded = encode_in_folder(work, scene, fitted, budget, finetune_steps, progress=False,
+                               stop_requested=stop_requested)
     chosen = encoded.rate.choice
-    point = _decoded_point(ENCODER, f"--bpp {bpp:.3f}: {encoded.fit.config.primitive_count} fitted, "
-                           f"{_describe(chosen.bits)}", chosen.data, config, scene.targets,
-                           time.perf_counter() - started)
+    point = _decoded_point(ENCODER, f"--bpp {bpp:.3f}: {fitted.primitive_count} fitted, {_describe(chosen.bits)}",
+                           chosen.data, config, scene.targets, encoded.seconds)
     point.budget_bpp = bpp
+    shutil.rmtree(work)
     return point
 
 
