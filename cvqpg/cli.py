@@ -22,7 +22,7 @@ from PIL import Image
 
 from . import __version__
 from .app.allocator import keep_freed_memory
-from .app.compilation import compile_all, prepare_kernels
+from .app.compilation import compile_all
 from .app.outputs import check_new_folder, check_output_file, check_output_folder, is_run_folder
 from .app.runner import (CHECKPOINT_SECONDS, encode_in_folder, fit_in_folder, read_encode, resumed_state,
                          start_encode, timed_config, write_fitted_run)
