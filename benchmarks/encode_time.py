@@ -4,11 +4,11 @@
     python benchmarks/encode_time.py ../shared/scenes/bento --steps 200     # a shorter run of both
     python benchmarks/encode_time.py ../shared/scenes/bento --color gray --bpp 0.5
 
-Times, in turns, the Table 1 fit (the paper's recipe, ratio 0.1, CVQPG, seed 100) and `ratecontrol.encode_scene`
-at the budget with the default recipe and fine-tuning (what `cvqpg encode --bpp B` runs, without writing the
-file). Both fit for `--steps`; a shorter run than 2000 steps weighs the encoder's fixed cost (rate control
-and fine-tuning) more, so its ratio is an upper bound of the 2000-step one. Prints one JSON line per run, then
-the ratio of the encoder's seconds to the fit's.
+Times, in turns, the Table 1 fit (the paper's recipe, ratio 0.1, CVQPG, seed 100) for `--steps` and
+`ratecontrol.encode_scene` at the budget with the default recipe (what `cvqpg encode --bpp B` runs, without
+writing the file): `ENCODE_STEPS` float and `ENCODE_FINETUNE_STEPS` quantisation-aware steps for a `--steps`
+of 2000, both scaled with it for a shorter run, whose ratio then weighs the encoder's rate search more. Prints
+one JSON line per run, then the ratio of the encoder's seconds to the fit's.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pathlib import Path
 from cvqpg import FitConfig
 from cvqpg.app.compilation import prepare_kernels
 from cvqpg.fitting import fit_scene
-from cvqpg.ratecontrol import encode_budget, encode_scene
+from cvqpg.ratecontrol import ENCODE_FINETUNE_STEPS, ENCODE_STEPS, encode_budget, encode_scene
 from cvqpg.targets import load_scene
 
 
@@ -34,9 +34,12 @@ def main() -> None:
     parser.add_argument("--size", type=int, nargs=2, default=(640, 480), metavar=("W", "H"))
     parser.add_argument("--rounds", type=int, default=1, help="turns of (fit, encode); medians are not taken")
     args = parser.parse_args()
+    share = args.steps / FitConfig().steps
+    table1 = FitConfig(width=args.size[0], height=args.size[1], color=args.color, ratio=0.1,
+                       steps=args.steps).with_recipe("paper").validate()
     encoder = FitConfig(width=args.size[0], height=args.size[1], color=args.color, ratio=0.1,
-                        steps=args.steps).validate()
-    table1 = encoder.with_recipe("paper").validate()
+                        steps=round(share * ENCODE_STEPS)).validate()
+    finetune_steps = round(share * ENCODE_FINETUNE_STEPS)
     scene = load_scene(next(args.scene.glob("image.*")), args.scene / "depth.png", table1)
     prepare_kernels(table1, show_status=False)
     budget = encode_budget(encoder, bpp=args.bpp)
@@ -49,7 +52,7 @@ def main() -> None:
         print(json.dumps({"run": "Table 1 fit", "primitives": table1.primitive_count, "seconds": round(elapsed, 1),
                           "psnr": round(fitted.metrics.mean["psnr"], 3)}), flush=True)
         started = time.perf_counter()
-        encoded = encode_scene(scene, encoder, budget)
+        encoded = encode_scene(scene, encoder, budget, finetune_steps)
         elapsed = time.perf_counter() - started
         seconds["encode"] += elapsed
         print(json.dumps({"run": f"encode --bpp {args.bpp:g}", "primitives": encoded.fit.config.primitive_count,

@@ -38,8 +38,8 @@ from .errors import CvqpgError
 from .files import replace_folder, staged_folder
 from .export import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
 from .fitting import FitInterrupted, FitState, estimated_peak_bytes
-from .ratecontrol import (RATE_FINETUNE_STEPS, check_budget_values, compress_to_budget, encode_budget, encode_config,
-                          encoding_record)
+from .ratecontrol import (ENCODE_FINETUNE_STEPS, ENCODE_STEPS, RATE_FINETUNE_STEPS, check_budget_values,
+                          compress_to_budget, encode_budget, encode_config, encoding_record)
 from .runs import (CHECKPOINT_FILE, CONFIG_FILE, EXPORT_FOLDER, HALF_MODEL_FILE, METRICS_FILE, MODEL_FILE,
                    RENDER_FOLDER, evaluate_run, export_run, half_precision_model, model_path, read_run, render_model,
                    scene_from_source, start_run, write_atomic)
@@ -134,8 +134,9 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
 
-def _fit_options(p: argparse.ArgumentParser) -> None:
-    """What to fit and how (`_config_and_source` reads them): shared by `fit` and `encode`."""
+def _fit_options(p: argparse.ArgumentParser, steps: int = DEFAULTS.steps) -> None:
+    """What to fit and how (`_config_and_source` reads them): shared by `fit` and `encode` (whose fit takes
+    `steps` by default)."""
     p.add_argument("image", nargs="?", help="input image file (any format Pillow reads); "
                    "without it the built-in --scene is used")
     p.add_argument("--depth", metavar="PATH|auto", help="depth map (0 = near); needed for --planes > 1. 'auto' "
@@ -151,8 +152,8 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--recipe", choices=tuple(RECIPES), default=DEFAULTS.recipe,
                    help="how to fit: 'paper' is the paper's recipe, bit for bit; the others, and what each "
                    "gains, are in docs/beyond.md")
-    p.add_argument("--steps", type=int, help=f"optimisation steps (the loop runs indices 0..steps, as the "
-                   f"reference) [default: {DEFAULTS.steps}]")
+    p.add_argument("--steps", type=int, help="optimisation steps (the loop runs indices 0..steps, as the "
+                   f"reference) [default: {steps}]")
     p.add_argument("--curvature-warmup", type=int, metavar="W",
                    help="steps with curvature frozen at 0 (CVQPG only) [default: steps/5, as 400 of 2000]")
     p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"),
@@ -276,16 +277,17 @@ def _compression_parsers(sub: argparse._SubParsersAction) -> None:
                        f"{CHECKPOINT_SECONDS / 60:g} minutes of work, and when Ctrl-C stops it), from which --resume "
                        "continues it; once FILE is written that folder is removed.",
                        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    _fit_options(e)
+    _fit_options(e, steps=ENCODE_STEPS)
     _rate_arguments(e.add_mutually_exclusive_group())
-    e.add_argument("--finetune", type=int, default=RATE_FINETUNE_STEPS, metavar="STEPS",
-                   help="quantisation-aware fine-tuning steps at the chosen bit depths; kept only if it pays")
+    e.add_argument("--finetune", type=int, default=ENCODE_FINETUNE_STEPS, metavar="STEPS",
+                   help="quantisation-aware fine-tuning steps after the fit's --steps, at the chosen bit depths; "
+                   "kept only if it pays")
     e.add_argument("--out", metavar="FILE", help=f"the {SUFFIX} file (required, but with --resume)")
     e.add_argument("--resume", metavar=f"FILE{PARTIAL_SUFFIX}", help="continue an interrupted encode from the "
                    "checkpoint in its folder, with its own settings and budget (other options are ignored)")
     _overwrite_argument(e, "the output file")
     e.add_argument("--quiet", action="store_true", help="no progress bars or summary")
-    e.set_defaults(ratio=DEFAULTS.ratio, num_gaussians=None)  # the count follows from the budget
+    e.set_defaults(ratio=DEFAULTS.ratio, num_gaussians=None, steps=ENCODE_STEPS)  # the count follows from the budget
     d = sub.add_parser("decompress", help=f"turn a {SUFFIX} file back into a model file",
                        description=f"Decode a {SUFFIX} file into a float32 model file (model.safetensors format).")
     d.add_argument("file", metavar="FILE", help=f"{SUFFIX} file")

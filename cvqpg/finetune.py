@@ -19,10 +19,18 @@ from .primitives import Primitives
 from .targets import Scene
 
 # Adam's first steps move every value by about its learning rate whatever its gradient, and every value
-# that crosses a bin edge changes the render: a quarter bin, reached over a short linear ramp, then
-# decayed by a cosine to 0 (what each part gains: docs/compression.md, "What each technique buys on a 640×480 fit").
-LEARNING_RATE_BINS = 0.25
+# that crosses a bin edge changes the render: the rate is reached over a short linear ramp, then decayed by a
+# cosine to 0. A short tuning keeps to a quarter bin; a long one gains from values that hop between bins
+# before the cosine settles them, up to 4 bins from 400 steps (docs/compression.md, "Fine-tuning's rate").
+SHORT_RATE_BINS, SHORT_STEPS = 0.25, 100
+LONG_RATE_BINS = 4.0
 RAMP_STEPS = 10
+
+
+def learning_rate_bins(steps: int) -> float:
+    """Peak learning rate of a tuning of `steps` steps, in bins of each attribute's quantiser: a quarter bin up to
+    100 steps, growing with the square of the length beyond, up to 4 bins (reached at 400)."""
+    return min(LONG_RATE_BINS, SHORT_RATE_BINS * max(steps / SHORT_STEPS, 1.0) ** 2)
 
 
 def straight_through(value: Tensor, quantiser: Quantiser) -> Tensor:
@@ -43,8 +51,8 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
     amplitude·opacity, phase, curvature as a share of γ_max) through their quantisers at `bits`.
 
     The attributes are trained in float64, as the codec quantises them, so that the loop's bins are the
-    file's. Each attribute's learning rate is `LEARNING_RATE_BINS` of its quantisation step, so that a
-    step moves a value by about a quarter of a bin at most. Returns float primitives (opacity 1) that the
+    file's. Each attribute's learning rate is `learning_rate_bins(steps)` of its quantisation step: a step moves a
+    value by about that many bins at most. Returns float primitives (opacity 1) that the
     codec then quantises. The codec takes the ranges of log scale and |amplitude| from the model, so
     the entries at their extremes are held fixed and the others kept within them: the file's ranges,
     and its bins, are then those the loop trained against. `on_step(step, psnr)` is called at each step with
@@ -58,7 +66,8 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
     held_values = {name: params[name].view(-1)[index].clone() for name, index in held.items()}
     for value in params.values():
         value.requires_grad_(True)
-    optimizer = torch.optim.Adam([{"params": [value], "lr": LEARNING_RATE_BINS * coded.quantisers[name].step}
+    rate = learning_rate_bins(steps)
+    optimizer = torch.optim.Adam([{"params": [value], "lr": rate * coded.quantisers[name].step}
                                   for name, value in params.items()])
     schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda i: min(1.0, (i + 1) / (RAMP_STEPS + 1))
                                                  * 0.5 * (1 + math.cos(math.pi * i / max(steps, 1))))

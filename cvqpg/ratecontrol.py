@@ -40,6 +40,11 @@ from .targets import Scene
 
 # Fine-tuning steps at the chosen rung where the caller gives none (the rate–distortion benchmark's).
 RATE_FINETUNE_STEPS = 100
+# `cvqpg encode`'s optimisation: float steps, then quantisation-aware ones at the bit depths rate control chose.
+# About a Table 1 fit's steps, split so: on 640×480 and 320×240 grayscale fits, 1500 + 600 wrote files above
+# 2000 + 100 at the same budget (docs/compression.md, "Where encode's steps go").
+ENCODE_STEPS = 1500
+ENCODE_FINETUNE_STEPS = 600
 # Fine-tuning moves a file's size by a few percent (small fits grew by 1–5%); tuning a model 4% above the
 # budget leaves the last search primitives to drop where it shrinks, rather than a file well below it.
 TUNING_HEADROOM = 0.04
@@ -301,7 +306,7 @@ class Encoding:
         return self.fit.seconds + self.rate_seconds
 
 
-def encode_fitted(fitted: FitResult, scene: Scene, budget: Budget, finetune_steps: int = RATE_FINETUNE_STEPS,
+def encode_fitted(fitted: FitResult, scene: Scene, budget: Budget, finetune_steps: int = ENCODE_FINETUNE_STEPS,
                   progress: bool = False) -> Encoding:
     """Rate-control a fit of `scene` (of `encode_config`'s settings) into a file within `budget`, fine-tuned for
     `finetune_steps` on the scene's targets; a progress bar (`progress`) shows the search's bpp and PSNR."""
@@ -312,10 +317,10 @@ def encode_fitted(fitted: FitResult, scene: Scene, budget: Budget, finetune_step
     return Encoding(fitted, reference, rate, time.perf_counter() - started)
 
 
-def encode_scene(scene: Scene, config: FitConfig, budget: Budget, finetune_steps: int = RATE_FINETUNE_STEPS,
+def encode_scene(scene: Scene, config: FitConfig, budget: Budget, finetune_steps: int = ENCODE_FINETUNE_STEPS,
                  progress: bool = False, stop_requested: Callable[[], bool] | None = None) -> Encoding:
-    """Fit `scene` with `encode_config`'s primitive count (replacing `config`'s) and `encode_fitted` the model
-    into a file within `budget` (`encode_budget`). Progress bars (`progress`) show the fit's PSNR, then the rate
+    """Fit `scene` with `encode_config`'s primitive count (replacing `config`'s) for `config.steps` (`cvqpg encode`
+    fits for `ENCODE_STEPS`) and `encode_fitted` the model into a file within `budget` (`encode_budget`). Progress bars (`progress`) show the fit's PSNR, then the rate
     search's bpp and PSNR. When `stop_requested()` turns true the fit stops between two steps
     (`fitting.FitInterrupted`); `app.runner.encode_in_folder` runs the same with checkpoints."""
     check_compression_settings(None, finetune_steps, 0.0)

@@ -415,3 +415,12 @@ def test_a_bare_model_file_is_scored_against_its_own_reconstruction(fitted_run, 
     shown = capsys.readouterr().out
     assert "against the float model's own reconstruction" in shown and "estimated for a fit at 30 dB" in shown
     assert (tmp_path / "bare.cvq").is_file()
+
+
+def test_fine_tuning_s_rate_is_a_quarter_bin_for_short_tunings_and_grows_to_four_bins_for_long_ones():
+    from cvqpg.finetune import learning_rate_bins
+
+    assert [learning_rate_bins(steps) for steps in (1, 10, 100)] == [0.25, 0.25, 0.25]
+    assert learning_rate_bins(200) == pytest.approx(1.0) and learning_rate_bins(400) == pytest.approx(4.0)
+    rates = [learning_rate_bins(steps) for steps in range(100, 2001, 50)]
+    assert rates == sorted(rates) and max(rates) == 4.0

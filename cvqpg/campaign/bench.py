@@ -35,7 +35,7 @@ from ..errors import CvqpgError
 from ..fitting import FitInterrupted, FitState, estimated_peak_bytes
 from ..initialisation import resolved_init
 from ..metrics import radial_error_spectrum
-from ..ratecontrol import RATE_FINETUNE_STEPS
+from ..ratecontrol import ENCODE_STEPS, RATE_FINETUNE_STEPS
 from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, HISTORY_FILE, METRICS_FILE, MODEL_FILE, read_record, read_run,
                     scene_from_source, start_run, write_atomic, write_json)
 from ..scenes import SCENES
@@ -596,7 +596,8 @@ def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float],
     partial = folder / ENCODE_PARTIAL_FILE
     record = (read_record(partial, RESTORE_ENCODE) if partial.is_file()
               else {"fractions": list(fractions), "base_bpp": base, "points": [], "skipped_bpp": []})
-    config = cell.config.with_recipe(BEYOND_RECIPE).validate()
+    config = cell.config.with_recipe(BEYOND_RECIPE).replace(
+        steps=ENCODE_STEPS, curvature_warmup=default_curvature_warmup(ENCODE_STEPS)).validate()
     scene = scene_from_source(cell.scene.source, config)
     for fraction in fractions:
         bpp = fraction * base

@@ -28,7 +28,8 @@ from ..finetune import finetune
 from ..fitting import hologram, render
 from ..metrics import mean_psnr, mean_ssim
 from ..optics import reconstruct
-from ..ratecontrol import RATE_FINETUNE_STEPS, Budget, encode_budget, encode_config, rate_control, smallest_file
+from ..ratecontrol import (ENCODE_FINETUNE_STEPS, Budget, encode_budget, encode_config,
+                          rate_control, smallest_file)
 from ..primitives import Primitives
 from ..app.provenance import machine_record
 from ..app.runner import encode_in_folder, start_encode
@@ -169,7 +170,7 @@ def budget_points(primitives: Primitives, config: FitConfig, scene: Scene, fit_p
 
 
 def encode_point(scene: Scene, config: FitConfig, source: dict[str, Any], bpp: float, work: Path,
-                 finetune_steps: int = RATE_FINETUNE_STEPS, stop_requested: Callable[[], bool] | None = None
+                 finetune_steps: int = ENCODE_FINETUNE_STEPS, stop_requested: Callable[[], bool] | None = None
                  ) -> Point | None:
     """The file `cvqpg encode --bpp` writes of `scene` (its inputs `source`) with `config`'s settings: a fit at the
     budget's primitive count in the folder `work` (`app.runner.encode_in_folder`), rate control and
