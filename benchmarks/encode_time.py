@@ -6,8 +6,8 @@
 
 Times, in turns, the Table 1 fit (the paper's recipe, ratio 0.1, CVQPG, seed 100) for `--steps` and
 `ratecontrol.encode_scene` at the budget with the default recipe (what `cvqpg encode --bpp B` runs, without
-writing the file): `ENCODE_STEPS` float and `ENCODE_FINETUNE_STEPS` quantisation-aware steps for a `--steps`
-of 2000, both scaled with it for a shorter run, whose ratio then weighs the encoder's rate search more. Prints
+writing the file): `ratecontrol.encode_steps(--steps)`, 1500 float and 600 quantisation-aware steps for
+2000, in proportion for a shorter run, whose ratio then weighs the encoder's rate search more. Prints
 one JSON line per run, then the ratio of the encoder's seconds to the fit's.
 """
 
@@ -21,7 +21,7 @@ from pathlib import Path
 from cvqpg import FitConfig
 from cvqpg.app.compilation import prepare_kernels
 from cvqpg.fitting import fit_scene
-from cvqpg.ratecontrol import ENCODE_FINETUNE_STEPS, ENCODE_STEPS, encode_budget, encode_scene
+from cvqpg.ratecontrol import encode_budget, encode_scene, encode_steps
 from cvqpg.targets import load_scene
 
 
@@ -34,12 +34,11 @@ def main() -> None:
     parser.add_argument("--size", type=int, nargs=2, default=(640, 480), metavar=("W", "H"))
     parser.add_argument("--rounds", type=int, default=1, help="turns of (fit, encode); medians are not taken")
     args = parser.parse_args()
-    share = args.steps / FitConfig().steps
     table1 = FitConfig(width=args.size[0], height=args.size[1], color=args.color, ratio=0.1,
                        steps=args.steps).with_recipe("paper").validate()
+    fit_steps, finetune_steps = encode_steps(args.steps)
     encoder = FitConfig(width=args.size[0], height=args.size[1], color=args.color, ratio=0.1,
-                        steps=round(share * ENCODE_STEPS)).validate()
-    finetune_steps = round(share * ENCODE_FINETUNE_STEPS)
+                        steps=fit_steps).validate()
     scene = load_scene(next(args.scene.glob("image.*")), args.scene / "depth.png", table1)
     prepare_kernels(table1, show_status=False)
     budget = encode_budget(encoder, bpp=args.bpp)

@@ -45,6 +45,13 @@ RATE_FINETUNE_STEPS = 100
 # 2000 + 100 at the same budget (docs/compression.md, "Where encode's steps go").
 ENCODE_STEPS = 1500
 ENCODE_FINETUNE_STEPS = 600
+
+
+def encode_steps(steps: int) -> tuple[int, int]:
+    """`cvqpg encode`'s float and quantisation-aware steps in the place of a fit of `steps` steps: `ENCODE_STEPS`
+    and `ENCODE_FINETUNE_STEPS` for a Table 1 fit's 2000, in proportion for others (one float step at least)."""
+    share = steps / FitConfig().steps
+    return max(round(share * ENCODE_STEPS), 1), round(share * ENCODE_FINETUNE_STEPS)
 # Fine-tuning moves a file's size by a few percent (small fits grew by 1–5%); tuning a model 4% above the
 # budget leaves the last search primitives to drop where it shrinks, rather than a file well below it.
 TUNING_HEADROOM = 0.04

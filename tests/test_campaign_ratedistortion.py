@@ -258,12 +258,14 @@ def test_an_encode_cell_resumes_at_the_first_budget_it_has_no_point_for(tmp_path
                                                             "points": [done], "skipped_bpp": [1.0]}))
     encoded = []
     monkeypatch.setattr(ratedistortion, "encode_point",
-                        lambda scene, config, source, bpp, work, stop_requested=None: encoded.append((bpp, work)))
+                        lambda scene, config, source, bpp, work, finetune_steps, stop_requested=None:
+                        encoded.append((bpp, work, config.steps, config.curvature_warmup, finetune_steps)))
     monkeypatch.setattr(bench, "scene_from_source", lambda source, config: None)
     cell = bench.Cell(bench.BenchScene("sushi", {}, 2), "cvqpg", FitConfig(color="gray", ratio=0.1))
     assert bench.run_encode_cell(cell, folder, (0.7, 0.5, 0.36)) == bench.DONE
     # 1.4 bpp has its point and 1.0 was below the smallest file; the fit works in a folder of the cell's
-    assert encoded == [(pytest.approx(0.72), folder / "encode-0.7200bpp.partial")]
+    # (`cvqpg encode`'s 1500 float and 600 quantisation-aware steps in the place of the cell's 2000)
+    assert encoded == [(pytest.approx(0.72), folder / "encode-0.7200bpp.partial", 1500, 300, 600)]
     record = json.loads((folder / "encode.json").read_text())
     assert record["points"] == [done] and record["skipped_bpp"] == pytest.approx([1.0, 0.72])
     assert "load_average" in record["run"] and not (folder / "encode.partial.json").exists()
@@ -279,7 +281,7 @@ def test_a_stopped_encode_cell_keeps_its_finished_points_and_is_interrupted(tmp_
     folder.mkdir()
     (folder / "rd.json").write_text(json.dumps({"budget_fractions": [0.7], "points": [{"budget_bpp": 1.4}]}))
 
-    def encode_point(scene, config, source, bpp, work, stop_requested=None):
+    def encode_point(scene, config, source, bpp, work, finetune_steps, stop_requested=None):
         if stop_requested():
             raise FitInterrupted(3)
         return ratedistortion.Point("cvqpg encode", "--bpp", 10, bpp, 30.0, 0.9, 1.0, 0.1, 5, bpp)

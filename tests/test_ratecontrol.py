@@ -185,6 +185,13 @@ def test_the_primitive_count_for_a_budget_fills_it_at_the_default_depths_with_he
     assert primitives_for_budget(config, 10**9) == 64 * 48
 
 
+def test_encode_splits_a_table_1_fits_steps_into_float_and_quantisation_aware_ones_in_proportion():
+    from cvqpg.ratecontrol import ENCODE_FINETUNE_STEPS, ENCODE_STEPS, encode_steps
+
+    assert encode_steps(2000) == (ENCODE_STEPS, ENCODE_FINETUNE_STEPS) == (1500, 600)
+    assert encode_steps(200) == (150, 60) and encode_steps(1) == (1, 0)
+
+
 @pytest.fixture(scope="module")
 def picture(tmp_path_factory):
     path = tmp_path_factory.mktemp("picture") / "ramp.png"

@@ -35,7 +35,7 @@ from ..errors import CvqpgError
 from ..fitting import FitInterrupted, FitState, estimated_peak_bytes
 from ..initialisation import resolved_init
 from ..metrics import radial_error_spectrum
-from ..ratecontrol import ENCODE_STEPS, RATE_FINETUNE_STEPS
+from ..ratecontrol import RATE_FINETUNE_STEPS, encode_steps
 from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, HISTORY_FILE, METRICS_FILE, MODEL_FILE, read_record, read_run,
                     scene_from_source, start_run, write_atomic, write_json)
 from ..scenes import SCENES
@@ -585,7 +585,8 @@ def encode_work_folder(bpp: float) -> str:
 def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float],
                     stop_requested: Callable[[], bool] | None = None) -> str:
     """An encode grid's cell: `cvqpg encode --bpp` of the cell's scene (`ratedistortion.encode_point`, the default
-    recipe) at `fractions` of the rate its rate grid cell's budgets are fractions of, into `encode.json`. Each
+    recipe, `encode_steps` in the place of the cell's steps) at `fractions` of the rate its rate grid cell's
+    budgets are fractions of, into `encode.json`. Each
     point is a whole fit; the finished ones are kept in `encode.partial.json`, so a stopped cell resumes at its
     first budget without a point, whose fit continues from the checkpoint in its folder (`encode_work_folder`)."""
     from .ratedistortion import encode_point, rate_base
@@ -596,8 +597,9 @@ def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float],
     partial = folder / ENCODE_PARTIAL_FILE
     record = (read_record(partial, RESTORE_ENCODE) if partial.is_file()
               else {"fractions": list(fractions), "base_bpp": base, "points": [], "skipped_bpp": []})
+    fit_steps, finetune_steps = encode_steps(cell.config.steps)
     config = cell.config.with_recipe(BEYOND_RECIPE).replace(
-        steps=ENCODE_STEPS, curvature_warmup=default_curvature_warmup(ENCODE_STEPS)).validate()
+        steps=fit_steps, curvature_warmup=default_curvature_warmup(fit_steps)).validate()
     scene = scene_from_source(cell.scene.source, config)
     for fraction in fractions:
         bpp = fraction * base
@@ -608,7 +610,7 @@ def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float],
             return INTERRUPTED
         try:
             point = encode_point(scene, config, cell.scene.source, bpp, folder / encode_work_folder(bpp),
-                                 stop_requested=stop_requested)
+                                 finetune_steps, stop_requested=stop_requested)
         except FitInterrupted:
             return INTERRUPTED
         if point is None:
