@@ -31,7 +31,7 @@ UNFINGERPRINTED = ("device", "backend")
 # the fingerprint at that value, so that their checkpoints still resume.
 LEGACY_VALUES = {"init": "uniform", "density": None}
 FINGERPRINT_KEY = "run_fingerprint"
-ENCODE_FILE = "budget.json"  # an encode's folder: the budget and the fine-tuning steps, beside config.json
+BUDGET_FILE = "budget.json"  # an encode's folder: the budget and the fine-tuning steps, beside config.json
 
 
 def run_fingerprint(config: FitConfig, source: dict[str, Any]) -> str:
@@ -123,9 +123,9 @@ def write_fitted_run(folder: Path, result: FitResult, scene: Scene, source: dict
 
 def start_encode(folder: Path, config: FitConfig, source: dict[str, Any], budget: Budget, finetune_steps: int) -> Path:
     """A folder for an encode of `config` (`ratecontrol.encode_config`'s) into `budget`: a run folder
-    (`runs.start_run`) that also records the budget and the fine-tuning steps (`ENCODE_FILE`)."""
+    (`runs.start_run`) that also records the budget and the fine-tuning steps (`BUDGET_FILE`)."""
     start_run(folder, config, source)
-    write_json(Path(folder) / ENCODE_FILE, {"max_bytes": budget.max_bytes, "given": budget.given,
+    write_json(Path(folder) / BUDGET_FILE, {"max_bytes": budget.max_bytes, "given": budget.given,
                                             "finetune_steps": finetune_steps})
     return Path(folder)
 
@@ -133,9 +133,9 @@ def start_encode(folder: Path, config: FitConfig, source: dict[str, Any], budget
 def read_encode(folder: Path) -> tuple[FitConfig, dict[str, Any], Budget, int]:
     """What `start_encode` recorded: settings, inputs, budget and fine-tuning steps; `InputError` naming the
     folder where it holds no encode."""
-    path = Path(folder) / ENCODE_FILE
+    path = Path(folder) / BUDGET_FILE
     if not path.is_file():
-        raise InputError(f"{folder} holds no encode (no {ENCODE_FILE}); give a folder that `cvqpg encode` left")
+        raise InputError(f"{folder} holds no encode (no {BUDGET_FILE}); give a folder that `cvqpg encode` left")
     config, source = read_run(folder)
     recorded = read_record(path, "delete the folder and encode again")
     try:

@@ -586,9 +586,9 @@ def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float],
                     stop_requested: Callable[[], bool] | None = None) -> str:
     """An encode grid's cell: `cvqpg encode --bpp` of the cell's scene (`ratedistortion.encode_point`, the default
     recipe, `encode_steps` in the place of the cell's steps) at `fractions` of the rate its rate grid cell's
-    budgets are fractions of, into `encode.json`. Each
-    point is a whole fit; the finished ones are kept in `encode.partial.json`, so a stopped cell resumes at its
-    first budget without a point, whose fit continues from the checkpoint in its folder (`encode_work_folder`)."""
+    budgets are fractions of, into `encode.json`. Each point is a whole fit; the finished ones are kept in
+    `encode.partial.json`, so a stopped cell resumes at its first budget without a point, whose fit continues
+    from the checkpoint in its folder (`encode_work_folder`)."""
     from .ratedistortion import encode_point, rate_base
 
     if (folder / ENCODE_FILE).is_file():
