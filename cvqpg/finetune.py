@@ -51,9 +51,9 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
     amplitude·opacity, phase, curvature as a share of γ_max) through their quantisers at `bits`.
 
     The attributes are trained in float64, as the codec quantises them, so that the loop's bins are the
-    file's. Each attribute's learning rate is `learning_rate_bins(steps)` of its quantisation step: a step moves a
-    value by about that many bins at most. Returns float primitives (opacity 1) that the
-    codec then quantises. The codec takes the ranges of log scale and |amplitude| from the model, so
+    file's. Each attribute's learning rate is `learning_rate_bins(steps)` of its quantisation step: a step
+    moves a value by about that many bins at most. Returns float primitives (opacity 1) that the codec then
+    quantises. The codec takes the ranges of log scale and |amplitude| from the model, so
     the entries at their extremes are held fixed and the others kept within them: the file's ranges,
     and its bins, are then those the loop trained against. `on_step(step, psnr)` is called at each step with
     the PSNR (dB, mean over planes) of the quantised render the step trains on.

@@ -45,13 +45,6 @@ RATE_FINETUNE_STEPS = 100
 # 2000 + 100 at the same budget (docs/compression.md, "Where encode's steps go").
 ENCODE_STEPS = 1500
 ENCODE_FINETUNE_STEPS = 600
-
-
-def encode_steps(steps: int) -> tuple[int, int]:
-    """`cvqpg encode`'s float and quantisation-aware steps in the place of a fit of `steps` steps: `ENCODE_STEPS`
-    and `ENCODE_FINETUNE_STEPS` for a Table 1 fit's 2000, in proportion for others (one float step at least)."""
-    share = steps / FitConfig().steps
-    return max(round(share * ENCODE_STEPS), 1), round(share * ENCODE_FINETUNE_STEPS)
 # Fine-tuning moves a file's size by a few percent (small fits grew by 1–5%); tuning a model 4% above the
 # budget leaves the last search primitives to drop where it shrinks, rather than a file well below it.
 TUNING_HEADROOM = 0.04
@@ -65,6 +58,13 @@ COARSEST = RUNGS[0]
 # The budget is the rate the caller asked for: the best-scoring file within 5% below it is chosen, and where
 # none lands there the largest, whatever it scores (a barely fitted model's score can even rise as bits go).
 CLOSE = 0.95
+
+
+def encode_steps(steps: int) -> tuple[int, int]:
+    """`cvqpg encode`'s float and quantisation-aware steps in the place of a fit of `steps` steps: `ENCODE_STEPS`
+    and `ENCODE_FINETUNE_STEPS` for a Table 1 fit's 2000, in proportion for others (one float step at least)."""
+    share = steps / FitConfig().steps
+    return max(round(share * ENCODE_STEPS), 1), round(share * ENCODE_FINETUNE_STEPS)
 
 
 def check_budget_values(bpp: float | None, max_bytes: int | None) -> None:
@@ -327,9 +327,10 @@ def encode_fitted(fitted: FitResult, scene: Scene, budget: Budget, finetune_step
 def encode_scene(scene: Scene, config: FitConfig, budget: Budget, finetune_steps: int = ENCODE_FINETUNE_STEPS,
                  progress: bool = False, stop_requested: Callable[[], bool] | None = None) -> Encoding:
     """Fit `scene` with `encode_config`'s primitive count (replacing `config`'s) for `config.steps` (`cvqpg encode`
-    fits for `ENCODE_STEPS`) and `encode_fitted` the model into a file within `budget` (`encode_budget`). Progress bars (`progress`) show the fit's PSNR, then the rate
-    search's bpp and PSNR. When `stop_requested()` turns true the fit stops between two steps
-    (`fitting.FitInterrupted`); `app.runner.encode_in_folder` runs the same with checkpoints."""
+    fits for `ENCODE_STEPS`) and `encode_fitted` the model into a file within `budget` (`encode_budget`).
+    Progress bars (`progress`) show the fit's PSNR, then the rate search's bpp and PSNR. When
+    `stop_requested()` turns true the fit stops between two steps (`fitting.FitInterrupted`);
+    `app.runner.encode_in_folder` runs the same with checkpoints."""
     check_compression_settings(None, finetune_steps, 0.0)
     fitted = fit_scene(scene, encode_config(config, budget), progress=progress, stop_requested=stop_requested)
     return encode_fitted(fitted, scene, budget, finetune_steps, progress)
