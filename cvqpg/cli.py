@@ -828,7 +828,6 @@ def run_encode(args: argparse.Namespace) -> int:
         scene, depth = _scene_and_depth(source, config)
         if depth is not None:
             source["depth"] = DEPTH_FILE  # kept in the encode's folder until the file is written
-    records = []
 
     def body(stop_requested: Callable[[], bool]) -> None:
         if not args.resume:
@@ -838,15 +837,13 @@ def run_encode(args: argparse.Namespace) -> int:
         encoded = encode_in_folder(work, scene, config, budget, finetune_steps, progress=not args.quiet,
                                    stop_requested=stop_requested)
         write_atomic(out, encoded.rate.choice.data)
-        records.append(encoding_record(encoded, out, budget))
+        if not args.quiet:
+            print(f"{out}: {_rate_summary(encoding_record(encoded, out, budget))}")
 
     code = _resumable(work, "encode", body)
-    if code:
-        return code
-    shutil.rmtree(work)
-    if not args.quiet:
-        print(f"{out}: {_rate_summary(records[0])}")
-    return 0
+    if not code:
+        shutil.rmtree(work)
+    return code
 
 
 def run_decompress(args: argparse.Namespace) -> int:

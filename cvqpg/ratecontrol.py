@@ -319,8 +319,9 @@ def encode_fitted(fitted: FitResult, scene: Scene, budget: Budget, finetune_step
     `finetune_steps` on the scene's targets; a progress bar (`progress`) shows the search's bpp and PSNR."""
     check_compression_settings(None, finetune_steps, 0.0)
     started = time.perf_counter()
-    reference = reference_for(fitted.primitives, fitted.config, scene.targets, "the scene's targets")
-    rate = rate_control(fitted.primitives, fitted.config, reference, budget, scene, finetune_steps, progress)
+    primitives = fitted.primitives  # activated once: `FitResult.primitives` activates on every access
+    reference = reference_for(primitives, fitted.config, scene.targets, "the scene's targets")
+    rate = rate_control(primitives, fitted.config, reference, budget, scene, finetune_steps, progress)
     return Encoding(fitted, reference, rate, time.perf_counter() - started)
 
 

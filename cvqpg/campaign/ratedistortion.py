@@ -182,13 +182,13 @@ def encode_point(scene: Scene, config: FitConfig, source: dict[str, Any], bpp: f
         budget = encode_budget(config, bpp=bpp)
     except ConfigError:
         return None
-    fitted = encode_config(config, budget)
+    fit_config = encode_config(config, budget)
     if not (work / CONFIG_FILE).is_file():
-        start_encode(work, fitted, source, budget, finetune_steps)
-    encoded = encode_in_folder(work, scene, fitted, budget, finetune_steps, progress=False,
+        start_encode(work, fit_config, source, budget, finetune_steps)
+    encoded = encode_in_folder(work, scene, fit_config, budget, finetune_steps, progress=False,
                                stop_requested=stop_requested)
     chosen = encoded.rate.choice
-    point = _decoded_point(ENCODER, f"--bpp {bpp:.3f}: {fitted.primitive_count} fitted, {_describe(chosen.bits)}",
+    point = _decoded_point(ENCODER, f"--bpp {bpp:.3f}: {fit_config.primitive_count} fitted, {_describe(chosen.bits)}",
                            chosen.data, config, scene.targets, encoded.seconds)
     point.budget_bpp = bpp
     shutil.rmtree(work)
