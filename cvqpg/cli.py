@@ -573,7 +573,7 @@ def _resumable(work: Path, command: str, body: Callable[[Callable[[], bool]], No
         with StopRequest() as stop_requested:
             body(stop_requested)
     except FitInterrupted as stop:
-        print(f"cvqpg {command}: stopped before step {stop.step}; checkpoint saved. Continue with: "
+        print(f"cvqpg {command}: {stop}; checkpoint saved. Continue with: "
               f"cvqpg {command} --resume {work}", file=sys.stderr)
         return 128 + stop_requested.signals[0]
     except BaseException:

@@ -377,10 +377,12 @@ class CheckpointPolicy:
 
 
 class FitInterrupted(Exception):
-    """The loop stopped on request after saving a checkpoint at `step`."""
+    """The loop stopped on request after saving a checkpoint at `step`; `during` names the work after the loop
+    that stopped instead (rate control, say), whose checkpoint is then the finished fit's."""
 
-    def __init__(self, step: int):
-        super().__init__(f"stopped before step {step}")
+    def __init__(self, step: int, during: str | None = None):
+        super().__init__(f"stopped before step {step}" if during is None
+                         else f"stopped during {during}, after the fit's last step")
         self.step = step
 
 

@@ -34,7 +34,7 @@ from .config import FitConfig
 from .errors import ConfigError
 from .files import write_atomic
 from .finetune import finetune
-from .fitting import FitResult, fit_scene
+from .fitting import FitInterrupted, FitResult, fit_scene
 from .primitives import Primitives, activate, init_gaussians
 from .targets import Scene
 
@@ -192,12 +192,20 @@ class RateChoice:
 
 
 def rate_control(primitives: Primitives, config: FitConfig, reference: Reference, budget: Budget,
-                 scene: Scene | None = None, finetune_steps: int = 0, progress: bool = False) -> RateChoice:
+                 scene: Scene | None = None, finetune_steps: int = 0, progress: bool = False,
+                 stop_requested: Callable[[], bool] | None = None) -> RateChoice:
     """The best-scoring `.cvq` file of `primitives` within `budget` (see the module docstring), fine-tuned
     for `finetune_steps` on `scene`'s targets where a scene is given. `ConfigError` where the budget is
     below `smallest_file`. A progress bar (`progress`) shows the rate (bpp) and PSNR (dB) of each rung and,
-    while fine-tuning, the PSNR of the quantised render."""
+    while fine-tuning, the PSNR of the quantised render. When `stop_requested()` turns true it stops before
+    its next rung or tuning step with `FitInterrupted` (after the fit of `primitives`, whose checkpoint the
+    caller keeps)."""
     budget.check(smallest_file(primitives, config), config)
+
+    def check_stop() -> None:
+        if stop_requested is not None and stop_requested():
+            raise FitInterrupted(config.steps + 1, during="rate control")
+
     steps = finetune_steps if scene is not None else 0
     order = strongest_first(primitives)
     with tqdm(total=len(RUNGS) + steps, disable=not progress, desc="rate", unit="step", dynamic_ncols=True) as bar:
@@ -208,6 +216,7 @@ def rate_control(primitives: Primitives, config: FitConfig, reference: Reference
 
         rungs = []
         for bits in RUNGS:
+            check_stop()
             count = largest_fitting(_sizes(primitives, order, config, bits), budget.max_bytes, primitives.count)
             if count:
                 rungs.append(trial(kept(primitives, order, count), config, bits, reference))
@@ -225,6 +234,7 @@ def rate_control(primitives: Primitives, config: FitConfig, reference: Reference
         def tuning(_step: int, psnr: float) -> None:
             show(best, psnr)
             bar.update()
+            check_stop()
 
         start = largest_fitting(_sizes(primitives, order, config, best.bits),
                                 math.floor(budget.max_bytes * (1 + TUNING_HEADROOM)), primitives.count)
@@ -314,14 +324,16 @@ class Encoding:
 
 
 def encode_fitted(fitted: FitResult, scene: Scene, budget: Budget, finetune_steps: int = ENCODE_FINETUNE_STEPS,
-                  progress: bool = False) -> Encoding:
+                  progress: bool = False, stop_requested: Callable[[], bool] | None = None) -> Encoding:
     """Rate-control a fit of `scene` (of `encode_config`'s settings) into a file within `budget`, fine-tuned for
-    `finetune_steps` on the scene's targets; a progress bar (`progress`) shows the search's bpp and PSNR."""
+    `finetune_steps` on the scene's targets; a progress bar (`progress`) shows the search's bpp and PSNR. A stop
+    request (`stop_requested()` true) ends it between two rungs or tuning steps with `fitting.FitInterrupted`."""
     check_compression_settings(None, finetune_steps, 0.0)
     started = time.perf_counter()
     primitives = fitted.primitives  # activated once: `FitResult.primitives` activates on every access
     reference = reference_for(primitives, fitted.config, scene.targets, "the scene's targets")
-    rate = rate_control(primitives, fitted.config, reference, budget, scene, finetune_steps, progress)
+    rate = rate_control(primitives, fitted.config, reference, budget, scene, finetune_steps, progress,
+                        stop_requested)
     return Encoding(fitted, reference, rate, time.perf_counter() - started)
 
 
@@ -330,11 +342,11 @@ def encode_scene(scene: Scene, config: FitConfig, budget: Budget, finetune_steps
     """Fit `scene` with `encode_config`'s primitive count (replacing `config`'s) for `config.steps` (`cvqpg encode`
     fits for `ENCODE_STEPS`) and `encode_fitted` the model into a file within `budget` (`encode_budget`).
     Progress bars (`progress`) show the fit's PSNR, then the rate search's bpp and PSNR. When
-    `stop_requested()` turns true the fit stops between two steps (`fitting.FitInterrupted`);
+    `stop_requested()` turns true the fit or the rate control stops between two steps (`fitting.FitInterrupted`);
     `app.runner.encode_in_folder` runs the same with checkpoints."""
     check_compression_settings(None, finetune_steps, 0.0)
     fitted = fit_scene(scene, encode_config(config, budget), progress=progress, stop_requested=stop_requested)
-    return encode_fitted(fitted, scene, budget, finetune_steps, progress)
+    return encode_fitted(fitted, scene, budget, finetune_steps, progress, stop_requested)
 
 
 def encoding_record(encoded: Encoding, out: str | Path, budget: Budget) -> dict[str, Any]:

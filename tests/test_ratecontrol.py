@@ -217,7 +217,13 @@ def test_encode_writes_one_file_within_the_budget_that_decompress_and_info_read(
     assert "exists" in one_line_error(capsys) and out.read_bytes() == before
 
 
-def test_a_stopped_encode_resumes_from_its_checkpoint_to_the_same_file(picture, tmp_path, monkeypatch, capsys):
+# The stop request is asked before each of the fit's 13 steps, then before each rung and after each tuning step's
+# render: 5 calls stop the fit before step 5, 13 rate control before its first rung, 13 + rungs + 1 its tuning.
+@pytest.mark.parametrize("calls, stopped", [(5, "stopped before step 5"),
+                                            (13, "stopped during rate control, after the fit's last step"),
+                                            (13 + len(RUNGS) + 1, "stopped during rate control, after the fit's last step")])
+def test_a_stopped_encode_resumes_from_its_checkpoint_to_the_same_file(picture, tmp_path, monkeypatch, capsys, calls,
+                                                                      stopped):
     command = [*ENCODE, str(picture), "--bpp", "4", "--quiet", "--steps", "12"]
     whole = tmp_path / "whole" / "ramp.cvq"
     whole.parent.mkdir()
@@ -225,15 +231,16 @@ def test_a_stopped_encode_resumes_from_its_checkpoint_to_the_same_file(picture, 
     out, work = tmp_path / "ramp.cvq", tmp_path / "ramp.cvq.partial"
     asked = []
 
-    class StopAtTheFifthStep(cli.StopRequest):
+    class StopAfterSomeCalls(cli.StopRequest):
         def __call__(self) -> bool:
             asked.append(True)
-            self.signals = [signal.SIGINT] if len(asked) > 5 else []
+            self.signals = [signal.SIGINT] if len(asked) > calls else []
             return bool(self.signals)
 
-    monkeypatch.setattr(cli, "StopRequest", StopAtTheFifthStep)
+    monkeypatch.setattr(cli, "StopRequest", StopAfterSomeCalls)
     assert main([*command, "--out", str(out)]) == 128 + signal.SIGINT
-    assert f"stopped before step 5; checkpoint saved. Continue with: cvqpg encode --resume {work}" in one_line_error(capsys)
+    assert len(asked) == calls + 1
+    assert f"{stopped}; checkpoint saved. Continue with: cvqpg encode --resume {work}" in one_line_error(capsys)
     assert not out.exists() and sorted(p.name for p in work.iterdir()) == ["budget.json", "checkpoint.pt", "config.json"]
     assert main([*command, "--out", str(out)]) == 2  # the same encode again is told where its work is
     assert f"{work} holds an interrupted encode; continue it with cvqpg encode --resume {work}" in one_line_error(capsys)

@@ -74,13 +74,14 @@ def resumed_state(folder: Path, config: FitConfig, source: dict[str, Any] | None
 def fit_in_folder(folder: Path, scene: Scene, config: FitConfig, state: FitState | None = None,
                   progress: bool = True, checkpoint_every_steps: int | None = None,
                   checkpoint_every_seconds: float | None = CHECKPOINT_SECONDS,
-                  stop_requested: Callable[[], bool] | None = None, source: dict[str, Any] | None = None
-                  ) -> FitResult:
+                  stop_requested: Callable[[], bool] | None = None, source: dict[str, Any] | None = None,
+                  checkpoint_at_end: bool = False) -> FitResult:
     """`fit_scene` with the folder's checkpoint policy, after compiling the CPU kernels (a status line
     when `progress`); the state records the compile time and the peak memory of every segment, so a
     resumed fit reports the whole run's, and checkpoints record the run's fingerprint (`run_fingerprint`
     of `config` and `source`, default: as the folder's `config.json` records it). Raises `FitInterrupted`
-    after saving on a stop request."""
+    after saving on a stop request. `checkpoint_at_end` saves the finished loop too, for work that follows the
+    fit in the same folder: resumed from it, the fit returns at once with the same result."""
     folder = Path(folder)
     fingerprint = run_fingerprint(config, recorded_source(folder, source))
     device = torch.device(config.device)
@@ -98,6 +99,8 @@ def fit_in_folder(folder: Path, scene: Scene, config: FitConfig, state: FitState
     policy = CheckpointPolicy(save=save, every_steps=checkpoint_every_steps, every_seconds=checkpoint_every_seconds)
     result = fit_scene(scene, config, progress=progress, state=state, checkpoint=policy,
                        stop_requested=stop_requested)
+    if checkpoint_at_end:
+        save(state)
     state.note_peak_memory(peak_memory(device))
     result.peak_memory = state.peak_memory
     return result
@@ -149,8 +152,9 @@ def read_encode(folder: Path) -> tuple[FitConfig, dict[str, Any], Budget, int]:
 def encode_in_folder(folder: Path, scene: Scene, config: FitConfig, budget: Budget, finetune_steps: int,
                      progress: bool = True, stop_requested: Callable[[], bool] | None = None) -> Encoding:
     """`ratecontrol.encode_fitted` of a fit of `config` in `folder` (made by `start_encode`), from the folder's
-    checkpoint where it has one; the fit checkpoints every `CHECKPOINT_SECONDS` and raises `FitInterrupted`
-    after saving on a stop request."""
+    checkpoint where it has one. The fit checkpoints every `CHECKPOINT_SECONDS` and at its end, and a stop request
+    raises `FitInterrupted`: within the fit after saving, within rate control with the finished fit saved, which
+    a resume then rate-controls again."""
     fitted = fit_in_folder(folder, scene, config, resumed_state(folder, config), progress=progress,
-                           stop_requested=stop_requested)
-    return encode_fitted(fitted, scene, budget, finetune_steps, progress)
+                           stop_requested=stop_requested, checkpoint_at_end=True)
+    return encode_fitted(fitted, scene, budget, finetune_steps, progress, stop_requested)

@@ -175,8 +175,8 @@ def encode_point(scene: Scene, config: FitConfig, source: dict[str, Any], bpp: f
     """The file `cvqpg encode --bpp` writes of `scene` (its inputs `source`) with `config`'s settings: a fit at the
     budget's primitive count in the folder `work` (`app.runner.encode_in_folder`), rate control and
     `finetune_steps` of fine-tuning; None where the budget is below the smallest file of a model of the fit's
-    shape. The fit raises `fitting.FitInterrupted` once `stop_requested()` turns true, after saving its
-    checkpoint, from which the same call resumes; `work` is removed once the point is made. Its encode time is
+    shape. The fit, or its rate control, raises `fitting.FitInterrupted` once `stop_requested()` turns true, with
+    a checkpoint saved, from which the same call resumes; `work` is removed once the point is made. Its encode time is
     the fit's, over every segment, and the rate control's (`ratecontrol.Encoding.seconds`)."""
     try:
         budget = encode_budget(config, bpp=bpp)
