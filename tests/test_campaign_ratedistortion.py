@@ -8,8 +8,8 @@ import shutil
 import pytest
 
 from cvqpg.cli import main
-from cvqpg.campaign.ratedistortion import (bd_rate, budget_fill, budgets_for, cell_summary, equal_rate_gain, pareto,
-                                           rate_base, wide_summary)
+from cvqpg.campaign.ratedistortion import (ENCODE_FRACTIONS, bd_rate, budget_fill, budgets_for, cell_summary,
+                                           equal_rate_gain, pareto, rate_base, wide_summary)
 
 pytest.importorskip("imagecodecs", reason="the JPEG 2000 / JPEG XL anchors need the `compression` extra")
 
@@ -88,10 +88,10 @@ def test_an_encode_cell_fits_afresh_at_the_rate_grids_budgets_and_its_tables_sho
     base = rate_base(rated)
     budgets = sorted(p["budget_bpp"] for p in rated["points"] if p["budget_bpp"] is not None)
     assert base * 0.7 == pytest.approx(budgets[-1])
-    assert record["fractions"] == [0.7, 0.5, 0.36, 0.26] and record["base_bpp"] == pytest.approx(base)
-    assert len(record["points"]) + len(record["skipped_bpp"]) == 4 and record["points"]
+    assert record["fractions"] == list(ENCODE_FRACTIONS) and record["base_bpp"] == pytest.approx(base)
+    assert len(record["points"]) + len(record["skipped_bpp"]) == len(ENCODE_FRACTIONS) and record["points"]
     assert all(p["codec"] == "cvqpg encode" and 0 < budget_fill(p) <= 1 for p in record["points"])
-    assert [p["budget_bpp"] for p in record["points"]] == pytest.approx([base * f for f in (0.7, 0.5, 0.36, 0.26)
+    assert [p["budget_bpp"] for p in record["points"]] == pytest.approx([base * f for f in ENCODE_FRACTIONS
                                                                          ][:len(record["points"])])
     # each point is a fit of its own primitive count, not a pruning of the cell's fit
     fitted = [int(p["setting"].split(": ")[1].split()[0]) for p in record["points"]]
@@ -270,6 +270,13 @@ def test_an_encode_cell_resumes_at_the_first_budget_it_has_no_point_for(tmp_path
     assert record["points"] == [done] and record["skipped_bpp"] == pytest.approx([1.0, 0.72])
     assert "load_average" in record["run"] and not (folder / "encode.partial.json").exists()
     assert bench.run_encode_cell(cell, folder, (0.7, 0.5, 0.36)) == bench.SKIPPED
+    # a budget the grid gained is fitted into the finished cell, which keeps its points and skips
+    assert bench.run_encode_cell(cell, folder, (0.7, 0.5, 0.36, 0.26)) == bench.DONE
+    assert encoded[1:] == [(pytest.approx(0.52), folder / "encode-0.5200bpp.partial", 1500, 300, 600)]
+    record = json.loads((folder / "encode.json").read_text())
+    assert record["points"] == [done] and record["skipped_bpp"] == pytest.approx([1.0, 0.72, 0.52])
+    assert record["fractions"] == [0.7, 0.5, 0.36, 0.26] and not (folder / "encode.partial.json").exists()
+    assert bench.run_encode_cell(cell, folder, (0.7, 0.26)) == bench.SKIPPED and len(encoded) == 2
 
 
 def test_a_stopped_encode_cell_keeps_its_finished_points_and_is_interrupted(tmp_path, monkeypatch):

@@ -136,7 +136,7 @@ PRESETS = {
     "rate": Preset("issue #39: the Table 1 CVQPG cells at {rgb, gray} 10%, each with the .cvq codec at `--bpp` budgets "
                    "from its fit down to below fit − 3 dB (rate control), beside JPEG 2000 and JPEG XL on its field",
                    COLORS, (0.1,), ("cvqpg",), rate_distortion=True, budget_fractions=BUDGET_FRACTIONS),
-    "encode": Preset("issue #39: `cvqpg encode --bpp` at four of the rate grid's budgets per cell, each a fit at the "
+    "encode": Preset("issue #39: `cvqpg encode --bpp` at the rate grid's six budgets per cell, each a fit at the "
                      "budget's primitive count rate-controlled into it; run into the rate grid's folder after "
                      "`--preset rate`, whose tables then show both", COLORS, (0.1,), ("cvqpg",), rate_distortion=True,
                      budget_fractions=BUDGET_FRACTIONS, encode_fractions=ENCODE_FRACTIONS),
@@ -588,23 +588,33 @@ def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float],
     recipe, `encode_steps` in the place of the cell's steps) at `fractions` of the rate its rate grid cell's
     budgets are fractions of, into `encode.json`. Each point is a whole fit; the finished ones are kept in
     `encode.partial.json`, so a stopped cell resumes at its first budget without a point, whose fit continues
-    from the checkpoint in its folder (`encode_work_folder`)."""
+    from the checkpoint in its folder (`encode_work_folder`). A finished cell whose `encode.json` lacks some of
+    `fractions` (the grid gained a budget) is skipped no longer: it fits the budgets it lacks and keeps its points."""
     from .ratedistortion import encode_point, rate_base
 
-    if (folder / ENCODE_FILE).is_file():
-        return SKIPPED
     base = rate_base(read_record(folder / RD_FILE, RESTORE_ENCODE))
-    partial = folder / ENCODE_PARTIAL_FILE
-    record = (read_record(partial, RESTORE_ENCODE) if partial.is_file()
-              else {"fractions": list(fractions), "base_bpp": base, "points": [], "skipped_bpp": []})
+    partial, finished_file = folder / ENCODE_PARTIAL_FILE, folder / ENCODE_FILE
+    if partial.is_file():
+        record = read_record(partial, RESTORE_ENCODE)
+    elif finished_file.is_file():
+        record = {key: value for key, value in read_record(finished_file, RESTORE_ENCODE).items() if key != "run"}
+    else:
+        record = {"fractions": [], "base_bpp": base, "points": [], "skipped_bpp": []}
+
+    def lacks(fraction: float) -> bool:
+        finished = [point["budget_bpp"] for point in record["points"]] + record["skipped_bpp"]
+        return not any(math.isclose(fraction * base, done) for done in finished)
+
+    if finished_file.is_file() and not partial.is_file() and not any(lacks(fraction) for fraction in fractions):
+        return SKIPPED
+    record["fractions"] = sorted({*record["fractions"], *fractions}, reverse=True)
     fit_steps, finetune_steps = encode_steps(cell.config.steps)
     config = cell.config.with_recipe(BEYOND_RECIPE).replace(
         steps=fit_steps, curvature_warmup=default_curvature_warmup(fit_steps)).validate()
     scene = scene_from_source(cell.scene.source, config)
     for fraction in fractions:
         bpp = fraction * base
-        finished = [point["budget_bpp"] for point in record["points"]] + record["skipped_bpp"]
-        if any(math.isclose(bpp, done) for done in finished):
+        if not lacks(fraction):
             continue
         if stop_requested is not None and stop_requested():
             return INTERRUPTED
@@ -619,7 +629,7 @@ def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float],
             record["points"].append(dataclasses.asdict(point))
         write_json(partial, record)
     write_json(folder / ENCODE_FILE, {**record, "run": machine_record(torch.device(config.device))})
-    partial.unlink()
+    partial.unlink(missing_ok=True)
     return DONE
 
 
