@@ -1,6 +1,6 @@
 """Paste the rate–distortion tables of the compression bench folders' `summary.md` into
 docs/compression.md between its `generated` markers: the 2000-step grid's table with its RGB 10%
-figure, the long (8000-step) fits' table, and the rate grid's two tables with both settings'
+figure, the long (8000-step) fits' table, and the rate grid's tables (with the encode grid's files where it has them) and both settings'
 figures. Run after rebuilding each folder's summary with `cvqpg bench --preset compression` (or
 `--preset rate`) `--scenes ../shared/scenes --out FOLDER --summary-only`:
 
@@ -13,6 +13,7 @@ from pathlib import Path
 
 RD_TITLE = "### Rate–distortion: the .cvq codec against JPEG 2000 and JPEG XL on the same field"
 WIDE_TITLE = "### Rate–distortion below the fit:"
+ENCODE_TITLE = "### cvqpg encode's files against"
 END = "<!-- end generated -->\n"
 GRID_START, LONG_START = "<!-- generated: rd table -->\n", "<!-- generated: long fits -->\n"
 RATE_START = "<!-- generated: rate grid -->\n"
@@ -47,7 +48,8 @@ def main(grid: Path, long_fits: Path | None = None, rate: Path | None = None) ->
             if (rate / f"rd_{setting}.png").is_file():
                 shutil.copy(rate / f"rd_{setting}.png", DOC.parent / name)
                 pictures.append(f"![R-D curves below the fit, {label}]({name})\n")
-        tables = f"{section(rate, WIDE_TITLE, keep_title=True)}\n\n{section(rate, RD_TITLE, keep_title=True)}\n"
+        tables = "\n\n".join(section(rate, title, keep_title=True) for title in (WIDE_TITLE, ENCODE_TITLE, RD_TITLE)
+                               if title in (rate / "summary.md").read_text()) + "\n"
         doc = paste(doc, RATE_START, f"{tables}\n{''.join(pictures)}")
     DOC.write_text(doc)
 

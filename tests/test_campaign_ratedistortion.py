@@ -99,6 +99,10 @@ def test_an_encode_cell_fits_afresh_at_the_rate_grids_budgets_and_its_tables_sho
     assert all(p["primitives"] <= n for p, n in zip(record["points"], fitted))
     summary = (grids / "encode" / "summary.md").read_text()
     assert "with cvqpg encode: BD-rate vs the better" in summary
+    # one row per file, beside the cell's own front and JPEG XL's at its rate
+    rows = summary.split("### cvqpg encode's files against")[1].split("\n### ")[0]
+    assert sum(line.startswith("| sushi |") for line in rows.splitlines()) == len(record["points"])
+    assert f"| {record['points'][0]['psnr']:.3f} | {record['points'][0]['psnr'] - rated['fit_psnr']:+.2f} |" in rows
     written = (grids / "encode" / "rd.csv").read_text()
     row = next(csv.DictReader(written.splitlines()))
     expected = wide_summary({**rated, "points": rated["points"] + record["points"]})["bd_rate_with_encoder"]

@@ -466,7 +466,40 @@ def rate_distortion_table(plan: BenchPlan, results: list[CellResult]) -> tuple[l
         return [table], rows
     wide, wide_rows = wide_range_table(plan, results)
     by_cell = {row["cell"]: row for row in wide_rows}
-    return [table, wide], [{**row, **by_cell.get(row["cell"], {})} for row in rows]
+    encoded = encode_points_table(plan, results)
+    return [table, wide, *([encoded] if encoded.rows else [])], [{**row, **by_cell.get(row["cell"], {})}
+                                                                 for row in rows]
+
+
+def encode_points_table(plan: BenchPlan, results: list[CellResult]) -> Table:
+    """In a rate grid with the encode grid's points (`--preset encode`), one row per `cvqpg encode` file: its budget,
+    primitives, rate and PSNR, beside the PSNR of the codec's front from the cell's fit (pruned and fine-tuned by
+    `--bpp`) and of JPEG XL's front at the file's rate."""
+    from .ratedistortion import CODEC, ENCODER, psnr_at_rate
+
+    table = Table("cvqpg encode's files against the Table 1 fit's codec front and JPEG XL at the same rate",
+                  ["Scene", "Setting", "budget bpp", "file bpp", "primitives", "PSNR", "below the fit",
+                   "from the Table 1 fit", "JPEG XL", "above JPEG XL", "encode s"],
+                  note="PSNR in dB, mean over the planes against the targets. From the Table 1 fit and JPEG XL: "
+                  "the Pareto front of the cell's `.cvq` files of its own fit (ladder, searched, `--bpp`) and "
+                  "JPEG XL's at the file's rate, linear in log bpp between their points (– outside them). "
+                  "Primitives: those in the file; encode s: the fit and its rate control.")
+    for setting in plan.settings:
+        for r in results:
+            if r.rd is None or r.cell.setting != setting:
+                continue
+            top = r.rd["fit_psnr"]
+            fitted = [p for p in r.rd["points"] if p["codec"] == CODEC]
+            jpeg_xl = [p for p in r.rd["points"] if p["codec"] == "JPEG XL"]
+            for point in sorted((p for p in r.rd["points"] if p["codec"] == ENCODER), key=lambda p: -p["bpp"]):
+                own, anchor = psnr_at_rate(fitted, point["bpp"]), psnr_at_rate(jpeg_xl, point["bpp"])
+                table.rows.append([r.cell.scene.name, setting_label(setting), f"{point['budget_bpp']:.3f}",
+                                   f"{point['bpp']:.3f}", f"{point['primitives']:,}", f"{point['psnr']:.3f}",
+                                   f"{point['psnr'] - top:+.2f}", MISSING if own is None else f"{own:.2f}",
+                                   MISSING if anchor is None else f"{anchor:.2f}",
+                                   MISSING if anchor is None else f"{point['psnr'] - anchor:+.2f}",
+                                   f"{point['encode_s']:.0f}"])
+    return table
 
 
 def _range_text(values: list[float], digits: int = 3) -> str:
