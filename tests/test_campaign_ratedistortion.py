@@ -80,7 +80,7 @@ def test_a_rate_cell_records_the_codec_at_bpp_budgets_that_it_never_exceeds(grid
 
 @pytest.mark.slow
 def test_an_encode_cell_fits_afresh_at_the_rate_grids_budgets_and_its_tables_show_both(grids, module_scenes_dir,
-                                                                                        capsys):
+                                                                                        capsys, tmp_path):
     rated = json.loads((grids / "rate" / "cells" / CELL / "rd.json").read_text())
     cell = grids / "encode" / "cells" / CELL
     record = json.loads((cell / "encode.json").read_text())
@@ -117,6 +117,20 @@ def test_an_encode_cell_fits_afresh_at_the_rate_grids_budgets_and_its_tables_sho
     assert main(["bench", "--preset", "encode", "--scenes", str(module_scenes_dir), "--out", str(grids / "encode"),
                  *TINY, "--size", "128", "96"]) == 0
     assert "0 done, 1 skipped" in capsys.readouterr().out
+    # a cell finished before the grid's lowest budget existed runs again for that budget only
+    shorter = tmp_path / "shorter"
+    shutil.copytree(grids / "encode", shorter)
+    lowest = base * ENCODE_FRACTIONS[-1]
+    earlier = {**record, "fractions": list(ENCODE_FRACTIONS[:-1]),
+               "points": [p for p in record["points"] if not p["budget_bpp"] == pytest.approx(lowest)],
+               "skipped_bpp": [b for b in record["skipped_bpp"] if not b == pytest.approx(lowest)]}
+    (shorter / "cells" / CELL / "encode.json").write_text(json.dumps(earlier))
+    assert main(["bench", "--preset", "encode", "--scenes", str(module_scenes_dir), "--out", str(shorter),
+                 *TINY, "--size", "128", "96"]) == 0
+    assert "1 done, 0 skipped" in capsys.readouterr().out
+    again = json.loads((shorter / "cells" / CELL / "encode.json").read_text())
+    assert again["fractions"] == list(ENCODE_FRACTIONS) and again["points"][:len(earlier["points"])] == earlier["points"]
+    assert len(again["points"]) + len(again["skipped_bpp"]) == len(ENCODE_FRACTIONS)
 
 
 def test_an_encode_grid_needs_the_rate_grid_first(module_scenes_dir, tmp_path, capsys):

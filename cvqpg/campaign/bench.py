@@ -216,6 +216,17 @@ class BenchPlan:
         preset = PRESETS[self.preset]
         return ENCODE_FILE if preset.encode_fractions else RD_FILE if preset.rate_distortion else METRICS_FILE
 
+    def status(self, folder: Path) -> str:
+        """`cell_status` of a cell folder of this plan (or of another bench folder's), where an encode grid's cell
+        whose `encode.json` lacks some of the preset's budgets is `fitted`: it runs again for those."""
+        status = cell_status(folder, self.done_file)
+        fractions = PRESETS[self.preset].encode_fractions
+        if status == DONE and fractions:
+            recorded = read_record(folder / ENCODE_FILE, RESTORE_ENCODE).get("fractions", [])
+            if not all(any(math.isclose(f, done) for done in recorded) for f in fractions):
+                return FITTED
+        return status
+
     def shard(self, index: int, count: int) -> tuple[Cell, ...]:
         """Cells of shard `index` of `count` (1-based): every `count`-th cell from position index − 1."""
         return self.cells[index - 1::count]
@@ -397,7 +408,7 @@ def config_differences(folder: Path, config: FitConfig) -> list[str]:
 def describe_cells(plan: BenchPlan, cells: tuple[Cell, ...], reuse: Sequence[Path] = ()) -> list[str]:
     """One line per cell: status (`reusable` where a folder of `reuse` has finished it), name, N, steps, size."""
     def status(cell: Cell) -> str:
-        own = cell_status(plan.cell_dir(cell), plan.done_file)
+        own = plan.status(plan.cell_dir(cell))
         return "reusable" if own != DONE and reusable_record(plan, cell, reuse) is not None else own
 
     return [f"{status(c):>11}  {c.name}  N={c.config.primitive_count}  steps={c.config.steps}  "
@@ -412,7 +423,7 @@ def peak_bytes(cells: tuple[Cell, ...], jobs: int) -> int:
 def check_inputs(plan: BenchPlan, cells: tuple[Cell, ...]) -> None:
     """Before any fit: every scene file of a cell still to fit decodes, and no finished cell was fitted
     with other settings."""
-    todo = [c for c in cells if cell_status(plan.cell_dir(c), plan.done_file) != DONE]
+    todo = [c for c in cells if plan.status(plan.cell_dir(c)) != DONE]
     for scene in {c.scene.name: c.scene for c in todo}.values():
         if "image" in scene.source:
             check_depth_geometry(load_picture(scene.source["image"]),
@@ -455,7 +466,7 @@ def adopt_finished(plan: BenchPlan, cells: tuple[Cell, ...], others: Sequence[Pa
     adopted = []
     for cell in cells:
         folder = plan.cell_dir(cell)
-        if cell_status(folder, plan.done_file) == DONE:
+        if plan.status(folder) == DONE:
             continue
         source = reusable_record(plan, cell, others)
         if source is None:
@@ -472,7 +483,7 @@ def reusable_record(plan: BenchPlan, cell: Cell, others: Sequence[Path]) -> Path
     """The first cell folder among the bench folders `others` that has finished `cell` with its settings."""
     for other in others:
         source = Path(other) / CELLS_DIR / cell.name
-        if cell_status(source, plan.done_file) == DONE and not config_differences(source, cell.config):
+        if plan.status(source) == DONE and not config_differences(source, cell.config):
             return source
     return None
 
@@ -696,7 +707,7 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
     for cell in cells:
         if cell.name in outcome.statuses:
             continue
-        if cell_status(plan.cell_dir(cell), plan.done_file) == DONE:
+        if plan.status(plan.cell_dir(cell)) == DONE:
             outcome.statuses[cell.name] = SKIPPED
         else:
             todo.append(cell)

@@ -23,7 +23,7 @@ import numpy as np
 
 from . import figures
 from .bench import (CELLS_DIR, DONE, ENCODE_FILE, METHODS, METRICS_FILE, PRESETS, RD_FILE, SPECTRUM_FILE, BenchPlan,
-                    Cell, cell_status, setting_label)
+                    Cell, setting_label)
 from ..errors import InputError
 from ..runs import read_record, write_atomic
 from ..view import VIEW_FILE
@@ -131,7 +131,7 @@ def collect(plan: BenchPlan) -> list[CellResult]:
     results = []
     for cell in plan.cells:
         folder = plan.cell_dir(cell)
-        status = cell_status(folder, plan.done_file)
+        status = plan.status(folder)
         fitted = (folder / METRICS_FILE).is_file()
         results.append(CellResult(cell, status, read_cell_record(folder / METRICS_FILE) if fitted else None,
                                   read_cell_record(folder / SPECTRUM_FILE) if fitted else None,
