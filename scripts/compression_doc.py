@@ -1,8 +1,8 @@
 """Paste the rate–distortion tables of the compression bench folders' `summary.md` into
 docs/compression.md between its `generated` markers: the 2000-step grid's table with its RGB 10%
-figure, the long (8000-step) fits' table, and the rate grid's tables (with the encode grid's files where it has them) and both settings'
-figures. Run after rebuilding each folder's summary with `cvqpg bench --preset compression` (or
-`--preset rate`) `--scenes ../shared/scenes --out FOLDER --summary-only`:
+figure, the long (8000-step) fits' table, and the rate grid's tables (with the encode grid's files
+where it has them) and both settings' figures. Run after rebuilding each folder's summary with
+`cvqpg bench --preset compression` (or `--preset rate`) `--scenes ../shared/scenes --out FOLDER --summary-only`:
 
     python scripts/compression_doc.py results/compression results/compression-8000 results/rate
 """
@@ -48,8 +48,9 @@ def main(grid: Path, long_fits: Path | None = None, rate: Path | None = None) ->
             if (rate / f"rd_{setting}.png").is_file():
                 shutil.copy(rate / f"rd_{setting}.png", DOC.parent / name)
                 pictures.append(f"![R-D curves below the fit, {label}]({name})\n")
+        summary = (rate / "summary.md").read_text()
         tables = "\n\n".join(section(rate, title, keep_title=True) for title in (WIDE_TITLE, ENCODE_TITLE, RD_TITLE)
-                               if title in (rate / "summary.md").read_text()) + "\n"
+                               if title in summary) + "\n"
         doc = paste(doc, RATE_START, f"{tables}\n{''.join(pictures)}")
     DOC.write_text(doc)
 

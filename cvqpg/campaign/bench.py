@@ -221,10 +221,8 @@ class BenchPlan:
         whose `encode.json` lacks some of the preset's budgets is `fitted`: it runs again for those."""
         status = cell_status(folder, self.done_file)
         fractions = PRESETS[self.preset].encode_fractions
-        if status == DONE and fractions:
-            recorded = read_record(folder / ENCODE_FILE, RESTORE_ENCODE).get("fractions", [])
-            if not all(any(math.isclose(f, done) for done in recorded) for f in fractions):
-                return FITTED
+        if status == DONE and fractions and untried(read_record(folder / ENCODE_FILE, RESTORE_ENCODE), fractions):
+            return FITTED
         return status
 
     def shard(self, index: int, count: int) -> tuple[Cell, ...]:
@@ -593,6 +591,11 @@ def encode_work_folder(bpp: float) -> str:
     return f"encode-{bpp:.4f}bpp.partial"
 
 
+def untried(record: dict[str, Any], fractions: Sequence[float]) -> list[float]:
+    """Those of `fractions` that a finished encode cell's record (`encode.json`) did not try."""
+    return [f for f in fractions if not any(math.isclose(f, tried) for tried in record.get("fractions", []))]
+
+
 def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float],
                     stop_requested: Callable[[], bool] | None = None) -> str:
     """An encode grid's cell: `cvqpg encode --bpp` of the cell's scene (`ratedistortion.encode_point`, the default
@@ -616,7 +619,7 @@ def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float],
         finished = [point["budget_bpp"] for point in record["points"]] + record["skipped_bpp"]
         return not any(math.isclose(fraction * base, done) for done in finished)
 
-    if finished_file.is_file() and not partial.is_file() and not any(lacks(fraction) for fraction in fractions):
+    if finished_file.is_file() and not partial.is_file() and not untried(record, fractions):
         return SKIPPED
     record["fractions"] = sorted({*record["fractions"], *fractions}, reverse=True)
     fit_steps, finetune_steps = encode_steps(cell.config.steps)
