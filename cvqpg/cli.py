@@ -26,8 +26,8 @@ from .app.compilation import compile_all
 from .app.outputs import check_new_folder, check_output_file, check_output_folder, is_run_folder
 from .app.runner import (CHECKPOINT_SECONDS, encode_in_folder, fit_in_folder, read_encode, resumed_state,
                          start_encode, timed_config, write_fitted_run)
-from .campaign.bench import (CELLS_DIR, METHODS, PRESETS, Overrides, RateDistortionOptions, describe_cells, make_plan,
-                             parse_shard, peak_bytes, run_plan)
+from .campaign.bench import (CELLS_DIR, METHODS, PRESETS, Overrides, RateDistortionOptions, describe_cells, folder_plan,
+                             make_plan, parse_shard, peak_bytes, run_plan)
 from .campaign.report import write_summary
 from .campaign.results import document, write_figures
 from .codec import SUFFIX, BitDepths
@@ -895,7 +895,7 @@ def run_bench(args: argparse.Namespace) -> int:
         for name, error in outcome.failures.items():
             print(f"  {name}: {error}", file=sys.stderr)
         code = 128 + stop_requested.signals[0] if stop_requested.signals else (1 if outcome.failures else 0)
-    print(f"cvqpg bench: {write_summary(plan)}")
+    print(f"cvqpg bench: {write_summary(folder_plan(args.preset, args.out, overrides))}")
     return code
 
 

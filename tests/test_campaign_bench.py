@@ -14,8 +14,8 @@ import pytest
 import torch
 from PIL import Image
 
-from cvqpg.campaign.bench import (DONE, INTERRUPTED, BenchError, Overrides, cell_status, make_plan, parse_shard, run_cell,
-                         run_plan)
+from cvqpg.campaign.bench import (DONE, INTERRUPTED, BenchError, Overrides, cell_status, folder_plan, make_plan,
+                                  parse_shard, run_cell, run_plan)
 from cvqpg.cli import main
 from cvqpg.app import provenance
 from cvqpg.metrics import radial_error_spectrum
@@ -215,6 +215,23 @@ def test_jobs_run_cells_in_worker_processes(tmp_path):
     outcome = run_plan(plan, jobs=2, progress=False)
     assert outcome.count(DONE) == 4 and not outcome.failures
     assert all((plan.cell_dir(c) / "spectrum.json").is_file() for c in plan.cells)
+
+
+def test_a_run_on_some_scenes_or_one_colour_summarises_every_cell_the_folder_records(scenes_dir, tmp_path):
+    axes = {"ratios": [0.1], "methods": ["cvqpg"]}
+    earlier = make_plan("paper", tmp_path / "bench", Overrides(scenes_dir=scenes_dir, scene_names=["sushi", "zebra"],
+                                                               colors=["gray"], **axes))
+    for cell in earlier.cells:
+        start_run(earlier.cell_dir(cell), cell.config, cell.scene.source)
+    (scenes_dir / "zebra" / "image.png").unlink()  # a recorded scene whose files are gone still summarises
+    now = Overrides(scenes_dir=scenes_dir, scene_names=["tiger"], colors=["rgb"], **axes)
+    assert [c.name for c in make_plan("paper", tmp_path / "bench", now).cells] == ["tiger_rgb-10_cvqpg_s100"]
+    summarised = folder_plan("paper", tmp_path / "bench", now)
+    assert sorted(c.name for c in summarised.cells) == sorted(
+        f"{scene}_{color}-10_cvqpg_s100" for scene in ("sushi", "tiger", "zebra") for color in ("gray", "rgb"))
+    assert folder_plan("paper", tmp_path / "other", now).cells == make_plan("paper", tmp_path / "other", now).cells
+    assert [s.name for s in make_plan("paper", tmp_path / "bench", Overrides(scenes_dir=scenes_dir)).scenes] == [
+        "sushi", "tiger"]  # the default scenes are still the --scenes folder's
 
 
 def test_table_puts_the_papers_same_scene_means_beside_ours_and_na_for_unavailable(scenes_dir, tmp_path):

@@ -319,16 +319,19 @@ def make_plan(preset: str, folder: str | Path | None = None, overrides: Override
     if preset not in PRESETS:
         raise BenchError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
     spec = PRESETS[preset]
+    recorded = recorded_scenes(default_folder(preset, folder))
     if overrides.scenes_dir is not None:
-        available = {s.name: s for s in folder_scenes(Path(overrides.scenes_dir))}
+        listed = {s.name: s for s in folder_scenes(Path(overrides.scenes_dir))}
     elif spec.builtin_scenes:
-        available = {name: BenchScene(name, {"scene": name}, SCENES[name].planes) for name in SCENES}
+        listed = {name: BenchScene(name, {"scene": name}, SCENES[name].planes) for name in SCENES}
     else:
-        available = recorded_scenes(default_folder(preset, folder))
-        if not available:
+        listed = recorded
+        if not listed:
             raise BenchError(f"preset {preset!r} needs --scenes DIR (a folder of <name>/image.* and <name>/depth.png, "
                              "e.g. ../shared/scenes), or an --out folder whose cells record their scenes")
-    default_names = spec.builtin_scenes if overrides.scenes_dir is None and spec.builtin_scenes else tuple(available)
+    # a scene that only the folder's cells record can still be named: its tables rebuild without its files
+    available = {**recorded, **listed}
+    default_names = spec.builtin_scenes if overrides.scenes_dir is None and spec.builtin_scenes else tuple(listed)
     names = _choose("scene-names", overrides.scene_names, default_names, tuple(available))
     colors = _choose("colors", overrides.colors, spec.colors, COLORS)
     methods = _choose("methods", overrides.methods, spec.methods, tuple(METHODS))
@@ -352,24 +355,45 @@ def make_plan(preset: str, folder: str | Path | None = None, overrides: Override
     return BenchPlan(preset, default_folder(preset, folder), scenes, methods, seeds, cells)
 
 
+def folder_plan(preset: str, folder: str | Path | None = None, overrides: Overrides = Overrides()) -> BenchPlan:
+    """The grid that a bench folder's summary covers: `make_plan`'s, widened to every scene and colour that
+    the folder's cells record. A run on some of them (`--scene-names`, `--colors`) thus rewrites the tables
+    with the others' cells still in them."""
+    plan = make_plan(preset, folder, overrides)
+    cells = recorded_cells(plan.folder)
+    names = dict.fromkeys([*(scene.name for scene in plan.scenes), *(name for name, _ in cells)])
+    colors = dict.fromkeys([*(cell.config.color for cell in plan.cells), *(color for _, color in cells)])
+    if len(names) == len(plan.scenes) and len(colors) == len({cell.config.color for cell in plan.cells}):
+        return plan
+    return make_plan(preset, folder, dataclasses.replace(overrides, scene_names=tuple(names), colors=tuple(colors)))
+
+
 def default_folder(preset: str, folder: str | Path | None) -> Path:
     """`folder`, else `runs/bench-<preset>`; the encode grid works in the rate grid's folder."""
     return Path(folder) if folder else Path("runs") / f"bench-{'rate' if PRESETS[preset].encode_fractions else preset}"
 
 
+def _recorded_runs(folder: Path) -> list[tuple[str, FitConfig, dict[str, Any]]]:
+    """(scene name, configuration, source) of each cell of a bench folder that has its `config.json`."""
+    runs = []
+    for config_file in sorted((folder / CELLS_DIR).glob(f"*/{CONFIG_FILE}")):
+        recorded, source = read_run(config_file.parent)
+        name = Path(source["image"]).parent.name if "image" in source else source["scene"]
+        runs.append((name, recorded, source))
+    return runs
+
+
 def recorded_scenes(folder: Path) -> dict[str, BenchScene]:
     """The file scenes that the cells of a bench folder were fitted on, by name, read from their
     `config.json`: the tables of a recorded folder (`results/`) rebuild without the scene files."""
-    cells = folder / CELLS_DIR
-    if not cells.is_dir():
-        return {}
-    scenes = {}
-    for config_file in sorted(cells.glob(f"*/{CONFIG_FILE}")):
-        recorded, source = read_run(config_file.parent)
-        if "image" in source:
-            name = Path(source["image"]).parent.name
-            scenes[name] = BenchScene(name, source, recorded.num_planes)
+    scenes = {name: BenchScene(name, source, recorded.num_planes)
+              for name, recorded, source in _recorded_runs(folder) if "image" in source}
     return dict(sorted(scenes.items()))
+
+
+def recorded_cells(folder: Path) -> list[tuple[str, str]]:
+    """(scene name, colour) of each cell that a bench folder records, in its cells' order."""
+    return [(name, recorded.color) for name, recorded, _ in _recorded_runs(folder)]
 
 
 def cell_status(folder: Path, done_file: str = METRICS_FILE) -> str:
