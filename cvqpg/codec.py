@@ -3,7 +3,8 @@
 Quantised primitives in a spatial order, entropy-coded with `constriction`'s ANS coder, behind a magic
 number, a format version and a CRC32. A primitive is coded as: position on a grid of 2^-b px, sorted in
 Morton order and coded as gaps between consecutive Morton codes; log scale over the model's own range;
-rotation modulo π (an ellipse turned by π is the same ellipse); amplitude × opacity as a magnitude, its
+rotation modulo π (an ellipse turned by π is the same ellipse), at a depth that follows each primitive's
+anisotropy at its decoded scale (`rotation_depths`); amplitude × opacity as a magnitude, its
 sign folded into the phase (+π); phase modulo 2π; curvature as a fraction of the primitive's own bound
 γ_max (method.md §4), computed from the decoded scale so that encoder and decoder agree.
 
@@ -18,7 +19,7 @@ import json
 import math
 import struct
 import zlib
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
 import constriction
@@ -32,7 +33,8 @@ from .primitives import (REWRITE_MODEL, Primitives, check_settings, check_tensor
                          model_shapes)
 
 MAGIC = b"\x89CVQ\r\n\x1a\n"
-FORMAT_VERSION = 2  # 2 added the `bitlength` coding; a version 1 file reads unchanged
+FORMAT_VERSION = 3  # 2 added the `bitlength` coding, 3 rotation's depth per primitive; older files read unchanged
+ROTATION_DEPTH_VERSION = 3  # files from this version on code rotation at `rotation_depths`
 SUFFIX = ".cvq"
 PREFIX = struct.Struct("<8sHI")  # magic, format version, header length (bytes)
 CHECKSUM = struct.Struct("<I")
@@ -51,13 +53,15 @@ def _limits(name: str) -> tuple[int, int]:
 
 # Stream codings; each stream takes the smallest that applies, so a coding that does not pay is never used.
 RAW, LAPLACE, GAUSSIAN, CATEGORICAL, BIT_LENGTH = "raw", "laplace", "gaussian", "categorical", "bitlength"
+WIDTHS = "widths"  # raw bits of a width per symbol that the decoder derives (rotation's depths)
 
 
 @dataclass(frozen=True)
 class BitDepths:
     """Bits per attribute. `position` counts fractional bits (grid of 2^-b px); the others count
-    levels over the attribute's range: log scale over the model's range, rotation over [0, π),
-    |amplitude·opacity| over [0, max], phase over [0, 2π), curvature over [−γ_max, γ_max]."""
+    levels over the attribute's range: log scale over the model's range, rotation over [0, π) (for an
+    ellipse of anisotropy a − 1/a in [0.5, 1), see `rotation_depths`), |amplitude·opacity| over
+    [0, max], phase over [0, 2π), curvature over [−γ_max, γ_max]."""
 
     position: int = 3
     scale: int = 8
@@ -116,7 +120,7 @@ class Quantiser:
 
     low: float
     span: float
-    levels: int
+    levels: int | Tensor  # a tensor: one count per value (rotation's, `rotation_quantiser`)
     lowest: int | None = 0
     highest: int | None = None
     periodic: bool = False
@@ -175,6 +179,24 @@ def quantisers(ranges: dict[str, list[float]], bits: BitDepths) -> dict[str, Qua
             "curvature": ShareQuantiser(0.0, 1.0, half, -half, half)}
 
 
+def rotation_depths(scale_px: Tensor, depth: int) -> Tensor:
+    """Bits of rotation (int64 [N]) for primitives of decoded scale `scale_px` (px, [N, 2]): `depth` for an
+    ellipse whose anisotropy a − 1/a (a = σ_max/σ_min) lies in [0.5, 1), one more per doubling of it, one
+    fewer per halving, none for a circle, within 0..MAX_BITS. Turning an ellipse by Δθ changes it by about
+    Δθ·(a − 1/a), so every primitive's rotation then costs about the same error, and nearly round ones,
+    many in a fit, cost few bits. float64 division and frexp are exact, so every machine agrees."""
+    scale = scale_px.detach().cpu().double()
+    aspect = scale.max(dim=1).values / scale.min(dim=1).values
+    anisotropy = aspect - 1 / aspect
+    _, exponent = torch.frexp(anisotropy)
+    return torch.where(anisotropy > 0, depth + exponent.long(), 0).clamp(0, MAX_BITS)
+
+
+def rotation_quantiser(depths: Tensor) -> Quantiser:
+    """Rotation's quantiser over [0, π) at `depths` bits per primitive (`rotation_depths`)."""
+    return Quantiser(0.0, math.pi, 2**depths, periodic=True)
+
+
 def decoded_scale(log_scale: Tensor) -> Tensor:
     """Scale (px, float32) from dequantised log scale, with numpy's float32 exp: every file so far was
     decoded with it, and torch's differs from it in the last bit for many values."""
@@ -185,12 +207,14 @@ def decoded_scale(log_scale: Tensor) -> Tensor:
 class Coding:
     """What the encoder codes, and how. `values`, float64 on the CPU in the primitives' order: position
     (px), log scale (ln px), rotation (rad), the signed weight amplitude·opacity, phase (rad) and, for
-    `cvqpg` primitives, curvature as a share of γ_max at the decoded scale; `ranges`, the header's; and
-    each attribute's quantiser."""
+    `cvqpg` primitives, curvature as a share of γ_max at the decoded scale; `ranges`, the header's;
+    each attribute's quantiser, rotation's at the decoded scale; and `rotation_depths`, its bits per
+    primitive."""
 
     values: dict[str, Tensor]
     ranges: dict[str, list[float]]
     quantisers: dict[str, Quantiser]
+    rotation_depths: Tensor
 
 
 def coding(primitives: Primitives, config: FitConfig, bits: BitDepths) -> Coding:
@@ -202,12 +226,14 @@ def coding(primitives: Primitives, config: FitConfig, bits: BitDepths) -> Coding
     ranges = {"scale": _outward_range(float(values["scale"].min()), float(values["scale"].max())),
               "amplitude": [0.0, _outward_range(0.0, float(weight.abs().max()))[1]]}
     chosen = quantisers(ranges, bits)
+    # the decoder knows only the decoded scale: rotation's depths and the curvature's bound follow it
+    scale = decoded_scale(chosen["scale"].values(chosen["scale"].codes(values["scale"])))
+    depths = rotation_depths(scale, bits.rotation)
+    chosen["rotation"] = rotation_quantiser(depths)
     if config.primitive == "cvqpg":
-        # the decoder knows only the decoded scale, so the share is of the bound at that scale
-        scale = decoded_scale(chosen["scale"].values(chosen["scale"].codes(values["scale"])))
         bound = curvature_bound(scale, config).double()
         values["curvature"] = p["curvature_per_m"] / torch.where(bound > 0, bound, 1.0)
-    return Coding(values, ranges, chosen)
+    return Coding(values, ranges, chosen, depths)
 
 
 def range_holders(primitives: Primitives) -> Tensor:
@@ -266,10 +292,12 @@ def morton_order(grid: Tensor) -> Tensor:
 
 @dataclass
 class Encoded:
-    """One model's integer symbols per stream, and the side information to dequantise them."""
+    """One model's integer symbols per stream, the side information to dequantise them, and the bits per
+    symbol of the streams whose widths the decoder derives (rotation's)."""
 
     streams: dict[str, np.ndarray]
     ranges: dict[str, list[float]]
+    widths: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def quantise(primitives: Primitives, config: FitConfig, bits: BitDepths) -> Encoded:
@@ -280,17 +308,22 @@ def quantise(primitives: Primitives, config: FitConfig, bits: BitDepths) -> Enco
     grid = codes.pop("position")[order].numpy().astype(np.uint64)
     morton = _interleave(grid[:, 0], grid[:, 1])
     return Encoded({"position": np.diff(morton, prepend=np.uint64(0)).astype(np.int64),
-                    **{name: symbols[order].numpy() for name, symbols in codes.items()}}, coded.ranges)
+                    **{name: symbols[order].numpy() for name, symbols in codes.items()}}, coded.ranges,
+                   {"rotation": coded.rotation_depths[order].numpy()})
 
 
-def dequantise(encoded: Encoded, config: FitConfig, bits: BitDepths) -> Primitives:
-    """Primitives (float32, Morton order) from `quantise`'s symbols; opacity is 1, folded into amplitude."""
+def dequantise(encoded: Encoded, config: FitConfig, bits: BitDepths, version: int = FORMAT_VERSION) -> Primitives:
+    """Primitives (float32, Morton order) from `quantise`'s symbols, or from those of a file of an earlier
+    format `version`; opacity is 1, folded into amplitude."""
     chosen = quantisers(encoded.ranges, bits)
     x, y = _deinterleave(np.cumsum(encoded.streams["position"].astype(np.uint64), dtype=np.uint64))
     codes = {name: torch.from_numpy(symbols) for name, symbols in encoded.streams.items() if name != "position"}
     codes["position"] = torch.from_numpy(np.stack([x, y], axis=1).astype(np.int64))
+    scale = decoded_scale(chosen["scale"].values(codes["scale"]))
+    if version >= ROTATION_DEPTH_VERSION:
+        chosen["rotation"] = rotation_quantiser(rotation_depths(scale, bits.rotation))
     values = {name: chosen[name].values(symbols) for name, symbols in codes.items()}
-    return primitives_from(values, decoded_scale(values["scale"]), config)
+    return primitives_from(values, scale, config)
 
 
 def _model(coding: str, low: int, high: int, params: list[float]):
@@ -319,12 +352,37 @@ def _from_raw_bits(data: bytes, count: int, width: int) -> np.ndarray:
     return (bits.reshape(count, width).astype(np.uint64) * weights).sum(axis=1, dtype=np.uint64).astype(np.int64)
 
 
-def encode_stream(values: np.ndarray) -> tuple[dict[str, Any], bytes]:
+def _grouped_raw_bits(values: np.ndarray, widths: np.ndarray) -> bytes:
+    """Each value's lowest `widths` bits (one width per value): for width 1, 2, … the values of that width in
+    their order, as `raw`, each group padded to a byte."""
+    return b"".join(_raw_bits(values[widths == width], width) for width in range(1, int(widths.max(initial=0)) + 1))
+
+
+def _from_grouped_raw_bits(data: bytes, widths: np.ndarray) -> np.ndarray:
+    """Inverse of `_grouped_raw_bits`."""
+    values, offset = np.zeros(widths.shape, np.int64), 0
+    for width in range(1, int(widths.max(initial=0)) + 1):
+        chosen = widths == width
+        size = (int(chosen.sum()) * width + 7) // 8
+        if offset + size > len(data):
+            raise ValueError(f"{len(data)} bytes where the widths need more")
+        values[chosen] = _from_raw_bits(data[offset:offset + size], int(chosen.sum()), width)
+        offset += size
+    return values
+
+
+def encode_stream(values: np.ndarray, widths: np.ndarray | None = None) -> tuple[dict[str, Any], bytes]:
     """The smallest coding for one stream of integers: its descriptor (JSON) and bytes.
 
     Symbols are offset by their minimum. `raw` packs fixed-width bits; the parametric models carry
-    two short parameters; `categorical` carries the histogram, which pays only for skewed streams.
+    two short parameters; `categorical` carries the histogram, which pays only for skewed streams. With
+    `widths` (bits per symbol, which the decoder derives, as for rotation) the symbols are uniform
+    within them and `widths` packs exactly that many bits of each.
     """
+    if widths is not None:
+        data = _grouped_raw_bits(values.ravel(), widths.ravel())
+        return {"coding": WIDTHS, "min": 0, "max": int(values.max(initial=0)), "shape": list(values.shape),
+                "bytes": len(data)}, data
     flat = values.ravel()
     low = int(flat.min(initial=0))
     shifted = flat - low
@@ -357,9 +415,8 @@ def _bit_length_coded(shifted: np.ndarray) -> tuple[dict[str, Any], bytes]:
     parametric models and costs `raw` its full width on every symbol."""
     lengths = _bit_lengths(shifted)
     descriptor, data = encode_stream(lengths)
-    mantissas = b"".join(_raw_bits(shifted[lengths == length] - (1 << (length - 1)), length - 1)
-                         for length in range(2, int(lengths.max(initial=0)) + 1))
-    return {"coding": BIT_LENGTH, "lengths": descriptor}, data + mantissas
+    below = _grouped_raw_bits(shifted - _leading_ones(lengths), np.maximum(lengths - 1, 0))
+    return {"coding": BIT_LENGTH, "lengths": descriptor}, data + below
 
 
 def _bit_lengths(values: np.ndarray) -> np.ndarray:
@@ -371,17 +428,16 @@ def _bit_lengths(values: np.ndarray) -> np.ndarray:
     return lengths
 
 
+def _leading_ones(lengths: np.ndarray) -> np.ndarray:
+    """The value of each symbol's leading one, from its bit length (0 for length 0)."""
+    return np.where(lengths > 0, 1, 0).astype(np.int64) << np.maximum(lengths - 1, 0)
+
+
 def _from_bit_length_coded(descriptor: dict[str, Any], data: bytes, count: int) -> np.ndarray:
     lengths_descriptor = descriptor["lengths"]
     lengths = decode_stream(lengths_descriptor, data[:lengths_descriptor["bytes"]]).ravel()
-    values = np.where(lengths > 0, 1, 0).astype(np.int64) << np.maximum(lengths - 1, 0)
-    offset = lengths_descriptor["bytes"]
-    for length in range(2, int(lengths.max(initial=0)) + 1):
-        chosen = lengths == length
-        size = (int(chosen.sum()) * (length - 1) + 7) // 8
-        values[chosen] += _from_raw_bits(data[offset:offset + size], int(chosen.sum()), length - 1)
-        offset += size
-    return values
+    below = _from_grouped_raw_bits(data[lengths_descriptor["bytes"]:], np.maximum(lengths - 1, 0))
+    return _leading_ones(lengths) + below
 
 
 def _varints(counts: np.ndarray) -> bytes:
@@ -407,12 +463,16 @@ def _from_varints(data: bytes, count: int) -> list[int]:
     return values
 
 
-def decode_stream(descriptor: dict[str, Any], data: bytes) -> np.ndarray:
-    """Inverse of `encode_stream`."""
+def decode_stream(descriptor: dict[str, Any], data: bytes, widths: np.ndarray | None = None) -> np.ndarray:
+    """Inverse of `encode_stream`; a `widths` stream needs the same `widths`."""
     shape, low, top = descriptor["shape"], descriptor["min"], descriptor["max"] - descriptor["min"]
     count = int(np.prod(shape))
     coding = descriptor["coding"]
-    if coding == RAW:
+    if coding == WIDTHS:
+        if widths is None or widths.size != count:
+            raise ValueError("a stream of per-symbol widths where the decoder knows none")
+        shifted = _from_grouped_raw_bits(data, widths.ravel())
+    elif coding == RAW:
         shifted = _from_raw_bits(data, count, descriptor["width"])
     elif coding == BIT_LENGTH:
         shifted = _from_bit_length_coded(descriptor, data, count)
@@ -434,7 +494,7 @@ def encode(primitives: Primitives, config: FitConfig, bits: BitDepths) -> bytes:
     encoded = quantise(primitives, config, bits)
     descriptors, payload = [], []
     for name, values in encoded.streams.items():
-        descriptor, data = encode_stream(values)
+        descriptor, data = encode_stream(values, encoded.widths.get(name))
         descriptors.append({"name": name, **descriptor})
         payload.append(data)
     header = zlib.compress(json.dumps({"optics": optics(config), "num_primitives": primitives.count,
@@ -462,12 +522,14 @@ def config_from_optics(values: dict[str, Any]) -> FitConfig:
 
 @dataclass
 class Compressed:
-    """A decoded `.cvq` file: the primitives, their configuration, and how they were coded."""
+    """A decoded `.cvq` file: the primitives, their configuration, how they were coded, and the file's
+    format version."""
 
     primitives: Primitives
     config: FitConfig
     bits: BitDepths
     streams: list[dict[str, Any]]
+    version: int
 
 
 def stream_shapes(count: int, config: FitConfig) -> dict[str, tuple[int, ...]]:
@@ -502,6 +564,16 @@ def _checked_header(header: Any, name: str) -> tuple[FitConfig, BitDepths]:
     return config.replace(num_gaussians=count), bits
 
 
+def _derived_widths(stream: str, decoded: dict[str, np.ndarray], ranges: dict[str, list[float]], bits: BitDepths,
+                    version: int) -> np.ndarray | None:
+    """Bits per symbol of `stream` where the decoder derives them, else None: rotation's depths, from the scale
+    streams decoded before it (`decoded`)."""
+    if stream != "rotation" or version < ROTATION_DEPTH_VERSION:
+        return None
+    scale = decoded_scale(quantisers(ranges, bits)["scale"].values(torch.from_numpy(decoded["scale"])))
+    return rotation_depths(scale, bits.rotation).numpy()
+
+
 def decode(data: bytes, name: str = "file") -> Compressed:
     """Parse and decode a `.cvq` file's bytes; `ModelFileError` names what is wrong, also where a file whose
     checksum holds makes no physical sense (`_checked_header`, `check_tensors`)."""
@@ -530,15 +602,16 @@ def decode(data: bytes, name: str = "file") -> Compressed:
     offset, streams = PREFIX.size + header_length, {}
     for descriptor in header["streams"]:
         try:
-            streams[descriptor["name"]] = decode_stream(descriptor, body[offset:offset + descriptor["bytes"]])
+            widths = _derived_widths(descriptor["name"], streams, header["ranges"], bits, version)
+            streams[descriptor["name"]] = decode_stream(descriptor, body[offset:offset + descriptor["bytes"]], widths)
         except (KeyError, TypeError, ValueError, IndexError, zlib.error) as error:
             raise ModelFileError(f"{name}: stream {descriptor['name']!r} does not decode ({error}); "
                                  f"{REWRITE_MODEL}") from None
         offset += descriptor["bytes"]
     try:
-        primitives = dequantise(Encoded(streams, header["ranges"]), config, bits)
+        primitives = dequantise(Encoded(streams, header["ranges"]), config, bits, version)
     except (KeyError, TypeError, IndexError) as error:
         raise ModelFileError(f"{name}: its ranges are malformed ({type(error).__name__}: {error}); "
                              f"{REWRITE_MODEL}") from None
     check_tensors(primitives, config, name)
-    return Compressed(primitives, config, bits, header["streams"])
+    return Compressed(primitives, config, bits, header["streams"], version)

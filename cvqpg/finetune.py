@@ -12,7 +12,8 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from .codec import BitDepths, Quantiser, coding, folded, primitives_from
+from .codec import (BitDepths, Quantiser, coding, decoded_scale, folded, primitives_from, quantisers, rotation_depths,
+                    rotation_quantiser)
 from .config import FitConfig
 from .fitting import hologram, hologram_loss, psnr_from_mse
 from .primitives import Primitives
@@ -38,10 +39,15 @@ def straight_through(value: Tensor, quantiser: Quantiser) -> Tensor:
     return value + (quantiser.values(quantiser.codes(value.detach())) - value).detach()
 
 
-def quantised(values: dict[str, Tensor], quantisers: dict[str, Quantiser], config: FitConfig) -> Primitives:
-    """The primitives as the codec decodes `values` (the attributes of `codec.Coding`), with
-    straight-through gradients."""
-    decoded = {name: straight_through(value, quantisers[name]) for name, value in folded(values).items()}
+def quantised(values: dict[str, Tensor], chosen: dict[str, Quantiser], config: FitConfig, rotation_bits: int
+              ) -> Primitives:
+    """The primitives as the codec decodes `values` (the attributes of `codec.Coding`) with the quantisers
+    `chosen`, rotation's at `rotation_bits` for the scale they decode to, with straight-through gradients."""
+    values = folded(values)
+    scale = straight_through(values["scale"], chosen["scale"])
+    depths = rotation_depths(decoded_scale(scale.detach().cpu()), rotation_bits).to(scale.device)
+    chosen = {**chosen, "rotation": rotation_quantiser(depths)}
+    decoded = {name: straight_through(value, chosen[name]) for name, value in values.items()}
     return primitives_from(decoded, torch.exp(decoded["scale"].float()), config)
 
 
@@ -67,14 +73,15 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
     for value in params.values():
         value.requires_grad_(True)
     rate = learning_rate_bins(steps)
-    optimizer = torch.optim.Adam([{"params": [value], "lr": rate * coded.quantisers[name].step}
-                                  for name, value in params.items()])
+    # rotation's bins differ per primitive: its rate counts those of `bits.rotation` (`quantisers`' own)
+    bins = {name: quantiser.step for name, quantiser in quantisers(coded.ranges, bits).items()}
+    optimizer = torch.optim.Adam([{"params": [value], "lr": rate * bins[name]} for name, value in params.items()])
     schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda i: min(1.0, (i + 1) / (RAMP_STEPS + 1))
                                                  * 0.5 * (1 + math.cos(math.pi * i / max(steps, 1))))
     generator = torch.Generator(device=config.device).manual_seed(config.seed if seed is None else seed)
     for step in range(steps):
-        loss, mse = hologram_loss(hologram(quantised(params, coded.quantisers, config), config), scene, config,
-                                  generator)
+        loss, mse = hologram_loss(hologram(quantised(params, coded.quantisers, config, bits.rotation), config), scene,
+                                  config, generator)
         if on_step is not None:  # reads the device back: only for a caller that shows progress
             on_step(step, float(psnr_from_mse(mse)))
         optimizer.zero_grad(set_to_none=True)
@@ -95,7 +102,7 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
     with torch.no_grad():
         # γ from the share and the bound at the scale as decoded, the bound the codec will divide by; the
         # scale itself through a float64 exp, which returns the held extremes exactly as they came
-        tuned = primitives_from(params, quantised(params, coded.quantisers, config).scale_px, config)
+        tuned = primitives_from(params, quantised(params, coded.quantisers, config, bits.rotation).scale_px, config)
         return replace(tuned, scale_px=torch.exp(params["scale"]).float()).to("cpu")
 
 

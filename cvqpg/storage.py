@@ -119,7 +119,7 @@ def model_info(path: str | Path) -> dict[str, Any]:
     if is_compressed(path):
         compressed = read_compressed(path)
         primitives, config, dtype = compressed.primitives, compressed.config, "compressed"
-        extra = {"bits": asdict(compressed.bits),
+        extra = {"format_version": compressed.version, "bits": asdict(compressed.bits),
                  "streams": {s["name"]: {"coding": s["coding"], "bytes": s["bytes"]} for s in compressed.streams}}
     else:
         primitives, config, metadata = _read_safetensors(path)
