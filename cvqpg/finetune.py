@@ -44,11 +44,11 @@ def quantised(values: dict[str, Tensor], chosen: dict[str, Quantiser], config: F
     """The primitives as the codec decodes `values` (the attributes of `codec.Coding`) with the quantisers
     `chosen`, rotation's at `rotation_bits` for the scale they decode to, with straight-through gradients."""
     values = folded(values)
-    scale = straight_through(values["scale"], chosen["scale"])
+    decoded = {name: straight_through(value, chosen[name]) for name, value in values.items() if name != "rotation"}
+    scale = decoded["scale"]
     depths = rotation_depths(decoded_scale(scale.detach().cpu()), rotation_bits).to(scale.device)
-    chosen = {**chosen, "rotation": rotation_quantiser(depths)}
-    decoded = {name: straight_through(value, chosen[name]) for name, value in values.items()}
-    return primitives_from(decoded, torch.exp(decoded["scale"].float()), config)
+    decoded["rotation"] = straight_through(values["rotation"], rotation_quantiser(depths))
+    return primitives_from(decoded, torch.exp(scale.float()), config)
 
 
 def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitDepths, steps: int,
