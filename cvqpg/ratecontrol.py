@@ -160,12 +160,13 @@ def _best(choices: list[Choice], budget: Budget) -> Choice:
 
 
 def _finer_while_fitting(primitives: Primitives, config: FitConfig, reference: Reference, budget: Budget,
-                         choice: Choice) -> Choice:
+                         choice: Choice, check_stop: Callable[[], None]) -> Choice:
     """`choice` of every primitive with the rest of the budget spent on finer bit depths, which a rung of
     `RUNGS` (every attribute a bit finer, about 7% of the file) overshoots: one attribute one bit finer at a
     time, the change that scores best, while the file fits and it lands short of the budget or the score
-    rises."""
+    rises. `check_stop` runs before each round of trials."""
     while True:
+        check_stop()
         finer = [bits for bits in (choice.bits.shifted_one(name, 1) for name in choice.bits.names())
                  if bits is not None and len(encode(primitives, config, bits)) <= budget.max_bytes]
         if not finer:
@@ -225,7 +226,7 @@ def rate_control(primitives: Primitives, config: FitConfig, reference: Reference
         whole = [choice for choice in rungs if choice.decoded.count == primitives.count]
         if whole:  # the finest rung that keeps every primitive, filled up to the budget
             rungs.append(_finer_while_fitting(primitives, config, reference, budget,
-                                              max(whole, key=lambda choice: len(choice.data))))
+                                              max(whole, key=lambda choice: len(choice.data)), check_stop))
         best = _best(rungs, budget)
         show(best)
         if not steps:

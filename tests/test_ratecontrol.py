@@ -11,7 +11,7 @@ import torch
 from PIL import Image
 
 from cvqpg import FitConfig
-from cvqpg import cli
+from cvqpg import cli, ratecontrol
 from cvqpg.cli import main
 from cvqpg.codec import BitDepths, encode, quantise, range_holders
 from cvqpg.compression import kept, reference_for, strongest_first, trial
@@ -217,29 +217,37 @@ def test_encode_writes_one_file_within_the_budget_that_decompress_and_info_read(
     assert "exists" in one_line_error(capsys) and out.read_bytes() == before
 
 
-# The stop request is asked before each of the fit's 13 steps, then before each rung and after each tuning step's
-# render: 5 calls stop the fit before step 5, 13 rate control before its first rung, 13 + rungs + 1 its tuning.
+# The stop request is asked before each of the fit's 13 steps, then before each rung, each round of finer bit
+# depths and after each tuning step's render: 5 calls stop the fit before step 5, 13 rate control before its first
+# rung, 13 + rungs its first round of finer depths, and one call before the whole run's last its last tuning step.
 @pytest.mark.parametrize("calls, stopped", [(5, "stopped before step 5"),
                                             (13, "stopped during rate control, after the fit's last step"),
-                                            (13 + len(RUNGS) + 1, "stopped during rate control, after the fit's last step")])
+                                            (13 + len(RUNGS), "stopped during rate control, after the fit's last step"),
+                                            (-1, "stopped during rate control, after the fit's last step")])
 def test_a_stopped_encode_resumes_from_its_checkpoint_to_the_same_file(picture, tmp_path, monkeypatch, capsys, calls,
                                                                       stopped):
     command = [*ENCODE, str(picture), "--bpp", "4", "--quiet", "--steps", "12"]
     whole = tmp_path / "whole" / "ramp.cvq"
     whole.parent.mkdir()
-    assert main([*command, "--out", str(whole)]) == 0
-    out, work = tmp_path / "ramp.cvq", tmp_path / "ramp.cvq.partial"
-    asked = []
+    asked, stop_after = [], []  # no stop while `stop_after` is empty
 
     class StopAfterSomeCalls(cli.StopRequest):
         def __call__(self) -> bool:
             asked.append(True)
-            self.signals = [signal.SIGINT] if len(asked) > calls else []
+            self.signals = [signal.SIGINT] if stop_after and len(asked) > stop_after[0] else []
             return bool(self.signals)
 
     monkeypatch.setattr(cli, "StopRequest", StopAfterSomeCalls)
+    assert main([*command, "--out", str(whole)]) == 0
+    assert len(asked) > 13 + len(RUNGS) + 1  # the whole encode asked in a round of finer depths and while tuning
+    stop_after.append(calls if calls >= 0 else len(asked) + calls)
+    asked.clear()
+    tried = []
+    monkeypatch.setattr(ratecontrol, "trial", lambda *args: tried.append(args) or trial(*args))
+    out, work = tmp_path / "ramp.cvq", tmp_path / "ramp.cvq.partial"
     assert main([*command, "--out", str(out)]) == 128 + signal.SIGINT
-    assert len(asked) == calls + 1
+    assert len(asked) == stop_after[0] + 1
+    assert calls != 13 + len(RUNGS) or len(tried) <= len(RUNGS)  # stopped before any file of finer depths
     assert f"{stopped}; checkpoint saved. Continue with: cvqpg encode --resume {work}" in one_line_error(capsys)
     assert not out.exists() and sorted(p.name for p in work.iterdir()) == ["budget.json", "checkpoint.pt", "config.json"]
     assert main([*command, "--out", str(out)]) == 2  # the same encode again is told where its work is
