@@ -3,6 +3,7 @@
     python benchmarks/recipes.py SCENE_DIR                        # every variant, 320×240, 2000 steps
     python benchmarks/recipes.py SCENE_DIR --size 640 480 --variants paper init-targets
     python benchmarks/recipes.py SCENE_DIR --steps 300 --variants paper init-targets
+    python benchmarks/recipes.py SCENE_DIR --steps 8000 --variants density-2pct-every-5pct
 
 Each variant is the paper's recipe with one set of `FitConfig` changes (`beyond`: the whole beyond recipe); every fit is grayscale 10%,
 CVQPG, seed 100, on SCENE_DIR's image.* and depth.png. The fits' PSNR does not depend on the machine's
@@ -49,6 +50,8 @@ VARIANTS = {
     "init-targets": {"init": "targets"},
     "density-2pct-every-5pct": {"density": DensityControl(every=0.05, until=0.6, fraction=0.02)},
     "density-5pct-every-2.5pct": {"density": DensityControl(every=0.025, until=0.6, fraction=0.05)},
+    "density-5pct-every-5pct": {"density": DensityControl(every=0.05, until=0.6, fraction=0.05)},
+    "density-2pct-every-2.5pct-until-80pct": {"density": DensityControl(every=0.025, until=0.8, fraction=0.02)},
     "loss-mse-ssim": {"focus_weight": 0.0, "product_weight": 0.0},
     "loss-mse-only": {"focus_weight": 0.0, "product_weight": 0.0, "ssim_weight": 0.0},
     "loss-mse-ssim-3x": {"focus_weight": 0.0, "product_weight": 0.0, "ssim_weight": 0.015},
