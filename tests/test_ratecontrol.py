@@ -57,7 +57,8 @@ def test_every_primitive_filled_up_to_the_budget_is_a_candidate_even_where_its_r
     sizes = [len(encode(primitives, config, bits)) for bits in RUNGS[:3]]
     budget = Budget(round(sizes[1] + 0.6 * (sizes[2] - sizes[1])), "a budget between two rungs")
     assert sizes[1] < CLOSE * budget.max_bytes  # rung 1 lands more than 5% below the budget
-    filled = _finer_while_fitting(primitives, config, reference, budget, trial(primitives, config, RUNGS[1], reference))
+    filled = _finer_while_fitting(primitives, config, reference, budget, trial(primitives, config, RUNGS[1], reference),
+                                  check_stop=lambda: None)
     assert filled.decoded.count == primitives.count and len(filled.data) >= CLOSE * budget.max_bytes
     chosen = rate_control(primitives, config, reference, budget).choice
     assert len(chosen.data) <= budget.max_bytes and chosen.psnr >= filled.psnr  # pruned rungs score ~4 dB less
