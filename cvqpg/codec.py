@@ -312,18 +312,18 @@ def quantise(primitives: Primitives, config: FitConfig, bits: BitDepths) -> Enco
                    {"rotation": coded.rotation_depths[order].numpy()})
 
 
-def dequantise(encoded: Encoded, config: FitConfig, bits: BitDepths, version: int = FORMAT_VERSION) -> Primitives:
-    """Primitives (float32, Morton order) from `quantise`'s symbols, or from those of a file of an earlier
-    format `version`; opacity is 1, folded into amplitude."""
+def dequantise(encoded: Encoded, config: FitConfig, bits: BitDepths) -> Primitives:
+    """Primitives (float32, Morton order) from `quantise`'s symbols, or from a file's; rotation at
+    `encoded.widths`' depths where it has them (format 3 on), else at `bits.rotation`. Opacity is 1, folded
+    into amplitude."""
     chosen = quantisers(encoded.ranges, bits)
+    if "rotation" in encoded.widths:
+        chosen["rotation"] = rotation_quantiser(torch.from_numpy(encoded.widths["rotation"]))
     x, y = _deinterleave(np.cumsum(encoded.streams["position"].astype(np.uint64), dtype=np.uint64))
     codes = {name: torch.from_numpy(symbols) for name, symbols in encoded.streams.items() if name != "position"}
     codes["position"] = torch.from_numpy(np.stack([x, y], axis=1).astype(np.int64))
-    scale = decoded_scale(chosen["scale"].values(codes["scale"]))
-    if version >= ROTATION_DEPTH_VERSION:
-        chosen["rotation"] = rotation_quantiser(rotation_depths(scale, bits.rotation))
     values = {name: chosen[name].values(symbols) for name, symbols in codes.items()}
-    return primitives_from(values, scale, config)
+    return primitives_from(values, decoded_scale(values["scale"]), config)
 
 
 def _model(coding: str, low: int, high: int, params: list[float]):
@@ -599,17 +599,19 @@ def decode(data: bytes, name: str = "file") -> Compressed:
     if header is None:
         raise ModelFileError(f"{name}: its header is not one cvqpg writes; {REWRITE_MODEL}")
     config, bits = _checked_header(header, name)
-    offset, streams = PREFIX.size + header_length, {}
+    offset, streams, widths = PREFIX.size + header_length, {}, {}
     for descriptor in header["streams"]:
         try:
-            widths = _derived_widths(descriptor["name"], streams, header["ranges"], bits, version)
-            streams[descriptor["name"]] = decode_stream(descriptor, body[offset:offset + descriptor["bytes"]], widths)
+            derived = _derived_widths(descriptor["name"], streams, header["ranges"], bits, version)
+            if derived is not None:
+                widths[descriptor["name"]] = derived
+            streams[descriptor["name"]] = decode_stream(descriptor, body[offset:offset + descriptor["bytes"]], derived)
         except (KeyError, TypeError, ValueError, IndexError, zlib.error) as error:
             raise ModelFileError(f"{name}: stream {descriptor['name']!r} does not decode ({error}); "
                                  f"{REWRITE_MODEL}") from None
         offset += descriptor["bytes"]
     try:
-        primitives = dequantise(Encoded(streams, header["ranges"]), config, bits, version)
+        primitives = dequantise(Encoded(streams, header["ranges"], widths), config, bits)
     except (KeyError, TypeError, IndexError) as error:
         raise ModelFileError(f"{name}: its ranges are malformed ({type(error).__name__}: {error}); "
                              f"{REWRITE_MODEL}") from None
