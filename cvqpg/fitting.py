@@ -48,6 +48,7 @@ class FitResult:
     sanitised_steps: int = 0
     peak_memory: dict[str, Any] = field(default_factory=dict)  # what the caller noted in the state (FitState)
     compile_seconds: float = 0.0  # what the caller noted: kernel compilation outside `seconds`
+    cpu_seconds: float | None = None  # the process's CPU time over `seconds` (FitState.cpu_seconds)
 
     @property
     def primitives(self) -> Primitives:
@@ -116,6 +117,9 @@ class FitState:
     step: int = 0  # the next step index to run
     history: dict[str, list[float]] = field(default_factory=lambda: {"loss": [], "psnr": []})
     seconds: float = 0.0
+    # The process's CPU seconds (all its threads) over the same spans as `seconds`: beside them they show how
+    # much of the cores a fit had. None once a segment went unmeasured (a checkpoint of a version without them).
+    cpu_seconds: float | None = 0.0
     skipped_steps: int = 0
     sanitised_steps: int = 0
     # Noted by the caller, kept in checkpoints: the largest peak memory of the segments run so far (a
@@ -159,7 +163,7 @@ class FitState:
         """Plain tensors and numbers, for `torch.save`."""
         return {"gaussians": {k: v.detach().cpu() for k, v in self.gaussians.tensors().items()},
                 "optimizer": self.optimizer.state_dict(), "generator": self.generator.get_state(),
-                "step": self.step, "history": self.history, "seconds": self.seconds,
+                "step": self.step, "history": self.history, "seconds": self.seconds, "cpu_seconds": self.cpu_seconds,
                 "skipped_steps": self.skipped_steps, "sanitised_steps": self.sanitised_steps,
                 "peak_memory": self.peak_memory, "compile_seconds": self.compile_seconds,
                 "device": self.generator.device.type,
@@ -204,6 +208,7 @@ def state_from_payload(payload: dict, config: FitConfig, name: str = "the checkp
     state.optimizer.load_state_dict(payload["optimizer"])
     state.generator.set_state(payload["generator"])
     state.step, state.history, state.seconds = payload["step"], payload["history"], payload["seconds"]
+    state.cpu_seconds = payload.get("cpu_seconds")
     state.skipped_steps, state.sanitised_steps = payload["skipped_steps"], payload["sanitised_steps"]
     if state.relocator is not None:
         if not isinstance(payload.get("relocator"), dict):
@@ -418,13 +423,13 @@ def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = Tr
     device = torch.device(config.device)
     scene = scene.to(device)
     state = state or initial_state(config, scene)
-    last_save, clock = time.perf_counter(), time.perf_counter()
+    last_save, clock, cpu_clock = time.perf_counter(), time.perf_counter(), time.process_time()
     bar = tqdm(range(state.step, config.steps + 1), initial=state.step, total=config.steps + 1,
                disable=not progress, desc=f"fit {config.primitive}", unit="step", dynamic_ncols=True)
     pending: list[StepOutcome] = []
 
     def read_back() -> None:
-        nonlocal clock
+        nonlocal clock, cpu_clock
         for outcome, (loss, psnr) in zip(pending, state.settle(pending)):
             if on_step is not None:
                 on_step(outcome.step, loss, psnr)
@@ -432,9 +437,11 @@ def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = Tr
             bar.set_postfix(loss=f"{state.history['loss'][-1]:.4f}", psnr=f"{state.history['psnr'][-1]:.2f}dB",
                             refresh=False)
         pending.clear()
-        now = time.perf_counter()
+        now, cpu_now = time.perf_counter(), time.process_time()
         state.seconds += now - clock
-        clock = now
+        if state.cpu_seconds is not None:
+            state.cpu_seconds += cpu_now - cpu_clock
+        clock, cpu_clock = now, cpu_now
 
     for step in bar:
         if stop_requested is not None and stop_requested():
@@ -456,4 +463,5 @@ def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = Tr
     hologram, recon = render(activate(fitted, config), config)
     metrics = evaluate(recon, scene.targets)
     return FitResult(fitted, config, metrics, hologram, recon, state.history, state.seconds,
-                     state.skipped_steps, state.sanitised_steps, state.peak_memory, state.compile_seconds)
+                     state.skipped_steps, state.sanitised_steps, state.peak_memory, state.compile_seconds,
+                     state.cpu_seconds)

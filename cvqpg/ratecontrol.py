@@ -311,17 +311,23 @@ def encode_config(config: FitConfig, budget: Budget) -> FitConfig:
 @dataclass
 class Encoding:
     """What `encode_fitted` made: the fit (its settings name the primitives fitted), the file chosen, and the
-    seconds of rate control and fine-tuning."""
+    wall and process CPU seconds of rate control and fine-tuning."""
 
     fit: FitResult
     reference: Reference
     rate: RateChoice
     rate_seconds: float
+    rate_cpu_seconds: float
 
     @property
     def seconds(self) -> float:
         """Encoding time (s): the fit's loop, over every segment of a resumed fit, and rate control."""
         return self.fit.seconds + self.rate_seconds
+
+    @property
+    def cpu_seconds(self) -> float | None:
+        """The process's CPU time (s, all threads) over `seconds`; None where a segment of the fit went unmeasured."""
+        return None if self.fit.cpu_seconds is None else self.fit.cpu_seconds + self.rate_cpu_seconds
 
 
 def encode_fitted(fitted: FitResult, scene: Scene, budget: Budget, finetune_steps: int = ENCODE_FINETUNE_STEPS,
@@ -330,12 +336,12 @@ def encode_fitted(fitted: FitResult, scene: Scene, budget: Budget, finetune_step
     `finetune_steps` on the scene's targets; a progress bar (`progress`) shows the search's bpp and PSNR. A stop
     request (`stop_requested()` true) ends it between two rungs or tuning steps with `fitting.FitInterrupted`."""
     check_compression_settings(None, finetune_steps, 0.0)
-    started = time.perf_counter()
+    started, cpu_started = time.perf_counter(), time.process_time()
     primitives = fitted.primitives  # activated once: `FitResult.primitives` activates on every access
     reference = reference_for(primitives, fitted.config, scene.targets, "the scene's targets")
     rate = rate_control(primitives, fitted.config, reference, budget, scene, finetune_steps, progress,
                         stop_requested)
-    return Encoding(fitted, reference, rate, time.perf_counter() - started)
+    return Encoding(fitted, reference, rate, time.perf_counter() - started, time.process_time() - cpu_started)
 
 
 def encode_scene(scene: Scene, config: FitConfig, budget: Budget, finetune_steps: int = ENCODE_FINETUNE_STEPS,
@@ -355,4 +361,4 @@ def encoding_record(encoded: Encoding, out: str | Path, budget: Budget) -> dict[
     of the fit: the primitives it fitted and its seconds."""
     return {"file": str(out), **choice_record(encoded.rate.choice, encoded.reference, encoded.fit.config),
             **encoded.rate.record(budget), "fitted_primitives": encoded.fit.config.primitive_count,
-            "fit_seconds": encoded.fit.seconds}
+            "fit_seconds": encoded.fit.seconds, "fit_cpu_seconds": encoded.fit.cpu_seconds}

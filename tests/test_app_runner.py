@@ -51,6 +51,28 @@ def test_a_checkpoint_written_before_recipes_still_resumes(tmp_path):
     assert run_fingerprint(paper.with_recipe("beyond"), SOURCE) != old
 
 
+@pytest.mark.parametrize("recorded", [100.0, None])
+def test_a_resumed_fit_adds_its_cpu_seconds_to_the_checkpoints_and_an_unmeasured_segment_leaves_none(run, recorded):
+    """A checkpoint of a version that did not measure CPU time (no `cpu_seconds`) leaves the fit's unknown."""
+    payload = checkpoint_of(CONFIG, run_fingerprint(CONFIG, SOURCE))
+    payload = {**payload, "seconds": 50.0, "cpu_seconds": recorded}
+    if recorded is None:
+        del payload["cpu_seconds"]
+    save_checkpoint(run / CHECKPOINT_FILE, payload)
+    result = fit_in_folder(run, scene_from_source(SOURCE, CONFIG), CONFIG, resumed_state(run, CONFIG), progress=False)
+    assert result.seconds > 50.0
+    if recorded is None:
+        assert result.cpu_seconds is None
+    else:
+        assert result.cpu_seconds > recorded
+
+
+def test_a_fit_measures_its_cpu_seconds_beside_its_wall_seconds(run):
+    """Both over the same spans: a fit alone on its threads spends CPU time of the order of its wall time."""
+    result = fit_in_folder(run, scene_from_source(SOURCE, CONFIG), CONFIG.replace(steps=30), progress=False)
+    assert 0 < result.cpu_seconds < 1.5 * torch.get_num_threads() * result.seconds + 0.05
+
+
 def test_the_fingerprint_ignores_device_and_backend_only():
     fingerprint = run_fingerprint(CONFIG, SOURCE)
     assert run_fingerprint(CONFIG.replace(device="cuda", backend="triton"), SOURCE) == fingerprint

@@ -103,6 +103,9 @@ def test_an_encode_cell_fits_afresh_at_the_rate_grids_budgets_and_its_tables_sho
     rows = summary.split("### cvqpg encode's files against")[1].split("\n### ")[0]
     assert sum(line.startswith("| sushi |") for line in rows.splitlines()) == len(record["points"])
     assert f"| {record['points'][0]['psnr']:.3f} | {record['points'][0]['psnr'] - rated['fit_psnr']:+.2f} |" in rows
+    # each point's wall and CPU seconds, the fit's over its segments and the rate control's
+    assert all(0 < p["encode_cpu_s"] for p in record["points"])
+    assert f"| {record['points'][0]['encode_s']:.0f} | {record['points'][0]['encode_cpu_s']:.0f} |" in rows
     written = (grids / "encode" / "rd.csv").read_text()
     row = next(csv.DictReader(written.splitlines()))
     expected = wide_summary({**rated, "points": rated["points"] + record["points"]})["bd_rate_with_encoder"]

@@ -126,12 +126,14 @@ def available_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
-def run_record(device: torch.device, loop_seconds: float, compile_seconds: float, peak: dict[str, Any]
-               ) -> dict[str, Any]:
+def run_record(device: torch.device, loop_seconds: float, loop_cpu_seconds: float | None, compile_seconds: float,
+               peak: dict[str, Any]) -> dict[str, Any]:
     """What a results table needs beside a fit's numbers (`metrics.json`'s `run`); `peak` is what
-    `peak_memory` returned; `compile_seconds` compiled or loaded the CPU kernels before the loop,
-    whose `loop_seconds` exclude them."""
-    return {**machine_record(device), "loop_seconds": loop_seconds, "compile_seconds": compile_seconds,
+    `peak_memory` returned; `loop_cpu_seconds` the process's CPU seconds over the loop's wall `loop_seconds`
+    (None where a resumed segment went unmeasured); `compile_seconds` compiled or loaded the CPU kernels
+    before the loop, whose `loop_seconds` exclude them."""
+    return {**machine_record(device), "loop_seconds": loop_seconds, "loop_cpu_seconds": loop_cpu_seconds,
+            "compile_seconds": compile_seconds,
             "peak_memory_bytes": peak.get("peak_memory_bytes"), "peak_memory_kind": peak.get("peak_memory_kind")}
 
 

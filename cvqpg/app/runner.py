@@ -119,8 +119,8 @@ def timed_config(scene: Scene, config: FitConfig, minutes: float, progress: bool
 
 def write_fitted_run(folder: Path, result: FitResult, scene: Scene, source: dict[str, Any]) -> Path:
     """`write_run` with the run record of this process: code, machine, times and peak memory."""
-    record = run_record(torch.device(result.config.device), result.seconds, result.compile_seconds,
-                        result.peak_memory)
+    record = run_record(torch.device(result.config.device), result.seconds, result.cpu_seconds,
+                        result.compile_seconds, result.peak_memory)
     return write_run(folder, result, scene, source, record)
 
 

@@ -63,7 +63,8 @@ ANCHORS = ("JPEG 2000", "JPEG XL")
 
 @dataclass
 class Point:
-    """One rate–distortion point; times in s (encode, and decode + render of the planes)."""
+    """One rate–distortion point; times in s (encode, and decode + render of the planes); a `cvqpg encode` point
+    also has the process's CPU seconds (all threads) over its encode time, which show how shared the cores were."""
 
     codec: str
     setting: str
@@ -75,6 +76,7 @@ class Point:
     decode_s: float
     primitives: int | None = None  # in the file (None for the anchors, which code a field)
     budget_bpp: float | None = None  # the `--bpp` budget that rate control was given
+    encode_cpu_s: float | None = None
 
 
 def _score(recon: Tensor, targets: Tensor) -> tuple[float, float]:
@@ -178,7 +180,7 @@ def encode_point(scene: Scene, config: FitConfig, source: dict[str, Any], bpp: f
     `finetune_steps` of fine-tuning; None where the budget is below the smallest file of a model of the fit's
     shape. The fit, or its rate control, raises `fitting.FitInterrupted` once `stop_requested()` turns true, with
     a checkpoint saved, from which the same call resumes; `work` is removed once the point is made. Its encode time is
-    the fit's, over every segment, and the rate control's (`ratecontrol.Encoding.seconds`)."""
+    the fit's, over every segment, and the rate control's (`ratecontrol.Encoding.seconds`), wall and CPU."""
     try:
         budget = encode_budget(config, bpp=bpp)
     except ConfigError:
@@ -191,7 +193,7 @@ def encode_point(scene: Scene, config: FitConfig, source: dict[str, Any], bpp: f
     chosen = encoded.rate.choice
     point = _decoded_point(ENCODER, f"--bpp {bpp:.3f}: {fit_config.primitive_count} fitted, {_describe(chosen.bits)}",
                            chosen.data, config, scene.targets, encoded.seconds)
-    point.budget_bpp = bpp
+    point.budget_bpp, point.encode_cpu_s = bpp, encoded.cpu_seconds
     shutil.rmtree(work)
     return point
 

@@ -479,11 +479,13 @@ def encode_points_table(plan: BenchPlan, results: list[CellResult]) -> Table:
 
     table = Table("cvqpg encode's files against the Table 1 fit's codec front and JPEG XL at the same rate",
                   ["Scene", "Setting", "budget bpp", "file bpp", "primitives", "PSNR", "below the fit",
-                   "from the Table 1 fit", "JPEG XL", "above JPEG XL", "encode s"],
+                   "from the Table 1 fit", "JPEG XL", "above JPEG XL", "encode s", "CPU s"],
                   note="PSNR in dB, mean over the planes against the targets. From the Table 1 fit and JPEG XL: "
                   "the Pareto front of the cell's `.cvq` files of its own fit (ladder, searched, `--bpp`) and "
                   "JPEG XL's at the file's rate, linear in log bpp between their points (– outside them). "
-                  "Primitives: those in the file; encode s: the fit and its rate control.")
+                  "Primitives: those in the file; encode s: the fit and its rate control, wall time; CPU s: the "
+                  "process's CPU time over it, all threads (below encode s × threads where other work shared the "
+                  "cores; – for points recorded without it).")
     for setting in plan.settings:
         for r in results:
             if r.rd is None or r.cell.setting != setting:
@@ -498,7 +500,8 @@ def encode_points_table(plan: BenchPlan, results: list[CellResult]) -> Table:
                                    f"{point['psnr'] - top:+.2f}", MISSING if own is None else f"{own:.2f}",
                                    MISSING if anchor is None else f"{anchor:.2f}",
                                    MISSING if anchor is None else f"{point['psnr'] - anchor:+.2f}",
-                                   f"{point['encode_s']:.0f}"])
+                                   f"{point['encode_s']:.0f}",
+                                   MISSING if point.get("encode_cpu_s") is None else f"{point['encode_cpu_s']:.0f}"])
     return table
 
 
