@@ -898,7 +898,7 @@ def run_bench(args: argparse.Namespace) -> int:
         for name, error in outcome.failures.items():
             print(f"  {name}: {error}", file=sys.stderr)
         code = 128 + stop_requested.signals[0] if stop_requested.signals else (1 if outcome.failures else 0)
-    print(f"cvqpg bench: {write_summary(folder_plan(args.preset, args.out, overrides))}")
+    print(f"cvqpg bench: {write_summary(folder_plan(args.preset, args.out, overrides, as_recorded=args.summary_only))}")
     return code
 
 

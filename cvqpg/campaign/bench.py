@@ -16,7 +16,7 @@ import math
 import multiprocessing
 import signal
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -355,10 +355,15 @@ def make_plan(preset: str, folder: str | Path | None = None, overrides: Override
     return BenchPlan(preset, default_folder(preset, folder), scenes, methods, seeds, cells)
 
 
-def folder_plan(preset: str, folder: str | Path | None = None, overrides: Overrides = Overrides()) -> BenchPlan:
+def folder_plan(preset: str, folder: str | Path | None = None, overrides: Overrides = Overrides(),
+                as_recorded: bool = False) -> BenchPlan:
     """The grid that a bench folder's summary covers: `make_plan`'s, widened to every scene and colour that
     the folder's cells record. A run on some of them (`--scene-names`, `--colors`) thus rewrites the tables
-    with the others' cells still in them."""
+    with the others' cells still in them. With `as_recorded` (tables rebuilt from the records alone,
+    `--summary-only`) what `overrides` leaves to the preset comes from the folder's cells where they hold any
+    (`recorded_overrides`), so that the summary describes the fits it tabulates."""
+    if as_recorded:
+        overrides = recorded_overrides(preset, default_folder(preset, folder), overrides)
     plan = make_plan(preset, folder, overrides)
     cells = recorded_cells(plan.folder)
     names = dict.fromkeys([*(scene.name for scene in plan.scenes), *(name for name, _ in cells)])
@@ -366,6 +371,40 @@ def folder_plan(preset: str, folder: str | Path | None = None, overrides: Overri
     if len(names) == len(plan.scenes) and len(colors) == len({cell.config.color for cell in plan.cells}):
         return plan
     return make_plan(preset, folder, dataclasses.replace(overrides, scene_names=tuple(names), colors=tuple(colors)))
+
+
+def recorded_overrides(preset: str, folder: Path, overrides: Overrides) -> Overrides:
+    """`overrides` completed from the cells that the bench `folder` records, where it records any: their scenes,
+    colours and ratios (in the preset's order) and seeds, and the size, steps and curvature warm-up that all of
+    them share; a setting the cells do not share, or that `overrides` gives, stays as it is. Methods stay the
+    preset's: a cell's configuration does not name its method."""
+    runs = _recorded_runs(folder)
+    if not runs:
+        return overrides
+    configs = [config for _, config, _ in runs]
+
+    def shared(values: Iterable[Any]) -> Any:
+        distinct = set(values)
+        return distinct.pop() if len(distinct) == 1 else None
+
+    def in_listed_order(recorded: set[Any], listed: Iterable[Any]) -> list[Any]:
+        listed = list(dict.fromkeys(listed))
+        return [value for value in listed if value in recorded] + sorted(recorded - set(listed))
+
+    preset_plan = make_plan(preset, folder, dataclasses.replace(overrides, scene_names=None, colors=None))
+    return dataclasses.replace(
+        overrides,
+        scene_names=overrides.scene_names or in_listed_order({name for name, _, _ in runs},
+                                                             (scene.name for scene in preset_plan.scenes)),
+        colors=overrides.colors or in_listed_order({config.color for config in configs},
+                                                   (cell.config.color for cell in preset_plan.cells)),
+        ratios=overrides.ratios or in_listed_order({config.ratio for config in configs},
+                                                   (cell.config.ratio for cell in preset_plan.cells)),
+        seeds=overrides.seeds or sorted({config.seed for config in configs}),
+        size=overrides.size or shared((config.width, config.height) for config in configs),
+        steps=overrides.steps or shared(config.steps for config in configs),
+        curvature_warmup=(overrides.curvature_warmup if overrides.curvature_warmup is not None
+                          else shared(config.curvature_warmup for config in configs)))
 
 
 def default_folder(preset: str, folder: str | Path | None) -> Path:
