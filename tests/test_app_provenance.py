@@ -80,3 +80,11 @@ def test_the_commit_is_head_dirty_after_changes_to_the_package_and_none_outside_
     monkeypatch.setattr(provenance, "PACKAGE_ROOT", tmp_path / "installed" / "cvqpg")  # a wheel's: no git
     provenance.PACKAGE_ROOT.mkdir(parents=True)
     assert commit_now() is None
+
+
+@pytest.mark.parametrize("asked, expected", [("1", 1), ("", None), ("0", None), ("many", None), ("999999", None)])
+def test_the_cores_a_run_uses_are_its_affinity_capped_by_omp_num_threads(monkeypatch, asked, expected):
+    """A bench run's threads (`--jobs 1`) follow OMP_NUM_THREADS where the user set it; otherwise the affinity."""
+    monkeypatch.setattr(provenance.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3}, raising=False)
+    monkeypatch.setenv("OMP_NUM_THREADS", asked)
+    assert provenance.available_cores() == (4 if expected is None else expected)

@@ -122,8 +122,11 @@ def _load_average() -> float | None:
 
 
 def available_cores() -> int:
-    """Cores this process may use (a Slurm allocation or `taskset`, not the whole node)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    """Cores this process may use: its share of the node (a Slurm allocation or `taskset`), at most
+    `OMP_NUM_THREADS` where the user set it to a positive whole number."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    asked = os.environ.get("OMP_NUM_THREADS", "")
+    return min(cores, int(asked)) if asked.isdigit() and int(asked) > 0 else cores
 
 
 def run_record(device: torch.device, loop_seconds: float, loop_cpu_seconds: float | None, compile_seconds: float,
