@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from cvqpg import FitConfig, load_model
+from cvqpg.app import runner
 from cvqpg.app.runner import timed_config
 from cvqpg.campaign.bench import PRESETS, make_plan
 from cvqpg.campaign.results import CAMPAIGN, campaign_plan
@@ -78,11 +79,14 @@ def test_a_time_budget_holds_the_run_s_steps_plus_one_updates(seconds, each, ste
     assert steps_within(seconds, each) == steps
 
 
-def test_a_time_budget_is_timed_and_recorded():
+def test_a_time_budget_is_timed_and_recorded_with_the_compile_time_it_spent(monkeypatch):
+    # The fit after it only loads the kernels, so the budget's record is where the compilation shows
+    monkeypatch.setattr(runner, "prepare_kernels", lambda config, show_status=True: 7.5)
     config = FitConfig(width=32, height=24, num_gaussians=30, steps=5, guard_band_px=8, color="gray")
     timed, record = timed_config(builtin_scene("demo", config), config, 0.01, progress=False)
     assert timed.steps == steps_within(0.6, record["seconds_per_step"])
     assert record["minutes"] == 0.01 and record["seconds_per_step"] > 0
+    assert record["compile_seconds"] == 7.5
     with pytest.raises(ConfigError, match="`time`"):
         timed_config(builtin_scene("demo", config), config, 0.0, progress=False)
 

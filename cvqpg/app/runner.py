@@ -108,13 +108,15 @@ def fit_in_folder(folder: Path, scene: Scene, config: FitConfig, state: FitState
 
 def timed_config(scene: Scene, config: FitConfig, minutes: float, progress: bool = True) -> tuple[FitConfig, dict]:
     """`config` with the step count whose fit takes about `minutes` here (the kernels compiled first, then a
-    few steps timed: `fitting.seconds_per_step`), and what a run records of the choice."""
+    few steps timed: `fitting.seconds_per_step`), and what a run records of the choice: the budget, the
+    seconds per step, and the seconds spent compiling the kernels (the fit itself then only loads them)."""
     if not minutes > 0:
         raise ConfigError(f"`time` {minutes} min: give a positive number of minutes")
-    prepare_kernels(config, show_status=progress)
+    compile_seconds = prepare_kernels(config, show_status=progress)
     seconds_each = seconds_per_step(scene, config)
     steps = steps_within(60 * minutes, seconds_each)
-    return config.replace(steps=steps).validate(), {"minutes": minutes, "seconds_per_step": seconds_each}
+    return config.replace(steps=steps).validate(), {"minutes": minutes, "seconds_per_step": seconds_each,
+                                                    "compile_seconds": compile_seconds}
 
 
 def write_fitted_run(folder: Path, result: FitResult, scene: Scene, source: dict[str, Any]) -> Path:
