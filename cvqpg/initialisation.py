@@ -1,5 +1,5 @@
-"""Where a fit's primitives start: the paper's uniform draws (method.md §2), or positions drawn from the
-field that the targets imply on the SLM plane (docs/beyond.md)."""
+"""Where a fit's primitives start: the paper's uniform draws (method.md §2), or positions drawn from a map
+of the targets: the energy of the field they imply on the SLM plane, or their edges (docs/beyond.md)."""
 
 from __future__ import annotations
 
@@ -13,10 +13,12 @@ from .primitives import Gaussians, init_gaussians, raw_positions
 from .targets import Scene
 
 SEED_OFFSET = 0x1417  # the position draws have their own generator: the paper's draws stay as they are
+# The share of `edges`' draws spread evenly: flat and dark parts need primitives too (docs/beyond.md).
+EDGES_UNIFORM_SHARE = 0.3
 
 
 def resolved_init(config: FitConfig) -> str:
-    """`uniform` or `targets`: `config.init`, with `auto` resolved by the run's length: from the targets in short
+    """`config.init`, with `auto` resolved to `uniform` or `targets` by the run's length: from the targets in short
     runs (`SHORT_RUN_STEPS`), where it pays, and the paper's draws in longer ones, where it costs."""
     if config.init != "auto":
         return config.init
@@ -30,6 +32,19 @@ def implied_slm_field(scene: Scene, config: FitConfig) -> Tensor:
     fields = [propagate(amplitude[plane], [-distance], config.wavelengths, config.pixel_pitch)[0]
               for plane, distance in enumerate(config.plane_distances)]
     return torch.stack(fields).mean(dim=0)
+
+
+def edge_density(targets: Tensor, uniform_share: float = EDGES_UNIFORM_SHARE) -> Tensor:
+    """A probability per pixel [H, W] of the targets [M, C, H, W]: `uniform_share` spread evenly, the rest in
+    proportion to the magnitude of the planes' and channels' mean intensity's gradient (forward differences,
+    1/px). Where the targets have no edges (a flat or black image), every pixel is as likely."""
+    mean = targets.double().mean(dim=(0, 1))
+    dx = torch.nn.functional.pad(mean[:, 1:] - mean[:, :-1], (0, 1))
+    dy = torch.nn.functional.pad(mean[1:] - mean[:-1], (0, 0, 0, 1))
+    magnitude = torch.nan_to_num((dx.square() + dy.square()).sqrt(), nan=0.0, posinf=0.0)
+    total = magnitude.sum()
+    edges = magnitude / total if total > 0 else torch.full_like(magnitude, 1 / magnitude.numel())
+    return (1 - uniform_share) * edges + uniform_share / magnitude.numel()
 
 
 def positions_from_energy(energy: Tensor, count: int, generator: torch.Generator) -> Tensor:
@@ -49,16 +64,22 @@ def positions_from_energy(energy: Tensor, count: int, generator: torch.Generator
 
 
 def initial_gaussians(config: FitConfig, scene: Scene | None = None) -> Gaussians:
-    """The raw parameters a fit starts from (`resolved_init`): the paper's uniform draws, or with `targets`
-    (which needs the `scene`) the same draws with positions moved to where the implied SLM field
-    (`implied_slm_field`) carries its energy."""
+    """The raw parameters a fit starts from (`resolved_init`): the paper's uniform draws, or the same draws with
+    positions moved, which needs the `scene`: with `targets` to where the implied SLM field (`implied_slm_field`)
+    carries its energy, with `edges` mostly to the targets' edges (`edge_density`)."""
     gaussians = init_gaussians(config.primitive_count, config.channels, config.width, config.height, config.seed,
                                "cpu", config.curvature == "per-channel")
-    if resolved_init(config) == "targets":
+    init = resolved_init(config)
+    if init != "uniform":
         if scene is None:
-            raise ConfigError("`init` from the targets needs the scene; pass it, or set `init` to uniform")
+            raise ConfigError(f"`init` {init} draws from the targets and needs the scene; pass it, or set `init` "
+                              "to uniform")
         with torch.no_grad():
-            energy = implied_slm_field(scene.to("cpu"), config).abs().square().sum(dim=0)
+            scene = scene.to("cpu")
+            if init == "targets":
+                energy = implied_slm_field(scene, config).abs().square().sum(dim=0)
+            else:
+                energy = edge_density(scene.targets)
             generator = torch.Generator().manual_seed(config.seed + SEED_OFFSET)
             position = positions_from_energy(energy, config.primitive_count, generator)
             gaussians.position.copy_(raw_positions(position, config.width, config.height))
