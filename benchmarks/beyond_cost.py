@@ -1,12 +1,13 @@
-"""What the initialisation from the targets and density control add to a fit's time, measured side by side.
+"""What the initialisations from the targets and density control add to a fit's time, measured side by side.
 
     python benchmarks/beyond_cost.py                       # grayscale 10%, 640×480, the demo scene
     python benchmarks/beyond_cost.py --color rgb
 
-Times, in turns over several rounds (medians): an update step, the paper's initialisation, the one from
-the targets, and one relocation event of density control (`density.Relocator.relocate`, its render
-included). Prints each in ms and what the extras add to a 2000-step fit (2001 updates): the targets'
-initialisation once, and the events of `DensityControl()`'s defaults.
+Times, in turns over several rounds (medians): an update step, the paper's initialisation, the two from
+the targets (their field's energy, their edges), and one relocation event of density control
+(`density.Relocator.relocate`, its render included). Prints each in ms and what the extras add to a
+2000-step fit (2001 updates): each initialisation from the targets once, and the events of
+`DensityControl()`'s defaults.
 """
 
 from __future__ import annotations
@@ -54,6 +55,7 @@ def main() -> None:
     actions = {"update step": step,
                "initialisation, paper": lambda: initial_gaussians(config.replace(init="uniform"), scene),
                "initialisation, from the targets": lambda: initial_gaussians(config.replace(init="targets"), scene),
+               "initialisation, at the edges": lambda: initial_gaussians(config.replace(init="edges"), scene),
                "relocation event": relocate}
     times: dict[str, list[float]] = {name: [] for name in actions}
     for _ in range(ROUNDS):
@@ -63,10 +65,12 @@ def main() -> None:
     for name, value in median.items():
         print(f"{name:34s} {value * 1e3:9.1f} ms")
     fit = (STEPS + 1) * median["update step"]
-    init_extra = median["initialisation, from the targets"] - median["initialisation, paper"]
+    extra = {kind: (median[f"initialisation, {kind}"] - median["initialisation, paper"]) / fit
+             for kind in ("from the targets", "at the edges")}
     events = len(config.density.event_steps(STEPS))
-    print(f"a {STEPS}-step fit: {fit:.0f} s of updates; the targets' initialisation adds {init_extra / fit:+.2%}, "
-          f"density control's {events} events {events * median['relocation event'] / fit:+.2%}")
+    print(f"a {STEPS}-step fit: {fit:.0f} s of updates; the initialisation from the targets adds "
+          f"{extra['from the targets']:+.2%}, at the edges {extra['at the edges']:+.2%}, density control's {events} "
+          f"events {events * median['relocation event'] / fit:+.2%}")
 
 
 if __name__ == "__main__":

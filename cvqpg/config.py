@@ -1,5 +1,6 @@
 """Fit configuration: every setting of method.md §2–§6 with the paper's value as default, and the recipes
-(`RECIPES`): the paper's, and the default one, which differs from it in short runs only (docs/beyond.md)."""
+(`RECIPES`): the paper's, and the default one, which differs from it in Adan's β2, where its positions are
+drawn and, in short runs, its loss (docs/beyond.md)."""
 
 from __future__ import annotations
 
@@ -99,7 +100,8 @@ class FitConfig:
     # The default recipe's (`RECIPES`), as `lr`; `initialisation.resolved_init` resolves `auto`.
     init: Init = field(default_factory=lambda: RECIPES[DEFAULT_RECIPE]["init"])
     density: DensityControl | None = field(default_factory=lambda: RECIPES[DEFAULT_RECIPE]["density"])
-    betas: tuple[float, float, float] = (0.98, 0.92, 0.99)
+    # Adan's (β1, β2, β3), as `lr`; None: `adan_betas` resolves them by the run's length.
+    betas: tuple[float, float, float] | None = field(default_factory=lambda: RECIPES[DEFAULT_RECIPE]["betas"])
     adan_eps: float = 1e-8
     grad_clip_norm: float = 1.0
     ssim_weight: float = 0.005
@@ -134,6 +136,14 @@ class FitConfig:
         `SHORT_RUN_STEPS` steps and the paper's 1 in longer ones (docs/beyond.md, "The loss")."""
         auto = 0.0 if self.steps <= SHORT_RUN_STEPS else 1.0
         return tuple(auto if w is None else w for w in (self.focus_weight, self.product_weight))
+
+    @property
+    def adan_betas(self) -> tuple[float, float, float]:
+        """Adan's (β1, β2, β3): `betas`, or where None the paper's in runs of at most `SHORT_RUN_STEPS` steps and
+        `LONG_RUN_BETAS` in longer ones (docs/beyond.md, "Adan's β2")."""
+        if self.betas is not None:
+            return self.betas
+        return PAPER_BETAS if self.steps <= SHORT_RUN_STEPS else LONG_RUN_BETAS
 
     @property
     def curvature_warmup_steps(self) -> int:
@@ -230,7 +240,7 @@ class FitConfig:
                    "ssim_weight": self.ssim_weight, "target_noise": self.target_noise,
                    "defocus_sigma_px": self.defocus_sigma_px, "depth_exponent": self.depth_exponent,
                    **{f"lr.{k}": v for k, v in dataclasses.asdict(self.lr).items()},
-                   **{f"betas[{i}]": b for i, b in enumerate(self.betas)},
+                   **{f"betas[{i}]": b for i, b in enumerate(self.betas or ())},
                    **{f"density.{k}": v for k, v in (dataclasses.asdict(self.density) if self.density else {}).items()},
                    **{f"wavelengths_m[{i}]": w for i, w in enumerate(self.wavelengths_m or ())},
                    **{k: w for k, w in (("focus_weight", self.focus_weight), ("product_weight", self.product_weight))
@@ -279,16 +289,19 @@ class FitConfig:
         return self
 
 
-# A run of at most this many steps is short: the default recipe starts it from the targets and trains it without
-# the masked and correlation terms; both pay there and not in longer runs (docs/beyond.md).
+# A run of at most this many steps is short: the default recipe draws its positions from the targets' energy
+# rather than their edges, keeps the paper's Adan β2 and trains it without the masked and correlation terms; each
+# pays there and not in longer runs, or the other way round (docs/beyond.md).
 SHORT_RUN_STEPS = 400
+PAPER_BETAS = (0.98, 0.92, 0.99)  # method.md §6
+LONG_RUN_BETAS = (0.98, 0.99, 0.99)  # β2 averages the gradient's differences over ~100 steps, not ~12
 # The recorded choices of a fit beyond its problem (method.md §6; docs/beyond.md): `FitConfig.with_recipe`.
 PAPER_RECIPE, BEYOND_RECIPE = "paper", "beyond"
 RECIPES: dict[str, dict[str, Any]] = {
     PAPER_RECIPE: {"lr": LearningRates(), "init": "uniform", "density": None, "focus_weight": 1.0,
-                   "product_weight": 1.0},
+                   "product_weight": 1.0, "betas": PAPER_BETAS},
     BEYOND_RECIPE: {"lr": LearningRates(), "init": "auto", "density": None, "focus_weight": None,
-                    "product_weight": None},
+                    "product_weight": None, "betas": None},
 }
 DEFAULT_RECIPE = BEYOND_RECIPE  # measured better than the paper's on every scene (docs/beyond.md)
 

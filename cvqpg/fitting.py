@@ -91,7 +91,7 @@ def make_optimizer(gaussians: Gaussians, config: FitConfig) -> Adan:
 
     groups = [{"params": [getattr(gaussians, name)], "lr": getattr(config.lr, name), "name": name}
               for name in trainable_groups(config)]
-    return Adan(groups, betas=config.betas, eps=config.adan_eps, weight_decay=0.0, max_grad_norm=0.0)
+    return Adan(groups, betas=config.adan_betas, eps=config.adan_eps, weight_decay=0.0, max_grad_norm=0.0)
 
 
 def position_learning_rate(step: int, config: FitConfig) -> float:

@@ -18,11 +18,11 @@ EDGES_UNIFORM_SHARE = 0.3
 
 
 def resolved_init(config: FitConfig) -> str:
-    """`config.init`, with `auto` resolved to `uniform` or `targets` by the run's length: from the targets in short
-    runs (`SHORT_RUN_STEPS`), where it pays, and the paper's draws in longer ones, where it costs."""
+    """`config.init`, with `auto` resolved by the run's length: to `targets` in short runs (`SHORT_RUN_STEPS`), and
+    to `edges` in longer ones; each trails the other where it is not chosen (docs/beyond.md)."""
     if config.init != "auto":
         return config.init
-    return "targets" if config.steps <= SHORT_RUN_STEPS else "uniform"
+    return "targets" if config.steps <= SHORT_RUN_STEPS else "edges"
 
 
 def implied_slm_field(scene: Scene, config: FitConfig) -> Tensor:

@@ -233,7 +233,8 @@ def test_the_psnr_against_seconds_figure_waits_for_both_histories_then_is_drawn(
         (folder / "history.csv").write_text("step,seconds,loss,psnr\n0,0.2,1.0,9.0\n"
                                             f"{steps},{seconds},0.01,30.0\n")
     assert f"![PSNR against minutes, sushi, Grayscale 10%]({figure})" in document(tmp_path)
-    assert "PSNR against minutes, sushi, RGB 10%: waits for a `history.csv` in each of its CVQPG cells" in document(tmp_path)
+    assert ("PSNR against minutes, sushi, RGB 10%: waits for its CVQPG cells in `results/paper` and "
+            "`results/beyond-time`, each with a `history.csv`") in document(tmp_path)
     (tmp_path / "docs").mkdir()
     assert write_figures(tmp_path, tmp_path / "docs") == [tmp_path / "docs" / figure]
     assert (tmp_path / "docs" / figure).read_bytes().startswith(b"\x89PNG")

@@ -73,7 +73,7 @@ def quadratic_loss(tensors: dict[str, torch.Tensor], centres, curvatures) -> tor
 
 @pytest.mark.parametrize("primitive", ["cvqpg", "flat"])
 def test_make_optimizer_is_adan_with_spec_betas_and_group_rates(primitive):
-    config = FitConfig(primitive=primitive)
+    config = FitConfig(primitive=primitive).with_recipe("paper")
     gaussians = toy_gaussians()
     optimizer = make_optimizer(gaussians, config)
     names = [group["name"] for group in optimizer.param_groups]
@@ -100,7 +100,7 @@ def test_adan_matches_hand_rule_on_quadratic():
     curvatures = {k: 0.5 + torch.rand(v.numel(), generator=g, dtype=torch.float64) * 3
                   for k, v in gaussians.tensors().items()}
     lrs = {group["name"]: group["lr"] for group in optimizer.param_groups}
-    hand = {name: HandAdan(lrs[name]) for name in GROUPS}
+    hand = {name: HandAdan(lrs[name], config.adan_betas) for name in GROUPS}
     theta = {name: p.detach().clone() for name, p in gaussians.tensors().items()}
     start = {name: p.clone() for name, p in theta.items()}
 

@@ -80,9 +80,9 @@ def test_only_positions_move_and_the_paper_s_draws_stay(init):
     assert torch.isfinite(positions_px(ours.position, 48, 36)).all()
 
 
-def test_auto_starts_from_the_targets_in_short_runs_only():
+def test_auto_starts_from_the_targets_energy_in_short_runs_and_from_their_edges_in_longer_ones():
     assert resolved_init(CONFIG.replace(init="auto", steps=SHORT_RUN_STEPS)) == "targets"
-    assert resolved_init(CONFIG.replace(init="auto", steps=SHORT_RUN_STEPS + 1)) == "uniform"
+    assert resolved_init(CONFIG.replace(init="auto", steps=SHORT_RUN_STEPS + 1)) == "edges"
     assert FitConfig().init == "auto" and FitConfig().with_recipe("paper").init == "uniform"
 
 

@@ -13,9 +13,10 @@ from cvqpg.app.runner import timed_config
 from cvqpg.campaign.bench import PRESETS, make_plan
 from cvqpg.campaign.results import CAMPAIGN, campaign_plan
 from cvqpg.cli import main
-from cvqpg.config import BEYOND_RECIPE, DEFAULT_RECIPE, RECIPES, SHORT_RUN_STEPS, DensityControl
+from cvqpg.config import (BEYOND_RECIPE, DEFAULT_RECIPE, LONG_RUN_BETAS, PAPER_BETAS, RECIPES, SHORT_RUN_STEPS,
+                          DensityControl)
 from cvqpg.errors import ConfigError
-from cvqpg.fitting import steps_within
+from cvqpg.fitting import initial_state, steps_within
 from cvqpg.scenes import builtin_scene
 
 
@@ -117,3 +118,17 @@ def test_the_default_recipe_drops_the_masked_and_correlation_terms_in_short_runs
     assert beyond.replace(steps=SHORT_RUN_STEPS + 1).validate().loss_weights == (1.0, 1.0)
     assert FitConfig().with_recipe("paper").replace(steps=300).loss_weights == (1.0, 1.0)
     assert beyond.replace(focus_weight=0.5, steps=300).loss_weights == (0.5, 0.0)
+
+
+def test_the_default_recipe_raises_adan_s_beta2_in_longer_runs_only_and_the_optimiser_gets_it():
+    beyond = FitConfig().with_recipe(BEYOND_RECIPE)
+    assert beyond.replace(steps=SHORT_RUN_STEPS).validate().adan_betas == PAPER_BETAS == (0.98, 0.92, 0.99)
+    assert beyond.replace(steps=SHORT_RUN_STEPS + 1).validate().adan_betas == LONG_RUN_BETAS == (0.98, 0.99, 0.99)
+    assert FitConfig().with_recipe("paper").replace(steps=8000).adan_betas == PAPER_BETAS
+    assert beyond.replace(betas=(0.9, 0.95, 0.999), steps=300).adan_betas == (0.9, 0.95, 0.999)
+    assert FitConfig.from_dict(json.loads(json.dumps(beyond.to_dict()))) == beyond
+    small = beyond.replace(width=32, height=24, color="gray")
+    scene = builtin_scene("demo", small)
+    for steps, betas in ((SHORT_RUN_STEPS, PAPER_BETAS), (2000, LONG_RUN_BETAS)):
+        optimizer = initial_state(small.replace(steps=steps), scene).optimizer
+        assert {tuple(group["betas"]) for group in optimizer.param_groups} == {betas}

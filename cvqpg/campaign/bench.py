@@ -451,11 +451,12 @@ def cell_status(folder: Path, done_file: str = METRICS_FILE) -> str:
 
 def _comparable(config: FitConfig) -> FitConfig:
     """Device and backend change the last bits only; a resumed or finished cell may differ in them. A
-    default curvature warm-up is compared as the steps it resolves to, an `auto` initialisation and loss
-    weights as what they resolve to."""
+    default curvature warm-up is compared as the steps it resolves to, an `auto` initialisation, loss weights
+    and Adan's betas as what they resolve to."""
     focus_weight, product_weight = config.loss_weights
     return config.replace(device="cpu", backend="auto", curvature_warmup=config.curvature_warmup_steps,
-                          init=resolved_init(config), focus_weight=focus_weight, product_weight=product_weight)
+                          init=resolved_init(config), focus_weight=focus_weight, product_weight=product_weight,
+                          betas=config.adan_betas)
 
 
 def config_differences(folder: Path, config: FitConfig) -> list[str]:
