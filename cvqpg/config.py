@@ -140,7 +140,7 @@ class FitConfig:
     @property
     def adan_betas(self) -> tuple[float, float, float]:
         """Adan's (β1, β2, β3): `betas`, or where None the paper's in runs of at most `SHORT_RUN_STEPS` steps and
-        `LONG_RUN_BETAS` in longer ones (docs/beyond.md, "Adan's β2")."""
+        `LONG_RUN_BETAS` in longer ones (docs/beyond.md)."""
         if self.betas is not None:
             return self.betas
         return PAPER_BETAS if self.steps <= SHORT_RUN_STEPS else LONG_RUN_BETAS

@@ -714,9 +714,8 @@ def document(root: Path) -> str:
              f"`--recipe {PRESETS['beyond'].recipe}` (docs/beyond.md) at equal N against the paper grid's cells above, "
              "evaluated alike (mean PSNR over the planes against the noise-free targets). In runs of more than "
              f"{SHORT_RUN_STEPS} steps, as here, it differs from the paper's recipe in two settings: Adan's β2 is "
-             f"{LONG_RUN_BETAS[1]} (the paper's {PAPER_BETAS[1]}), and {1 - EDGES_UNIFORM_SHARE:.0%} of the initial positions "
-             "are drawn at "
-             "the targets' edges (`init` `edges`).", "",
+             f"{LONG_RUN_BETAS[1]} (the paper's {PAPER_BETAS[1]}), and {1 - EDGES_UNIFORM_SHARE:.0%} of the initial "
+             "positions are drawn at the targets' edges (`init` `edges`).", "",
              *(f"- {line}" for line in beyond_claims(paper, beyond, timed)), "",
              *(beyond_table(paper, beyond, s).markdown() for s in BEYOND_SETTINGS),
              *(timed_table(timed, s).markdown() for s in BEYOND_SETTINGS),
