@@ -447,8 +447,8 @@ def device_memory_bytes(device: str) -> int | None:
 
 
 def check_memory(config: FitConfig, available: int | None) -> None:
-    """Refuse a fit whose estimated peak (`estimated_peak_bytes`, the CPU's; unmeasured on a GPU) exceeds
-    `available` bytes of `config.device` (None: unknown, accepted)."""
+    """Refuse a fit whose estimated peak on `config.device` (`estimated_peak_bytes`) exceeds `available`
+    bytes there (None: unknown, accepted)."""
     needed = estimated_peak_bytes(config)
     if available is not None and needed > available:
         where = "free on the GPU" if torch.device(config.device).type == "cuda" else "available"

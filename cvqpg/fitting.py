@@ -353,17 +353,26 @@ def readback_due(device: torch.device, seconds_since_readback: float) -> bool:
     return device.type == "cpu" or seconds_since_readback >= READBACK_SECONDS
 
 
-# Set above the peak RSS that `cvqpg fit --scene demo --size W H` reaches from 640×480 to 3840×2160
-# (docs/performance.md, "Display resolutions", which has the command and the peaks).
-BASE_BYTES = 2**30
-BYTES_PER_PLANE_PIXEL = 165
+@dataclass(frozen=True)
+class PeakMemoryModel:
+    """A fit's peak memory as a fixed base plus a cost per pixel of every plane and channel."""
+
+    base_bytes: int
+    bytes_per_plane_pixel: int
+
+
+# Each set above the peaks measured from 640×480 to 3840×2160 (docs/performance.md): the process's RSS
+# on the CPU ("Display resolutions"), torch.cuda.max_memory_allocated on an H200 ("Whole fits on the H200").
+PEAK_MEMORY = {"cpu": PeakMemoryModel(base_bytes=2**30, bytes_per_plane_pixel=165),
+               "cuda": PeakMemoryModel(base_bytes=2**29, bytes_per_plane_pixel=256)}
 
 
 def estimated_peak_bytes(config: FitConfig) -> int:
-    """Rough peak memory (bytes) of a fit on the CPU: a fixed base plus a cost per pixel of every
-    plane and channel, above the peaks measured at display resolutions."""
+    """Rough peak memory (bytes) of a fit on `config.device`: its RSS on the CPU, its allocated memory
+    on a GPU (`PEAK_MEMORY`)."""
+    model = PEAK_MEMORY[config.device.split(":")[0]]
     plane_pixels = config.num_planes * config.channels * config.width * config.height
-    return int(BASE_BYTES + BYTES_PER_PLANE_PIXEL * plane_pixels)
+    return int(model.base_bytes + model.bytes_per_plane_pixel * plane_pixels)
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ from PIL import Image
 
 from cvqpg.cli import main
 from cvqpg.config import FitConfig
-from cvqpg.fitting import blank_state
+from cvqpg.fitting import blank_state, estimated_peak_bytes
 from cvqpg.runs import read_run
 from cvqpg.storage import load_checkpoint, save_checkpoint
 
@@ -192,3 +192,12 @@ def test_a_cuda_fit_larger_than_the_gpus_free_memory_is_refused_before_writing(t
     error = capsys.readouterr().err
     assert "GiB are free on the GPU" in error and "reduce --size or --planes" in error and error.count("\n") == 1
     assert not out.exists()
+
+
+@pytest.mark.parametrize(("device", "width", "height", "measured_gib"), [
+    ("cpu", 640, 480, 0.93), ("cpu", 3840, 2160, 7.63),  # peak RSS, docs/performance.md
+    ("cuda", 640, 480, 0.67), ("cuda", 3840, 2160, 11.38),  # max_memory_allocated on an H200, results/gpu/
+])
+def test_the_memory_estimate_of_each_device_sits_above_the_peak_measured_there(device, width, height, measured_gib):
+    config = FitConfig(width=width, height=height, ratio=0.2, device=device)
+    assert measured_gib * 2**30 < estimated_peak_bytes(config) < 1.5 * measured_gib * 2**30

@@ -478,7 +478,7 @@ def describe_cells(plan: BenchPlan, cells: tuple[Cell, ...], reuse: Sequence[Pat
 
 
 def peak_bytes(cells: tuple[Cell, ...], jobs: int) -> int:
-    """Estimated memory (bytes) of `jobs` of the largest cells fitted at once on the CPU."""
+    """Estimated memory (bytes) of `jobs` of the largest cells fitted at once on their device."""
     return jobs * max((estimated_peak_bytes(c.config) for c in cells), default=0)
 
 
