@@ -444,9 +444,9 @@ def runtime_table(grid: GridResults, with_paper: bool) -> Table:
     table = Table(f"{title}); Δ against the Baseline", header)
     table.note = ("Δ: the method's total over the Baseline's (in parentheses: over how many scenes), on the scenes "
                   "whose two cells ran the same commit on the same machine and thread count, for time only where "
-                  f"both fits had their cores to themselves (load at most {QUIET_LOAD_PER_CORE} per core); – where no scene has such a "
-                  "pair. load: the machine's mean 15-minute load average at the cells' ends, over its core count "
-                  "(where recorded); above 1 the fits shared the cores with other work and took longer.")
+                  f"both fits had their cores to themselves (load at most {QUIET_LOAD_PER_CORE} per core); – where "
+                  "no scene has such a pair. load: the machine's mean 15-minute load average at the cells' ends, over "
+                  "its core count (where recorded); above 1 the fits shared the cores with other work and took longer.")
     for setting in (s for s in SETTINGS if s in grid.plan.settings):
         for method in setting_methods(grid.plan, setting):
             ours = _runtime(grid, setting, method)
@@ -573,7 +573,8 @@ def timed_table(timed: GridResults, setting: str) -> Table:
             continue
         ours, theirs = r.metrics["mean"]["psnr"], supplement[r.cell.scene.name][setting]["cvqpg"]["psnr"]
         minutes = (r.metrics.get("run") or {}).get("loop_seconds")
-        table.rows.append([r.cell.scene.name, str(r.cell.config.steps), "–" if minutes is None else f"{minutes / 60:.1f}",
+        table.rows.append([r.cell.scene.name, str(r.cell.config.steps),
+                           "–" if minutes is None else f"{minutes / 60:.1f}",
                            f"{ours:.3f}", f"{theirs:.3f}", f"{ours - theirs:+.3f}"])
     return table
 
@@ -660,8 +661,9 @@ def beyond_claims(paper: GridResults, beyond: GridResults, timed: GridResults) -
                          f"{'' if len(shared) == scenes else ' so far'}.")
         gains = _paired(beyond.results, setting, "cvqpg", "baseline")
         if gains is not None:
-            claimed = float(np.mean([supplement[s][setting]["cvqpg"]["psnr"] - supplement[s][setting]["baseline"]["psnr"]
-                                     for s in beyond.grid.scenes]))
+            paper_gains = [supplement[s][setting]["cvqpg"]["psnr"] - supplement[s][setting]["baseline"]["psnr"]
+                           for s in beyond.grid.scenes]
+            claimed = float(np.mean(paper_gains))
             lines.append(f"CVQPG − Baseline at equal N under the new recipe, {setting_label(setting)}: "
                          f"{gains[0]:+.3f} dB on {_scenes(gains[1])} (paper {claimed:+.3f} on our six scenes).")
         timed_values = {r.cell.scene.name: r.metrics["mean"]["psnr"] for r in timed.done if r.cell.setting == setting}
@@ -718,7 +720,7 @@ def document(root: Path) -> str:
              "positions are drawn at the targets' edges (`init` `edges`).", "",
              *(f"- {line}" for line in beyond_claims(paper, beyond, timed)), "",
              *(beyond_table(paper, beyond, s).markdown() for s in BEYOND_SETTINGS),
-             *(timed_table(timed, s).markdown() for s in BEYOND_SETTINGS),
+             *(t.markdown() for t in (timed_table(timed, s) for s in BEYOND_SETTINGS) if t.rows),
              "The progress PSNR (mean over the planes, before clamping) against the minutes of the fit's loop, "
              "from the cells' `history.csv`. Each cell's minutes are its own, on one thread beside the other work "
              "of its machine (the load average is in its `metrics.json`): compare the curves' shapes, and the "
