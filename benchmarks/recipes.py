@@ -5,7 +5,8 @@
     python benchmarks/recipes.py SCENE_DIR --steps 300 --variants paper init-targets
     python benchmarks/recipes.py SCENE_DIR --steps 8000 --variants density-2pct-every-5pct
 
-Each variant is the paper's recipe with one set of `FitConfig` changes (`beyond`: the whole beyond recipe); every fit is grayscale 10%,
+Each variant is the paper's recipe with one set of `FitConfig` changes (`beyond`: the whole beyond recipe; `beyond-*`: it
+with one more change); every fit is grayscale 10%,
 CVQPG, seed 100, on SCENE_DIR's image.* and depth.png. The fits' PSNR does not depend on the machine's
 load, only on its CPU and thread count; run it with OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 to compare
 with docs/beyond.md's table. Prints one JSON line per variant: its PSNR, SSIM and difference to `paper`.
@@ -61,6 +62,9 @@ VARIANTS = {
     "loss-mse-only": {"focus_weight": 0.0, "product_weight": 0.0, "ssim_weight": 0.0},
     "loss-mse-ssim-3x": {"focus_weight": 0.0, "product_weight": 0.0, "ssim_weight": 0.015},
     "beyond": RECIPES[BEYOND_RECIPE],  # the whole recipe
+    "beyond-lr-1.5": {**RECIPES[BEYOND_RECIPE], "lr": rates(**{k: 1.5 for k in vars(PAPER_LR)})},
+    "beyond-lr-2": {**RECIPES[BEYOND_RECIPE], "lr": rates(**{k: 2.0 for k in vars(PAPER_LR)})},
+    "beyond-density": {**RECIPES[BEYOND_RECIPE], "density": DensityControl()},
 }
 
 
