@@ -370,7 +370,7 @@ PEAK_MEMORY = {"cpu": PeakMemoryModel(base_bytes=2**30, bytes_per_plane_pixel=16
 def estimated_peak_bytes(config: FitConfig) -> int:
     """Rough peak memory (bytes) of a fit on `config.device`: its RSS on the CPU, its allocated memory
     on a GPU (`PEAK_MEMORY`)."""
-    model = PEAK_MEMORY[config.device.split(":")[0]]
+    model = PEAK_MEMORY[torch.device(config.device).type]
     plane_pixels = config.num_planes * config.channels * config.width * config.height
     return int(model.base_bytes + model.bytes_per_plane_pixel * plane_pixels)
 
