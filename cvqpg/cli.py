@@ -333,8 +333,9 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--backend", choices=BACKENDS, help="kernels [default: auto]")
     p.add_argument("--shard", metavar="I/N", help="fit only cells I, I+N, I+2N, ... of the grid (1 ≤ I ≤ N), "
                    "e.g. ${SLURM_ARRAY_TASK_ID}/${SLURM_ARRAY_TASK_COUNT} in a job array")
-    p.add_argument("--jobs", type=int, default=1, metavar="K", help="cells fitted at once, each on cores/K "
-                   "threads [default: 1]")
+    p.add_argument("--jobs", type=int, default=1, metavar="K", help="cells fitted at once [default: 1]")
+    p.add_argument("--threads", type=int, metavar="T", help="threads of each fit (PyTorch and Numba) [default: "
+                   "cores/K, at least 1; cores are those this process may use, at most OMP_NUM_THREADS]")
     p.add_argument("--reuse", nargs="+", default=[], metavar="DIR", help="other bench folders whose finished "
                    "cells with the same settings are copied instead of fitted (e.g. the chromatic grid reuses "
                    "results/paper's baseline and CVQPG cells)")
@@ -893,7 +894,8 @@ def run_bench(args: argparse.Namespace) -> int:
         with StopRequest() as stop_requested:
             outcome = run_plan(plan, cells, args.jobs, progress=not args.quiet, stop_requested=stop_requested,
                                reuse=[Path(d) for d in args.reuse],
-                               rate_distortion=RateDistortionOptions(tuple(Path(d) for d in args.fits), args.finetune))
+                               rate_distortion=RateDistortionOptions(tuple(Path(d) for d in args.fits), args.finetune),
+                               threads=args.threads)
         print(f"cvqpg bench: {outcome.describe()}")
         for name, error in outcome.failures.items():
             print(f"  {name}: {error}", file=sys.stderr)

@@ -217,6 +217,15 @@ def test_jobs_run_cells_in_worker_processes(tmp_path):
     assert all((plan.cell_dir(c) / "spectrum.json").is_file() for c in plan.cells)
 
 
+@pytest.mark.slow
+def test_threads_set_each_fit_s_thread_count_whatever_the_jobs(tmp_path):
+    """Three threads each, two fits at once: not the cores/jobs share of any machine with under 6 cores."""
+    plan = make_plan("quick", tmp_path / "bench", Overrides(size=(48, 36), steps=2, methods=["cvqpg"]))
+    assert run_plan(plan, jobs=2, progress=False, threads=3).count(DONE) == 2
+    runs = [json.loads((plan.cell_dir(c) / "metrics.json").read_text())["run"] for c in plan.cells]
+    assert [run["torch_threads"] for run in runs] == [3, 3]
+
+
 def test_a_run_on_some_scenes_or_one_colour_summarises_every_cell_the_folder_records(scenes_dir, tmp_path):
     axes = {"ratios": [0.1], "methods": ["cvqpg"]}
     earlier = make_plan("paper", tmp_path / "bench", Overrides(scenes_dir=scenes_dir, scene_names=["sushi", "zebra"],
@@ -335,6 +344,7 @@ def test_sinusoidal_error_lands_in_its_frequency_bin(cycles, expected_bin):
     (["--methods", "magic"], "--methods magic"),
     (["--scenes", "no-such-folder"], "no such folder"),
     (["--jobs", "0"], "--jobs 0"),
+    (["--threads", "0"], "--threads 0"),
 ])
 def test_bad_bench_input_is_one_line_and_exit_code_2(arguments, message, capsys, tmp_path):
     assert main(["bench", *arguments, "--out", str(tmp_path / "bench"), "--quiet"]) == 2

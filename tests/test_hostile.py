@@ -160,6 +160,7 @@ NUMBERS = cases(
     ("compress-bits-not-a-number", "compress {run} --bits phase=x --out new.cvq", "--bits"),
     ("bench-jobs-0", f"bench {BENCH} --jobs 0", "--jobs"),
     ("bench-jobs-negative", f"bench {BENCH} --jobs -1", "--jobs"),
+    ("bench-threads-0", f"bench {BENCH} --threads 0", "--threads"),
     ("bench-shard-0", f"bench {BENCH} --shard 0/2", "--shard"),
     ("bench-shard-beyond-count", f"bench {BENCH} --shard 3/2", "--shard"),
     ("bench-shard-not-a-fraction", f"bench {BENCH} --shard x", "--shard"),

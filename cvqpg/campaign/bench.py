@@ -754,18 +754,22 @@ def _attempt_in_worker(cell: Cell, folder: Path, rate_distortion: RateDistortion
 
 def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int = 1, progress: bool = True,
              stop_requested: Callable[[], bool] | None = None, reuse: Sequence[Path] = (),
-             rate_distortion: RateDistortionOptions = RateDistortionOptions()) -> BenchOutcome:
+             rate_distortion: RateDistortionOptions = RateDistortionOptions(), threads: int | None = None
+             ) -> BenchOutcome:
     """Fit every cell of `cells` (default: the whole plan) that is not done, `jobs` at a time; cells
     that a bench folder in `reuse` has finished with the same settings are copied, not fitted. In a
     rate–distortion grid a cell takes its model from the first folder of `rate_distortion.fits` that
     kept it.
 
-    With jobs > 1 a spawn-context process pool runs the cells, each worker on cores // jobs threads.
-    When `stop_requested()` turns true, running fits save a checkpoint and stop, and no new cell starts.
+    With jobs > 1 a spawn-context process pool runs the cells. Each fit runs on `threads` threads,
+    by default its share of the cores (cores // jobs, at least 1). When `stop_requested()` turns true, running fits save a checkpoint and stop, and no new cell starts.
     """
     cells = plan.cells if cells is None else cells
     if jobs < 1:
         raise BenchError(f"--jobs {jobs}: need at least 1")
+    if threads is not None and threads < 1:
+        raise BenchError(f"--threads {threads}: need at least 1")
+    threads = threads or max(1, available_cores() // jobs)
     outcome = BenchOutcome()
     for cell in adopt_finished(plan, cells, reuse):
         outcome.statuses[cell.name] = REUSED
@@ -793,20 +797,19 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
             bar.update()
 
         if jobs == 1:
-            limit_threads(available_cores())
+            limit_threads(threads)
             for cell in todo:
                 record(cell, *_attempt(cell, plan.cell_dir(cell), stop, rd_options))
         else:
-            _run_pool(plan, todo, jobs, stop, record, rd_options)
+            _run_pool(plan, todo, jobs, threads, stop, record, rd_options)
     return outcome
 
 
-def _run_pool(plan: BenchPlan, todo: list[Cell], jobs: int, stop: Callable[[], bool],
+def _run_pool(plan: BenchPlan, todo: list[Cell], jobs: int, threads: int, stop: Callable[[], bool],
               record: Callable[[Cell, str, str | None], None], rate_distortion: RateDistortionOptions | None
               ) -> None:
     context = multiprocessing.get_context("spawn")
     stop_event = context.Event()
-    threads = max(1, available_cores() // jobs)
     with ProcessPoolExecutor(jobs, mp_context=context, initializer=_init_worker,
                              initargs=(threads, stop_event)) as pool:
         futures = {pool.submit(_attempt_in_worker, cell, plan.cell_dir(cell), rate_distortion): cell for cell in todo}
