@@ -762,7 +762,8 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
     kept it.
 
     With jobs > 1 a spawn-context process pool runs the cells. Each fit runs on `threads` threads,
-    by default its share of the cores (cores // jobs, at least 1). When `stop_requested()` turns true, running fits save a checkpoint and stop, and no new cell starts.
+    by default its share of the cores (cores // jobs, at least 1). When `stop_requested()` turns true,
+    running fits save a checkpoint and stop, and no new cell starts.
     """
     cells = plan.cells if cells is None else cells
     if jobs < 1:
