@@ -30,7 +30,7 @@ from .campaign.bench import (CELLS_DIR, METHODS, PRESETS, Overrides, RateDistort
                              make_plan, parse_shard, peak_bytes, run_plan)
 from .campaign.report import write_summary
 from .campaign.results import document, write_figures
-from .codec import ROTATION_DEPTH_VERSION, SUFFIX, BitDepths
+from .codec import IMPORTANCE_VERSION, ROTATION_DEPTH_VERSION, SUFFIX, BitDepths
 from .compression import ASSUMED_FIT_PSNR_DB, check_compression_settings, compress_model, decompress_file
 from .config import BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITIVES, QPFS, RECIPES, FitConfig
 from .depth import DEPTH_FILE, DEPTH_MODEL, estimate_depth, load_depth_model
@@ -689,11 +689,15 @@ def run_info(args: argparse.Namespace) -> int:
           f"  file             {info['file_bytes'] / 2**10:.1f} KiB\n"
           f"  bits per pixel   {info['bits_per_pixel']:.3f} (of the {width}×{height} hologram, all channels)")
     if "bits" in info:
-        rotation = (f"; rotation: for an anisotropy a − 1/a in [0.5, 1), a bit more per doubling, "
-                    f"{8 * info['streams']['rotation']['bytes'] / info['num_primitives']:.1f} on average"
-                    if info["format_version"] >= ROTATION_DEPTH_VERSION else "")
+        version = info["format_version"]
+        notes = (f"; rotation: for an anisotropy a − 1/a in [0.5, 1), a bit more per doubling, "
+                 f"{8 * info['streams']['rotation']['bytes'] / info['num_primitives']:.1f} on average"
+                 if version >= ROTATION_DEPTH_VERSION else "")
+        if version >= IMPORTANCE_VERSION:
+            notes += ("; position, amplitude, rotation, phase, curvature: for a value of median weight in the field, "
+                      "a bit more per fourfold weight")
         print("  bits             " + ", ".join(f"{name} {value}" for name, value in info["bits"].items())
-              + f" (position: fractional bits, a grid of 2^-b px{rotation})")
+              + f" (position: fractional bits, a grid of 2^-b px{notes})")
     if args.half:
         print(f"  PSNR             {info['psnr_float16']:.3f} dB in float16, {info['psnr_float32']:.3f} dB in "
               f"float32 ({info['psnr_change']:+.4f} dB)")

@@ -2,11 +2,13 @@
 
 Quantised primitives in a spatial order, entropy-coded with `constriction`'s ANS coder, behind a magic
 number, a format version and a CRC32. A primitive is coded as: position on a grid of 2^-b px, sorted in
-Morton order and coded as gaps between consecutive Morton codes; log scale over the model's own range;
-rotation modulo π (an ellipse turned by π is the same ellipse), at a depth that follows each primitive's
-anisotropy at its decoded scale (`rotation_depths`); amplitude × opacity as a magnitude, its
-sign folded into the phase (+π); phase modulo 2π; curvature as a fraction of the primitive's own bound
-γ_max (method.md §4), computed from the decoded scale so that encoder and decoder agree.
+Morton order of its whole pixel and coded as gaps between consecutive Morton codes, then its fraction of
+a pixel; log scale over the model's own range; amplitude × opacity as a magnitude, its sign folded into the
+phase (+π); rotation modulo π (an ellipse turned by π is the same ellipse); phase modulo 2π; curvature as
+a fraction of the primitive's own bound γ_max (method.md §4). Position, amplitude, rotation, phase and
+curvature are coded at a depth per value that follows how much its error weighs in the field
+(`derived_depths`), computed from the attributes decoded before it, so that encoder and decoder agree
+without storing it.
 
 Each attribute's quantiser is written once, in torch (`Quantiser`; `coding` derives them from a model):
 the encoder takes their integer codes, quantisation-aware fine-tuning (`finetune`) rounds through them
@@ -20,7 +22,7 @@ import math
 import struct
 import zlib
 from dataclasses import asdict, dataclass, field, fields, replace
-from typing import Any
+from typing import Any, Callable
 
 import constriction
 import numpy as np
@@ -33,13 +35,21 @@ from .primitives import (REWRITE_MODEL, Primitives, check_settings, check_tensor
                          model_shapes)
 
 MAGIC = b"\x89CVQ\r\n\x1a\n"
-FORMAT_VERSION = 3  # 2 added the `bitlength` coding, 3 rotation's depth per primitive; older files read unchanged
-ROTATION_DEPTH_VERSION = 3  # files from this version on code rotation at `rotation_depths`
+# 2 added the `bitlength` coding, 3 rotation's depth per primitive, 4 the depths of position, amplitude, rotation,
+# phase and curvature by importance; older files read unchanged
+FORMAT_VERSION = 4
+ROTATION_DEPTH_VERSION = 3  # files from this version on code rotation at a depth per primitive
+IMPORTANCE_VERSION = 4  # files from this version on code at `derived_depths`' importance rule
+# The order the decoder reads attributes in: each depth derives from attributes read before it.
+ATTRIBUTES = ("scale", "amplitude", "position", "rotation", "phase", "curvature")
 SUFFIX = ".cvq"
 PREFIX = struct.Struct("<8sHI")  # magic, format version, header length (bytes)
 CHECKSUM = struct.Struct("<I")
 MAX_POSITION_BITS = 8
 MAX_BITS = 16
+# Each depth of a file is a stream of its own in the header (`grouped`): the few values far from the median weight
+# share the depths ±MAX_OFFSET bits from it.
+MAX_OFFSET = 2
 
 
 def bits_per_pixel(size_bytes: int, config: FitConfig) -> float:
@@ -53,15 +63,18 @@ def _limits(name: str) -> tuple[int, int]:
 
 # Stream codings; each stream takes the smallest that applies, so a coding that does not pay is never used.
 RAW, LAPLACE, GAUSSIAN, CATEGORICAL, BIT_LENGTH = "raw", "laplace", "gaussian", "categorical", "bitlength"
-WIDTHS = "widths"  # raw bits of a width per symbol that the decoder derives (rotation's depths)
+# Streams at a width per symbol that the decoder derives: `widths`, raw bits (format 3's rotation); `grouped`,
+# the symbols of each width as a stream of their own (format 4 on).
+WIDTHS, GROUPED = "widths", "grouped"
 
 
 @dataclass(frozen=True)
 class BitDepths:
     """Bits per attribute. `position` counts fractional bits (grid of 2^-b px); the others count
-    levels over the attribute's range: log scale over the model's range, rotation over [0, π) (for an
-    ellipse of anisotropy a − 1/a in [0.5, 1), see `rotation_depths`), |amplitude·opacity| over
-    [0, max], phase over [0, 2π), curvature over [−γ_max, γ_max]."""
+    levels over the attribute's range: log scale over the model's range, |amplitude·opacity| over
+    [0, max], rotation over [0, π), phase over [0, 2π), curvature over [−γ_max, γ_max]. Position,
+    amplitude, rotation, phase and curvature take these depths for a value of median importance, and more
+    or fewer bits for others (`derived_depths`)."""
 
     position: int = 3
     scale: int = 8
@@ -120,7 +133,7 @@ class Quantiser:
 
     low: float
     span: float
-    levels: int | Tensor  # a tensor: one count per value (rotation's, `rotation_quantiser`)
+    levels: int | Tensor  # a tensor: one count per value (`derived_depths`)
     lowest: int | None = 0
     highest: int | None = None
     periodic: bool = False
@@ -135,11 +148,20 @@ class Quantiser:
         if self.periodic:
             turns = torch.remainder(values - self.low, self.span) / self.span
             return torch.round(turns * self.levels).long() % self.levels
-        return torch.round((values - self.low) / self.span * self.levels).clamp(self.lowest, self.highest).long()
+        codes = torch.round((values - self.low) / self.span * self.levels)
+        if isinstance(self.highest, Tensor):  # clamp takes two numbers or two tensors
+            return torch.clamp(codes, torch.as_tensor(self.lowest, dtype=codes.dtype), self.highest).long()
+        return codes.clamp(self.lowest, self.highest).long()
 
     def values(self, codes: Tensor) -> Tensor:
         """The value (float64) each code stands for."""
         return self.low + codes.double() * (self.span / self.levels)
+
+    def on(self, device: torch.device | str) -> "Quantiser":
+        """The same quantiser with its per-value counts and bounds on `device`."""
+        return replace(self, **{name: value.to(device) for name, value in
+                                (("levels", self.levels), ("lowest", self.lowest), ("highest", self.highest))
+                                if isinstance(value, Tensor)})
 
 
 class ShareQuantiser(Quantiser):
@@ -164,22 +186,28 @@ def _outward_range(low: float, high: float) -> list[float]:
             _short(high) if _short(high) >= high else _short(high + margin)]
 
 
-def quantisers(ranges: dict[str, list[float]], bits: BitDepths) -> dict[str, Quantiser]:
-    """Each attribute's quantiser at `bits`, given the header's ranges of log scale and |amplitude·opacity|."""
+Depth = int | Tensor  # bits of every value, or of each value (int64, the values' shape)
 
-    def over(low: float, high: float, depth: int) -> Quantiser:
+
+def quantiser(name: str, ranges: dict[str, list[float]], depth: Depth) -> Quantiser:
+    """Attribute `name`'s quantiser at `depth` bits, given the header's ranges of log scale and
+    |amplitude·opacity|."""
+    if name in ("scale", "amplitude"):
+        low, high = ranges[name]
         return Quantiser(low, high - low if high > low else 1.0, 2**depth - 1, 0, 2**depth - 1)
-
-    half = 2 ** (bits.curvature - 1) - 1
-    return {"position": Quantiser(0.0, 1.0, 2**bits.position),
-            "scale": over(*ranges["scale"], bits.scale),
-            "rotation": Quantiser(0.0, math.pi, 2**bits.rotation, periodic=True),
-            "amplitude": over(*ranges["amplitude"], bits.amplitude),
-            "phase": Quantiser(0.0, 2 * math.pi, 2**bits.phase, periodic=True),
-            "curvature": ShareQuantiser(0.0, 1.0, half, -half, half)}
+    if name == "curvature":
+        half = 2 ** (depth - 1) - 1
+        return ShareQuantiser(0.0, 1.0, half, -half, half)
+    period = {"position": 1.0, "rotation": math.pi, "phase": 2 * math.pi}[name]
+    return Quantiser(0.0, period, 2**depth, periodic=name != "position")
 
 
-def rotation_depths(scale_px: Tensor, depth: int) -> Tensor:
+def quantisers(ranges: dict[str, list[float]], bits: BitDepths) -> dict[str, Quantiser]:
+    """Each attribute's quantiser at its depth in `bits` for every value."""
+    return {name: quantiser(name, ranges, getattr(bits, name)) for name in ATTRIBUTES}
+
+
+def rotation_depths(scale_px: Tensor, depth: Depth) -> Tensor:
     """Bits of rotation (int64 [N]) for primitives of decoded scale `scale_px` (px, [N, 2]): `depth` for an
     ellipse whose anisotropy a − 1/a (a = σ_max/σ_min) lies in [0.5, 1), one more per doubling of it, one
     fewer per halving, none for a circle, within 0..MAX_BITS. Turning an ellipse by Δθ changes it by about
@@ -192,9 +220,80 @@ def rotation_depths(scale_px: Tensor, depth: int) -> Tensor:
     return torch.where(anisotropy > 0, depth + exponent.long(), 0).clamp(0, MAX_BITS)
 
 
-def rotation_quantiser(depths: Tensor) -> Quantiser:
-    """Rotation's quantiser over [0, π) at `depths` bits per primitive (`rotation_depths`)."""
-    return Quantiser(0.0, math.pi, 2**depths, periodic=True)
+def importance_offsets(weight: Tensor) -> Tensor:
+    """Bits to add (int64, `weight`'s shape) to the depth of values whose quantisation error weighs `weight`
+    (float64, ≥ 0) in the field's energy: half the distance of each weight's binary exponent from the median
+    exponent of the positive weights, rounded down, within ±MAX_OFFSET. An error of step Δ costs about
+    weight·Δ², so a value weighing 4 times as much takes one bit more and every value's error costs about
+    alike; a value of weight 0 does not show and gets −MAX_BITS. The exponents come from frexp, which is exact,
+    so every machine agrees."""
+    _, exponent = torch.frexp(weight)
+    positive = weight > 0
+    exponents = exponent[positive].long().sort().values
+    median = int(exponents[exponents.numel() // 2]) if exponents.numel() else 0
+    offsets = torch.div(exponent.long() - median, 2, rounding_mode="floor").clamp(-MAX_OFFSET, MAX_OFFSET)
+    return torch.where(positive, offsets, -MAX_BITS)
+
+
+def derived_depths(name: str, decoded: dict[str, Tensor], bits: BitDepths, shape: tuple[int, ...],
+                   version: int = FORMAT_VERSION) -> Tensor | None:
+    """Bits of each value (int64, `shape`) of attribute `name` where a file of `version` derives them from the
+    attributes decoded before it, else None (`bits`' depth for every value). `decoded` holds "scale", the
+    decoded scale σ̂ (px, float32 [N, 2]), and, once decoded, "amplitude", |amplitude·opacity| (float64 [N, C]).
+
+    From format 4 on, each value's depth is its attribute's depth in `bits` plus `importance_offsets` of the
+    energy its error costs, within 2..16 bits (0..16 for rotation and phase, 0..8 fractional bits for
+    position): position by Σ_c |w_c|² (a shifted Gaussian's error energy does not depend on its size);
+    amplitude by σ̂x·σ̂y; phase by |w|²·σ̂x·σ̂y of its channel; rotation and shared curvature by
+    Σ_c |w_c|²·σ̂x·σ̂y (a channel's curvature by its channel's), rotation on top of its anisotropy's bits
+    (`rotation_depths`). Format 3 derives rotation's from its anisotropy alone."""
+    if version < ROTATION_DEPTH_VERSION or (version < IMPORTANCE_VERSION and name != "rotation"):
+        return None
+    if version < IMPORTANCE_VERSION:
+        return rotation_depths(decoded["scale"], bits.rotation)
+    if name == "scale":
+        return None
+    scale = decoded["scale"].detach().cpu().double()
+    area = scale[:, 0] * scale[:, 1]
+    if name == "amplitude":
+        return (bits.amplitude + importance_offsets(area)).clamp(2, MAX_BITS)[:, None].expand(shape).contiguous()
+    amplitude = decoded["amplitude"].detach().cpu().double()
+    power = amplitude[:, 0] ** 2
+    for channel in range(1, amplitude.shape[1]):  # in a fixed order, so that every machine rounds alike
+        power += amplitude[:, channel] ** 2
+    if name == "position":
+        offsets = importance_offsets(power)
+        return (bits.position + offsets).clamp(0, MAX_POSITION_BITS)[:, None].expand(-1, 2).contiguous()
+    per_channel, total = amplitude**2 * area[:, None], power * area
+    if name == "rotation":
+        return rotation_depths(decoded["scale"], bits.rotation + importance_offsets(total))
+    if name == "phase":
+        return (bits.phase + importance_offsets(per_channel)).clamp(0, MAX_BITS)
+    weight = total if len(shape) == 1 else per_channel
+    return (bits.curvature + importance_offsets(weight)).clamp(2, MAX_BITS)
+
+
+def chained_quantisers(ranges: dict[str, list[float]], bits: BitDepths, shapes: dict[str, tuple[int, ...]],
+                       read: Callable[[str, Quantiser, Tensor | None], Tensor], version: int = FORMAT_VERSION
+                       ) -> tuple[dict[str, Quantiser], dict[str, Tensor]]:
+    """Each attribute's quantiser and derived depths (`derived_depths`), attribute by attribute in the order
+    `ATTRIBUTES` (those absent from `shapes` skipped): `read(name, quantiser, depths)` returns the attribute's
+    decoded values (float64), from which the depths of the attributes after it derive. The encoder reads by
+    rounding its values, the decoder its stream, fine-tuning straight through."""
+    chosen, depths, decoded = quantisers(ranges, bits), {}, {}
+    for name in ATTRIBUTES:
+        if name not in shapes:
+            continue
+        derived = derived_depths(name, decoded, bits, shapes[name], version)
+        if derived is not None:
+            depths[name] = derived
+            chosen[name] = quantiser(name, ranges, derived)
+        value = read(name, chosen[name], derived)
+        if name == "scale":
+            decoded["scale"] = decoded_scale(value.detach().cpu())
+        elif name == "amplitude":
+            decoded["amplitude"] = value.detach().cpu().abs()
+    return chosen, depths
 
 
 def decoded_scale(log_scale: Tensor) -> Tensor:
@@ -208,13 +307,13 @@ class Coding:
     """What the encoder codes, and how. `values`, float64 on the CPU in the primitives' order: position
     (px), log scale (ln px), rotation (rad), the signed weight amplitude·opacity, phase (rad) and, for
     `cvqpg` primitives, curvature as a share of γ_max at the decoded scale; `ranges`, the header's;
-    each attribute's quantiser, rotation's at the decoded scale; and `rotation_depths`, its bits per
-    primitive."""
+    each attribute's quantiser; and `depths`, the bits of each value of the attributes whose depths derive
+    from those decoded before them (`derived_depths`)."""
 
     values: dict[str, Tensor]
     ranges: dict[str, list[float]]
     quantisers: dict[str, Quantiser]
-    rotation_depths: Tensor
+    depths: dict[str, Tensor]
 
 
 def coding(primitives: Primitives, config: FitConfig, bits: BitDepths) -> Coding:
@@ -225,14 +324,14 @@ def coding(primitives: Primitives, config: FitConfig, bits: BitDepths) -> Coding
               "amplitude": weight, "phase": p["phase_rad"]}
     ranges = {"scale": _outward_range(float(values["scale"].min()), float(values["scale"].max())),
               "amplitude": [0.0, _outward_range(0.0, float(weight.abs().max()))[1]]}
-    chosen = quantisers(ranges, bits)
-    # the decoder knows only the decoded scale: rotation's depths and the curvature's bound follow it
-    scale = decoded_scale(chosen["scale"].values(chosen["scale"].codes(values["scale"])))
-    depths = rotation_depths(scale, bits.rotation)
-    chosen["rotation"] = rotation_quantiser(depths)
     if config.primitive == "cvqpg":
-        bound = curvature_bound(scale, config).double()
+        # the decoder knows only the decoded scale: the curvature's bound follows it
+        scale = quantiser("scale", ranges, bits.scale)
+        bound = curvature_bound(decoded_scale(scale.values(scale.codes(values["scale"]))), config).double()
         values["curvature"] = p["curvature_per_m"] / torch.where(bound > 0, bound, 1.0)
+    coded = folded(values)
+    chosen, depths = chained_quantisers(ranges, bits, stream_shapes(primitives.count, config),
+                                        lambda name, chosen, _: chosen.values(chosen.codes(coded[name])))
     return Coding(values, ranges, chosen, depths)
 
 
@@ -293,36 +392,69 @@ def morton_order(grid: Tensor) -> Tensor:
 @dataclass
 class Encoded:
     """One model's integer symbols per stream, the side information to dequantise them, and the bits per
-    symbol of the streams whose widths the decoder derives (rotation's)."""
+    symbol of the streams whose widths the decoder derives (`derived_depths`)."""
 
     streams: dict[str, np.ndarray]
     ranges: dict[str, list[float]]
     widths: dict[str, np.ndarray] = field(default_factory=dict)
 
 
+def whole_pixels(codes: Tensor, depths: Tensor) -> tuple[Tensor, Tensor]:
+    """(whole pixels, fraction) of position codes (int64 [N, 2]) on grids of 2^-depths px: codes = whole·2^depths
+    + fraction."""
+    whole = torch.div(codes, 2**depths, rounding_mode="floor")
+    return whole, codes - whole * 2**depths
+
+
+def file_order(coded: Coding) -> Tensor:
+    """The order the file stores primitives in: by the Morton code of their whole pixels."""
+    codes = coded.quantisers["position"].codes(coded.values["position"])
+    return morton_order(whole_pixels(codes, coded.depths["position"])[0])
+
+
 def quantise(primitives: Primitives, config: FitConfig, bits: BitDepths) -> Encoded:
-    """Integer symbols of every attribute, primitives in Morton order (see the module docstring)."""
+    """Integer symbols of every stream in the file's order: the Morton gaps of the primitives' whole pixels, the
+    fractions of a pixel, then the other attributes in the order `ATTRIBUTES`, primitives in `file_order`; with
+    the bits of each symbol of the streams whose depths the decoder derives."""
     coded = coding(primitives, config, bits)
-    codes = {name: coded.quantisers[name].codes(values) for name, values in folded(coded.values).items()}
-    order = morton_order(codes["position"])
-    grid = codes.pop("position")[order].numpy().astype(np.uint64)
-    morton = _interleave(grid[:, 0], grid[:, 1])
-    return Encoded({"position": np.diff(morton, prepend=np.uint64(0)).astype(np.int64),
+    values = folded(coded.values)
+    codes = {name: coded.quantisers[name].codes(values[name]) for name in ATTRIBUTES if name in values}
+    order = file_order(coded)
+    depths = {name: depth[order].numpy() for name, depth in coded.depths.items()}
+    whole, fraction = whole_pixels(codes.pop("position")[order], coded.depths["position"][order])
+    grid = whole.numpy().astype(np.uint64)
+    gaps = np.diff(_interleave(grid[:, 0], grid[:, 1]), prepend=np.uint64(0)).astype(np.int64)
+    return Encoded({"position": gaps, "fraction": fraction.numpy(),
                     **{name: symbols[order].numpy() for name, symbols in codes.items()}}, coded.ranges,
-                   {"rotation": coded.rotation_depths[order].numpy()})
+                   {"fraction": depths.pop("position"), **depths})
 
 
 def dequantise(encoded: Encoded, config: FitConfig, bits: BitDepths) -> Primitives:
-    """Primitives (float32, Morton order) from `quantise`'s symbols, or from a file's; rotation at
-    `encoded.widths`' depths where it has them (format 3 on), else at `bits.rotation`. Opacity is 1, folded
-    into amplitude."""
-    chosen = quantisers(encoded.ranges, bits)
-    if "rotation" in encoded.widths:
-        chosen["rotation"] = rotation_quantiser(torch.from_numpy(encoded.widths["rotation"]))
-    x, y = _deinterleave(np.cumsum(encoded.streams["position"].astype(np.uint64), dtype=np.uint64))
-    codes = {name: torch.from_numpy(symbols) for name, symbols in encoded.streams.items() if name != "position"}
-    codes["position"] = torch.from_numpy(np.stack([x, y], axis=1).astype(np.int64))
-    values = {name: chosen[name].values(symbols) for name, symbols in codes.items()}
+    """Primitives (float32, Morton order) from `quantise`'s symbols."""
+    return read_primitives(lambda name, _: encoded.streams[name], len(encoded.streams["position"]), encoded.ranges,
+                           config, bits)
+
+
+def read_primitives(symbols: Callable[[str, np.ndarray | None], np.ndarray], count: int,
+                    ranges: dict[str, list[float]], config: FitConfig, bits: BitDepths,
+                    version: int = FORMAT_VERSION) -> Primitives:
+    """`count` primitives (float32, Morton order) from the symbols of a file of `version`: `symbols(name, widths)`
+    returns stream `name`'s, given the bits of each symbol where the decoder derives them (else None). Opacity
+    is 1, folded into amplitude."""
+    values: dict[str, Tensor] = {}
+
+    def read(name: str, chosen: Quantiser, depths: Tensor | None) -> Tensor:
+        if name == "position":
+            x, y = _deinterleave(np.cumsum(symbols(name, None).astype(np.uint64), dtype=np.uint64))
+            codes = torch.from_numpy(np.stack([x, y], axis=1).astype(np.int64))
+            if depths is not None:
+                codes = codes * 2**depths + torch.from_numpy(symbols("fraction", depths.numpy()))
+        else:
+            codes = torch.from_numpy(symbols(name, None if depths is None else depths.numpy()))
+        values[name] = chosen.values(codes)
+        return values[name]
+
+    chained_quantisers(ranges, bits, stream_shapes(count, config, version), read, version)
     return primitives_from(values, decoded_scale(values["scale"]), config)
 
 
@@ -376,13 +508,10 @@ def encode_stream(values: np.ndarray, widths: np.ndarray | None = None) -> tuple
 
     Symbols are offset by their minimum. `raw` packs fixed-width bits; the parametric models carry
     two short parameters; `categorical` carries the histogram, which pays only for skewed streams. With
-    `widths` (bits per symbol, which the decoder derives, as for rotation) the symbols are uniform
-    within them and `widths` packs exactly that many bits of each.
+    `widths` (bits per symbol, which the decoder derives), see `_stream_at_widths`.
     """
     if widths is not None:
-        data = _grouped_raw_bits(values.ravel(), widths.ravel())
-        return {"coding": WIDTHS, "min": 0, "max": int(values.max(initial=0)), "shape": list(values.shape),
-                "bytes": len(data)}, data
+        return _stream_at_widths(values, np.broadcast_to(widths, values.shape))
     flat = values.ravel()
     low = int(flat.min(initial=0))
     shifted = flat - low
@@ -406,6 +535,27 @@ def encode_stream(values: np.ndarray, widths: np.ndarray | None = None) -> tuple
         candidates.append(_bit_length_coded(shifted))
     descriptor, data = min(candidates, key=lambda c: len(c[1]))
     return {**descriptor, "min": low, "max": top + low, "shape": list(values.shape), "bytes": len(data)}, data
+
+
+def _stream_at_widths(values: np.ndarray, widths: np.ndarray) -> tuple[dict[str, Any], bytes]:
+    """A stream whose symbols have `widths` bits each, which the decoder derives: `widths` (raw bits, no parameters;
+    for symbols in 0..2^width − 1) or `grouped` (the symbols of each width in their own smallest coding, one
+    descriptor per width), whichever takes fewer bytes with its descriptor compressed as the header compresses
+    it. Symbols of width 0, all 0, take none."""
+    flat, widths = values.ravel(), widths.ravel()
+    common = {"min": int(flat.min(initial=0)), "max": int(flat.max(initial=0)), "shape": list(values.shape)}
+    groups, payload = [], []
+    for width in np.unique(widths[widths > 0]).tolist():
+        descriptor, data = encode_stream(flat[widths == width])
+        del descriptor["shape"]  # the decoder counts the symbols of each width
+        groups.append({**descriptor, "bits": width})
+        payload.append(data)
+    grouped = b"".join(payload)
+    candidates = [({"coding": GROUPED, "groups": groups, **common, "bytes": len(grouped)}, grouped)]
+    if bool(((flat >= 0) & (flat < 2**widths)).all()):  # not curvature's signed codes
+        raw = _grouped_raw_bits(flat, widths)
+        candidates.append(({"coding": WIDTHS, **common, "bytes": len(raw)}, raw))
+    return min(candidates, key=lambda c: len(c[1]) + len(zlib.compress(json.dumps(c[0]).encode(), 9)))
 
 
 def _bit_length_coded(shifted: np.ndarray) -> tuple[dict[str, Any], bytes]:
@@ -468,6 +618,8 @@ def decode_stream(descriptor: dict[str, Any], data: bytes, widths: np.ndarray | 
     shape, low, top = descriptor["shape"], descriptor["min"], descriptor["max"] - descriptor["min"]
     count = int(np.prod(shape))
     coding = descriptor["coding"]
+    if coding == GROUPED:
+        return _from_groups(descriptor["groups"], data, widths, count).reshape(shape)
     if coding == WIDTHS:
         if widths is None or widths.size != count:
             raise ValueError("a stream of per-symbol widths where the decoder knows none")
@@ -487,6 +639,21 @@ def decode_stream(descriptor: dict[str, Any], data: bytes, widths: np.ndarray | 
         decoder = constriction.stream.stack.AnsCoder(words)
         shifted = decoder.decode(_model(coding, 0, top, params), count).astype(np.int64)
     return (shifted + low).reshape(shape)
+
+
+def _from_groups(groups: list[dict[str, Any]], data: bytes, widths: np.ndarray | None, count: int) -> np.ndarray:
+    """The symbols of a `grouped` stream of `count` symbols at `widths` bits each."""
+    if widths is None or widths.size != count:
+        raise ValueError("a stream of per-symbol widths where the decoder knows none")
+    widths = widths.ravel()
+    if sorted(group["bits"] for group in groups) != np.unique(widths[widths > 0]).tolist():
+        raise ValueError("its groups are not the widths the decoder derives")
+    symbols, offset = np.zeros(count, np.int64), 0
+    for group in groups:
+        chosen = widths == group["bits"]
+        symbols[chosen] = decode_stream({**group, "shape": [int(chosen.sum())]}, data[offset:offset + group["bytes"]])
+        offset += group["bytes"]
+    return symbols
 
 
 def encode(primitives: Primitives, config: FitConfig, bits: BitDepths) -> bytes:
@@ -532,16 +699,19 @@ class Compressed:
     version: int
 
 
-def stream_shapes(count: int, config: FitConfig) -> dict[str, tuple[int, ...]]:
-    """The shape of each stream of `count` primitives: one Morton gap per position, the other attributes'
-    own shapes (`model_shapes`), curvature for `cvqpg` primitives only."""
+def stream_shapes(count: int, config: FitConfig, version: int = FORMAT_VERSION) -> dict[str, tuple[int, ...]]:
+    """The shape of each stream of `count` primitives in a file of `version`: one Morton gap per position, from
+    format 4 on the fractions of a pixel of each coordinate, the other attributes' own shapes (`model_shapes`),
+    curvature for `cvqpg` primitives only."""
     shapes = model_shapes(count, config)
     streams = {"position": (count,), "scale": shapes["scale_px"], "rotation": shapes["rotation_rad"],
                "amplitude": shapes["amplitude"], "phase": shapes["phase_rad"]}
+    if version >= IMPORTANCE_VERSION:
+        streams["fraction"] = (count, 2)
     return {**streams, "curvature": shapes["curvature_per_m"]} if config.primitive == "cvqpg" else streams
 
 
-def _checked_header(header: Any, name: str) -> tuple[FitConfig, BitDepths]:
+def _checked_header(header: Any, name: str, version: int) -> tuple[FitConfig, BitDepths]:
     """The configuration (with the file's primitive count) and bit depths of a header whose checksum holds,
     refused (`ModelFileError`) where they make no sense: a file altered with its checksum recomputed, or
     written by another program."""
@@ -549,29 +719,24 @@ def _checked_header(header: Any, name: str) -> tuple[FitConfig, BitDepths]:
         config, count = config_from_optics(header["optics"]), header["num_primitives"]
         bits = BitDepths(**header["bits"])
         shapes = {descriptor["name"]: tuple(descriptor["shape"]) for descriptor in header["streams"]}
-    except (KeyError, TypeError, AttributeError) as error:
+        ranges = [float(value) for key in ("scale", "amplitude") for value in header["ranges"][key]]
+    except (KeyError, TypeError, AttributeError, ValueError) as error:
         raise ModelFileError(f"{name}: its header is malformed ({type(error).__name__}: {error}); "
                              f"{REWRITE_MODEL}") from None
+    if not all(math.isfinite(value) for value in ranges):
+        # every depth of format 4 derives from the decoded scale and amplitude
+        raise ModelFileError(f"{name}: its ranges of log scale and amplitude {header['ranges']} are not finite; "
+                             f"{REWRITE_MODEL}")
     check_settings(config, count, name)
     try:
         bits.validate()
     except ConfigError as error:
         raise ModelFileError(f"{name}: its bit depths cannot work ({error}); {REWRITE_MODEL}") from None
-    expected = stream_shapes(count, config)
+    expected = stream_shapes(count, config, version)
     if shapes != expected:
         raise ModelFileError(f"{name}: its streams have shapes {shapes}, {count} primitives need {expected}; "
                              f"{REWRITE_MODEL}")
     return config.replace(num_gaussians=count), bits
-
-
-def _derived_widths(stream: str, decoded: dict[str, np.ndarray], ranges: dict[str, list[float]], bits: BitDepths,
-                    version: int) -> np.ndarray | None:
-    """Bits per symbol of `stream` where the decoder derives them, else None: rotation's depths, from the scale
-    streams decoded before it (`decoded`)."""
-    if stream != "rotation" or version < ROTATION_DEPTH_VERSION:
-        return None
-    scale = decoded_scale(quantisers(ranges, bits)["scale"].values(torch.from_numpy(decoded["scale"])))
-    return rotation_depths(scale, bits.rotation).numpy()
 
 
 def decode(data: bytes, name: str = "file") -> Compressed:
@@ -598,20 +763,21 @@ def decode(data: bytes, name: str = "file") -> Compressed:
         raise ModelFileError(f"{name}: corrupted (CRC32 checksum mismatch)")
     if header is None:
         raise ModelFileError(f"{name}: its header is not one cvqpg writes; {REWRITE_MODEL}")
-    config, bits = _checked_header(header, name)
-    offset, streams, widths = PREFIX.size + header_length, {}, {}
+    config, bits = _checked_header(header, name, version)
+    offset, located = PREFIX.size + header_length, {}
     for descriptor in header["streams"]:
-        try:
-            derived = _derived_widths(descriptor["name"], streams, header["ranges"], bits, version)
-            if derived is not None:
-                widths[descriptor["name"]] = derived
-            streams[descriptor["name"]] = decode_stream(descriptor, body[offset:offset + descriptor["bytes"]], derived)
-        except (KeyError, TypeError, ValueError, IndexError, zlib.error) as error:
-            raise ModelFileError(f"{name}: stream {descriptor['name']!r} does not decode ({error}); "
-                                 f"{REWRITE_MODEL}") from None
+        located[descriptor["name"]] = descriptor, body[offset:offset + descriptor["bytes"]]
         offset += descriptor["bytes"]
+
+    def symbols(stream: str, widths: np.ndarray | None) -> np.ndarray:
+        descriptor, payload = located[stream]
+        try:
+            return decode_stream(descriptor, payload, widths)
+        except (KeyError, TypeError, ValueError, IndexError, zlib.error) as error:
+            raise ModelFileError(f"{name}: stream {stream!r} does not decode ({error}); {REWRITE_MODEL}") from None
+
     try:
-        primitives = dequantise(Encoded(streams, header["ranges"], widths), config, bits)
+        primitives = read_primitives(symbols, header["num_primitives"], header["ranges"], config, bits, version)
     except (KeyError, TypeError, IndexError) as error:
         raise ModelFileError(f"{name}: its ranges are malformed ({type(error).__name__}: {error}); "
                              f"{REWRITE_MODEL}") from None

@@ -12,8 +12,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from .codec import (BitDepths, Quantiser, coding, decoded_scale, folded, primitives_from, quantisers, rotation_depths,
-                    rotation_quantiser)
+from .codec import BitDepths, Quantiser, chained_quantisers, coding, folded, primitives_from, quantisers, stream_shapes
 from .config import FitConfig
 from .fitting import hologram, hologram_loss, psnr_from_mse
 from .primitives import Primitives
@@ -39,16 +38,19 @@ def straight_through(value: Tensor, quantiser: Quantiser) -> Tensor:
     return value + (quantiser.values(quantiser.codes(value.detach())) - value).detach()
 
 
-def quantised(values: dict[str, Tensor], chosen: dict[str, Quantiser], config: FitConfig, rotation_bits: int
+def quantised(values: dict[str, Tensor], ranges: dict[str, list[float]], config: FitConfig, bits: BitDepths
               ) -> Primitives:
-    """The primitives as the codec decodes `values` (the attributes of `codec.Coding`) with the quantisers
-    `chosen`, rotation's at `rotation_bits` for the scale they decode to, with straight-through gradients."""
-    values = folded(values)
-    decoded = {name: straight_through(value, chosen[name]) for name, value in values.items() if name != "rotation"}
-    scale = decoded["scale"]
-    depths = rotation_depths(decoded_scale(scale.detach().cpu()), rotation_bits).to(scale.device)
-    decoded["rotation"] = straight_through(values["rotation"], rotation_quantiser(depths))
-    return primitives_from(decoded, torch.exp(scale.float()), config)
+    """The primitives as the codec decodes `values` (the attributes of `codec.Coding`) at `bits` with the header's
+    `ranges`, each value at the depth the values it decodes to derive (`codec.derived_depths`), with
+    straight-through gradients."""
+    values, decoded = folded(values), {}
+
+    def read(name: str, chosen: Quantiser, _) -> Tensor:
+        decoded[name] = straight_through(values[name], chosen.on(values[name].device))
+        return decoded[name]
+
+    chained_quantisers(ranges, bits, stream_shapes(values["position"].shape[0], config), read)
+    return primitives_from(decoded, torch.exp(decoded["scale"].float()), config)
 
 
 def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitDepths, steps: int,
@@ -80,7 +82,7 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
                                                  * 0.5 * (1 + math.cos(math.pi * i / max(steps, 1))))
     generator = torch.Generator(device=config.device).manual_seed(config.seed if seed is None else seed)
     for step in range(steps):
-        loss, mse = hologram_loss(hologram(quantised(params, coded.quantisers, config, bits.rotation), config), scene,
+        loss, mse = hologram_loss(hologram(quantised(params, coded.ranges, config, bits), config), scene,
                                   config, generator)
         if on_step is not None:  # reads the device back: only for a caller that shows progress
             on_step(step, float(psnr_from_mse(mse)))
@@ -102,7 +104,7 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
     with torch.no_grad():
         # γ from the share and the bound at the scale as decoded, the bound the codec will divide by; the
         # scale itself through a float64 exp, which returns the held extremes exactly as they came
-        tuned = primitives_from(params, quantised(params, coded.quantisers, config, bits.rotation).scale_px, config)
+        tuned = primitives_from(params, quantised(params, coded.ranges, config, bits).scale_px, config)
         return replace(tuned, scale_px=torch.exp(params["scale"]).float()).to("cpu")
 
 

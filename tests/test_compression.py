@@ -15,8 +15,9 @@ from safetensors.torch import load_file
 
 from cvqpg import FitConfig, load_model
 from cvqpg.cli import main
-from cvqpg.codec import (CHECKSUM, FORMAT_VERSION, MAGIC, PREFIX, BitDepths, coding, decode, decode_stream, dequantise,
-                         encode, encode_stream, morton_order, quantise, rotation_depths)
+from cvqpg.codec import (CHECKSUM, FORMAT_VERSION, MAGIC, PREFIX, BitDepths, coding, decode, decode_stream,
+                         dequantise, derived_depths, encode, encode_stream, file_order, importance_offsets, quantise,
+                         rotation_depths)
 from cvqpg.compression import compress_model
 from cvqpg.errors import ConfigError, ModelFileError
 from cvqpg.finetune import quantised
@@ -73,43 +74,95 @@ def test_streams_round_trip_exactly(values):
     assert (decode_stream(descriptor, data) == array).all()
 
 
-def test_files_of_earlier_format_versions_still_read():
-    """tests/data/format_v2.cvq holds random primitives (48×32 RGB, γ per channel, default bits) as format
-    version 2 wrote them, before rotation's depth followed each primitive's anisotropy, and
-    format_v2_decoded.safetensors what that version decoded them to. The same bytes labelled version 1 read
-    alike (version 2 only added a coding)."""
-    data = (DATA / "format_v2.cvq").read_bytes()
-    expected = load_file(DATA / "format_v2_decoded.safetensors")
-    body = bytearray(data[:-CHECKSUM.size])
-    struct.pack_into("<H", body, len(MAGIC), 1)
-    older = bytes(body) + CHECKSUM.pack(zlib.crc32(body))
-    assert FORMAT_VERSION == 3
-    for file in (data, older):
+@pytest.mark.parametrize("skewed, coding", [(False, "widths"), (True, "grouped")])
+def test_streams_at_derived_widths_round_trip_in_their_smaller_coding(skewed, coding):
+    """Symbols whose widths the decoder derives: uniform within their widths, raw bits (`widths`) are smallest;
+    peaked, each width's own entropy coding (`grouped`) pays for its descriptors."""
+    rng = np.random.default_rng(1)
+    widths = rng.integers(0, 7, 5000)
+    symbols = (np.minimum(rng.geometric(0.4, widths.shape) - 1, 2**widths - 1) if skewed
+               else rng.integers(0, 2**widths))
+    descriptor, data = encode_stream(symbols, widths)
+    assert descriptor["coding"] == coding
+    assert (decode_stream(descriptor, data, widths) == symbols).all()
+    with pytest.raises(ValueError):
+        decode_stream(descriptor, data, None)
+
+
+@pytest.mark.parametrize("stored, relabelled", [("v2", 1), ("v3", None)])
+def test_files_of_earlier_format_versions_still_read(stored, relabelled):
+    """tests/data/format_v2.cvq and format_v3.cvq hold random primitives (48×32 RGB, γ per channel, default bits)
+    as format versions 2 and 3 wrote them (3: rotation's depth followed each primitive's anisotropy; 4, today's,
+    derives every depth by importance), and format_v*_decoded.safetensors what that version decoded them to.
+    Version 2's bytes labelled version 1 read alike (version 2 only added a coding)."""
+    data = (DATA / f"format_{stored}.cvq").read_bytes()
+    expected = load_file(DATA / f"format_{stored}_decoded.safetensors")
+    files = [data]
+    if relabelled is not None:
+        body = bytearray(data[:-CHECKSUM.size])
+        struct.pack_into("<H", body, len(MAGIC), relabelled)
+        files.append(bytes(body) + CHECKSUM.pack(zlib.crc32(body)))
+    assert FORMAT_VERSION == 4
+    for file in files:
         for name, tensor in decode(file).primitives.tensors().items():
             # the scale through numpy's float32 exp, which may differ in the last bit between CPUs
             tolerance = 1e-6 if name in ("scale_px", "curvature_per_m") else 0.0
             torch.testing.assert_close(tensor, expected[name], rtol=tolerance, atol=0, msg=name)
 
 
-def test_rotation_s_depth_follows_anisotropy_so_every_primitive_s_rotation_error_costs_alike():
-    config = FitConfig(width=48, height=32, color="gray", ratio=0.3)
-    primitives = random_primitives(config)
+def test_rotation_s_depth_follows_anisotropy():
     sigma = torch.tensor([[2.0, 2.0], [2.0, 2.1], [2.0, 2.9], [1.0, 2.0], [1.0, 8.0]])
     assert rotation_depths(sigma, 7).tolist() == [0, 4, 7, 8, 10]  # a − 1/a: 0, 0.098, 0.76, 1.5, 7.9
-    bits = BitDepths(rotation=5)
-    data = encode(primitives, config, bits)
-    decoded = decode(data)
-    reference = decode(encode(primitives, config, BitDepths(rotation=16))).primitives  # the same order
-    scale = decoded.primitives.scale_px.double()
-    aspect = scale.max(1).values / scale.min(1).values
-    error = torch.remainder(decoded.primitives.rotation_rad.double() - reference.rotation_rad.double()
-                            + math.pi / 2, math.pi) - math.pi / 2
-    assert bool((error.abs() * (aspect - 1 / aspect) <= math.pi / 2**(bits.rotation + 1) + 1e-6).all())
-    stream = next(s for s in decoded.streams if s["name"] == "rotation")
-    depths = rotation_depths(scale, bits.rotation)
-    groups = torch.bincount(depths)  # each width's symbols are padded to a byte
-    assert stream["coding"] == "widths" and stream["bytes"] == sum((int(n) * w + 7) // 8 for w, n in enumerate(groups))
-    assert int(depths.sum()) < bits.rotation * primitives.count
+    assert rotation_depths(sigma, torch.tensor([7, 7, 5, 9, 7])).tolist() == [0, 4, 5, 10, 10]
+
+
+def test_importance_offsets_give_a_bit_per_fourfold_weight_and_none_to_what_does_not_show():
+    # binary exponents 1, 2, 3, 5, −1 (frexp: w = m·2^e, 0.5 ≤ m < 1): median 2
+    weights = torch.tensor([1.0, 2.0, 4.0, 16.0, 0.25, 0.0], dtype=torch.float64)
+    assert importance_offsets(weights).tolist() == [-1, 0, 0, 1, -2, -16]
+
+
+@pytest.mark.parametrize("attribute", ["position", "rotation", "phase"])
+def test_every_value_s_error_costs_about_alike_in_the_field(attribute):
+    """Position, rotation and phase errors, weighted by what they cost in the field (√(Σ_c |w_c|²) for position,
+    a shifted Gaussian's error energy being independent of its size; √(|w|²·σx·σy) for phase; for rotation
+    √(Σ_c |w_c|²·σx·σy) times a − 1/a, whose bits `rotation_depths` gives), stay within twice the half-step of
+    a value of median weight, where the depths are not clamped."""
+    config = FitConfig(width=48, height=32, color="rgb", ratio=0.6)
+    primitives = random_primitives(config)
+    bits = BitDepths(position=2, rotation=6, phase=6)
+    decoded = decode(encode(primitives, config, bits)).primitives
+    # at the same positions' depths, in the same order
+    reference = decode(encode(primitives, config, BitDepths(position=2, rotation=16, phase=16))).primitives
+    scale = decoded.scale_px.double()
+    power = (decoded.amplitude.double() ** 2).sum(1)
+    weight = {"position": power[:, None].expand(-1, 2), "rotation": power * scale.prod(1),
+              "phase": decoded.amplitude.double() ** 2 * scale.prod(1)[:, None]}[attribute]
+    _, exponent = torch.frexp(weight)
+    median = exponent[weight > 0].sort().values[int((weight > 0).sum()) // 2]
+    if attribute == "position":
+        # a primitive's two coordinates share one depth; the median is over the primitives
+        median = exponent[:, 0].sort().values[weight.shape[0] // 2]
+        # against the float positions: a coarser grid may round a primitive into the next pixel, and so change the
+        # file's order
+        truth = primitives.position_px.double()[file_order(coding(primitives, config, bits))]
+        half_step, error = 2.0 ** -(bits.position + 1), decoded.position_px.double() - truth
+    else:
+        period = math.pi if attribute == "rotation" else 2 * math.pi
+        values, truth = ((decoded.rotation_rad, reference.rotation_rad) if attribute == "rotation"
+                         else (decoded.phase_rad, reference.phase_rad))
+        error = torch.remainder(values.double() - truth.double() + period / 2, period) - period / 2
+        half_step = period / 2 ** (getattr(bits, attribute) + 1)
+    if attribute == "rotation":
+        aspect = scale.max(1).values / scale.min(1).values
+        weight = weight * (aspect - 1 / aspect) ** 2
+    depths = derived_depths(attribute, {"scale": decoded.scale_px, "amplitude": decoded.amplitude.double()}, bits,
+                            tuple(error.shape))
+    top = 8 if attribute == "position" else 16
+    unclamped = (depths > 0) & (depths < top)
+    assert bool((error.abs() * weight.sqrt() <= 2 * half_step * 2.0 ** (median / 2))[unclamped].all())
+    base = getattr(bits, attribute)
+    assert int((depths < base).sum()) > 0 and int((depths > base).sum()) > 0
 
 
 def tampered(data: bytes, change) -> bytes:
@@ -132,9 +185,11 @@ def tampered(data: bytes, change) -> bytes:
     (lambda h: h["streams"][1].update(shape=[h["num_primitives"], 3]), "its streams have shapes"),
     (lambda h: h["bits"].update(scale=40), "`bits` scale=40"),
     (lambda h: h.pop("optics"), "its header is malformed (KeyError: 'optics')"),
-    (lambda h: h["ranges"].update(amplitude=[0.0, math.inf]), "tensor 'amplitude' holds values that are not finite"),
-    (lambda h: h["ranges"].update(scale=[math.nan, math.nan]), "some scales (px) are not finite and positive"),
-    (lambda h: h["ranges"].update(scale=[-300.0, -299.0]), "some scales (px) are not finite and positive"),  # exp → 0
+    (lambda h: h["ranges"].update(amplitude=[0.0, math.inf]), "its ranges of log scale and amplitude"),
+    (lambda h: h["ranges"].update(scale=[math.nan, math.nan]), "are not finite"),
+    (lambda h: h["ranges"].update(scale="wide"), "its header is malformed (ValueError"),
+    # exp → 0: the depths that derive from the scale are no longer those the streams were grouped by
+    (lambda h: h["ranges"].update(scale=[-300.0, -299.0]), "does not decode"),
 ])
 def test_a_file_whose_checksum_holds_is_still_checked_for_physical_sense(change, message):
     config = FitConfig(width=48, height=32, ratio=0.3)
@@ -202,9 +257,9 @@ def test_finetune_rounds_through_the_codec_s_own_quantisers(bits, color, curvatu
     primitives = random_primitives(config)
     coded = coding(primitives, config, bits)
     values = {name: value.clone().requires_grad_(True) for name, value in coded.values.items()}
-    forward = quantised(values, coded.quantisers, config, bits.rotation)
+    forward = quantised(values, coded.ranges, config, bits)
     decoded = dequantise(quantise(primitives, config, bits), config, bits).tensors()
-    order = morton_order(coded.quantisers["position"].codes(coded.values["position"]))
+    order = file_order(coded)
     tuned = {name: tensor.detach()[order] for name, tensor in forward.tensors().items()}
     for name in ("position_px", "rotation_rad", "amplitude", "phase_rad", "opacity"):
         assert torch.equal(tuned[name], decoded[name]), name
