@@ -63,8 +63,8 @@ def _limits(name: str) -> tuple[int, int]:
 
 # Stream codings; each stream takes the smallest that applies, so a coding that does not pay is never used.
 RAW, LAPLACE, GAUSSIAN, CATEGORICAL, BIT_LENGTH = "raw", "laplace", "gaussian", "categorical", "bitlength"
-# Streams at a width per symbol that the decoder derives: `widths`, raw bits (format 3's rotation); `grouped`,
-# the symbols of each width as a stream of their own (format 4 on).
+# Streams at a width per symbol that the decoder derives (`_stream_at_widths`): `widths`, raw bits; `grouped`
+# (format 4 on), the symbols of each width as a stream of their own.
 WIDTHS, GROUPED = "widths", "grouped"
 
 
