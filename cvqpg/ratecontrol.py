@@ -31,6 +31,7 @@ from .codec import MAX_BITS, SUFFIX, BitDepths, bits_per_pixel, encode, range_ho
 from .compression import (Choice, Reference, check_compression_settings, choice_record, compression_input,
                           compression_record, kept, reference_for, strongest_first, trial)
 from .config import FitConfig
+from .control import RunControl
 from .errors import ConfigError
 from .files import write_atomic
 from .finetune import finetune
@@ -63,7 +64,7 @@ CLOSE = 0.95
 def encode_steps(steps: int) -> tuple[int, int]:
     """`cvqpg encode`'s float and quantisation-aware steps in the place of a fit of `steps` steps: `ENCODE_STEPS`
     and `ENCODE_FINETUNE_STEPS` for a Table 1 fit's 2000, in proportion for others (one float step at least)."""
-    share = steps / FitConfig().steps
+    share = steps / FitConfig().optimisation.steps
     return max(round(share * ENCODE_STEPS), 1), round(share * ENCODE_FINETUNE_STEPS)
 
 
@@ -93,8 +94,8 @@ class Budget:
         `max_bytes` bytes, one of them; `ConfigError` naming it where it is not positive and finite."""
         check_budget_values(bpp, max_bytes)
         if bpp is not None:
-            size = math.floor(bpp * config.width * config.height / 8)
-            return cls(size, f"`bpp` {bpp:g} ({size} bytes for {config.width}×{config.height} px)")
+            size = math.floor(bpp * config.targets.width * config.targets.height / 8)
+            return cls(size, f"`bpp` {bpp:g} ({size} bytes for {config.targets.width}×{config.targets.height} px)")
         return cls(max_bytes, f"`max_bytes` {max_bytes}")
 
     def check(self, smallest: int, config: FitConfig) -> None:
@@ -205,7 +206,7 @@ def rate_control(primitives: Primitives, config: FitConfig, reference: Reference
 
     def check_stop() -> None:
         if stop_requested is not None and stop_requested():
-            raise FitInterrupted(config.steps + 1, during="rate control")
+            raise FitInterrupted(config.optimisation.steps + 1, during="rate control")
 
     steps = finetune_steps if scene is not None else 0
     order = strongest_first(primitives)
@@ -273,8 +274,8 @@ def stand_in(config: FitConfig, count: int, seed: int = 0) -> Primitives:
     """`count` random primitives of the fit's shape, coded about as a fitted model is: the initialisation's
     positions, scales and amplitudes, with phases and curvatures spread over their whole range (a fit
     starts them at 0, which would code in almost no bits)."""
-    raw = init_gaussians(count, config.channels, config.width, config.height, seed,
-                         per_channel_curvature=config.curvature == "per-channel")
+    raw = init_gaussians(count, config.channels, config.targets.width, config.targets.height, seed,
+                         per_channel_curvature=config.primitives.curvature == "per-channel")
     generator = torch.Generator().manual_seed(seed)
     raw.phase.uniform_(0, 2 * math.pi, generator=generator)
     raw.curvature.uniform_(-1, 1, generator=generator)
@@ -298,8 +299,8 @@ def primitives_for_budget(config: FitConfig, max_bytes: int) -> int:
     # Positions cost fewer bits the denser the primitives (Morton gaps): measured again at the first estimate
     for _ in range(2):
         per_primitive = (len(encode(stand_in(config, count), config, BitDepths())) - header) / (count - 1)
-        count = min(max(round((max_bytes - header) / per_primitive), 2), config.width * config.height)
-    return min(max(round(count * ENCODE_HEADROOM), 1), config.width * config.height)
+        count = min(max(round((max_bytes - header) / per_primitive), 2), config.targets.width * config.targets.height)
+    return min(max(round(count * ENCODE_HEADROOM), 1), config.targets.width * config.targets.height)
 
 
 def encode_config(config: FitConfig, budget: Budget) -> FitConfig:
@@ -346,13 +347,13 @@ def encode_fitted(fitted: FitResult, scene: Scene, budget: Budget, finetune_step
 
 def encode_scene(scene: Scene, config: FitConfig, budget: Budget, finetune_steps: int = ENCODE_FINETUNE_STEPS,
                  progress: bool = False, stop_requested: Callable[[], bool] | None = None) -> Encoding:
-    """Fit `scene` with `encode_config`'s primitive count (replacing `config`'s) for `config.steps` (`cvqpg encode`
+    """Fit `scene` with `encode_config`'s primitive count (replacing `config`'s) for its steps (`cvqpg encode`
     fits for `ENCODE_STEPS`) and `encode_fitted` the model into a file within `budget` (`encode_budget`).
     Progress bars (`progress`) show the fit's PSNR, then the rate search's bpp and PSNR. When
     `stop_requested()` turns true the fit or the rate control stops between two steps (`fitting.FitInterrupted`);
     `app.runner.encode_in_folder` runs the same with checkpoints."""
     check_compression_settings(None, finetune_steps, 0.0)
-    fitted = fit_scene(scene, encode_config(config, budget), progress=progress, stop_requested=stop_requested)
+    fitted = fit_scene(scene, encode_config(config, budget), control=RunControl(progress, stop_requested))
     return encode_fitted(fitted, scene, budget, finetune_steps, progress, stop_requested)
 
 

@@ -20,7 +20,7 @@ torch.set_num_threads(2)
 @pytest.fixture
 def tiny_config() -> FitConfig:
     """64×48 px, two planes, a narrow guard band: a fit step costs a few tens of ms."""
-    return FitConfig(width=64, height=48, steps=20, curvature_warmup=5, guard_band_px=32)
+    return FitConfig.create(width=64, height=48, steps=20, curvature_warmup=5, guard_band_px=32)
 
 
 def write_scenes(root):

@@ -14,6 +14,7 @@ import pytest
 import torch
 from PIL import Image
 
+from cvqpg.control import SILENT
 from cvqpg.campaign.bench import (DONE, INTERRUPTED, BenchError, Overrides, cell_status, folder_plan, make_plan,
                                   parse_shard, run_cell, run_plan)
 from cvqpg.cli import main
@@ -125,8 +126,8 @@ def test_methods_map_to_the_papers_configurations(scenes_dir, tmp_path):
     assert (ablation["vanilla"].bound, ablation["vanilla"].qpf, ablation["vanilla"].primitive) == (
         "global", "standard", "cvqpg")
     star = make_plan("star").cells
-    assert {(c.config.num_planes, c.config.color, c.config.primitive_count) for c in star} == {(1, "gray", 7680)}
-    assert make_plan("quick", overrides=Overrides(steps=50)).cells[0].config.curvature_warmup == 10
+    assert {(c.config.targets.num_planes, c.config.targets.color, c.config.primitive_count) for c in star} == {(1, "gray", 7680)}
+    assert make_plan("quick", overrides=Overrides(steps=50)).cells[0].config.optimisation.curvature_warmup == 10
 
 
 def test_chromatic_preset_compares_at_equal_n_and_at_per_channel_parameter_count(scenes_dir, tmp_path):
@@ -173,7 +174,7 @@ def test_partial_files_do_not_mark_a_cell_done_and_it_restarts(tmp_path):
     (folder / "metrics.json.4242.partial").write_text("{}")
     (folder / "checkpoint.pt").write_bytes(b"cut short")
     assert cell_status(folder) == INTERRUPTED
-    outcome = run_plan(plan, progress=False)
+    outcome = run_plan(plan, control=SILENT)
     assert outcome.statuses == {cell.name: DONE} and cell_status(folder) == DONE
     assert json.loads((folder / "metrics.json").read_text())["updates"] == 4
 
@@ -188,8 +189,8 @@ def test_interrupted_cell_resumes_from_its_checkpoint_to_the_same_result(tmp_pat
     assert run_cell(cell, folder, lambda: next(checks) > 5) == INTERRUPTED
     assert cell_status(folder) == INTERRUPTED and not (folder / "metrics.json").exists()
     assert load_checkpoint(folder / "checkpoint.pt")["step"] == 5
-    assert run_plan(plan, progress=False).statuses == {cell.name: DONE}
-    assert run_plan(reference, progress=False).statuses == {cell.name: DONE}
+    assert run_plan(plan, control=SILENT).statuses == {cell.name: DONE}
+    assert run_plan(reference, control=SILENT).statuses == {cell.name: DONE}
     resumed, fresh = (json.loads((p.cell_dir(cell) / "metrics.json").read_text()) for p in (plan, reference))
     assert resumed["mean"] == fresh["mean"] and resumed["updates"] == 9
 
@@ -205,14 +206,14 @@ def test_a_cell_checkpointed_on_another_device_restarts_from_step_0(tmp_path, ca
     payload["device"], payload["generator"] = "cuda", torch.zeros(16, dtype=torch.uint8)
     save_checkpoint(folder / "checkpoint.pt", payload)
     with caplog.at_level("WARNING", logger="cvqpg"):
-        assert run_plan(plan, progress=False).statuses == {cell.name: DONE}
+        assert run_plan(plan, control=SILENT).statuses == {cell.name: DONE}
     assert "written on cuda" in caplog.text and "restarts from step 0" in caplog.text
 
 
 @pytest.mark.slow
 def test_jobs_run_cells_in_worker_processes(tmp_path):
     plan = make_plan("quick", tmp_path / "bench", Overrides(size=(48, 36), steps=2))
-    outcome = run_plan(plan, jobs=2, progress=False)
+    outcome = run_plan(plan, jobs=2, control=SILENT)
     assert outcome.count(DONE) == 4 and not outcome.failures
     assert all((plan.cell_dir(c) / "spectrum.json").is_file() for c in plan.cells)
 
@@ -221,7 +222,7 @@ def test_jobs_run_cells_in_worker_processes(tmp_path):
 def test_threads_set_each_fit_s_thread_count_whatever_the_jobs(tmp_path):
     """Three threads each, two fits at once: not the cores/jobs share of any machine with under 6 cores."""
     plan = make_plan("quick", tmp_path / "bench", Overrides(size=(48, 36), steps=2, methods=["cvqpg"]))
-    assert run_plan(plan, jobs=2, progress=False, threads=3).count(DONE) == 2
+    assert run_plan(plan, jobs=2, control=SILENT, threads=3).count(DONE) == 2
     runs = [json.loads((plan.cell_dir(c) / "metrics.json").read_text())["run"] for c in plan.cells]
     assert [run["torch_threads"] for run in runs] == [3, 3]
 
@@ -282,7 +283,7 @@ def test_table_rows_are_means_over_the_scenes_every_method_has_finished(scenes_d
 def test_seed_spread_table_pairs_methods_within_each_seed(tmp_path):
     plan = make_plan("quick", tmp_path / "bench", Overrides(seeds=[1, 2]))
     psnr = {("baseline", 1): 20.0, ("cvqpg", 1): 20.5, ("baseline", 2): 21.0, ("cvqpg", 2): 21.1}
-    results = [CellResult(c, DONE, {"mean": {"psnr": psnr[(c.method, c.config.seed)], "ssim": 0.5, "lpips": None,
+    results = [CellResult(c, DONE, {"mean": {"psnr": psnr[(c.method, c.config.optimisation.seed)], "ssim": 0.5, "lpips": None,
                                              "flip": 0.2, "cvvdp": None}}, None) for c in plan.cells]
     (table,) = seed_tables(plan, results)
     assert table.rows[0][2:] == ["20.000", "21.000", f"{math.sqrt(0.5):.3f}"]
@@ -367,7 +368,7 @@ TINY_PAPER = {"size": (48, 36), "steps": 2, "curvature_warmup": 1, "colors": ["g
 @pytest.mark.slow
 def test_every_cell_records_commit_machine_threads_time_and_peak_memory(tmp_path):
     plan = make_plan("star", tmp_path / "bench", Overrides(**TINY_STAR))
-    run_plan(plan, progress=False)
+    run_plan(plan, control=SILENT)
     metrics = json.loads((plan.cell_dir(plan.cells[0]) / "metrics.json").read_text())
     run = metrics["run"]
     assert run["commit"] == provenance.code_commit() and run["cvqpg_version"]  # tests/test_app_provenance.py

@@ -280,9 +280,9 @@ def test_an_encode_cell_resumes_at_the_first_budget_it_has_no_point_for(tmp_path
     encoded = []
     monkeypatch.setattr(ratedistortion, "encode_point",
                         lambda scene, config, source, bpp, work, finetune_steps, stop_requested=None:
-                        encoded.append((bpp, work, config.steps, config.curvature_warmup, finetune_steps)))
+                        encoded.append((bpp, work, config.optimisation.steps, config.optimisation.curvature_warmup, finetune_steps)))
     monkeypatch.setattr(bench, "scene_from_source", lambda source, config: None)
-    cell = bench.Cell(bench.BenchScene("sushi", {}, 2), "cvqpg", FitConfig(color="gray", ratio=0.1))
+    cell = bench.Cell(bench.BenchScene("sushi", {}, 2), "cvqpg", FitConfig.create(color="gray", ratio=0.1))
     assert bench.run_encode_cell(cell, folder, (0.7, 0.5, 0.36)) == bench.DONE
     # 1.4 bpp has its point and 1.0 was below the smallest file; the fit works in a folder of the cell's
     # (`cvqpg encode`'s 1500 float and 600 quantisation-aware steps in the place of the cell's 2000)
@@ -316,7 +316,7 @@ def test_a_stopped_encode_cell_keeps_its_finished_points_and_is_interrupted(tmp_
 
     monkeypatch.setattr(ratedistortion, "encode_point", encode_point)
     monkeypatch.setattr(bench, "scene_from_source", lambda source, config: None)
-    cell = bench.Cell(bench.BenchScene("sushi", {}, 2), "cvqpg", FitConfig(color="gray", ratio=0.1))
+    cell = bench.Cell(bench.BenchScene("sushi", {}, 2), "cvqpg", FitConfig.create(color="gray", ratio=0.1))
     calls = iter([False, False, False, True])  # the second budget's fit is stopped
     assert bench.run_encode_cell(cell, folder, (0.7, 0.5), lambda: next(calls)) == bench.INTERRUPTED
     record = json.loads((folder / "encode.partial.json").read_text())

@@ -30,8 +30,9 @@ def test_fit_writes_the_whole_run_folder(demo_run):
     history = (demo_run / "history.csv").read_text().splitlines()
     assert history[0] == "step,seconds,loss,psnr" and [row.split(",")[0] for row in history[1:]] == ["0", "1", "2", "3"]
     config = json.loads((demo_run / "config.json").read_text())
-    assert config["seed"] == 100 and config["cvqpg_version"] and config["source"] == {"scene": "demo"}
-    assert config["pixel_pitch"] == 3.74e-6 and config["width"] == 48
+    assert config["optimisation"]["seed"] == 100 and config["cvqpg_version"] and config["source"] == {"scene": "demo"}
+    assert config["optics"]["pixel_pitch"] == 3.74e-6 and config["targets"]["width"] == 48
+    assert config["run"] == {"device": "cpu", "backend": "auto"} and config["recipe"] == "beyond"
     metrics = json.loads((demo_run / "metrics.json").read_text())
     assert set(metrics["mean"]) == {"psnr", "ssim", "flip", "lpips", "cvvdp"}
     assert len(metrics["per_plane"]["psnr"]) == 2
@@ -49,7 +50,7 @@ def test_fewer_steps_scale_the_warm_up_as_the_paper_does(tmp_path):
     out = tmp_path / "short"
     assert main(["fit", "--size", "48", "36", "--steps", "10", "--quiet", "--out", str(out)]) == 0
     recorded = json.loads((out / "config.json").read_text())
-    assert recorded["curvature_warmup"] is None and FitConfig.from_dict(recorded).curvature_warmup_steps == 2
+    assert recorded["optimisation"]["curvature_warmup"] == 2
 
 
 def test_eval_recomputes_the_saved_metrics(demo_run, capsys):
@@ -71,7 +72,7 @@ def test_fit_on_image_and_depth_files(tmp_path):
                  "--primitive", "flat", *SMALL, "--out", str(out)])
     assert code == 0
     config = json.loads((out / "config.json").read_text())
-    assert config["color"] == "gray" and config["primitive"] == "flat"
+    assert config["targets"]["color"] == "gray" and config["primitives"]["kind"] == "flat"
     assert config["source"]["depth"].endswith("d.png")
 
 
@@ -79,7 +80,7 @@ def test_fit_on_image_and_depth_files(tmp_path):
 def test_per_channel_curvature_is_a_fit_option_and_counts_its_parameters(tmp_path, capsys):
     out = tmp_path / "chromatic"
     assert main(["fit", "--curvature", "per-channel", *SMALL, "--out", str(out)]) == 0
-    assert json.loads((out / "config.json").read_text())["curvature"] == "per-channel"
+    assert json.loads((out / "config.json").read_text())["primitives"]["curvature"] == "per-channel"
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["num_params"] == metrics["num_gaussians"] * 15
     assert main(["info", str(out), "--json"]) == 0
@@ -94,7 +95,7 @@ def test_star_scene_runs_single_plane_grayscale(tmp_path):
     out = tmp_path / "star"
     assert main(["fit", "--scene", "star", *SMALL, "--out", str(out)]) == 0
     config = json.loads((out / "config.json").read_text())
-    assert config["num_planes"] == 1 and config["color"] == "gray"
+    assert config["targets"]["num_planes"] == 1 and config["targets"]["color"] == "gray"
     assert (out / "recon_plane0.png").exists() and not (out / "recon_plane1.png").exists()
 
 
@@ -145,7 +146,7 @@ def test_resume_checks_the_recorded_device_before_writing(tmp_path, capsys, monk
     assert main(["fit", *SMALL, "--checkpoint-every", "1", "--out", str(out)]) == 0
     config = json.loads((out / "config.json").read_text())
     (out / "metrics.json").unlink()
-    (out / "config.json").write_text(json.dumps({**config, "device": "cuda"}))
+    (out / "config.json").write_text(json.dumps({**config, "run": {**config["run"], "device": "cuda"}}))
     before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
     monkeypatch.setattr("torch.cuda.is_available", lambda: False)
     assert main(["fit", "--resume", str(out)]) == 2
@@ -199,5 +200,5 @@ def test_a_cuda_fit_larger_than_the_gpus_free_memory_is_refused_before_writing(t
     ("cuda", 640, 480, 0.67), ("cuda", 3840, 2160, 11.38),  # max_memory_allocated on an H200, results/gpu/
 ])
 def test_the_memory_estimate_of_each_device_sits_above_the_peak_measured_there(device, width, height, measured_gib):
-    config = FitConfig(width=width, height=height, ratio=0.2, device=device)
-    assert measured_gib * 2**30 < estimated_peak_bytes(config) < 1.5 * measured_gib * 2**30
+    config = FitConfig.create(width=width, height=height, ratio=0.2)
+    assert measured_gib * 2**30 < estimated_peak_bytes(config, device) < 1.5 * measured_gib * 2**30

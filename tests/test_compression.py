@@ -35,7 +35,7 @@ FINE = BitDepths(position=8, scale=16, rotation=16, amplitude=16, phase=16, curv
 
 def random_primitives(config: FitConfig, seed: int = 3):
     """Initialised primitives with signed amplitudes, wrapped phases and curvature near its bounds."""
-    raw = init_gaussians(config.primitive_count, config.channels, config.width, config.height, seed)
+    raw = init_gaussians(config.primitive_count, config.channels, config.targets.width, config.targets.height, seed)
     g = torch.Generator().manual_seed(seed)
     raw.amplitude.uniform_(-1, 1, generator=g)
     raw.phase.uniform_(-7, 14, generator=g)
@@ -47,7 +47,7 @@ def random_primitives(config: FitConfig, seed: int = 3):
 
 @pytest.mark.parametrize("curvature", ["shared", "per-channel"])
 def test_fine_budget_renders_like_the_float_model(curvature):
-    config = FitConfig(width=48, height=32, ratio=0.3, curvature=curvature, guard_band_px=32)
+    config = FitConfig.create(width=48, height=32, ratio=0.3, curvature=curvature, guard_band_px=32)
     primitives = random_primitives(config)
     decoded = decode(encode(primitives, config, FINE)).primitives
     assert decoded.count == primitives.count and torch.all(decoded.opacity == 1)
@@ -56,7 +56,7 @@ def test_fine_budget_renders_like_the_float_model(curvature):
 
 
 def test_decoding_is_deterministic_and_encoding_reproducible():
-    config = FitConfig(width=48, height=32, color="gray", ratio=0.3)
+    config = FitConfig.create(width=48, height=32, color="gray", ratio=0.3)
     primitives = random_primitives(config)
     data = encode(primitives, config, BitDepths())
     assert encode(primitives, config, BitDepths()) == data
@@ -128,7 +128,7 @@ def test_every_value_s_error_costs_about_alike_in_the_field(attribute):
     a shifted Gaussian's error energy being independent of its size; √(|w|²·σx·σy) for phase; for rotation
     √(Σ_c |w_c|²·σx·σy) times a − 1/a, whose bits `rotation_depths` gives), stay within twice the half-step of
     a value of median weight, where the depths are not clamped."""
-    config = FitConfig(width=48, height=32, color="rgb", ratio=0.6)
+    config = FitConfig.create(width=48, height=32, color="rgb", ratio=0.6)
     primitives = random_primitives(config)
     bits = BitDepths(position=2, rotation=6, phase=6)
     decoded = decode(encode(primitives, config, bits)).primitives
@@ -192,7 +192,7 @@ def tampered(data: bytes, change) -> bytes:
     (lambda h: h["ranges"].update(scale=[-300.0, -299.0]), "does not decode"),
 ])
 def test_a_file_whose_checksum_holds_is_still_checked_for_physical_sense(change, message):
-    config = FitConfig(width=48, height=32, ratio=0.3)
+    config = FitConfig.create(width=48, height=32, ratio=0.3)
     data = tampered(encode(random_primitives(config), config, BitDepths()), change)
     with pytest.raises(ModelFileError, match=f"^model.cvq: .*{re.escape(message)}.*write it again") as refused:
         decode(data, "model.cvq")
@@ -210,7 +210,7 @@ def test_a_model_file_that_makes_no_physical_sense_is_refused(tmp_path, damage, 
     from safetensors import safe_open
     from safetensors.torch import load_file, save_file
 
-    config = FitConfig(width=48, height=32, ratio=0.3)
+    config = FitConfig.create(width=48, height=32, ratio=0.3)
     path = tmp_path / "model.safetensors"
     save_model(path, random_primitives(config), config.replace(pixel_pitch=0) if damage == "pitch" else config)
     tensors = load_file(path)
@@ -231,7 +231,7 @@ def test_a_model_file_that_makes_no_physical_sense_is_refused(tmp_path, damage, 
 
 
 def test_a_tampered_file_is_one_line_exit_2_with_the_flag_named(tmp_path, capsys):
-    config = FitConfig(width=48, height=32, ratio=0.3)
+    config = FitConfig.create(width=48, height=32, ratio=0.3)
     (tmp_path / "model.cvq").write_bytes(tampered(encode(random_primitives(config), config, BitDepths()),
                                                   lambda h: h["optics"].update(pixel_pitch=0)))
     assert main(["info", str(tmp_path / "model.cvq")]) == 2
@@ -253,7 +253,7 @@ def test_long_tailed_streams_take_the_bit_length_coding():
 @pytest.mark.parametrize("color, curvature, primitive", [("gray", "shared", "cvqpg"), ("rgb", "per-channel", "cvqpg"),
                                                          ("rgb", "channel-bound", "cvqpg"), ("rgb", "shared", "flat")])
 def test_finetune_rounds_through_the_codec_s_own_quantisers(bits, color, curvature, primitive):
-    config = FitConfig(width=48, height=32, color=color, ratio=0.3, curvature=curvature, primitive=primitive)
+    config = FitConfig.create(width=48, height=32, color=color, ratio=0.3, curvature=curvature, primitive=primitive)
     primitives = random_primitives(config)
     coded = coding(primitives, config, bits)
     values = {name: value.clone().requires_grad_(True) for name, value in coded.values.items()}
@@ -329,7 +329,7 @@ def test_finetune_leaves_its_input_alone_and_trains_on_the_file_s_own_bins():
     from cvqpg.campaign.ratedistortion import Point, finetuned_points
     from cvqpg.targets import Scene
 
-    config = FitConfig(width=48, height=32, color="gray", ratio=0.3, guard_band_px=32)
+    config = FitConfig.create(width=48, height=32, color="gray", ratio=0.3, guard_band_px=32)
     primitives = random_primitives(config)
     targets = render(primitives, config)[1].clamp(0.05, 0.95).detach()
     scene = Scene(targets[0], torch.ones(targets.shape[0], 32, 48), targets)
@@ -353,7 +353,7 @@ def test_finetune_leaves_its_input_alone_and_trains_on_the_file_s_own_bins():
 def test_pruning_removes_the_primitives_of_least_field_energy_and_the_file_round_trips():
     from cvqpg.compression import field_energy, prune
 
-    config = FitConfig(width=48, height=32, color="rgb", ratio=0.3)
+    config = FitConfig.create(width=48, height=32, color="rgb", ratio=0.3)
     primitives = random_primitives(config)
     values = primitives.tensors()
     values["amplitude"] = torch.ones_like(values["amplitude"])
@@ -470,7 +470,7 @@ def test_unknown_option_exits_2(fitted_run, capsys):
 
 
 def test_periodic_attributes_wrap():
-    config = FitConfig(width=48, height=32, color="gray", ratio=0.3)
+    config = FitConfig.create(width=48, height=32, color="gray", ratio=0.3)
     primitives = random_primitives(config)
     values = primitives.tensors()
     values["rotation_rad"] = values["rotation_rad"] + math.pi
@@ -483,7 +483,7 @@ def test_rate_distortion_points_and_bd_rate():
     pytest.importorskip("imagecodecs")
     from cvqpg.campaign.ratedistortion import anchor_points, bd_rate, rd_points
 
-    config = FitConfig(width=48, height=32, color="gray", ratio=0.3, guard_band_px=32)
+    config = FitConfig.create(width=48, height=32, color="gray", ratio=0.3, guard_band_px=32)
     primitives = random_primitives(config)
     targets = render(primitives, config)[1].clamp(0.05, 0.95)
     points = rd_points(primitives, config, targets, ladder=[BitDepths(), BitDepths().shifted(2)], anchors=False)

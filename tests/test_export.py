@@ -85,22 +85,22 @@ def correlation(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 def test_aperture_filtered_dpac_reconstructs_like_the_field_itself():
-    config = FitConfig(width=64, height=48, color="gray", guard_band_px=32)
-    field = smooth_field(config.height, config.width)
-    canvas = (config.height, config.width)
+    config = FitConfig.create(width=64, height=48, color="gray", guard_band_px=32)
+    field = smooth_field(config.targets.height, config.targets.width)
+    canvas = (config.targets.height, config.targets.width)
     own = simulate_display(field, Display(canvas, aperture=None), config)
     def displayed(encoding: str) -> torch.Tensor:
         pattern = dequantise(quantise(encode(field, encoding)))
         return simulate_display(torch.polar(torch.ones_like(pattern), pattern), Display(canvas), config)
 
     shown = {encoding: displayed(encoding) for encoding in ("dpac", "phase")}
-    for plane in range(config.num_planes):
+    for plane in range(config.targets.num_planes):
         assert correlation(shown["dpac"][plane], own[plane]) > 0.95
         assert correlation(shown["phase"][plane], own[plane]) < correlation(shown["dpac"][plane], own[plane])
 
 
 def test_float16_model_round_trips_within_half_precision(tmp_path):
-    config = FitConfig(width=40, height=30, num_gaussians=50)
+    config = FitConfig.create(width=40, height=30, num_gaussians=50)
     g = torch.Generator().manual_seed(3)
     u = lambda *shape: torch.rand(*shape, generator=g)  # noqa: E731
     primitives = Primitives(position_px=u(50, 2) * 40, scale_px=0.2 + 4 * u(50, 2), rotation_rad=u(50) * 6 - 3,
@@ -122,7 +122,7 @@ def test_float16_model_round_trips_within_half_precision(tmp_path):
 
 
 def test_rescaled_model_is_the_same_physical_hologram():
-    config = FitConfig(width=32, height=24, color="gray", guard_band_px=32, num_gaussians=40)
+    config = FitConfig.create(width=32, height=24, color="gray", guard_band_px=32, num_gaussians=40)
     g = torch.Generator().manual_seed(4)
     u = lambda *shape: torch.rand(*shape, generator=g)  # noqa: E731
     primitives = Primitives(position_px=u(40, 2) * torch.tensor([32.0, 24.0]), scale_px=1.5 + 3 * u(40, 2),
@@ -132,7 +132,7 @@ def test_rescaled_model_is_the_same_physical_hologram():
     back, back_config = rescaled(double, double_config, 32, 24)
     for name, tensor in primitives.tensors().items():
         assert torch.allclose(back.tensors()[name], tensor, atol=1e-5), name
-    assert back_config.pixel_pitch == pytest.approx(config.pixel_pitch)
+    assert back_config.optics.pixel_pitch == pytest.approx(config.optics.pixel_pitch)
     _, recon = render(primitives, config)
     _, fine = render(double, double_config)
     pooled = torch.nn.functional.avg_pool2d(fine.flatten(0, 1), 2).reshape(recon.shape)

@@ -51,7 +51,7 @@ def test_the_file_never_exceeds_the_budget_and_lands_within_5_percent_below_it(r
 
 
 def test_every_primitive_filled_up_to_the_budget_is_a_candidate_even_where_its_rung_lands_far_below():
-    config = FitConfig(width=W, height=H, ratio=0.5).validate()
+    config = FitConfig.create(width=W, height=H, ratio=0.5).validate()
     primitives = stand_in(config, config.primitive_count)  # all about equally strong: pruning costs most
     reference = reference_for(primitives, config, None)
     sizes = [len(encode(primitives, config, bits)) for bits in RUNGS[:3]]
@@ -158,7 +158,7 @@ def test_largest_fitting_needs_few_encodes_where_sizes_grow_about_linearly():
 
 
 def test_a_bpp_budget_is_whole_bytes_of_8_bytes_per_pixel():
-    config = FitConfig(width=W, height=H)
+    config = FitConfig.create(width=W, height=H)
     assert Budget.of(config, bpp=1.0).max_bytes == W * H // 8
     assert Budget.of(config, bpp=0.999).max_bytes == W * H // 8 - 1  # never rounded up past the budget
     assert Budget.of(config, max_bytes=777).max_bytes == 777
@@ -167,7 +167,7 @@ def test_a_bpp_budget_is_whole_bytes_of_8_bytes_per_pixel():
 
 
 def test_dropping_primitives_other_than_the_range_holders_keeps_the_file_s_bins():
-    config = FitConfig(width=W, height=H, color="rgb", ratio=0.3)
+    config = FitConfig.create(width=W, height=H, color="rgb", ratio=0.3)
     raw = init_gaussians(config.primitive_count, 3, W, H, seed=5)
     raw.amplitude.uniform_(-1, 1, generator=torch.Generator().manual_seed(5))
     primitives = activate(raw, config)
@@ -178,7 +178,7 @@ def test_dropping_primitives_other_than_the_range_holders_keeps_the_file_s_bins(
 
 
 def test_the_primitive_count_for_a_budget_fills_it_at_the_default_depths_with_headroom():
-    config = FitConfig(width=64, height=48, color="gray", num_planes=1)
+    config = FitConfig.create(width=64, height=48, color="gray", num_planes=1)
     counts = [primitives_for_budget(config, size) for size in (1000, 2000, 4000)]
     assert counts == sorted(counts) and counts[0] >= 1
     # the stand-in model of the estimate, less the headroom, takes about the budget

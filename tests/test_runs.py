@@ -13,12 +13,12 @@ from cvqpg.primitives import Primitives, activate, init_gaussians
 from cvqpg.runs import MODEL_FILE, load_run_model, read_run, start_run
 from cvqpg.storage import save_model
 
-RUN = FitConfig(width=64, height=48, num_gaussians=30, steps=2, guard_band_px=32)
+RUN = FitConfig.create(width=64, height=48, num_gaussians=30, steps=2, guard_band_px=32)
 OTHER = RUN.replace(width=32, height=24, color="gray")
 
 
 def model_of(config: FitConfig) -> Primitives:
-    return activate(init_gaussians(config.primitive_count, config.channels, config.width, config.height, 1), config)
+    return activate(init_gaussians(config.primitive_count, config.channels, config.targets.width, config.targets.height, 1), config)
 
 
 def run_folder(root: Path, model_config: FitConfig = RUN) -> Path:
@@ -51,9 +51,9 @@ def test_a_folder_without_config_json_is_not_a_run_folder(tmp_path):
 
 
 def test_a_model_of_the_run_s_targets_is_accepted(tmp_path):
-    folder = run_folder(tmp_path, RUN.replace(num_gaussians=20, primitive="flat", device="cuda"))
+    folder = run_folder(tmp_path, RUN.replace(num_gaussians=20, primitive="flat"))
     primitives, config, source = load_run_model(folder)
-    assert primitives.count == 20 and config.primitive == "flat" and source == {"scene": "demo"}
+    assert primitives.count == 20 and config.primitives.kind == "flat" and source == {"scene": "demo"}
 
 
 def test_a_model_of_other_optics_names_them(tmp_path):
