@@ -12,7 +12,8 @@ from typing import Any
 __version__ = "0.1.0"
 
 _API_MODULES = {
-    "config": ("FitConfig", "LearningRates"),
+    "config": ("FitConfig", "LearningRates", "RunOptions"),
+    "control": ("RunControl",),
     "errors": ("CvqpgError", "ConfigError", "InputError", "ModelFileError"),
     "depth": ("estimate_depth", "load_depth_model"),
     "fitting": ("FitResult", "fit", "fit_scene", "hologram", "render", "render_hologram"),

@@ -14,7 +14,7 @@ import pytest
 import torch
 from PIL import Image
 
-from cvqpg.control import SILENT
+from cvqpg.control import SILENT, RunControl
 from cvqpg.campaign.bench import (DONE, INTERRUPTED, BenchError, Overrides, cell_status, folder_plan, make_plan,
                                   parse_shard, run_cell, run_plan)
 from cvqpg.cli import main
@@ -138,7 +138,8 @@ def test_chromatic_preset_compares_at_equal_n_and_at_per_channel_parameter_count
         assert {m: configs[(setting, m)].primitive_count for m in plan.methods} == {
             "baseline": n, "cvqpg": n, "per-channel": n, "channel-bound": n,
             "baseline+pc": round(n * 15 / 12), "cvqpg+pc": round(n * 15 / 13)}
-    curvatures = {m: (configs[("rgb-10", m)].primitive, configs[("rgb-10", m)].curvature) for m in plan.methods}
+    curvatures = {m: (configs[("rgb-10", m)].primitives.kind, configs[("rgb-10", m)].primitives.curvature)
+                  for m in plan.methods}
     assert curvatures["per-channel"] == ("cvqpg", "per-channel")
     assert curvatures["channel-bound"] == ("cvqpg", "channel-bound")
     assert curvatures["cvqpg+pc"] == ("cvqpg", "shared") and curvatures["baseline+pc"][0] == "flat"
@@ -186,7 +187,7 @@ def test_interrupted_cell_resumes_from_its_checkpoint_to_the_same_result(tmp_pat
     cell = plan.cells[0]
     folder = plan.cell_dir(cell)
     checks = iter(range(100))
-    assert run_cell(cell, folder, lambda: next(checks) > 5) == INTERRUPTED
+    assert run_cell(cell, folder, RunControl(progress=False, stop_requested=lambda: next(checks) > 5)) == INTERRUPTED
     assert cell_status(folder) == INTERRUPTED and not (folder / "metrics.json").exists()
     assert load_checkpoint(folder / "checkpoint.pt")["step"] == 5
     assert run_plan(plan, control=SILENT).statuses == {cell.name: DONE}
@@ -201,7 +202,7 @@ def test_a_cell_checkpointed_on_another_device_restarts_from_step_0(tmp_path, ca
     cell = plan.cells[0]
     folder = plan.cell_dir(cell)
     checks = iter(range(100))
-    assert run_cell(cell, folder, lambda: next(checks) > 2) == INTERRUPTED
+    assert run_cell(cell, folder, RunControl(progress=False, stop_requested=lambda: next(checks) > 2)) == INTERRUPTED
     payload = load_checkpoint(folder / "checkpoint.pt")
     payload["device"], payload["generator"] = "cuda", torch.zeros(16, dtype=torch.uint8)
     save_checkpoint(folder / "checkpoint.pt", payload)

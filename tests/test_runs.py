@@ -31,10 +31,13 @@ def run_folder(root: Path, model_config: FitConfig = RUN) -> Path:
 @pytest.mark.parametrize("change, message", [
     (lambda recorded: "{not json", "config.json is not a readable JSON file"),
     (lambda recorded: [recorded], "config.json holds a JSON list, not an object"),
-    (lambda recorded: {k: v for k, v in recorded.items() if k != "width"}, "config.json lacks width"),
+    (lambda recorded: {k: v for k, v in recorded.items() if k != "targets"}, "config.json lacks targets"),
+    (lambda recorded: {k: v for k, v in recorded.items() if k not in ("targets", "config_schema")},
+     "config.json lacks width"),
     (lambda recorded: {**recorded, "source": {"depth": "d.png"}}, "names neither a scene nor an image"),
-    (lambda recorded: {**recorded, "pixel_pitch": 0}, "`pixel_pitch` must be positive"),
-    (lambda recorded: {**recorded, "lr": {"speed": 1}}, "its settings cannot work"),
+    (lambda recorded: {**recorded, "optics": {"pixel_pitch": 0}}, "`pixel_pitch` must lie in [1e-07, 0.001]"),
+    (lambda recorded: {**recorded, "optimisation": {"lr": {"speed": 1}}}, "its settings cannot work"),
+    (lambda recorded: {**recorded, "optimisation": {"betas": [0.98, 1.5, 0.99]}}, "`betas[1]` must lie in"),
 ])
 def test_a_damaged_config_json_is_an_input_error_naming_the_file(tmp_path, change, message):
     folder = run_folder(tmp_path)

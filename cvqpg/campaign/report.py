@@ -164,7 +164,7 @@ def _difference(a: Metrics, b: Metrics) -> Metrics:
 
 def paper_setup(plan: BenchPlan, setting: str) -> bool:
     """Whether every cell of the setting is fitted the way the paper's numbers were."""
-    return all(getattr(c.config, k) == v for c in plan.cells if c.setting == setting for k, v in PAPER_SETUP.items())
+    return all(c.config.setting(k) == v for c in plan.cells if c.setting == setting for k, v in PAPER_SETUP.items())
 
 
 def paper_scene_mean(scenes: list[str], setting: str, method: str) -> Metrics | None:
