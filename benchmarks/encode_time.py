@@ -36,10 +36,10 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=1, help="turns of (fit, encode); medians are not taken")
     args = parser.parse_args()
     table1 = FitConfig.create(width=args.size[0], height=args.size[1], color=args.color, ratio=0.1,
-                       steps=args.steps).with_recipe("paper").validate()
+                              steps=args.steps).with_recipe("paper").validate()
     fit_steps, finetune_steps = encode_steps(args.steps)
     encoder = FitConfig.create(width=args.size[0], height=args.size[1], color=args.color, ratio=0.1,
-                        steps=fit_steps).validate()
+                               steps=fit_steps).validate()
     scene = load_scene(next(args.scene.glob("image.*")), args.scene / "depth.png", table1)
     prepare_kernels(table1, show_status=False)
     budget = encode_budget(encoder, bpp=args.bpp)

@@ -210,7 +210,8 @@ def peak_rss_gib(config: FitConfig, steps: int) -> float:
     from the forked copy of the parent, so both RUSAGE_CHILDREN and the child's RUSAGE_SELF would
     report at least the parent's size at the fork. The child starts in the folder that holds this
     process's `cvqpg`, so that it imports the same code (a worktree on PYTHONPATH, for instance)."""
-    arguments = ["fit", "--size", str(config.targets.width), str(config.targets.height), "--color", config.targets.color, "--ratio",
+    targets = config.targets
+    arguments = ["fit", "--size", str(targets.width), str(targets.height), "--color", targets.color, "--ratio",
                  str(config.primitives.ratio), "--steps", str(steps), "--curvature-warmup", "1",
                  "--out", f"/tmp/cvqpg-bench-rss-{config.targets.color}", "--overwrite", "--quiet"]
     program = ("import sys; from cvqpg.cli import main; main(sys.argv[1:]); "

@@ -43,8 +43,8 @@ from .fitting import FitInterrupted, FitState, estimated_peak_bytes
 from .ratecontrol import (ENCODE_FINETUNE_STEPS, ENCODE_STEPS, RATE_FINETUNE_STEPS, check_budget_values,
                           compress_to_budget, encode_budget, encode_config, encoding_record)
 from .runs import (CHECKPOINT_FILE, CONFIG_FILE, EXPORT_FOLDER, HALF_MODEL_FILE, METRICS_FILE, MODEL_FILE,
-                   RENDER_FOLDER, evaluate_run, export_run, half_precision_model, model_path, read_run, read_run_options,
-                   render_model, scene_from_source, start_run, write_atomic)
+                   RENDER_FOLDER, evaluate_run, export_run, half_precision_model, model_path, read_run,
+                   read_run_options, render_model, scene_from_source, start_run, write_atomic)
 from .scenes import SCENES
 from .storage import is_compressed, model_info
 from .targets import Scene, check_file, load_scene
@@ -289,7 +289,8 @@ def _compression_parsers(sub: argparse._SubParsersAction) -> None:
                    "checkpoint in its folder, with its own settings and budget (other options are ignored)")
     _overwrite_argument(e, "the output file")
     e.add_argument("--quiet", action="store_true", help="no progress bars or summary")
-    e.set_defaults(ratio=DEFAULTS.primitives.ratio, num_gaussians=None, steps=ENCODE_STEPS)  # the count follows from the budget
+    # the count follows from the budget
+    e.set_defaults(ratio=DEFAULTS.primitives.ratio, num_gaussians=None, steps=ENCODE_STEPS)
     d = sub.add_parser("decompress", help=f"turn a {SUFFIX} file back into a model file",
                        description=f"Decode a {SUFFIX} file into a float32 model file (model.safetensors format).")
     d.add_argument("file", metavar="FILE", help=f"{SUFFIX} file")
@@ -458,7 +459,8 @@ def check_memory(config: FitConfig, device: str, available: int | None) -> None:
     needed = estimated_peak_bytes(config, device)
     if available is not None and needed > available:
         where = "free on the GPU" if torch.device(device).type == "cuda" else "available"
-        raise UsageError(f"a {config.targets.width}×{config.targets.height} fit with {config.targets.num_planes} plane(s) needs about "
+        targets = config.targets
+        raise UsageError(f"a {targets.width}×{targets.height} fit with {targets.num_planes} plane(s) needs about "
                          f"{needed / 2**30:.1f} GiB but {available / 2**30:.1f} GiB are {where}; "
                          "reduce --size or --planes")
 
@@ -560,7 +562,8 @@ def _new_plan(args: argparse.Namespace) -> FitPlan:
     if args.time is not None:
         config, source["time_budget"] = timed_config(scene, config, args.time, run, progress=not args.quiet)
         if not args.quiet:
-            print(f"--time {args.time:g}: {config.optimisation.steps} steps at {source['time_budget']['seconds_per_step'] * 1e3:.0f} "
+            each_ms = source['time_budget']['seconds_per_step'] * 1e3
+            print(f"--time {args.time:g}: {config.optimisation.steps} steps at {each_ms:.0f} "
                   "ms each, measured here", file=sys.stderr)
     return FitPlan(work, final, config, run, source, scene, depth=depth)
 
@@ -906,7 +909,8 @@ def run_bench(args: argparse.Namespace) -> int:
             raise UsageError(f"--jobs {args.jobs} needs about {needed / 2**30:.1f} GiB but {available / 2**30:.1f} "
                              f"GiB are available on {device}; lower --jobs or --size")
         with StopRequest() as stop_requested:
-            outcome = run_plan(plan, cells, args.jobs, RunControl(progress=not args.quiet, stop_requested=stop_requested),
+            control = RunControl(progress=not args.quiet, stop_requested=stop_requested)
+            outcome = run_plan(plan, cells, args.jobs, control,
                                reuse=[Path(d) for d in args.reuse],
                                rate_distortion=RateDistortionOptions(tuple(Path(d) for d in args.fits), args.finetune),
                                threads=args.threads)

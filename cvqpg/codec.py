@@ -359,7 +359,8 @@ def primitives_from(values: dict[str, Tensor], scale_px: Tensor, config: FitConf
         # γ_max follows the decoded scale and is not trained: fine-tuning moves the share alone
         curvature = (values["curvature"] * curvature_bound(scale_px.detach(), config).double()).float()
     else:
-        curvature = torch.zeros((count,) if config.primitives.curvature == "shared" else (count, config.channels), device=device)
+        shape = (count,) if config.primitives.curvature == "shared" else (count, config.channels)
+        curvature = torch.zeros(shape, device=device)
     return Primitives(position_px=values["position"].float(), scale_px=scale_px,
                       rotation_rad=values["rotation"].float(), amplitude=values["amplitude"].float(),
                       phase_rad=values["phase"].float(), opacity=torch.ones(count, device=device),

@@ -104,8 +104,8 @@ class PrimitiveSettings:
 
 @dataclass(frozen=True)
 class OptimisationSettings:
-    """The loop (method.md §6): its steps, the curvature's warm-up (steps with γ frozen at 0), the seed, Adan's
-    learning rates, betas and ε, the gradient clip norm, and where the primitives start (`init`)."""
+    """The loop (method.md §6): its steps, the curvature's warm-up (steps with γ frozen at 0; `steps + 1`: all),
+    the seed, Adan's learning rates, betas and ε, the gradient clip norm, and where the primitives start (`init`)."""
 
     steps: int = 2000
     curvature_warmup: int = 400
@@ -315,7 +315,8 @@ class FitConfig:
             if not (value is None and name in OPTIONAL):
                 _check_range(name, value, low, high, kind)
         steps = self.optimisation.steps
-        _check_range("curvature_warmup", self.optimisation.curvature_warmup, 0, steps, "integer")
+        # steps + 1: the curvature never trains (the loop's last update has index `steps`)
+        _check_range("curvature_warmup", self.optimisation.curvature_warmup, 0, steps + 1, "integer")
         for key, value in dataclasses.asdict(self.optimisation.lr).items():
             _check_range(f"lr.{key}", value, 0.0, MAX_LEARNING_RATE, "number")
         if not (isinstance(self.optimisation.betas, tuple) and len(self.optimisation.betas) == 3):
@@ -408,8 +409,11 @@ def from_flat_record(data: dict[str, Any]) -> FitConfig:
         # Versions whose `auto` started long runs from the edges recorded unset betas; earlier ones started
         # them from the paper's uniform draws.
         values["init"] = resolved["init"] if short or data.get("betas", ()) is None else "uniform"
-    if values.get("curvature_warmup") is None and _is_integer(steps):
+    warmup = values.get("curvature_warmup")
+    if warmup is None and _is_integer(steps):
         values["curvature_warmup"] = default_curvature_warmup(steps)
+    elif _is_integer(warmup) and _is_integer(steps) and warmup > steps + 1:
+        values["curvature_warmup"] = steps + 1  # the first versions kept 400 in shorter runs: never trained
     recipe = next((name for name, r in RECIPES.items() if all(values[k] == v or (isinstance(v, tuple) and
                    tuple(values[k]) == v) for k, v in r.settings().items())), CUSTOM_RECIPE)
     return FitConfig().replace(**values, recipe=recipe)

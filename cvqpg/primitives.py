@@ -182,7 +182,7 @@ def curvature_bound(scale_px: Tensor, config: FitConfig) -> Tensor:
 
 
 def activate(raw: Gaussians, config: FitConfig) -> Primitives:
-    """Apply method.md §2's activations; the curvature bound follows `config.primitives.bound` and `config.primitives.curvature`.
+    """Apply method.md §2's activations; the curvature bound follows `primitives.bound` and `primitives.curvature`.
 
     `channel-bound` shares one raw curvature: every channel gets the same fraction of its own bound.
     """

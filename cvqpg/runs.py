@@ -219,7 +219,8 @@ def optics_label(config: FitConfig) -> str:
 
 def _targets(config: FitConfig) -> tuple[Any, ...]:
     """What a run's targets, and a render compared with them, depend on: size and colour first."""
-    return (config.targets.width, config.targets.height, config.targets.color, config.optics.pixel_pitch, config.wavelengths,
+    return (config.targets.width, config.targets.height, config.targets.color, config.optics.pixel_pitch,
+            config.wavelengths,
             config.plane_distances)
 
 
@@ -353,7 +354,8 @@ def rescaled(primitives: Primitives, config: FitConfig, width: int, height: int)
     factor = width / config.targets.width
     if abs(height / config.targets.height - factor) > 0.01 * factor:
         raise ConfigError(f"size {width}×{height} changes the aspect ratio of the {config.targets.width}×"
-                          f"{config.targets.height} model; keep W/H = {config.targets.width / config.targets.height:.4f} (`size`)")
+                          f"{config.targets.height} model; keep W/H = "
+                          f"{config.targets.width / config.targets.height:.4f} (`size`)")
     values = primitives.tensors()
     values["position_px"] = (values["position_px"] + 0.5) * factor - 0.5
     values["scale_px"] = values["scale_px"] * factor

@@ -40,9 +40,11 @@ def kernel_signatures():
 
 
 KINDS = pytest.mark.parametrize("config", [FitConfig.create(width=48, height=36, steps=2, curvature_warmup=1),
-                                           FitConfig.create(width=40, height=30, steps=2, curvature_warmup=1, color="gray",
-                                                     num_planes=1, primitive="flat", qpf="standard"),
-                                           FitConfig.create(width=48, height=36, steps=2, curvature_warmup=1, curvature="per-channel")],
+                                           FitConfig.create(width=40, height=30, steps=2, curvature_warmup=1,
+                                                            color="gray", num_planes=1, primitive="flat",
+                                                            qpf="standard"),
+                                           FitConfig.create(width=48, height=36, steps=2, curvature_warmup=1,
+                                                            curvature="per-channel")],
                                 ids=["demo", "gray-flat-one-plane", "per-channel"])
 
 

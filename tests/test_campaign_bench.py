@@ -126,7 +126,8 @@ def test_methods_map_to_the_papers_configurations(scenes_dir, tmp_path):
     assert (ablation["vanilla"].bound, ablation["vanilla"].qpf, ablation["vanilla"].primitive) == (
         "global", "standard", "cvqpg")
     star = make_plan("star").cells
-    assert {(c.config.targets.num_planes, c.config.targets.color, c.config.primitive_count) for c in star} == {(1, "gray", 7680)}
+    assert {(c.config.targets.num_planes, c.config.targets.color, c.config.primitive_count)
+            for c in star} == {(1, "gray", 7680)}
     assert make_plan("quick", overrides=Overrides(steps=50)).cells[0].config.optimisation.curvature_warmup == 10
 
 
@@ -284,8 +285,8 @@ def test_table_rows_are_means_over_the_scenes_every_method_has_finished(scenes_d
 def test_seed_spread_table_pairs_methods_within_each_seed(tmp_path):
     plan = make_plan("quick", tmp_path / "bench", Overrides(seeds=[1, 2]))
     psnr = {("baseline", 1): 20.0, ("cvqpg", 1): 20.5, ("baseline", 2): 21.0, ("cvqpg", 2): 21.1}
-    results = [CellResult(c, DONE, {"mean": {"psnr": psnr[(c.method, c.config.optimisation.seed)], "ssim": 0.5, "lpips": None,
-                                             "flip": 0.2, "cvvdp": None}}, None) for c in plan.cells]
+    results = [CellResult(c, DONE, {"mean": {"psnr": psnr[(c.method, c.config.optimisation.seed)], "ssim": 0.5,
+                                             "lpips": None, "flip": 0.2, "cvvdp": None}}, None) for c in plan.cells]
     (table,) = seed_tables(plan, results)
     assert table.rows[0][2:] == ["20.000", "21.000", f"{math.sqrt(0.5):.3f}"]
     assert table.rows[2][1:] == ["Δ (CVQPG − Baseline)", "+0.500", "+0.100", f"{math.sqrt(0.08):.3f}"]

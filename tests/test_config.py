@@ -40,7 +40,7 @@ OUT_OF_RANGE = {
     "pixel_pitch": [1e-30, 0.0, -3.74e-6, 1.0], "wavelengths_m": [(1.0, 1.0, 1.0), (639e-9, 1e-12, 473e-9)],
     "plane_center": [1e6], "plane_span": [-1e-3], "steps": [0, -5, 10**12], "seed": [-1, 10**23, 2**70],
     "num_planes": [0, 10**6], "width": [8, 10**7], "guard_band_px": [-1], "pad_multiple_px": [0],
-    "num_gaussians": [0], "curvature_warmup": [-1, 2001],
+    "num_gaussians": [0], "curvature_warmup": [-1, 2002],
 }
 
 
@@ -96,8 +96,13 @@ def test_the_curvature_warm_up_is_resolved_when_the_configuration_is_made_and_ke
     assert FitConfig.create(steps=300).with_steps(3000).optimisation.curvature_warmup == 600
     assert FitConfig.create(steps=300, curvature_warmup=7).optimisation.curvature_warmup == 7
     assert FitConfig.create(steps=300, curvature_warmup=30).with_steps(600).optimisation.curvature_warmup == 60
-    with pytest.raises(ConfigError, match=r"`curvature_warmup` must lie in \[0, 300\], got 400"):
+    with pytest.raises(ConfigError, match=r"`curvature_warmup` must lie in \[0, 301\], got 400"):
         FitConfig.create(steps=300, curvature_warmup=400).validate()
+
+
+def test_a_first_version_s_warm_up_longer_than_its_run_reads_as_never_training():
+    record = json.loads((CONFIGS / "v37bab73-warmup-lr-color.json").read_text())
+    assert FitConfig.from_dict({**record, "steps": 300}).validate().optimisation.curvature_warmup == 301
 
 
 def test_a_configuration_records_concrete_values_and_reads_back():

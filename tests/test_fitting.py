@@ -22,7 +22,7 @@ from cvqpg.targets import load_scene
 @pytest.mark.parametrize("primitive", ["flat", "cvqpg"])
 def test_short_demo_fit_raises_psnr_by_several_db(color, primitive):
     config = FitConfig.create(width=64, height=48, color=color, primitive=primitive, steps=200, curvature_warmup=60,
-                       guard_band_px=32)
+                              guard_band_px=32)
     scene = builtin_pictures("demo", config.targets.width, config.targets.height)
     result = fit(scene.image, scene.depth, config, control=SILENT)
     initial, final = result.history["psnr"][0], result.metrics.mean["psnr"]
@@ -37,7 +37,8 @@ def test_short_demo_fit_raises_psnr_by_several_db(color, primitive):
 
 @pytest.mark.slow
 def test_per_channel_curvature_learns_one_curvature_per_colour():
-    config = FitConfig.create(width=64, height=48, curvature="per-channel", steps=120, curvature_warmup=30, guard_band_px=32)
+    config = FitConfig.create(width=64, height=48, curvature="per-channel", steps=120, curvature_warmup=30,
+                              guard_band_px=32)
     assert config.params_per_primitive == 15 and config.replace(curvature="shared").params_per_primitive == 13
     scene = builtin_pictures("demo", config.targets.width, config.targets.height)
     result = fit(scene.image, scene.depth, config, control=SILENT)

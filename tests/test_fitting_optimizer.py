@@ -151,8 +151,8 @@ def test_position_learning_rate_is_torch_cosine_annealing():
 
 
 def tiny_setup(curvature_warmup: int = 3):
-    config = FitConfig.create(width=32, height=24, steps=10, curvature_warmup=curvature_warmup, guard_band_px=16, num_gaussians=48,
-                       color="rgb", primitive="cvqpg")
+    config = FitConfig.create(width=32, height=24, steps=10, curvature_warmup=curvature_warmup, guard_band_px=16,
+                              num_gaussians=48, color="rgb", primitive="cvqpg")
     g = torch.Generator().manual_seed(5)
     image = torch.rand(3, 24, 32, generator=g) * 0.8
     depth = torch.rand(24, 32, generator=g)

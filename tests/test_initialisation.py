@@ -15,7 +15,8 @@ from cvqpg.ops.propagation.reference import propagate
 from cvqpg.primitives import init_gaussians, positions_px
 from cvqpg.targets import Scene
 
-CONFIG = FitConfig.create(width=48, height=36, num_gaussians=400, steps=20, guard_band_px=16, color="gray", init="targets")
+CONFIG = FitConfig.create(width=48, height=36, num_gaussians=400, steps=20, guard_band_px=16, color="gray",
+                          init="targets")
 
 
 def test_positions_follow_the_energy():

@@ -40,7 +40,7 @@ def gaussians(channels: int, curvature: str, seed: int) -> Gaussians:
 
 def config_for(color: str, qpf: str, curvature: str) -> FitConfig:
     return FitConfig.create(width=WIDTH, height=HEIGHT, color=color, qpf=qpf,
-                     curvature="shared" if curvature == "flat" else curvature)
+                            curvature="shared" if curvature == "flat" else curvature)
 
 
 # Centres partly (up to 8 px) and one fully outside the image.
@@ -54,7 +54,8 @@ def hologram_and_gradients(backend: str, raw: Gaussians, config: FitConfig) -> t
     leaves = {name: t.clone().requires_grad_() for name, t in raw.tensors().items()}
     prims = activate(Gaussians.from_tensors(leaves), config)
     prims.position_px = prims.position_px + OFFSETS_PX.to(DEVICE)
-    hologram = rasterize(prims, WIDTH, HEIGHT, config.wavelengths, config.optics.pixel_pitch, config.primitives.qpf, backend)
+    hologram = rasterize(prims, WIDTH, HEIGHT, config.wavelengths, config.optics.pixel_pitch, config.primitives.qpf,
+                         backend)
     weights = torch.randn(hologram.shape, generator=torch.Generator().manual_seed(9), dtype=torch.complex128)
     loss = (hologram.to(torch.complex128) * weights.to(DEVICE).conj()).real.sum()
     return hologram.detach().to(torch.complex128), torch.autograd.grad(loss, list(leaves.values()))

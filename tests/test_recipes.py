@@ -56,7 +56,8 @@ def test_a_flat_record_older_than_recipes_reads_as_the_paper_s():
     assert FitConfig.from_dict(record).recipe == "paper"
 
 
-@pytest.mark.parametrize(("steps", "recipe"), [(SHORT_RUN_STEPS, BEYOND_SHORT_RECIPE), (SHORT_RUN_STEPS + 1, BEYOND_RECIPE)])
+@pytest.mark.parametrize(("steps", "recipe"), [(SHORT_RUN_STEPS, BEYOND_SHORT_RECIPE),
+                                               (SHORT_RUN_STEPS + 1, BEYOND_RECIPE)])
 def test_a_flat_record_s_unset_recipe_settings_resolve_by_its_own_steps(steps, recipe):
     record = {**json.loads((CONFIGS / "vb8933bb-none-short.json").read_text()), "steps": steps}
     config = FitConfig.from_dict(record)

@@ -18,7 +18,8 @@ OTHER = RUN.replace(width=32, height=24, color="gray")
 
 
 def model_of(config: FitConfig) -> Primitives:
-    return activate(init_gaussians(config.primitive_count, config.channels, config.targets.width, config.targets.height, 1), config)
+    targets = config.targets
+    return activate(init_gaussians(config.primitive_count, config.channels, targets.width, targets.height, 1), config)
 
 
 def run_folder(root: Path, model_config: FitConfig = RUN) -> Path:

@@ -86,7 +86,8 @@ def _score(recon: Tensor, targets: Tensor) -> tuple[float, float]:
 
 def _point(codec: str, setting: str, size: int, config: FitConfig, recon: Tensor, targets: Tensor,
            encode_s: float, decode_s: float, primitives: int | None = None) -> Point:
-    return Point(codec, setting, size, 8 * size / (config.targets.width * config.targets.height), *_score(recon, targets),
+    pixels = config.targets.width * config.targets.height
+    return Point(codec, setting, size, 8 * size / pixels, *_score(recon, targets),
                  encode_s, decode_s, primitives)
 
 

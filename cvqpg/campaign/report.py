@@ -751,7 +751,8 @@ def draw_figures(plan: BenchPlan, results: list[CellResult], curves: list[Freque
             name = Path("figures") / f"compare_{scene.name}_{setting}.png"
             figures.comparison_figure({label: plan.cell_dir(r.cell) for label, r in runs.items()},
                                       config.plane_distances, f"{scene.name}, {setting_label(setting)}, "
-                                      f"N = {config.primitive_count:,}, {config.optimisation.steps} steps", plan.folder / name)
+                                      f"N = {config.primitive_count:,}, {config.optimisation.steps} steps",
+                                      plan.folder / name)
             drawn.append(name)
     return drawn
 
