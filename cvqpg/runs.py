@@ -174,7 +174,7 @@ def read_run(folder: str | Path) -> tuple[FitConfig, dict[str, Any]]:
 
 def read_run_options(folder: str | Path) -> RunOptions:
     """Where the run in `folder` ran, as its `config.json` records it (device and backend): what a resume runs
-    on, and where another machine may render it (`RunOptions.on_device`)."""
+    on, and the kernels a render of it takes where they run (`RunOptions.on_device`)."""
     return RunOptions.from_dict(read_record(Path(folder) / CONFIG_FILE, RESTORE_RUN))
 
 
@@ -249,12 +249,12 @@ def load_run_model(folder: str | Path, model: str | Path | None = None, device: 
 
 def evaluate_run(folder: str | Path, model: str | Path | None = None, device: str = "cpu") -> dict[str, Any]:
     """Recompute a saved run's metrics from its model (or `model`, e.g. a compressed file in the
-    run folder) and inputs, rendered on `device`; rewrites `metrics.json`, or writes
-    `<model stem>.metrics.json` for `model`."""
+    run folder) and inputs, rendered on `device` with the run's kernels where they run there
+    (`RunOptions.on_device`); rewrites `metrics.json`, or writes `<model stem>.metrics.json` for `model`."""
     folder = Path(folder)
     primitives, config, source = load_run_model(folder, model, device)
     scene = scene_from_source(source, config)
-    _, recon = render(primitives, config)
+    _, recon = render(primitives, config, backend=read_run_options(folder).on_device(device).backend)
     metrics_file = folder / METRICS_FILE if model is None else folder / f"{Path(model).stem}.{METRICS_FILE}"
     previous = {}
     if (folder / METRICS_FILE).is_file():
