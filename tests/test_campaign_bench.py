@@ -118,12 +118,12 @@ def test_methods_map_to_the_papers_configurations(scenes_dir, tmp_path):
         for method, values in methods.items():
             assert counts[(setting, method)] == values["n"], (setting, method)
     ablation_plan = make_plan("ablation", tmp_path / "a", Overrides(scenes_dir=scenes_dir))
-    ablation = {c.method: c.config for c in ablation_plan.cells}
-    assert (ablation["baseline"].primitive, ablation["cvqpg"].bound, ablation["cvqpg"].qpf) == ("flat", "adaptive",
-                                                                                                 "mahalanobis")
+    ablation = {c.method: c.config.primitives for c in ablation_plan.cells}
+    assert (ablation["baseline"].kind, ablation["cvqpg"].bound, ablation["cvqpg"].qpf) == ("flat", "adaptive",
+                                                                                           "mahalanobis")
     assert (ablation["no-bound"].bound, ablation["no-bound"].qpf) == ("global", "mahalanobis")
     assert (ablation["no-mahalanobis"].bound, ablation["no-mahalanobis"].qpf) == ("adaptive", "standard")
-    assert (ablation["vanilla"].bound, ablation["vanilla"].qpf, ablation["vanilla"].primitive) == (
+    assert (ablation["vanilla"].bound, ablation["vanilla"].qpf, ablation["vanilla"].kind) == (
         "global", "standard", "cvqpg")
     star = make_plan("star").cells
     assert {(c.config.targets.num_planes, c.config.targets.color, c.config.primitive_count)

@@ -14,7 +14,7 @@ import torch
 
 from cvqpg import FitConfig
 from cvqpg.cli import main
-from cvqpg.config import ConfigError
+from cvqpg.config import ConfigError, RunOptions
 from cvqpg import ops
 from cvqpg.ops.rasterize import rasterize, resolve_backend, splat_triton, wavenumbers_for
 from cvqpg.ops.rasterize.reference import splat_reference
