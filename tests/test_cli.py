@@ -103,7 +103,7 @@ def test_star_scene_runs_single_plane_grayscale(tmp_path):
     (["missing.png"], "no such file"),
     (["--scene", "demo", "--depth", "x.png"], "--depth applies to an IMAGE"),
     (["--device", "cuda"], "no CUDA GPU"),
-    (["--device", "cuda", "--backend", "numba"], "backend 'numba' runs on the CPU only"),
+    (["--device", "cuda", "--backend", "numba"], "--backend numba runs on the CPU, not on cuda"),
 ])
 def test_bad_input_is_one_line_and_exit_code_2(arguments, message, capsys, tmp_path, monkeypatch):
     monkeypatch.setattr("torch.cuda.is_available", lambda: False)

@@ -128,20 +128,23 @@ def test_more_planes_than_the_depth_separates(tmp_path, photo, capsys):
 
 
 @pytest.mark.parametrize("arguments, message", [
-    (["--size", "8", "8"], "too small"),
+    (["--size", "8", "8"], "--size must lie in [16, 65536], got 8"),
     (["--size", "30000", "30000"], "GiB are available"),
-    (["--num-gaussians", "0"], "need between 1 and the pixel count"),
+    (["--num-gaussians", "0"], "--num-gaussians must lie in [1, 2147483648], got 0"),
     (["--num-gaussians", "100000"], "need between 1 and the pixel count"),
-    (["--steps", "0"], "--steps must be positive"),
-    (["--steps", "-3"], "--steps must be positive"),
-    (["--ratio", "0"], "--ratio must be positive"),
-    (["--pitch", "0"], "--pitch must be positive"),
-    (["--pitch=-3.74e-6"], "--pitch must be positive"),
+    (["--steps", "0"], "--steps must lie in [1, 100000000], got 0"),
+    (["--steps", "-3"], "--steps must lie in [1, 100000000], got -3"),
+    (["--ratio", "0"], "--ratio must lie in (0, 4], got 0.0"),
+    (["--pitch", "0"], "--pitch must lie in [1e-07, 0.001], got 0.0"),
+    (["--pitch=-3.74e-6"], "--pitch must lie in [1e-07, 0.001], got -3.74e-06"),
+    (["--pitch", "1e-30"], "--pitch must lie in [1e-07, 0.001], got 1e-30"),
     (["--plane-center", "-0.001"], "plane distances"),
-    (["--plane-span", "-0.004"], "--plane-span must be positive"),
-    (["--wavelengths", "639e-9", "0", "473e-9"], "positive value"),
-    (["--wavelengths", "639e-9"], "need 3 positive value(s)"),
-    (["--curvature-warmup", "50", "--steps", "10"], "--curvature-warmup 50 must lie in 0..--steps"),
+    (["--plane-span", "-0.004"], "--plane-span must lie in [0, 10], got -0.004"),
+    (["--wavelengths", "639e-9", "0", "473e-9"], "--wavelengths must lie in [1e-07, 2e-05], got 0.0"),
+    (["--wavelengths", "1", "1", "1"], "--wavelengths must lie in [1e-07, 2e-05], got 1.0"),
+    (["--wavelengths", "639e-9"], "need 3 value(s)"),
+    (["--seed", "100000000000000000000000"], "--seed must lie in [0, 4611686018427387904]"),
+    (["--curvature-warmup", "50", "--steps", "10"], "--curvature-warmup must lie in [0, 11], got 50"),
 ])
 def test_bad_options_fail_cleanly(arguments, message, capsys, tmp_path):
     base = ["fit", "--size", "48", "36", "--steps", "4", "--curvature-warmup", "1", "--quiet"]

@@ -178,7 +178,7 @@ def tampered(data: bytes, change) -> bytes:
 @pytest.mark.parametrize("change, message", [
     (lambda h: h["optics"].update(pixel_pitch=0), "`pixel_pitch` must be positive"),
     (lambda h: h["optics"].update(pixel_pitch=-3.74e-6), "`pixel_pitch` must be positive"),
-    (lambda h: h["optics"].update(width=8), "too small"),
+    (lambda h: h["optics"].update(width=8), "`width` must lie in [16, 65536], got 8"),
     (lambda h: h["optics"].update(wavelengths=[639e-9, 532e-9]), "`wavelengths_m`"),
     (lambda h: h.update(num_primitives=0), "holds 0 primitives"),
     (lambda h: h.update(num_primitives=h["num_primitives"] + 1), "its streams have shapes"),
