@@ -31,6 +31,7 @@ from torch import Tensor
 
 from .bitdepths import MAX_BITS, MAX_POSITION_BITS, BitDepths
 from .config import FitConfig
+from .defaults import SUFFIX
 from .errors import ConfigError, ModelFileError
 from .primitives import (REWRITE_MODEL, Primitives, check_settings, check_tensors, curvature_bound,
                          model_shapes)
@@ -43,7 +44,6 @@ ROTATION_DEPTH_VERSION = 3  # files from this version on code rotation at a dept
 IMPORTANCE_VERSION = 4  # files from this version on code at `derived_depths`' importance rule
 # The order the decoder reads attributes in: each depth derives from attributes read before it.
 ATTRIBUTES = ("scale", "amplitude", "position", "rotation", "phase", "curvature")
-SUFFIX = ".cvq"
 PREFIX = struct.Struct("<8sHI")  # magic, format version, header length (bytes)
 CHECKSUM = struct.Struct("<I")
 # Each depth of a file is a stream of its own in the header (`grouped`): the few values far from the median weight

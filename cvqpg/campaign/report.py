@@ -26,7 +26,7 @@ from .bench import (CELLS_DIR, DONE, ENCODE_FILE, METHODS, METRICS_FILE, PRESETS
                     Cell, setting_label)
 from ..errors import InputError
 from ..runs import read_record, write_atomic
-from ..view import VIEW_FILE
+from ..defaults import VIEW_FILE
 
 TABLE_METRICS = ("psnr", "ssim", "lpips", "flip", "cvvdp")
 HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "lpips": False, "flip": False, "cvvdp": True}
