@@ -27,7 +27,7 @@ from .config import (BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITI
 from .defaults import (CHECKPOINT_SECONDS, DEFAULT_APERTURE, DEFAULT_LEVELS, DEFAULT_SWEEP, DEPTH_FILE, DEPTH_MODEL,
                        ENCODE_FINETUNE_STEPS, ENCODE_STEPS, ENCODINGS, RATE_FINETUNE_STEPS, SCENE_NAMES, SUFFIX,
                        VIEW_FILE)
-from .errors import CvqpgError
+from .errors import CvqpgError, allocation_failure, filesystem_refusal
 
 if TYPE_CHECKING:
     from PIL import Image
@@ -37,6 +37,10 @@ if TYPE_CHECKING:
     from .view import ViewRecord
 
 DEFAULTS = FitConfig()
+# Exit codes besides 0 (success), 128 + N (stopped by signal N) and 130 (Ctrl-C).
+EXIT_BUG, EXIT_USAGE, EXIT_FILESYSTEM, EXIT_MEMORY = 1, 2, 3, 4
+MEMORY_HINT = ("try a smaller --size, fewer primitives (--ratio, --num-gaussians) or planes (--planes), or another "
+               "--device")
 
 # The library's parameter names (in backticks in its messages) as the command line spells them.
 FLAGS = {"width": "--size", "height": "--size", "size": "--size", "num_planes": "--planes", "pixel_pitch": "--pitch",
@@ -998,6 +1002,20 @@ def _show_notes() -> None:
         logger.propagate = False
 
 
+def _machine_or_bug(command: str, error: Exception) -> int:
+    """Report an error that is not the input's: the file system's refusal (exit 3) or a failed allocation (4),
+    each in one line that says what to do; anything else is a bug (1), with where to report it."""
+    if (refusal := filesystem_refusal(error)) is not None:
+        print(f"cvqpg {command}: error: {refusal}", file=sys.stderr)
+        return EXIT_FILESYSTEM
+    if (failure := allocation_failure(error)) is not None:
+        print(f"cvqpg {command}: error: {failure}; {MEMORY_HINT}", file=sys.stderr)
+        return EXIT_MEMORY
+    print(f"cvqpg {command}: internal error ({type(error).__name__}: {error}); this is a bug in cvqpg: "
+          "please report it with the command you ran (CVQPG_TRACEBACK=1 shows the traceback)", file=sys.stderr)
+    return EXIT_BUG
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
@@ -1011,13 +1029,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                 "decompress": run_decompress, "encode": run_encode}[args.command](args)
     except CvqpgError as error:
         print(f"cvqpg {args.command}: error: {flag_message(str(error))}", file=sys.stderr)
-        return 2
-    except Exception as error:  # a bug: one line and where to report it, the traceback on request
+        return EXIT_USAGE
+    except Exception as error:
         if os.environ.get("CVQPG_TRACEBACK") == "1":
             raise
-        print(f"cvqpg {args.command}: internal error ({type(error).__name__}: {error}); this is a bug in cvqpg: "
-              "please report it with the command you ran (CVQPG_TRACEBACK=1 shows the traceback)", file=sys.stderr)
-        return 1
+        return _machine_or_bug(args.command, error)
     except KeyboardInterrupt:
         print(f"cvqpg {args.command}: interrupted", file=sys.stderr)
         return 130
