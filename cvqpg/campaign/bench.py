@@ -16,7 +16,8 @@ import math
 import multiprocessing
 import signal
 import traceback
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -653,6 +654,18 @@ def limit_threads(threads: int) -> None:
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
 
 
+@contextmanager
+def limited_threads(threads: int) -> Iterator[None]:
+    """`limit_threads` for the block; the caller's thread counts after it."""
+    before = torch.get_num_threads(), numba.get_num_threads()
+    limit_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before[0])
+        numba.set_num_threads(before[1])
+
+
 def _init_worker(threads: int, stop_event: Any) -> None:
     """Pool worker set-up: its share of the cores, the allocator setting of the command line (a
     spawned process does not inherit it), and signals left to the parent, which relays a stop."""
@@ -715,9 +728,9 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
             bar.update()
 
         if jobs == 1:
-            limit_threads(threads)
-            for cell in todo:
-                record(cell, *_attempt(cell, plan.cell_dir(cell), stop, rd_options))
+            with limited_threads(threads):
+                for cell in todo:
+                    record(cell, *_attempt(cell, plan.cell_dir(cell), stop, rd_options))
         else:
             _run_pool(plan, todo, jobs, threads, stop, record, rd_options)
     return outcome
