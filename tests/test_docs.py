@@ -140,8 +140,8 @@ def context(text: str, index: int) -> str | None:
     """The subcommand that the text at `index` speaks of: the nearest one named before it in its paragraph or
     list item, else in its section's heading, else in the page's title; "script" where the nearest is a script,
     None where none is named. A table speaks of what the paragraph before it names."""
-    if text.startswith("|", index):
-        index = len(text[:index].rstrip())
+    while text.startswith("|", text.rfind("\n", 0, index) + 1):  # from a table's row to the text before it
+        index = text.rfind("\n", 0, index)
     section = max(text.rfind("\n#", 0, index), 0)
     paragraph = max([m.end() for m in re.finditer(r"\n\s*\n|\n\s*(?:[-*]|\d+\.) ", text[:index])] + [section])
     for scope in (text[paragraph:index], text[section:text.find("\n", section + 1)], text[:text.find("\n")]):
@@ -151,24 +151,13 @@ def context(text: str, index: int) -> str | None:
     return None
 
 
-def table_start(text: str, index: int) -> int:
-    """Where the table holding `index` starts (a table speaks of what the text before it names), or `index`."""
-    start = text.rfind("\n", 0, index) + 1
-    while text.startswith("|", start) and start > 0:
-        previous = text.rfind("\n", 0, start - 1) + 1
-        if not text.startswith("|", previous):
-            return start
-        start = previous
-    return index if not text.startswith("|", start) else start
-
-
 def quoted_defaults() -> list[QuotedDefault]:
     found = []
     for page in PAGES:
         text = prose(page.read_text())
         name = str(page.relative_to(ROOT))
         for match in QUOTED_DEFAULT.finditer(text):
-            found.append(QuotedDefault(f"{name}:{line_of(text, match.start())}", context(text, table_start(text, match.start())),
+            found.append(QuotedDefault(f"{name}:{line_of(text, match.start())}", context(text, match.start()),
                                        match.group(1), match.group(2) or match.group(3)))
         for table in re.finditer(r"^\|.*\|\n\|[-| ]+\|\n(?:\|.*\|\n?)+", text, re.MULTILINE):
             rows = [[cell.strip() for cell in row.strip("|").split(" | ")] for row in table.group(0).splitlines()]
