@@ -67,7 +67,7 @@ class DefaultsFormatter(argparse.HelpFormatter):
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text, default = action.help or "", action.default
-        if "[default" in text or default in (None, False, argparse.SUPPRESS) or default == []:
+        if "[default" in text or any(default is none for none in (None, False, argparse.SUPPRESS)) or default == []:
             return text
         shown = " ".join(map(_shown, default)) if isinstance(default, (list, tuple)) else _shown(default)
         return f"{text} [default: {shown.replace('%', '%%')}]"

@@ -32,3 +32,15 @@ def test_version_and_every_help_import_no_heavy_module():
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout) == []
 
+
+
+def test_every_help_shows_each_default_once_in_one_style():
+    parser = build_parser()
+    for name, sub in parser._subparsers._group_actions[0].choices.items():
+        assert "(default" not in sub.format_help(), name
+        formatter = sub._get_formatter()
+        for action in sub._actions:
+            text = formatter._get_help_string(action)
+            assert text.count("[default") <= 1, (name, action.dest)
+            if isinstance(action.default, (int, float)) and not isinstance(action.default, bool):
+                assert "[default" in text, (name, action.dest)  # 0 too, which compares equal to False
