@@ -14,6 +14,7 @@ import torch
 
 from ..config import FitConfig, RunOptions
 from ..control import RunControl
+from ..defaults import CHECKPOINT_SECONDS
 from ..errors import ConfigError, CvqpgError, InputError, ModelFileError
 from ..fitting import (CheckpointPolicy, FitResult, FitState, fit_scene, initial_state, seconds_per_step,
                        state_from_payload, steps_within)
@@ -25,7 +26,6 @@ from ..targets import Scene
 from .compilation import prepare_kernels
 from .provenance import code_commit, peak_memory, reset_peak_memory, run_record
 
-CHECKPOINT_SECONDS = 180.0
 FINGERPRINT_KEY = "run_fingerprint"
 # What a checkpoint records of its run (`run_fingerprint`): the settings and inputs as `config.json` records them,
 # read back through `FitConfig.from_dict`, so that a setting added later takes the value the run had.
