@@ -205,14 +205,12 @@ class FitConfig:
         """A configuration from flat names (`FLAT_NAMES`: `width`, `steps`, `pixel_pitch`, ...), with the recipe
         `recipe`'s settings where not given; an unset (None) `curvature_warmup` is the paper's share of `steps`.
         `recipe` names the result's recipe, or `custom` where a given setting differs from it."""
-        if recipe not in RECIPES:
-            raise choices_error("recipe", recipe, tuple(RECIPES))
-        chosen = RECIPES[recipe].settings()
+        config = cls().with_recipe(recipe)
         own = {k: v for k, v in settings.items() if not (k == "curvature_warmup" and v is None)}
-        name = recipe if all(own.get(k, v) == v for k, v in chosen.items()) else CUSTOM_RECIPE
-        steps = own.get("steps", OptimisationSettings.steps)
-        return cls().replace(**{**chosen, "curvature_warmup": default_curvature_warmup(steps) if _is_integer(steps)
-                                else steps, **own}, recipe=name)
+        steps = own.get("steps", config.optimisation.steps)
+        warmup = default_curvature_warmup(steps) if _is_integer(steps) else 0  # `validate` names bad steps
+        made = config.replace(**{"curvature_warmup": warmup, **own})
+        return made if made.with_recipe(recipe) == made else made.replace(recipe=CUSTOM_RECIPE)
 
     def replace(self, **changes: Any) -> "FitConfig":
         """This configuration with settings changed: flat names (`FLAT_NAMES`), whole sections, or `recipe`.
