@@ -24,26 +24,27 @@ from . import __version__
 from .app.allocator import keep_freed_memory
 from .app.compilation import compile_all
 from .app.outputs import check_new_folder, check_output_file, check_output_folder, is_run_folder
-from .app.runner import (CHECKPOINT_SECONDS, encode_in_folder, fit_in_folder, read_encode, resumed_state,
-                         start_encode, timed_config, write_fitted_run)
+from .app.compression import RATE_FINETUNE_STEPS, compress_model, decompress_file
+from .app.encoding import (ENCODE_FINETUNE_STEPS, ENCODE_STEPS, encode_budget, encode_config, encode_in_folder,
+                           encoding_record, read_encode, start_encode)
+from .app.runner import CHECKPOINT_SECONDS, fit_in_folder, resumed_state, timed_config, write_fitted_run
 from .campaign.bench import (CELLS_DIR, METHODS, PRESETS, Overrides, RateDistortionOptions, describe_cells, folder_plan,
                              make_plan, parse_shard, peak_bytes, run_plan)
 from .campaign.report import write_summary
 from .campaign.results import document, write_figures
 from .codec import IMPORTANCE_VERSION, ROTATION_DEPTH_VERSION, SUFFIX, BitDepths
-from .compression import ASSUMED_FIT_PSNR_DB, check_compression_settings, compress_model, decompress_file
 from .config import BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITIVES, QPFS, RECIPES, FitConfig
+from .control import RunControl
 from .depth import DEPTH_FILE, DEPTH_MODEL, estimate_depth, load_depth_model
 from .errors import CvqpgError
 from .files import replace_folder, staged_folder
 from .export import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
 from .fitting import FitInterrupted, FitState, estimated_peak_bytes
-from .ratecontrol import (ENCODE_FINETUNE_STEPS, ENCODE_STEPS, RATE_FINETUNE_STEPS, check_budget_values,
-                          compress_to_budget, encode_budget, encode_config, encoding_record)
 from .runs import (CHECKPOINT_FILE, CONFIG_FILE, EXPORT_FOLDER, HALF_MODEL_FILE, METRICS_FILE, MODEL_FILE,
                    RENDER_FOLDER, evaluate_run, export_run, half_precision_model, model_path, read_run, render_model,
                    scene_from_source, start_run, write_atomic)
 from .scenes import SCENES
+from .search import ASSUMED_FIT_PSNR_DB, CompressionSettings
 from .storage import is_compressed, model_info
 from .targets import Scene, check_file, load_scene
 from .view import DEFAULT_SWEEP, VIEW_FILE, ViewRecord, check_sweep, default_page, write_view
@@ -759,23 +760,17 @@ def run_compile(_args: argparse.Namespace) -> int:
 
 
 def run_compress(args: argparse.Namespace) -> int:
-    bits = BitDepths.parse(args.bits) if args.bits else None
-    rate = args.bpp is not None or args.max_bytes is not None
-    if rate and args.prune:
-        raise UsageError("--prune applies to --bits and --max-drop; with --bpp or --max-bytes the rate control "
-                         "chooses the primitives to keep")
-    check_compression_settings(args.max_drop, args.finetune or 0, args.prune)
-    if rate:
-        check_budget_values(args.bpp, args.max_bytes)
+    settings = CompressionSettings(bits=BitDepths.parse(args.bits) if args.bits else None, max_drop=args.max_drop,
+                                   bpp=args.bpp, max_bytes=args.max_bytes, finetune_steps=args.finetune,
+                                   prune_fraction=args.prune)
     model = model_path(args.target)
     out = args.out
     if model.is_file() and not is_compressed(model):  # otherwise compress_model says what the target is
         out = check_output_file(args.out or model.with_suffix(SUFFIX), [model], args.overwrite)
-    if rate:
-        r = compress_to_budget(Path(args.target), out, args.bpp, args.max_bytes, args.finetune, progress=True)
+    r = compress_model(Path(args.target), settings, out, RunControl())
+    if settings.budgeted:
         print(f"{r['file']}: {_rate_summary(r)}")
         return 0
-    r = compress_model(Path(args.target), out, bits, args.max_drop, args.finetune or 0, args.prune)
     scored = (f", float {r['psnr_float']:.3f} dB" if r["psnr_float"] is not None
               else f" (drop estimated for a fit at {ASSUMED_FIT_PSNR_DB:g} dB)")
     print(f"{r['file']}: {r['bytes'] / 2**10:.1f} KiB, {r['bits_per_pixel']:.3f} bpp, {r['ratio']:.1f}× smaller than "
@@ -790,7 +785,7 @@ def run_compress(args: argparse.Namespace) -> int:
 
 
 def _rate_summary(r: dict) -> str:
-    """A rate-controlled file (`compress_to_budget`, `encode_scene`) in one line."""
+    """A rate-controlled file (`compress_model` within a budget, `encode_in_folder`) in one line."""
     budget = r["max_bytes"]
     return (f"{r['bytes']} bytes of a budget of {budget} ({r['bytes'] / budget:.1%}), {r['bits_per_pixel']:.3f} bpp; "
             f"{r['num_primitives']} primitives at bits " + " ".join(f"{k}={v}" for k, v in r["bits"].items())
@@ -824,8 +819,8 @@ def run_encode(args: argparse.Namespace) -> int:
             raise UsageError(f"give the {SUFFIX} file to write with --out FILE")
         config, source = _config_and_source(args)
         check_device(config.device)
-        check_compression_settings(None, args.finetune, 0.0)
-        budget, finetune_steps = encode_budget(config, args.bpp, args.max_bytes), args.finetune
+        settings = CompressionSettings(bpp=args.bpp, max_bytes=args.max_bytes, finetune_steps=args.finetune)
+        budget, finetune_steps = encode_budget(config, settings), settings.finetune_steps
         out = check_output_file(args.out, _source_files(source), args.overwrite)
         work = out.with_name(out.name + PARTIAL_SUFFIX)
         if work.exists():
@@ -842,8 +837,8 @@ def run_encode(args: argparse.Namespace) -> int:
             start_encode(work, config, source, budget, finetune_steps)
         if depth is not None:
             depth.save(work / DEPTH_FILE)
-        encoded = encode_in_folder(work, scene, config, budget, finetune_steps, progress=not args.quiet,
-                                   stop_requested=stop_requested)
+        encoded = encode_in_folder(work, scene, config, budget, finetune_steps,
+                                   RunControl(progress=not args.quiet, stop_requested=stop_requested))
         write_atomic(out, encoded.rate.choice.data)
         if not args.quiet:
             print(f"{out}: {_rate_summary(encoding_record(encoded, out, budget))}")
