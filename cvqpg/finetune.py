@@ -88,7 +88,7 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
         loss, mse = hologram_loss(hologram(quantised(params, coded.ranges, config, bits), config), scene,
                                   config, generator)
         if control.on_step is not None:  # reads the device back: only for a caller that shows progress
-            control.report(step, float(loss), float(psnr_from_mse(mse)))
+            control.report(step, float(loss.detach()), float(psnr_from_mse(mse.detach())))
         optimizer.zero_grad(set_to_none=True)
         if not torch.isfinite(loss):
             continue

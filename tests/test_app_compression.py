@@ -12,17 +12,27 @@ import torch
 from cvqpg import FitConfig, load_model
 from cvqpg.app.compression import compress_model
 from cvqpg.cli import main
-from cvqpg.codec import FORMAT_VERSION, MAGIC, BitDepths
+from cvqpg.codec import FORMAT_VERSION, MAGIC, BitDepths, encode
 from cvqpg.errors import ConfigError
 from cvqpg.fitting import render
 from cvqpg.metrics import mean_psnr
 from cvqpg.runs import read_run, scene_from_source
 from cvqpg.search import LADDER, CompressionSettings, smallest_file
-from cvqpg.storage import read_compressed
+from cvqpg.storage import read_compressed, save_model
 from test_codec import random_primitives
 
 # The paper's recipe: the fine-tuning gains asserted below are calibrated on its fit (a barely started one).
 SMALL_FIT = ["fit", "--size", "40", "30", "--steps", "30", "--curvature-warmup", "10", "--recipe", "paper", "--quiet"]
+W, H = 48, 36
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory):
+    """A bare model file of random primitives, in a folder of its own; a narrow guard band renders it at once."""
+    config = FitConfig(width=W, height=H, color="gray", num_planes=1, ratio=0.3, guard_band_px=32).validate()
+    path = tmp_path_factory.mktemp("model") / "model.safetensors"
+    save_model(path, random_primitives(config), config)
+    return path
 
 
 @pytest.fixture(scope="module")
@@ -32,9 +42,9 @@ def fitted_run(tmp_path_factory):
     return out
 
 
-def test_compress_decompress_render_round_trip(fitted_run, tmp_path, capsys):
+def test_compress_decompress_render_round_trip(model_file, tmp_path, capsys):
     packed = tmp_path / "model.cvq"
-    assert main(["compress", str(fitted_run), "--bits", "10", "--out", str(packed)]) == 0
+    assert main(["compress", str(model_file), "--bits", "10", "--out", str(packed)]) == 0
     assert main(["decompress", str(packed), "--out", str(tmp_path / "model.safetensors")]) == 0
     assert main(["render", str(tmp_path / "model.safetensors"), "--out", str(tmp_path / "r")]) == 0
     capsys.readouterr()
@@ -42,7 +52,7 @@ def test_compress_decompress_render_round_trip(fitted_run, tmp_path, capsys):
     direct, _ = load_model(packed)
     for name, tensor in direct.tensors().items():
         assert torch.equal(tensor, unpacked.tensors()[name]), name
-    original, _ = load_model(fitted_run / "model.safetensors")
+    original, _ = load_model(model_file)
     assert mean_psnr(render(direct, config)[1], render(original, config)[1]) > 40
     assert (tmp_path / "r" / "recon_1mm.png").is_file()
 
@@ -54,6 +64,7 @@ def decoded_psnr(run, model_file) -> float:
     return mean_psnr(render(load_model(model_file)[0], config)[1], targets)
 
 
+@pytest.mark.slow
 def test_max_drop_is_the_drop_of_the_decoded_file(fitted_run, tmp_path):
     record = compress_model(fitted_run, CompressionSettings(max_drop=0.3), tmp_path / "m.cvq")
     float_psnr = decoded_psnr(fitted_run, fitted_run / "model.safetensors")
@@ -63,6 +74,7 @@ def test_max_drop_is_the_drop_of_the_decoded_file(fitted_run, tmp_path):
     assert record["bytes"] == (tmp_path / "m.cvq").stat().st_size < record["model_bytes"] / 4
 
 
+@pytest.mark.slow
 def test_finetune_is_kept_only_if_it_pays(fitted_run, tmp_path):
     bits = BitDepths.parse(["5"])
     plain = compress_model(fitted_run, CompressionSettings(bits=bits), tmp_path / "plain.cvq")
@@ -79,6 +91,7 @@ def test_finetune_is_kept_only_if_it_pays(fitted_run, tmp_path):
     assert (tmp_path / "unpaid.cvq").read_bytes() == (tmp_path / "plain.cvq").read_bytes()
 
 
+@pytest.mark.slow
 def test_prune_with_finetune_writes_fewer_primitives_where_it_pays(fitted_run, tmp_path):
     # A quarter of the primitives, those of least field energy, cost this fit 0.04 dB at 5 bits; 10 steps of
     # fine-tuning regain tenths of a dB, so the tuned file, with fewer primitives, is the one kept
@@ -94,13 +107,14 @@ def test_prune_with_finetune_writes_fewer_primitives_where_it_pays(fitted_run, t
     (["--prune", "-0.1", "--finetune", "2"], "--prune -0.1: give the fraction"),
     (["--prune", "0.2"], "--prune 0.2 needs --finetune > 0"),
 ])
-def test_bad_prune_is_one_line_exit_2_and_writes_nothing(fitted_run, tmp_path, arguments, message, capsys):
+def test_bad_prune_is_one_line_exit_2_and_writes_nothing(model_file, tmp_path, arguments, message, capsys):
     out = tmp_path / "x.cvq"
-    assert main(["compress", str(fitted_run), "--out", str(out), *arguments]) == 2
+    assert main(["compress", str(model_file), "--out", str(out), *arguments]) == 2
     error = capsys.readouterr().err
     assert message in error and len(error.strip().splitlines()) == 1 and not out.exists()
 
 
+@pytest.mark.slow
 def test_eval_info_and_export_read_the_compressed_file(fitted_run, capsys):
     assert main(["compress", str(fitted_run), "--bits", "8"]) == 0
     packed = fitted_run / "model.cvq"
@@ -130,11 +144,9 @@ def _bad_files(good: bytes) -> dict[str, tuple[bytes, str]]:
 
 @pytest.mark.parametrize("kind", ["truncated", "corrupted", "magic", "newer", "empty"])
 @pytest.mark.parametrize("command", ["decompress", "info", "render"])
-def test_bad_files_fail_cleanly_and_write_nothing(fitted_run, tmp_path, kind, command, capsys):
-    good = fitted_run / "good.cvq"
-    if not good.exists():
-        assert main(["compress", str(fitted_run), "--bits", "6", "--out", str(good)]) == 0
-    data, message = _bad_files(good.read_bytes())[kind]
+def test_bad_files_fail_cleanly_and_write_nothing(model_file, tmp_path, kind, command, capsys):
+    primitives, config = load_model(model_file)
+    data, message = _bad_files(encode(primitives, config, BitDepths.parse(["6"])))[kind]
     bad = tmp_path / "bad.cvq"
     bad.write_bytes(data)
     capsys.readouterr()
@@ -151,20 +163,22 @@ def test_bad_files_fail_cleanly_and_write_nothing(fitted_run, tmp_path, kind, co
     (["compress", "{run}/model.cvq6"], "no such"),
     (["decompress", "{run}/none.cvq"], "no such"),
 ])
-def test_bad_compress_options_fail_cleanly(fitted_run, arguments, message, capsys):
-    before = sorted(p.name for p in fitted_run.iterdir())
-    assert main([a.format(run=fitted_run) for a in arguments]) == 2
+def test_bad_compress_options_fail_cleanly(model_file, arguments, message, capsys):
+    folder = model_file.parent
+    before = sorted(p.name for p in folder.iterdir())
+    assert main([a.format(run=folder) for a in arguments]) == 2
     error = capsys.readouterr().err
     assert message in error and len(error.strip().splitlines()) == 1
-    assert sorted(p.name for p in fitted_run.iterdir()) == before
+    assert sorted(p.name for p in folder.iterdir()) == before
 
 
-def test_unknown_option_exits_2(fitted_run, capsys):
-    assert main(["compress", str(fitted_run), "--level", "3"]) == 2
+def test_unknown_option_exits_2(model_file, capsys):
+    assert main(["compress", str(model_file), "--level", "3"]) == 2
     error = capsys.readouterr().err
     assert "unrecognized arguments: --level" in error and error.count("\n") == 1
 
 
+@pytest.mark.slow
 def test_a_bare_model_file_is_scored_against_its_own_reconstruction(fitted_run, tmp_path, capsys):
     bare = tmp_path / "bare.safetensors"
     bare.write_bytes((fitted_run / "model.safetensors").read_bytes())
@@ -174,6 +188,7 @@ def test_a_bare_model_file_is_scored_against_its_own_reconstruction(fitted_run, 
     assert (tmp_path / "bare.cvq").is_file()
 
 
+@pytest.mark.slow
 def test_rate_distortion_points_and_bd_rate():
     pytest.importorskip("imagecodecs")
     from cvqpg.campaign.ratedistortion import anchor_points, bd_rate, rd_points
@@ -192,7 +207,6 @@ def test_rate_distortion_points_and_bd_rate():
     assert bd_rate(anchor, test, top_psnr=35).percent == pytest.approx(-50, abs=1e-9)
 
 
-W, H = 48, 36
 # A grayscale single-plane fit with 216 primitives: its float file at the default depths takes about 7 bpp
 TINY_FIT = ["fit", "--scene", "star", "--size", str(W), str(H), "--ratio", "0.5", "--steps", "20", "--quiet"]
 
@@ -210,6 +224,7 @@ def one_line_error(capsys) -> str:
     return error
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("bpp", [2.5, 3.5, 5.0, 6.5])
 def test_the_file_never_exceeds_the_budget_and_lands_within_5_percent_below_it(run, tmp_path, bpp):
     out = tmp_path / "m.cvq"
@@ -221,6 +236,7 @@ def test_the_file_never_exceeds_the_budget_and_lands_within_5_percent_below_it(r
     assert read_compressed(out).primitives.count == record["num_primitives"] <= load_model(run / "model.safetensors")[0].count
 
 
+@pytest.mark.slow
 def test_a_budget_beyond_the_whole_model_at_the_finest_depths_gets_that_file(run, tmp_path):
     record = compress_model(run, CompressionSettings(bpp=64.0, finetune_steps=0), tmp_path / "m.cvq")
     assert record["num_primitives"] == load_model(run / "model.safetensors")[0].count
@@ -229,6 +245,7 @@ def test_a_budget_beyond_the_whole_model_at_the_finest_depths_gets_that_file(run
     assert record["bytes"] < 0.95 * W * H * 64 / 8  # the one case where the file lands further below
 
 
+@pytest.mark.slow
 def test_max_bytes_through_the_command_line_as_info_reports_it(run, tmp_path, capsys):
     out = tmp_path / "m.cvq"
     assert main(["compress", str(run), "--max-bytes", "900", "--finetune", "2", "--out", str(out)]) == 0
@@ -239,6 +256,7 @@ def test_max_bytes_through_the_command_line_as_info_reports_it(run, tmp_path, ca
     assert info["bits_per_pixel"] == 8 * info["file_bytes"] / (W * H)
 
 
+@pytest.mark.slow
 def test_a_bare_model_file_is_rate_controlled_against_its_own_reconstruction(run, tmp_path):
     loose = tmp_path / "loose.safetensors"
     loose.write_bytes((run / "model.safetensors").read_bytes())
@@ -250,11 +268,11 @@ def test_a_bare_model_file_is_rate_controlled_against_its_own_reconstruction(run
 
 
 @pytest.mark.parametrize("budget", [["--bpp", "0.5"], ["--max-bytes", "100"]])
-def test_a_budget_below_the_smallest_file_is_one_line_exit_2(run, tmp_path, budget, capsys):
+def test_a_budget_below_the_smallest_file_is_one_line_exit_2(model_file, tmp_path, budget, capsys):
     out = tmp_path / "m.cvq"
-    assert main(["compress", str(run), *budget, "--out", str(out)]) == 2
+    assert main(["compress", str(model_file), *budget, "--out", str(out)]) == 2
     error = one_line_error(capsys)
-    smallest = smallest_file(*load_model(run / "model.safetensors"))
+    smallest = smallest_file(*load_model(model_file))
     assert f"{budget[0]} {budget[1]}" in error and f"smallest file the format can write for this model: {smallest} " \
         f"bytes ({8 * smallest / (W * H):.3f} bpp), its header" in error
     assert not out.exists()
@@ -274,7 +292,7 @@ def test_a_budget_below_the_smallest_file_is_one_line_exit_2(run, tmp_path, budg
     (["--max-bytes", "1e3"], "argument --max-bytes: invalid int value"),
     (["--bpp", "3", "--finetune", "-1"], "--finetune -1: give a number of steps ≥ 0"),
 ])
-def test_bad_rate_options_are_one_line_exit_2_and_write_nothing(run, tmp_path, arguments, message, capsys):
-    assert main(["compress", str(run), *arguments, "--out", str(tmp_path / "m.cvq")]) == 2
+def test_bad_rate_options_are_one_line_exit_2_and_write_nothing(model_file, tmp_path, arguments, message, capsys):
+    assert main(["compress", str(model_file), *arguments, "--out", str(tmp_path / "m.cvq")]) == 2
     assert message in one_line_error(capsys)
     assert list(tmp_path.iterdir()) == []

@@ -52,6 +52,7 @@ def picture(tmp_path_factory):
 ENCODE = ["encode", "--size", str(W), str(H), "--color", "gray", "--planes", "1", "--steps", "5", "--finetune", "2"]
 
 
+@pytest.mark.slow
 def test_encode_writes_one_file_within_the_budget_that_decompress_and_info_read(picture, tmp_path, capsys):
     out = tmp_path / "ramp.cvq"
     assert main([*ENCODE, str(picture), "--bpp", "4", "--out", str(out), "--quiet"]) == 0
@@ -102,7 +103,7 @@ def whole(picture, tmp_path_factory):
     pytest.param(FIT_ASKS, "stopped during rate control, after the fit's last step", marks=pytest.mark.slow),
     pytest.param(FIT_ASKS + len(LADDER), "stopped during rate control, after the fit's last step",
                  marks=pytest.mark.slow),
-    (-1, "stopped during fine-tuning, after the fit's last step")])
+    pytest.param(-1, "stopped during fine-tuning, after the fit's last step", marks=pytest.mark.slow)])
 def test_a_stopped_encode_resumes_from_its_checkpoint_to_the_same_file(picture, whole, tmp_path, monkeypatch, capsys,
                                                                       asks, stopped):
     whole_file, whole_asks = whole

@@ -58,6 +58,7 @@ def model():
     return primitives, config, reference_for(primitives, config, None)
 
 
+@pytest.mark.slow
 def test_within_a_drop_the_search_holds_it_and_no_one_bit_coarser_attribute_does_better(model):
     primitives, config, reference = model
     goal = MaxDrop(0.5)
@@ -70,6 +71,7 @@ def test_within_a_drop_the_search_holds_it_and_no_one_bit_coarser_attribute_does
             assert not goal.holds(other) or len(other.data) >= len(found.data)
 
 
+@pytest.mark.slow
 def test_within_a_budget_every_primitive_filled_up_to_it_is_a_candidate_even_where_its_rung_lands_far_below(model):
     primitives, config, reference = model  # all about equally strong: pruning costs most
     sizes = [len(encode(primitives, config, bits)) for bits in LADDER[:3]]
