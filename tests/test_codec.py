@@ -4,7 +4,6 @@ files or model files that make no physical sense refused in one line."""
 import json
 import math
 import re
-import struct
 import zlib
 
 import numpy as np
