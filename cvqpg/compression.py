@@ -1,5 +1,5 @@
-"""Deprecated since 0.2.0, removed in the next release: the search is `cvqpg.search`, the `compress` and
-`decompress` workflows `cvqpg.app.compression`. The old names below keep working until then."""
+"""Deprecated since 0.2.0, removed in 0.3.0 (`deprecations.REMOVED_IN`): the search is `cvqpg.search`, the
+`compress` and `decompress` workflows `cvqpg.app.compression`. The old names below keep working until then."""
 
 from __future__ import annotations
 
@@ -12,12 +12,13 @@ from .app.compression import (CompressionInput, choice_record, compression_input
 from .app.compression import compress_model as _compress_model
 from .codec import BitDepths
 from .config import FitConfig
+from .deprecations import REMOVED_IN
 from .primitives import Primitives, field_energy
 from .search import (ASSUMED_FIT_PSNR_DB, LADDER, Choice, CompressionSettings, MaxDrop, Reference, kept, prune,
                      psnr_drop, reference_for, search, strongest_first, trial)
 
-warnings.warn("cvqpg.compression is deprecated: use cvqpg.search (the search) and cvqpg.app.compression "
-              "(compress_model, decompress_file)", DeprecationWarning, stacklevel=2)
+warnings.warn("`cvqpg.compression` moved to `cvqpg.search` (the search) and `cvqpg.app.compression` (`compress_model`, "
+              f"`decompress_file`); the old name goes in cvqpg {REMOVED_IN}", DeprecationWarning, stacklevel=2)
 
 __all__ = ["ASSUMED_FIT_PSNR_DB", "LADDER", "Choice", "CompressionInput", "Reference", "check_compression_settings",
            "choice_record", "choose_bits", "compress_model", "compression_input", "compression_record",

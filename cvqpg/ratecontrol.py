@@ -1,6 +1,6 @@
-"""Deprecated since 0.2.0, removed in the next release: rate control is `cvqpg.search`, the `compress --bpp`
-and `encode` workflows `cvqpg.app.compression` and `cvqpg.app.encoding`. The old names below keep working
-until then."""
+"""Deprecated since 0.2.0, removed in 0.3.0 (`deprecations.REMOVED_IN`): rate control is `cvqpg.search`, the
+`compress --bpp` and `encode` workflows `cvqpg.app.compression` and `cvqpg.app.encoding`. The old names below keep
+working until then."""
 
 from __future__ import annotations
 
@@ -8,14 +8,16 @@ import warnings
 from pathlib import Path
 from typing import Any, Callable
 
-from .app.compression import RATE_FINETUNE_STEPS, compress_model
-from .app.encoding import (ENCODE_FINETUNE_STEPS, ENCODE_HEADROOM, ENCODE_STEPS, Encoding, encode_config,
-                           encode_steps, encoding_record, primitives_for_budget, stand_in)
+from .app.compression import compress_model
+from .app.encoding import (ENCODE_HEADROOM, Encoding, encode_config, encode_steps, encoding_record,
+                           primitives_for_budget, stand_in)
 from .app.encoding import encode_budget as _encode_budget
 from .app.encoding import encode_fitted as _encode_fitted
 from .app.encoding import encode_scene as _encode_scene
 from .config import FitConfig
 from .control import RunControl
+from .defaults import ENCODE_FINETUNE_STEPS, ENCODE_STEPS, RATE_FINETUNE_STEPS
+from .deprecations import REMOVED_IN
 from .fitting import FitResult
 from .primitives import Primitives
 from .search import (CLOSE, COARSEST, TUNING_HEADROOM, Budget, CompressionSettings, RateChoice, Reference,
@@ -24,8 +26,9 @@ from .search import LADDER as RUNGS
 from .search import rate_control as _rate_control
 from .targets import Scene
 
-warnings.warn("cvqpg.ratecontrol is deprecated: use cvqpg.search (rate_control, Budget) and cvqpg.app.compression "
-              "or cvqpg.app.encoding (the compress and encode workflows)", DeprecationWarning, stacklevel=2)
+warnings.warn("`cvqpg.ratecontrol` moved to `cvqpg.search` (`rate_control`, `Budget`), `cvqpg.app.compression` and "
+              f"`cvqpg.app.encoding` (the compress and encode workflows); the old name goes in cvqpg {REMOVED_IN}",
+              DeprecationWarning, stacklevel=2)
 
 __all__ = ["CLOSE", "COARSEST", "ENCODE_FINETUNE_STEPS", "ENCODE_HEADROOM", "ENCODE_STEPS", "RATE_FINETUNE_STEPS",
            "RUNGS", "TUNING_HEADROOM", "Budget", "Encoding", "RateChoice", "check_budget_values",

@@ -38,7 +38,8 @@ from typing import Any, Callable, ClassVar, Sequence
 import torch
 from tqdm.auto import tqdm
 
-from .codec import MAX_BITS, BitDepths, bits_per_pixel, decode, encode, range_holders
+from .bitdepths import MAX_BITS, BitDepths
+from .codec import bits_per_pixel, decode, encode, range_holders
 from .config import FitConfig
 from .control import SILENT, RunControl
 from .errors import ConfigError

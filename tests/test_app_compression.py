@@ -233,7 +233,8 @@ def test_the_file_never_exceeds_the_budget_and_lands_within_5_percent_below_it(r
     assert record["max_bytes"] == max_bytes
     assert 0.95 * max_bytes <= out.stat().st_size == record["bytes"] <= max_bytes
     assert record["bits_per_pixel"] <= bpp
-    assert read_compressed(out).primitives.count == record["num_primitives"] <= load_model(run / "model.safetensors")[0].count
+    fitted = load_model(run / "model.safetensors")[0].count
+    assert read_compressed(out).primitives.count == record["num_primitives"] <= fitted
 
 
 @pytest.mark.slow

@@ -9,10 +9,10 @@ import pytest
 from PIL import Image
 
 from cvqpg import FitConfig, cli, search
-from cvqpg.app.encoding import (ENCODE_FINETUNE_STEPS, ENCODE_HEADROOM, ENCODE_STEPS, encode_steps,
-                                primitives_for_budget, stand_in)
+from cvqpg.app.encoding import ENCODE_HEADROOM, encode_steps, primitives_for_budget, stand_in
 from cvqpg.cli import main
 from cvqpg.codec import BitDepths, encode
+from cvqpg.defaults import ENCODE_FINETUNE_STEPS, ENCODE_STEPS
 from cvqpg.search import LADDER, trial
 from cvqpg.storage import load_model, read_compressed
 
@@ -117,9 +117,11 @@ def test_a_stopped_encode_resumes_from_its_checkpoint_to_the_same_file(picture, 
     assert len(CountedStop.asked) == CountedStop.after + 1
     assert asks != FIT_ASKS + len(LADDER) or len(tried) <= len(LADDER)  # stopped before any file of finer depths
     assert f"{stopped}; checkpoint saved. Continue with: cvqpg encode --resume {work}" in one_line_error(capsys)
-    assert not out.exists() and sorted(p.name for p in work.iterdir()) == ["budget.json", "checkpoint.pt", "config.json"]
+    assert not out.exists()
+    assert sorted(p.name for p in work.iterdir()) == ["budget.json", "checkpoint.pt", "config.json"]
     assert main([*STOPPED, str(picture), "--out", str(out)]) == 2  # the same encode again is told where its work is
-    assert f"{work} holds an interrupted encode; continue it with cvqpg encode --resume {work}" in one_line_error(capsys)
+    told = one_line_error(capsys)
+    assert f"{work} holds an interrupted encode; continue it with cvqpg encode --resume {work}" in told
     monkeypatch.undo()
     assert main(["encode", "--resume", str(work), "--quiet"]) == 0
     assert out.read_bytes() == whole_file and not work.exists()
@@ -135,7 +137,7 @@ def test_a_failed_encode_keeps_its_folder_only_where_a_checkpoint_is_worth_resum
             (folder / "checkpoint.pt").write_bytes(b"")
         raise RuntimeError("a failure after the fit started")
 
-    monkeypatch.setattr(cli, "encode_in_folder", failing)
+    monkeypatch.setattr("cvqpg.app.encoding.encode_in_folder", failing)
     assert main([*ENCODE, str(picture), "--bpp", "4", "--out", str(tmp_path / "ramp.cvq"), "--quiet"]) == 1
     error = capsys.readouterr().err
     assert "internal error (RuntimeError: a failure after the fit started)" in error

@@ -8,9 +8,10 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from ..codec import SUFFIX, bits_per_pixel
+from ..codec import bits_per_pixel
 from ..config import FitConfig
 from ..control import SILENT, RunControl
+from ..defaults import RATE_FINETUNE_STEPS, SUFFIX
 from ..errors import ConfigError, ModelFileError
 from ..files import write_atomic
 from ..primitives import Primitives
@@ -19,10 +20,6 @@ from ..search import (LADDER, Choice, CompressionSettings, FixedBits, MaxDrop, R
                       reference_for, search)
 from ..storage import is_compressed, load_model, read_compressed, save_model
 from ..targets import Scene
-
-# Fine-tuning steps of `cvqpg compress --bpp/--max-bytes` in a run folder where the caller gives none (the
-# rate–distortion benchmark's).
-RATE_FINETUNE_STEPS = 100
 
 
 @dataclass

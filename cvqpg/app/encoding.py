@@ -14,9 +14,11 @@ from typing import Any
 
 import torch
 
-from ..codec import BitDepths, encode
+from ..bitdepths import BitDepths
+from ..codec import encode
 from ..config import FitConfig
 from ..control import SILENT, RunControl
+from ..defaults import ENCODE_FINETUNE_STEPS, ENCODE_STEPS
 from ..errors import InputError
 from ..fitting import FitResult, fit_scene
 from ..primitives import Primitives, activate, init_gaussians
@@ -26,11 +28,6 @@ from ..targets import Scene
 from .compression import choice_record
 from .runner import fit_in_folder, resumed_state
 
-# `cvqpg encode`'s optimisation: float steps, then quantisation-aware ones at the bit depths rate control chose.
-# About a Table 1 fit's steps, split so: on 640×480 and 320×240 grayscale fits, 1500 + 600 wrote files above
-# 2000 + 100 at the same budget (docs/compression.md, "Where encode's steps go").
-ENCODE_STEPS = 1500
-ENCODE_FINETUNE_STEPS = 600
 # `cvqpg encode` fits more primitives than the budget holds at the default bit depths, so that the rate
 # search can choose between coarser depths for all of them and the default depths for the strongest.
 ENCODE_HEADROOM = 1.2
