@@ -37,7 +37,8 @@ def test_the_primitive_count_for_a_budget_fills_it_at_the_default_depths_with_he
 
 def test_encode_splits_a_fits_steps_into_float_and_quantisation_aware_ones_in_proportion():
     assert encode_steps(FitConfig().optimisation.steps) == (ENCODE_STEPS, ENCODE_FINETUNE_STEPS)
-    assert encode_steps(FitConfig().optimisation.steps // 10) == (round(ENCODE_STEPS / 10), round(ENCODE_FINETUNE_STEPS / 10))
+    tenth = FitConfig().optimisation.steps // 10
+    assert encode_steps(tenth) == (round(ENCODE_STEPS / 10), round(ENCODE_FINETUNE_STEPS / 10))
     assert encode_steps(1) == (1, 0)
 
 

@@ -168,9 +168,9 @@ def read_encode(folder: Path) -> tuple[FitConfig, dict[str, Any], Budget, int]:
 def encode_in_folder(folder: Path, scene: Scene, config: FitConfig, budget: Budget, finetune_steps: int,
                      run: RunOptions = RunOptions(), control: RunControl = SILENT) -> Encoding:
     """`encode_fitted` of a fit of `config` on `run` in `folder` (made by `start_encode`), from the folder's
-    checkpoint where it has one. The fit checkpoints every `runner.CHECKPOINT_SECONDS` and at its end, and a stop request
-    (`control`) raises `FitInterrupted`: within the fit after saving, within rate control with the finished fit
-    saved, which a resume then rate-controls again."""
+    checkpoint where it has one. The fit checkpoints every `runner.CHECKPOINT_SECONDS` and at its end, and a stop
+    request (`control`) raises `FitInterrupted`: within the fit after saving, within rate control with the finished
+    fit saved, which a resume then rate-controls again."""
     fitted = fit_in_folder(folder, scene, config, run, control, resumed_state(folder, config, run),
                            checkpoint_at_end=True)
     return encode_fitted(fitted, scene, budget, finetune_steps, control)
