@@ -1,4 +1,5 @@
-"""Bad input, interruptions and numerical safety, driven as a user would drive them."""
+"""Interruptions, odd but valid input and numerical safety, driven as a user would drive them (refusals of bad
+input at the command line: test_hostile.py)."""
 
 import json
 import os
@@ -14,8 +15,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
-from safetensors import safe_open
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file
 
 from cvqpg import FitConfig, builtin_pictures, fit
 from cvqpg.cli import main
@@ -44,32 +44,6 @@ def gradient_depth(path: Path, size=(48, 36), levels=255) -> Path:
     return path
 
 
-def fails_cleanly(arguments, message, capsys, out: Path) -> None:
-    code = main(arguments + ["--out", str(out)] if arguments[0] == "fit" else arguments)
-    error = capsys.readouterr().err
-    assert code == 2, error
-    assert message in error, error
-    assert "Traceback" not in error and error.strip().count("\n") == 0, error
-    assert not out.exists()
-
-
-def test_not_an_image_is_refused(tmp_path, capsys):
-    (tmp_path / "notes.png").write_text("this is text")
-    fails_cleanly(["fit", str(tmp_path / "notes.png"), "--planes", "1", *SMALL], "not an image file", capsys,
-                  tmp_path / "r")
-
-
-def test_truncated_image_is_refused(tmp_path, photo, capsys):
-    data = photo.read_bytes()
-    (tmp_path / "cut.png").write_bytes(data[: len(data) // 2])
-    fails_cleanly(["fit", str(tmp_path / "cut.png"), "--planes", "1", *SMALL], "corrupt or truncated", capsys,
-                  tmp_path / "r")
-
-
-def test_folder_instead_of_depth_file(tmp_path, photo, capsys):
-    fails_cleanly(["fit", str(photo), "--depth", str(tmp_path), *SMALL], "is a folder", capsys, tmp_path / "r")
-
-
 @pytest.mark.slow
 def test_depth_of_other_size_is_resized_with_a_note(tmp_path, photo, capsys):
     depth = gradient_depth(tmp_path / "d.png", size=(96, 72))
@@ -78,9 +52,8 @@ def test_depth_of_other_size_is_resized_with_a_note(tmp_path, photo, capsys):
 
 
 @pytest.mark.slow
-def test_depth_of_other_aspect_ratio_needs_resize_depth(tmp_path, photo, capsys):
+def test_resize_depth_fits_a_depth_of_another_aspect_ratio_and_records_it(tmp_path, photo):
     depth = gradient_depth(tmp_path / "d.png", size=(40, 40))
-    fails_cleanly(["fit", str(photo), "--depth", str(depth), *SMALL], "--resize-depth", capsys, tmp_path / "r")
     assert main(["fit", str(photo), "--depth", str(depth), "--resize-depth", *SMALL,
                  "--out", str(tmp_path / "r")]) == 0
     assert json.loads((tmp_path / "r" / "config.json").read_text())["source"]["resize_depth"] is True
@@ -112,77 +85,11 @@ def test_alpha_is_dropped_with_a_note(tmp_path, capsys):
     assert "alpha channel" in capsys.readouterr().err
 
 
-def test_constant_depth_cannot_separate_planes(tmp_path, photo, capsys):
-    Image.new("L", (48, 36), 90).save(tmp_path / "flat.png")
-    fails_cleanly(["fit", str(photo), "--depth", str(tmp_path / "flat.png"), *SMALL], "constant", capsys,
-                  tmp_path / "r")
-
-
-def test_more_planes_than_the_depth_separates(tmp_path, photo, capsys):
-    binary = np.zeros((36, 48), np.uint8)
-    binary[:, 24:] = 255
-    Image.fromarray(binary).save(tmp_path / "binary.png")
-    fails_cleanly(["fit", str(photo), "--depth", str(tmp_path / "binary.png"), "--planes", "5", *SMALL],
-                  "separates only", capsys, tmp_path / "r")
-
-
-@pytest.mark.parametrize("arguments, message", [
-    (["--size", "8", "8"], "too small"),
-    (["--size", "30000", "30000"], "GiB are available"),
-    (["--num-gaussians", "0"], "need between 1 and the pixel count"),
-    (["--num-gaussians", "100000"], "need between 1 and the pixel count"),
-    (["--steps", "0"], "--steps must be positive"),
-    (["--steps", "-3"], "--steps must be positive"),
-    (["--ratio", "0"], "--ratio must be positive"),
-    (["--pitch", "0"], "--pitch must be positive"),
-    (["--pitch=-3.74e-6"], "--pitch must be positive"),
-    (["--plane-center", "-0.001"], "plane distances"),
-    (["--plane-span", "-0.004"], "--plane-span must be positive"),
-    (["--wavelengths", "639e-9", "0", "473e-9"], "positive value"),
-    (["--wavelengths", "639e-9"], "need 3 positive value(s)"),
-    (["--curvature-warmup", "50", "--steps", "10"], "--curvature-warmup 50 must lie in 0..--steps"),
-])
-def test_bad_options_fail_cleanly(arguments, message, capsys, tmp_path):
-    base = ["fit", "--size", "48", "36", "--steps", "4", "--curvature-warmup", "1", "--quiet"]
-    fails_cleanly(base + arguments, message, capsys, tmp_path / "r")
-
-
 @pytest.fixture(scope="module")
 def finished_run(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("model") / "run"
     assert main(["fit", *SMALL, "--out", str(out)]) == 0
     return out
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("damage, message", [
-    ("version", "format version 2"),
-    ("missing", "missing tensors curvature_per_m"),
-    ("shape", "has shape"),
-    ("garbage", "not a readable safetensors file"),
-])
-def test_eval_refuses_damaged_models(finished_run, tmp_path, damage, message, capsys):
-    run = tmp_path / "run"
-    run.mkdir()
-    (run / "config.json").write_bytes((finished_run / "config.json").read_bytes())
-    tensors = load_file(finished_run / "model.safetensors")
-    with safe_open(str(finished_run / "model.safetensors"), framework="pt") as handle:
-        metadata = handle.metadata()
-    if damage == "version":
-        metadata["format_version"] = "0"
-    elif damage == "missing":
-        del tensors["curvature_per_m"]
-    elif damage == "shape":
-        tensors["amplitude"] = tensors["amplitude"][:, :1].contiguous()
-    if damage == "garbage":
-        (run / "model.safetensors").write_bytes(b"\x00" * 64)
-    else:
-        save_file(tensors, str(run / "model.safetensors"), metadata=metadata)
-    before = sorted(p.name for p in run.iterdir())
-    assert main(["eval", str(run)]) == 2
-    error = capsys.readouterr().err
-    assert message in error and "Traceback" not in error
-    assert sorted(p.name for p in run.iterdir()) == before
 
 
 def cli_command(out: Path, *extra: str) -> list[str]:
@@ -365,7 +272,8 @@ def test_steps_are_read_back_after_each_on_the_cpu_and_every_half_second_on_cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 def test_propagation_loss_and_update_read_nothing_back_on_cuda():
     """Everything of a step after the rasterizer, under CUDA's sync debug mode set to fail on a host read."""
-    config = FitConfig(width=24, height=20, steps=5, curvature_warmup=0, num_gaussians=30, guard_band_px=8, device="cuda")
+    config = FitConfig(width=24, height=20, steps=5, curvature_warmup=0, num_gaussians=30, guard_band_px=8,
+                       device="cuda")
     state = blank_state(config)
     with torch.no_grad():
         hologram = fitting.render_hologram(state.gaussians, config).requires_grad_(True)

@@ -208,19 +208,3 @@ def test_render_refocuses_a_saved_model(fitted_run, tmp_path, capsys):
                  "--out", str(tmp_path / "big")]) == 0
     assert Image.open(tmp_path / "big" / "recon_1mm.png").size == (80, 60)
     capsys.readouterr()
-
-
-@pytest.mark.parametrize("arguments, message", [
-    (["export", "{run}", "--slm", "20", "20", "--out", "{new}"], "--slm 20×20 is smaller than"),
-    (["export", "{run}", "--levels", "1", "--out", "{new}"], "phase levels"),
-    (["export", "{run}", "--aperture", "-1"], "--aperture"),
-    (["render", "{run}", "--size", "80", "80"], "aspect ratio"),
-    (["render", "{run}", "--distance", "0"], "positive distances"),
-    (["info", "{missing}"], "no such"),
-    (["export", "{missing}"], "not a run folder"),
-])
-def test_bad_export_input_fails_cleanly(fitted_run, tmp_path, arguments, message, capsys):
-    filled = [a.format(run=fitted_run, missing=tmp_path / "nothing", new=tmp_path / "new") for a in arguments]
-    assert main(filled) == 2
-    error = capsys.readouterr().err
-    assert message in error and "Traceback" not in error and len(error.strip().splitlines()) == 1

@@ -72,7 +72,8 @@ def assert_fused_matches_reference(prims: Primitives, wavenumbers, qpf: str = "m
 @pytest.mark.parametrize("primitive", ["flat", "cvqpg", "per-channel"])
 def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primitive):
     per_channel = primitive == "per-channel"
-    config = FitConfig(width=WIDTH, height=HEIGHT, color=color, qpf=qpf, primitive="cvqpg" if per_channel else primitive,
+    config = FitConfig(width=WIDTH, height=HEIGHT, color=color, qpf=qpf,
+                       primitive="cvqpg" if per_channel else primitive,
                        curvature="per-channel" if per_channel else "shared")
     raw = random_gaussians(300, config.channels, seed=5, per_channel=per_channel)
     if primitive == "flat":

@@ -222,7 +222,8 @@ def test_the_torch_and_numba_backends_give_the_same_reconstruction_and_gradient(
     intensities and hologram gradient to float32 noise."""
     config = FitConfig(width=40, height=28, guard_band_px=8, pad_multiple_px=8)
     generator = torch.Generator().manual_seed(4)
-    hologram = 0.6 * torch.complex(torch.randn(3, 28, 40, generator=generator), torch.randn(3, 28, 40, generator=generator))
+    hologram = 0.6 * torch.complex(torch.randn(3, 28, 40, generator=generator),
+                                   torch.randn(3, 28, 40, generator=generator))
     upstream = torch.rand(2, 3, 28, 40, generator=generator)
     results = {}
     for backend in ("torch", "numba"):
