@@ -3,6 +3,8 @@ bad input: test_hostile.py)."""
 
 import json
 import re
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,28 +20,27 @@ RUN_FILES = {"config.json", "metrics.json", "model.safetensors", "target_plane0.
 
 
 @pytest.fixture(scope="module")
-def demo_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("runs") / "demo"
-    assert main(["fit", *SMALL, "--out", str(out)]) == 0
-    return out
+def demo_run(finished_run, tmp_path_factory):
+    """The shared run (`cvqpg fit --size 32 24 --steps 2`), copied: `eval` writes into it."""
+    return Path(shutil.copytree(finished_run, tmp_path_factory.mktemp("runs") / "demo"))
 
 
 def test_fit_writes_the_whole_run_folder(demo_run):
     assert RUN_FILES <= {p.name for p in demo_run.iterdir()}
     history = (demo_run / "history.csv").read_text().splitlines()
-    assert history[0] == "step,seconds,loss,psnr" and [row.split(",")[0] for row in history[1:]] == ["0", "1", "2", "3"]
+    assert history[0] == "step,seconds,loss,psnr" and [row.split(",")[0] for row in history[1:]] == ["0", "1", "2"]
     config = json.loads((demo_run / "config.json").read_text())
     assert config["seed"] == 100 and config["cvqpg_version"] and config["source"] == {"scene": "demo"}
-    assert config["pixel_pitch"] == 3.74e-6 and config["width"] == 48
+    assert config["pixel_pitch"] == 3.74e-6 and config["width"] == 32
     metrics = json.loads((demo_run / "metrics.json").read_text())
     assert set(metrics["mean"]) == {"psnr", "ssim", "flip", "lpips", "cvvdp"}
     assert len(metrics["per_plane"]["psnr"]) == 2
-    assert metrics["steps"] == 3 and metrics["num_gaussians"] == round(0.2 * 48 * 36 / 2)
+    assert metrics["steps"] == 2 and metrics["num_gaussians"] == round(0.2 * 32 * 24 / 2)
     assert metrics["num_params"] == metrics["num_gaussians"] * 13
-    assert metrics["skipped_steps"] == 0 and metrics["sanitised_steps"] == 0 and metrics["updates"] == 4
+    assert metrics["skipped_steps"] == 0 and metrics["sanitised_steps"] == 0 and metrics["updates"] == 3
     for name in ("lpips", "cvvdp"):
         assert (metrics["mean"][name] is None) == (name in metrics["unavailable"])
-    assert Image.open(demo_run / "recon_plane1.png").size == (48, 36)
+    assert Image.open(demo_run / "recon_plane1.png").size == (32, 24)
 
 
 @pytest.mark.slow

@@ -4,6 +4,8 @@ fitted on another device or backend renders here; a bug exits 1 in one line (ref
 from __future__ import annotations
 
 import json
+import shutil
+from pathlib import Path
 
 import pytest
 
@@ -12,11 +14,9 @@ from cvqpg.cli import flag_message, main
 
 
 @pytest.fixture(scope="module")
-def foreign_run(tmp_path_factory):
-    """A finished run whose config and model say it was fitted on CUDA with the Triton kernels."""
-    out = tmp_path_factory.mktemp("foreign") / "run"
-    assert main(["fit", "--size", "32", "24", "--num-gaussians", "20", "--steps", "2", "--quiet", "--out",
-                 str(out)]) == 0
+def foreign_run(finished_run, tmp_path_factory):
+    """The shared finished run, its config and model changed to say it was fitted on CUDA with the Triton kernels."""
+    out = Path(shutil.copytree(finished_run, tmp_path_factory.mktemp("foreign") / "run"))
     config_file = out / "config.json"
     recorded = json.loads(config_file.read_text())
     config_file.write_text(json.dumps({**recorded, "device": "cuda", "backend": "triton"}))
@@ -31,8 +31,9 @@ def test_parameter_names_become_flags():
     assert flag_message("`unknown_name` stays") == "unknown_name stays"
 
 
-@pytest.mark.parametrize("command", [["eval"], ["export"], ["render"], ["info"], ["view", "--distances", "0.001",
-                                                                                   "0.002", "2", "--quiet"]])
+@pytest.mark.parametrize("command", [["eval"], pytest.param(["export"], marks=pytest.mark.slow), ["render"], ["info"],
+                                     pytest.param(["view", "--distances", "0.001", "0.002", "2", "--quiet"],
+                                                  marks=pytest.mark.slow)])
 def test_a_model_fitted_with_the_gpu_kernels_renders_on_the_cpu(foreign_run, tmp_path, capsys, command, monkeypatch):
     monkeypatch.setattr("torch.cuda.is_available", lambda: False)
     out = [] if command[0] in ("eval", "info") else ["--out", str(tmp_path / ("page.html" if command[0] == "view"

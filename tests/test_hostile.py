@@ -51,7 +51,8 @@ IS_ROOT = hasattr(os, "geteuid") and os.geteuid() == 0
 # The template's assets, named in the cases by placeholder. Folder names are distinctive, so that a fragment
 # such as "run_a" cannot match a message by chance.
 PLACES = {
-    "run": "run_a",                        # finished 32×24 RGB run, 2 planes; also model.cvq, export/, render/, ...
+    "run": "run_a",                        # the shared finished 32×24 RGB run, 2 planes (conftest); also model.cvq,
+                                           # export/, render/, ...
     "run2": "run_b",                       # finished 48×36 grayscale run, 1 plane
     "model": "run_a/model.safetensors",
     "cvq": "run_a/model.cvq",              # compressed model of run_a
@@ -577,15 +578,12 @@ class Template(NamedTuple):
     fresh_run_files: frozenset[str]  # the files of run_a as `cvqpg fit` left it
 
 
-FIT_A = ["--size", "32", "24", "--num-gaussians", "20", "--steps", "2", "--quiet"]
-
-
 @pytest.fixture(scope="module")
-def template(tmp_path_factory) -> Template:
+def template(finished_run, tmp_path_factory) -> Template:
     t = tmp_path_factory.mktemp("hostile") / "template"
     t.mkdir()
     run_a, run_b = t / "run_a", t / "run_b"
-    assert main(["fit", *FIT_A, "--out", str(run_a)]) == 0
+    shutil.copytree(finished_run, run_a)
     fresh = frozenset(p.relative_to(run_a).as_posix() for p in run_a.rglob("*"))
     assert main(["fit", "--size", "48", "36", "--color", "gray", "--planes", "1", "--num-gaussians", "20",
                  "--steps", "2", "--quiet", "--out", str(run_b)]) == 0
