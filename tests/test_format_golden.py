@@ -1,8 +1,8 @@
 """Golden `.cvq` files: one RGB and one grayscale file of every format version, each decoded by today's reader and
 compared with what the version that wrote it decoded it to.
 
-`tests/data/format_v{N}_{rgb,gray}.cvq` are files as format version N wrote them, and
-`format_v{N}_{rgb,gray}_decoded.safetensors` the primitives that the same commit's `decode` returned for them
+`tests/data/format_v{N}.cvq` (RGB) and `format_v{N}_gray.cvq` are files as format version N wrote them, and
+`format_v{N}[_gray]_decoded.safetensors` the primitives that the same commit's `decode` returned for them
 (`Primitives.tensors()`, float32). A change to the decoder (the quantisers, `derived_depths`,
 `importance_offsets`, the Morton order, a stream coding) that would read a file already written differently
 fails here, even where encoder and decoder were changed alike and every round trip still passes.
@@ -39,6 +39,11 @@ from cvqpg.codec import FORMAT_VERSION, MAGIC, PREFIX, BitDepths, decode, optics
 
 DATA = Path(__file__).parent / "data"
 GOLDEN = [(version, kind) for version in range(1, FORMAT_VERSION + 1) for kind in ("rgb", "gray")]
+
+
+def golden(version: int, kind: str, suffix: str = ".cvq") -> Path:
+    """A golden file: `format_v{N}.cvq` holds the RGB model, `format_v{N}_gray.cvq` the grayscale one."""
+    return DATA / f"format_v{version}{'' if kind == 'rgb' else '_' + kind}{suffix}"
 # Scale is exp of the decoded log scale through numpy's float32 exp, whose last bits may differ between CPUs
 # (SIMD paths); curvature in 1/m is its share of a bound that follows the scale. 1e-6 is about 8 float32 ulps:
 # far below a quantisation step (1/255 of the range at 8 bits), far above such rounding.
@@ -53,14 +58,14 @@ def header(data: bytes) -> tuple[int, dict]:
 
 def test_every_format_version_has_golden_files():
     """A new format version must come with its golden files (this module's docstring says how)."""
-    missing = [f"format_v{v}_{kind}" for v, kind in GOLDEN if not (DATA / f"format_v{v}_{kind}.cvq").is_file()]
+    missing = [golden(v, kind).name for v, kind in GOLDEN if not golden(v, kind).is_file()]
     assert not missing, f"no golden files {missing}: write them with the commit that introduces the version"
 
 
 @pytest.mark.parametrize("version, kind", GOLDEN, ids=[f"v{v}-{kind}" for v, kind in GOLDEN])
 def test_a_golden_file_decodes_as_the_version_that_wrote_it_decoded_it(version, kind):
-    data = (DATA / f"format_v{version}_{kind}.cvq").read_bytes()
-    expected = load_file(DATA / f"format_v{version}_{kind}_decoded.safetensors")
+    data = golden(version, kind).read_bytes()
+    expected = load_file(golden(version, kind, "_decoded.safetensors"))
     assert data.startswith(MAGIC) and struct.unpack_from("<H", data, len(MAGIC))[0] == version
     written_version, written = header(data)
     decoded = decode(data)
