@@ -42,3 +42,14 @@ def scenes_dir(tmp_path):
 def module_scenes_dir(tmp_path_factory):
     """Scene folders shared by a module's tests, left unchanged (see `write_scenes`)."""
     return write_scenes(tmp_path_factory.mktemp("scenes"))
+
+
+@pytest.fixture(scope="session")
+def finished_run(tmp_path_factory):
+    """One finished run for every module: the demo scene at 32×24 px, RGB, two planes, 2 steps. Read it, or copy it
+    (`shutil.copytree`) to change it: commands such as `eval` and `export` write into a run."""
+    from cvqpg.cli import main
+
+    out = tmp_path_factory.mktemp("finished") / "run"
+    assert main(["fit", "--size", "32", "24", "--steps", "2", "--quiet", "--out", str(out)]) == 0
+    return out

@@ -2,6 +2,8 @@
 
 import json
 import math
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,7 +19,6 @@ from cvqpg.fitting import render
 from cvqpg.primitives import Primitives
 from cvqpg.runs import rescaled
 
-SMALL_FIT = ["fit", "--size", "40", "30", "--steps", "30", "--curvature-warmup", "10", "--quiet"]
 
 
 def random_field(channels: int, height: int, width: int, seed: int) -> torch.Tensor:
@@ -142,10 +143,9 @@ def test_rescaled_model_is_the_same_physical_hologram():
 
 
 @pytest.fixture(scope="module")
-def fitted_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("export") / "run"
-    assert main([*SMALL_FIT, "--out", str(out)]) == 0
-    return out
+def fitted_run(finished_run, tmp_path_factory):
+    """The shared 32×24 px run, copied: `export` and `info --half` write into it."""
+    return Path(shutil.copytree(finished_run, tmp_path_factory.mktemp("export") / "run"))
 
 
 def test_export_writes_patterns_display_and_metrics(fitted_run, capsys):
@@ -166,7 +166,7 @@ def test_export_writes_patterns_display_and_metrics(fitted_run, capsys):
         assert len(record[key]["per_plane"]["psnr"]) == 2
     fitted = json.loads((fitted_run / "metrics.json").read_text())
     assert record["complex_field"]["mean"]["psnr"] == pytest.approx(fitted["mean"]["psnr"], abs=1e-6)
-    assert Image.open(out / "display_plane1.png").size == (40, 30)
+    assert Image.open(out / "display_plane1.png").size == (32, 24)
     assert "phase-only display" in capsys.readouterr().out
 
 
@@ -179,12 +179,12 @@ def test_export_with_more_levels_writes_16_bit_patterns(fitted_run, tmp_path):
 def test_info_reports_size_and_bits_per_pixel(fitted_run, capsys):
     assert main(["info", str(fitted_run), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
-    count = round(0.2 * 40 * 30 / 2)
+    count = round(0.2 * 32 * 24 / 2)
     assert info["num_primitives"] == count and info["learnable_params"] == count * 13
     assert info["stored_values"] == count * 13 and info["dtype"] == "float32"
     size = (fitted_run / "model.safetensors").stat().st_size
     assert info["file_bytes"] == size
-    assert info["bits_per_pixel"] == pytest.approx(8 * size / (40 * 30))
+    assert info["bits_per_pixel"] == pytest.approx(8 * size / (32 * 24))
     assert "compression_ratio" not in info
 
 
@@ -208,19 +208,3 @@ def test_render_refocuses_a_saved_model(fitted_run, tmp_path, capsys):
                  "--out", str(tmp_path / "big")]) == 0
     assert Image.open(tmp_path / "big" / "recon_1mm.png").size == (80, 60)
     capsys.readouterr()
-
-
-@pytest.mark.parametrize("arguments, message", [
-    (["export", "{run}", "--slm", "20", "20", "--out", "{new}"], "--slm 20×20 is smaller than"),
-    (["export", "{run}", "--levels", "1", "--out", "{new}"], "phase levels"),
-    (["export", "{run}", "--aperture", "-1"], "--aperture"),
-    (["render", "{run}", "--size", "80", "80"], "aspect ratio"),
-    (["render", "{run}", "--distance", "0"], "positive distances"),
-    (["info", "{missing}"], "no such"),
-    (["export", "{missing}"], "not a run folder"),
-])
-def test_bad_export_input_fails_cleanly(fitted_run, tmp_path, arguments, message, capsys):
-    filled = [a.format(run=fitted_run, missing=tmp_path / "nothing", new=tmp_path / "new") for a in arguments]
-    assert main(filled) == 2
-    error = capsys.readouterr().err
-    assert message in error and "Traceback" not in error and len(error.strip().splitlines()) == 1

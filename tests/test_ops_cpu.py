@@ -8,8 +8,6 @@ import pytest
 import torch
 from numba.core.errors import TypingError
 
-from cvqpg.config import RunOptions
-from cvqpg.control import SILENT
 from cvqpg import ConfigError, FitConfig, builtin_pictures, fit
 from cvqpg.ops.cpu import cosines_and_sines
 from cvqpg.ops.rasterize import cpu as kernels, vectors
@@ -18,7 +16,7 @@ from cvqpg.ops.rasterize.reference import FOOTPRINT_SIGMAS, splat_reference, spl
 from cvqpg.primitives import COVARIANCE_REGULARISER_PX2, Gaussians, Primitives, activate, init_gaussians
 
 WIDTH, HEIGHT = 56, 40
-PITCH = FitConfig().optics.pixel_pitch
+PITCH = FitConfig().pixel_pitch
 
 
 def random_gaussians(count: int, channels: int, seed: int, per_channel: bool = False) -> Gaussians:
@@ -69,9 +67,15 @@ def assert_fused_matches_reference(prims: Primitives, wavenumbers, qpf: str = "m
         assert relative(got, want) < 1e-4, name
 
 
-@pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
-@pytest.mark.parametrize("color", ["rgb", "gray"])
-@pytest.mark.parametrize("primitive", ["flat", "cvqpg", "per-channel"])
+# Every primitive, colour and QPF is in the fast subset; the other combinations of them are slow.
+FAST_COMBINATIONS = {("cvqpg", "rgb", "mahalanobis"), ("per-channel", "gray", "standard"), ("flat", "rgb", "standard")}
+
+
+@pytest.mark.parametrize("primitive, color, qpf", [
+    pytest.param(primitive, color, qpf, id=f"{primitive}-{color}-{qpf}",
+                 marks=[] if (primitive, color, qpf) in FAST_COMBINATIONS else pytest.mark.slow)
+    for primitive in ("flat", "cvqpg", "per-channel") for color in ("rgb", "gray")
+    for qpf in ("mahalanobis", "standard")])
 def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primitive):
     per_channel = primitive == "per-channel"
     config = FitConfig.create(width=WIDTH, height=HEIGHT, color=color, qpf=qpf,
@@ -102,7 +106,8 @@ def test_any_number_of_channels_matches_reference():
     assert_fused_matches_reference(six, wavenumbers_for(config.wavelengths + (600e-9, 560e-9, 500e-9)))
 
 
-@pytest.mark.parametrize("curved", [True, False], ids=["complex lanes", "real lanes"])
+@pytest.mark.parametrize("curved", [True, pytest.param(False, marks=pytest.mark.slow)],
+                         ids=["complex lanes", "real lanes"])
 def test_large_primitives_keep_the_agreement_down_hundreds_of_rows(curved):
     """Primitives of 20 to 90 px on a 240×180 image: the lanes step down up to 180 rows in float32.
     Stepping H by Q directly let float32(Q)'s rounding compound (1.3–1.7e-4 here, curved); H + H·(Q − 1)
@@ -236,7 +241,7 @@ def test_auto_backend_picks_fused_kernels_on_cpu():
 def test_fit_with_fused_kernels_matches_the_reference_fit():
     config = FitConfig.create(width=48, height=36, steps=100, curvature_warmup=30, guard_band_px=32)
     builtin = builtin_pictures("demo", config.targets.width, config.targets.height)
-    psnr = {backend: fit(builtin.image, builtin.depth, config, RunOptions(backend=backend), SILENT)
+    psnr = {backend: fit(builtin.image, builtin.depth, config.replace(backend=backend), progress=False)
             .metrics.mean["psnr"] for backend in ("numba", "torch")}
     assert abs(psnr["numba"] - psnr["torch"]) < 0.01, psnr
 

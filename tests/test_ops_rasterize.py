@@ -366,7 +366,8 @@ def test_adaptive_bound_keeps_edge_frequency_below_nyquist(scale_px):
     assert np.all(mahalanobis <= 0.5)
     # a primitive whose raw curvature saturates tanh reaches the bound
     config = FitConfig.create(color="rgb")
-    raw = Gaussians(position=torch.zeros(1, 2, dtype=F64), scale=torch.tensor([[math.log(scale_px - 0.1)] * 2], dtype=F64),
+    raw = Gaussians(position=torch.zeros(1, 2, dtype=F64),
+                    scale=torch.tensor([[math.log(scale_px - 0.1)] * 2], dtype=F64),
                     rotation=torch.zeros(1, dtype=F64), amplitude=torch.ones(1, 3, dtype=F64),
                     phase=torch.zeros(1, 3, dtype=F64), opacity=torch.zeros(1, dtype=F64),
                     curvature=torch.tensor([40.0], dtype=F64))
@@ -451,7 +452,8 @@ def test_global_bound_exceeds_nyquist_only_for_large_primitives():
         f_large = measured_frequency(large, 200.0, qpf, 3 * large, (473e-9,))[0]
         assert f_small < 0.05
         assert f_large > 0.5
-        assert f_large == pytest.approx(200.0 * 3 * large * PITCH**2 / 473e-9 * (1 if qpf == "standard" else large**2 / (large**2 + 0.1)), rel=1e-5)
+        shrink = 1 if qpf == "standard" else large**2 / (large**2 + 0.1)
+        assert f_large == pytest.approx(200.0 * 3 * large * PITCH**2 / 473e-9 * shrink, rel=1e-5)
         # the adaptive bound keeps the large primitive under Nyquist
         assert measured_frequency(large, isotropic_bound(large, "adaptive"), qpf, 3 * large, (473e-9,))[0] < 0.5
 

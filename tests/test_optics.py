@@ -173,8 +173,10 @@ def test_propagation_transpose_moves_exactly_the_values_it_names(dtype):
     assert (window[:, :2] == 3).all() and (window[:, 23:] == 3).all()
 
 
-@pytest.mark.parametrize("cached", [True, False], ids=["cached", "rebuilt"])
-@pytest.mark.parametrize("kernels", [True, False], ids=["cpu-kernels", "torch-copies"])
+@pytest.mark.parametrize("kernels, cached", [
+    (True, True), pytest.param(True, False, marks=pytest.mark.slow), pytest.param(False, True, marks=pytest.mark.slow),
+    pytest.param(False, False, marks=pytest.mark.slow)],
+    ids=["cpu-kernels-cached", "cpu-kernels-rebuilt", "torch-copies-cached", "torch-copies-rebuilt"])
 def test_pruned_content_propagation_and_its_adjoint_match_the_full_transforms(kernels, cached, monkeypatch):
     """`propagate_content` (pruned transforms, hand-written adjoint) against autograd through the plain
     `propagate` in float64: at float32, on a wide grid like the paper's (content off-centre in its
@@ -222,7 +224,8 @@ def test_the_torch_and_numba_backends_give_the_same_reconstruction_and_gradient(
     intensities and hologram gradient to float32 noise."""
     config = FitConfig.create(width=40, height=28, guard_band_px=8, pad_multiple_px=8)
     generator = torch.Generator().manual_seed(4)
-    hologram = 0.6 * torch.complex(torch.randn(3, 28, 40, generator=generator), torch.randn(3, 28, 40, generator=generator))
+    hologram = 0.6 * torch.complex(torch.randn(3, 28, 40, generator=generator),
+                                   torch.randn(3, 28, 40, generator=generator))
     upstream = torch.rand(2, 3, 28, 40, generator=generator)
     results = {}
     for backend in ("torch", "numba"):
