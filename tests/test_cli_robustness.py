@@ -18,8 +18,10 @@ from PIL import Image
 from safetensors.torch import load_file
 
 from cvqpg import FitConfig, builtin_pictures, fit
-from cvqpg.cli import main
 from cvqpg import fitting
+from cvqpg.cli import main
+from cvqpg.config import RunOptions
+from cvqpg.control import SILENT, RunControl
 from cvqpg.fitting import blank_state, fit_scene, initial_state, optimisation_step, readback_due
 from cvqpg.optics import reconstruct
 from cvqpg.primitives import Gaussians, activate, inverse_covariance
@@ -252,7 +254,8 @@ def test_reading_steps_back_in_batches_gives_the_same_fit_and_counts(monkeypatch
 
         monkeypatch.setattr(fitting, "multiplane_loss", poisoned)
         steps = []
-        results.append(fit_scene(scene, config, progress=False, on_step=lambda *a, steps=steps: steps.append(a)))
+        control = RunControl(progress=False, on_step=lambda *a, steps=steps: steps.append(a))
+        results.append(fit_scene(scene, config, control=control))
         calls.append(steps)
     single, batched = results
     assert np.isnan(single.history["loss"][3]) and single.skipped_steps == batched.skipped_steps == 1
@@ -272,9 +275,8 @@ def test_steps_are_read_back_after_each_on_the_cpu_and_every_half_second_on_cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 def test_propagation_loss_and_update_read_nothing_back_on_cuda():
     """Everything of a step after the rasterizer, under CUDA's sync debug mode set to fail on a host read."""
-    config = FitConfig.create(width=24, height=20, steps=5, curvature_warmup=0, num_gaussians=30, guard_band_px=8,
-                              device="cuda")
-    state = blank_state(config)
+    config = FitConfig.create(width=24, height=20, steps=5, curvature_warmup=0, num_gaussians=30, guard_band_px=8)
+    state = blank_state(config, RunOptions("cuda"))
     with torch.no_grad():
         hologram = fitting.render_hologram(state.gaussians, config).requires_grad_(True)
     scene = tiny_scene(config)
@@ -317,7 +319,7 @@ extreme = st.floats(min_value=-1e4, max_value=1e4, allow_nan=False) | st.sampled
 @given(data=st.data(), backend=st.sampled_from(["numba", "torch"]), qpf=st.sampled_from(["mahalanobis", "standard"]))
 def test_extreme_primitives_render_finite_fields_and_gradients(data, backend, qpf):
     count, width, height = 5, 20, 16
-    config = FitConfig.create(width=width, height=height, num_gaussians=count, qpf=qpf, backend=backend, guard_band_px=8)
+    config = FitConfig.create(width=width, height=height, num_gaussians=count, qpf=qpf, guard_band_px=8)
 
     def tensor(*shape, bound=1e4):
         size = int(np.prod(shape))
@@ -327,8 +329,9 @@ def test_extreme_primitives_render_finite_fields_and_gradients(data, backend, qp
     raw = Gaussians(position=tensor(count, 2), scale=tensor(count, 2), rotation=tensor(count),
                     amplitude=tensor(count, 3, bound=100), phase=tensor(count, 3), opacity=tensor(count),
                     curvature=tensor(count))
-    hologram = rasterize(activate(raw, config), width, height, config.wavelengths, config.optics.pixel_pitch, qpf, backend)
-    recon = reconstruct(hologram, config)
+    hologram = rasterize(activate(raw, config), width, height, config.wavelengths, config.optics.pixel_pitch, qpf,
+                         backend)
+    recon = reconstruct(hologram, config, backend=backend)
     assert torch.isfinite(torch.view_as_real(hologram)).all() and torch.isfinite(recon).all()
     recon.sum().backward()
     for name, leaf in raw.tensors().items():
@@ -339,7 +342,7 @@ def test_extreme_primitives_render_finite_fields_and_gradients(data, backend, qp
 def test_checkpoint_stays_until_the_finished_run_is_marked(tiny_config, tmp_path, monkeypatch):
     """A run killed while its files are written must resume, not restart: the checkpoint goes last."""
     builtin = builtin_pictures("demo", tiny_config.targets.width, tiny_config.targets.height)
-    result = fit(builtin.image, builtin.depth, tiny_config, progress=False)
+    result = fit(builtin.image, builtin.depth, tiny_config, control=SILENT)
     scene = load_scene(builtin.image, builtin.depth, tiny_config)
     folder = tmp_path / "run"
     folder.mkdir()
@@ -362,7 +365,7 @@ def test_needle_thousands_of_pixels_long_stays_finite(backend):
     """Σ of an 8000 px × 1 px primitive cancels to a zero or negative determinant in float32 when
     formed as Σxx·Σyy − Σxy², which made its inverse 1e17 and the field NaN; the inverse must use
     the exact determinant (found by the test above)."""
-    config = FitConfig.create(width=20, height=16, num_gaussians=1, backend=backend, guard_band_px=8)
+    config = FitConfig.create(width=20, height=16, num_gaussians=1, guard_band_px=8)
     raw = Gaussians(position=torch.zeros(1, 2), scale=torch.tensor([[0.0, 9.0]]),
                     rotation=torch.tensor([1415.6461917095712]), amplitude=torch.full((1, 3), 0.5),
                     phase=torch.zeros(1, 3), opacity=torch.zeros(1), curvature=torch.zeros(1))
@@ -371,4 +374,4 @@ def test_needle_thousands_of_pixels_long_stays_finite(backend):
     assert (a > 0).all() and (c > 0).all() and torch.isfinite(b).all()
     hologram = rasterize(prims, 20, 16, config.wavelengths, config.optics.pixel_pitch, backend=backend)
     assert torch.isfinite(torch.view_as_real(hologram)).all()
-    assert torch.isfinite(reconstruct(hologram, config)).all()
+    assert torch.isfinite(reconstruct(hologram, config, backend=backend)).all()

@@ -152,7 +152,8 @@ NUMBERS = cases(
     ("fit-size-0", f"fit {FIT} --size 0 0", "--size"),
     ("fit-size-8", f"fit {FIT} --size 8 8", "--size must lie in [16, 65536], got 8"),
     ("fit-size-negative", f"fit {FIT} --size -32 24", "--size"),
-    ("fit-size-beyond-memory", f"fit {FIT} --size 100000 100000", "GiB are available"),
+    ("fit-size-beyond-memory", f"fit {FIT} --size 60000 60000", "GiB are available"),
+    ("fit-size-beyond-its-range", f"fit {FIT} --size 100000 100000", "--size must lie in [16, 65536], got 100000"),
     ("fit-warmup-negative", f"fit {FIT} --curvature-warmup -1", "--curvature-warmup"),
     ("fit-warmup-beyond-steps", f"fit {FIT} --curvature-warmup 99999",
      "--curvature-warmup must lie in [0, "),
@@ -656,9 +657,11 @@ def template(finished_run, tmp_path_factory) -> Template:
 
 
 def hostile_environment(monkeypatch, folder: Path) -> None:
-    """The current folder `folder`; no GPU visible, no traceback requested."""
+    """The current folder `folder`; no GPU visible (nor Triton's interpreter, which runs its kernels on the CPU in
+    the tests of them), no traceback requested."""
     monkeypatch.chdir(folder)
     monkeypatch.setattr("torch.cuda.is_available", lambda: False)
+    monkeypatch.delenv("TRITON_INTERPRET", raising=False)
     monkeypatch.delenv("CVQPG_TRACEBACK", raising=False)
 
 

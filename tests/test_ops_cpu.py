@@ -9,6 +9,8 @@ import torch
 from numba.core.errors import TypingError
 
 from cvqpg import ConfigError, FitConfig, builtin_pictures, fit
+from cvqpg.config import RunOptions
+from cvqpg.control import SILENT
 from cvqpg.ops.cpu import cosines_and_sines
 from cvqpg.ops.rasterize import cpu as kernels, vectors
 from cvqpg.ops.rasterize import rasterize, resolve_backend, splat_fused, wavenumbers_for
@@ -16,7 +18,7 @@ from cvqpg.ops.rasterize.reference import FOOTPRINT_SIGMAS, splat_reference, spl
 from cvqpg.primitives import COVARIANCE_REGULARISER_PX2, Gaussians, Primitives, activate, init_gaussians
 
 WIDTH, HEIGHT = 56, 40
-PITCH = FitConfig().pixel_pitch
+PITCH = FitConfig().optics.pixel_pitch
 
 
 def random_gaussians(count: int, channels: int, seed: int, per_channel: bool = False) -> Gaussians:
@@ -241,7 +243,7 @@ def test_auto_backend_picks_fused_kernels_on_cpu():
 def test_fit_with_fused_kernels_matches_the_reference_fit():
     config = FitConfig.create(width=48, height=36, steps=100, curvature_warmup=30, guard_band_px=32)
     builtin = builtin_pictures("demo", config.targets.width, config.targets.height)
-    psnr = {backend: fit(builtin.image, builtin.depth, config.replace(backend=backend), progress=False)
+    psnr = {backend: fit(builtin.image, builtin.depth, config, RunOptions(backend=backend), SILENT)
             .metrics.mean["psnr"] for backend in ("numba", "torch")}
     assert abs(psnr["numba"] - psnr["torch"]) < 0.01, psnr
 

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from cvqpg import FitConfig
-from cvqpg.config import ConfigError
+from cvqpg.config import ConfigError, RunOptions
 from cvqpg import ops
 from cvqpg.ops.rasterize import rasterize, resolve_backend, splat_triton, wavenumbers_for
 from cvqpg.ops.rasterize.reference import splat_reference
@@ -21,7 +21,7 @@ from cvqpg.primitives import Gaussians, Primitives, activate, init_gaussians
 
 DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
 WIDTH, HEIGHT, COUNT = 24, 16, 12
-PITCH = FitConfig().pixel_pitch
+PITCH = FitConfig().optics.pixel_pitch
 KINDS = ["flat", "shared", "per-channel", "channel-bound"]
 
 
@@ -118,7 +118,7 @@ def test_triton_kernels_take_empty_and_offscreen_sets():
 def test_auto_picks_triton_on_cuda_where_it_is_installed(monkeypatch):
     assert resolve_backend("auto", "cuda") == "triton"
     assert resolve_backend("auto", "cpu") == "numba"
-    monkeypatch.setattr(ops, "triton_installed", lambda: False)
+    monkeypatch.setattr("cvqpg.config.triton_installed", lambda: False)
     assert resolve_backend("auto", "cuda") == "torch"
     with pytest.raises(ValueError, match="needs the triton package"):
         resolve_backend("triton", "cuda")
@@ -128,8 +128,8 @@ def test_triton_on_the_cpu_needs_the_interpreter(monkeypatch):
     monkeypatch.delenv("TRITON_INTERPRET", raising=False)
     with pytest.raises(ValueError, match="runs on CUDA, not on cpu"):
         resolve_backend("triton", "cpu")
-    with pytest.raises(ConfigError, match="`backend` 'triton' runs on the GPU only"):
-        FitConfig.create(backend="triton").validate()
+    with pytest.raises(ConfigError, match="`backend` triton runs on CUDA, not on cpu"):
+        RunOptions(backend="triton").validate()
 
 
 # Triton's compiler, run in a process without the interpreter: it rejects code the interpreter runs.
