@@ -495,3 +495,25 @@ def test_slm_field_gradient_finite_at_zero():
     assert torch.allclose(grad[0, 3, 4], weights[0, 3, 4])
     inside = hologram.detach().abs() < 1
     assert torch.allclose(grad[inside], (weights + 2 * hologram.detach())[inside])
+
+
+def test_more_planes_than_the_fused_kernels_take_at_once_match_the_full_transforms(monkeypatch):
+    """Planes beyond the tuple that Numba's parallel loops accept (`MAX_FUSED_PLANES`, shrunk here to 2 of 3)
+    go through the unfused products and sums: forward and adjoint still match the full transforms in float64."""
+    monkeypatch.setattr(propagation_kernels, "MAX_FUSED_PLANES", 2)
+    grid = Grid(height=12, width=20, padded_height=32, padded_width=40)
+    generator = torch.Generator().manual_seed(7)
+    field = torch.complex(torch.randn(2, 32, 40, generator=generator), torch.randn(2, 32, 40, generator=generator))
+    upstream = torch.complex(torch.randn(3, 2, 12, 20, generator=generator),
+                             torch.randn(3, 2, 12, 20, generator=generator))
+    optics = ([1e-3, 3e-3, 5e-3], [RED, BLUE], PITCH)
+    leaf = field.clone().requires_grad_(True)
+    content = propagate_content(leaf, grid, *optics, fused=True)
+    (content * upstream.conj()).real.sum().backward()
+    reference_leaf = field.to(torch.complex128).requires_grad_(True)
+    reference = grid.crop(propagate(reference_leaf, *optics))
+    (reference * upstream.to(torch.complex128).conj()).real.sum().backward()
+    reference = reference.detach()
+    assert content.shape == (3, 2, 12, 20)
+    assert float((content.detach() - reference).abs().max() / reference.abs().max()) < 1e-5
+    assert float((leaf.grad - reference_leaf.grad).abs().max() / reference_leaf.grad.abs().max()) < 1e-5

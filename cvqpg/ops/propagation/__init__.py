@@ -88,23 +88,32 @@ def _filtered(spectrum: Tensor, halves: Sequence[Tensor], rows: slice, fused: bo
     for transfer functions T_p given as halves (`TransferBank.half`). One pass reads the spectrum for
     all planes."""
     out = _planes_buffer(len(halves), *spectrum.shape, spectrum.dtype, spectrum.device, threading.get_ident())
-    if fused:
-        cpu.mirrored_products(spectrum.numpy(), tuple(half.numpy() for half in halves), rows.start, out.numpy())
-    else:
-        for plane, half in enumerate(halves):
-            torch.mul(spectrum, _transfer_rows(half, rows), out=out[plane])
+    done = _fused_planes(len(halves), fused)
+    if done:
+        cpu.mirrored_products(spectrum.numpy(), tuple(half.numpy() for half in halves[:done]), rows.start,
+                              out[:done].numpy())
+    for plane in range(done, len(halves)):
+        torch.mul(spectrum, _transfer_rows(halves[plane], rows), out=out[plane])
     return out
+
+
+def _fused_planes(planes: int, fused: bool) -> int:
+    """How many of `planes` the fused kernels take in one call: all up to the tuple size that Numba's parallel
+    loops accept (`cpu.MAX_FUSED_PLANES`); the unfused path takes the rest."""
+    return min(planes, cpu.MAX_FUSED_PLANES) if fused else 0
 
 
 def _filtered_sum(spectra: Sequence[Tensor], halves: Sequence[Tensor], rows: slice, fused: bool) -> Tensor:
     """Σ_p spectra[p] · T_p[rows], written into spectra[0], in one pass over the planes' spectra."""
     total = spectra[0]
-    if fused:
-        cpu.mirrored_sum(tuple(spectrum.numpy() for spectrum in spectra), tuple(half.numpy() for half in halves),
-                         rows.start)
-        return total
-    total.mul_(_transfer_rows(halves[0], rows))
-    for spectrum, half in zip(spectra[1:], halves[1:]):
+    done = _fused_planes(len(halves), fused)
+    if done:
+        cpu.mirrored_sum(tuple(spectrum.numpy() for spectrum in spectra[:done]),
+                         tuple(half.numpy() for half in halves[:done]), rows.start)
+    else:
+        total.mul_(_transfer_rows(halves[0], rows))
+        done = 1
+    for spectrum, half in zip(spectra[done:], halves[done:]):
         total.addcmul_(spectrum, _transfer_rows(half, rows))
     return total
 

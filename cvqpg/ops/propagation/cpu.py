@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import numba as nb
 
+# The longest tuple of arrays that a parallel loop takes (Numba unpacks tuples up to this size); the products
+# and sums take their planes' transfer functions as such a tuple.
+MAX_FUSED_PLANES = nb.config.PARFOR_MAX_TUPLE_SIZE
 
 @nb.njit(parallel=True, cache=True)
 def copy_rows(source, out, conjugate):
