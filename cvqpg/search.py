@@ -55,6 +55,7 @@ LADDER = tuple(dict.fromkeys(BitDepths().shifted(delta) for delta in range(-3, M
 COARSEST = LADDER[0]
 # The drop `cvqpg compress` aims at where it is given no goal.
 DEFAULT_MAX_DROP_DB = 0.1
+MAX_BUDGET_BYTES = 2**53  # budgets stay exact in float64 arithmetic (bits per pixel, ratios)
 ASSUMED_FIT_PSNR_DB = 30.0
 # A budget is met by a file within 5% below it.
 CLOSE = 0.95
@@ -133,7 +134,16 @@ def prune(primitives: Primitives, fraction: float) -> Primitives:
     """The primitives without the `fraction` (0 ≤ fraction < 1, as `CompressionSettings` checks it) of least
     field energy (`field_energy`), the others in their order. The rest only regain the PSNR lost with
     fine-tuning (`finetune`)."""
-    return kept(primitives, strongest_first(primitives), round((1 - fraction) * primitives.count))
+    return kept(primitives, strongest_first(primitives), pruned_count(primitives.count, fraction))
+
+
+def pruned_count(count: int, fraction: float) -> int:
+    """How many of `count` primitives `prune` keeps; `ConfigError` where that is none."""
+    keep = round((1 - fraction) * count)
+    if keep < 1:
+        raise ConfigError(f"`prune_fraction` {fraction:g} removes all {count} primitives; give a smaller fraction "
+                          f"(below {1 - 0.5 / count:.6g})")
+    return keep
 
 
 def largest_fitting(size: Callable[[int], int], max_bytes: int, top: int) -> int:
@@ -272,7 +282,11 @@ class Budget(Goal):
         """The budget of `bpp` bits per hologram pixel (the file at most ⌊bpp·W·H/8⌋ bytes) or of `max_bytes`
         bytes, one of them, as `CompressionSettings` checks them."""
         if bpp is not None:
-            size = math.floor(bpp * config.targets.width * config.targets.height / 8)
+            exact = bpp * config.targets.width * config.targets.height / 8
+            if not exact <= MAX_BUDGET_BYTES:
+                raise ConfigError(f"`bpp` {bpp:g} asks for {exact:g} bytes for {config.targets.width}×"
+                                  f"{config.targets.height} px; give a budget of at most {MAX_BUDGET_BYTES} bytes")
+            size = math.floor(exact)
             return cls(size, f"`bpp` {bpp:g} ({size} bytes for {config.targets.width}×{config.targets.height} px)")
         return cls(max_bytes, f"`max_bytes` {max_bytes}")
 
@@ -468,9 +482,10 @@ class CompressionSettings:
                               "primitives cost PSNR that only fine-tuning regains")
         if self.bpp is not None and not (_number(self.bpp) and self.bpp > 0):
             raise ConfigError(f"`bpp` {_shown(self.bpp)}: give a positive, finite number of bits per hologram pixel")
-        if self.max_bytes is not None and not (isinstance(self.max_bytes, int) and _number(self.max_bytes)
-                                               and self.max_bytes > 0):
-            raise ConfigError(f"`max_bytes` {self.max_bytes}: give a positive whole number of bytes")
+        if self.max_bytes is not None and not (isinstance(self.max_bytes, int) and not isinstance(self.max_bytes, bool)
+                                               and 0 < self.max_bytes <= MAX_BUDGET_BYTES):
+            raise ConfigError(f"`max_bytes` {self.max_bytes}: give a positive whole number of bytes, at most "
+                              f"{MAX_BUDGET_BYTES}")
 
     @property
     def budgeted(self) -> bool:

@@ -16,8 +16,8 @@ from ..errors import ConfigError, ModelFileError
 from ..files import write_atomic
 from ..primitives import Primitives
 from ..runs import CONFIG_FILE, load_run_model, model_path, scene_from_source
-from ..search import (LADDER, Choice, CompressionSettings, FixedBits, MaxDrop, Reference, finetuned, rate_control,
-                      reference_for, search)
+from ..search import (LADDER, Choice, CompressionSettings, FixedBits, MaxDrop, Reference, finetuned, pruned_count,
+                      rate_control, reference_for, search)
 from ..storage import is_compressed, load_model, read_compressed, save_model
 from ..targets import Scene
 
@@ -82,6 +82,8 @@ def compress_model(target: str | Path, settings: CompressionSettings = Compressi
     """
     given = compression_input(target, settings.finetune_steps or 0)
     primitives, config, scene = given.primitives, given.config, given.scene
+    if settings.prune_fraction:
+        pruned_count(primitives.count, settings.prune_fraction)  # refused before the search, not after it
     out = Path(out) if out is not None else given.model_file.with_suffix(SUFFIX)
     started = time.perf_counter()
     reference = reference_for(primitives, config, None if scene is None else scene.targets)

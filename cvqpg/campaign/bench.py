@@ -14,6 +14,7 @@ import dataclasses
 import logging
 import math
 import multiprocessing
+import os
 import signal
 import traceback
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -687,6 +688,10 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
         raise BenchError(f"--jobs {jobs}: need at least 1")
     if threads is not None and threads < 1:
         raise BenchError(f"--threads {threads}: need at least 1")
+    machine = os.cpu_count() or 1
+    if threads is not None and threads > machine:  # PyTorch crashes on a thread pool far beyond the machine's
+        log.warning(f"--threads {threads}: this machine offers {machine} cores; each fit runs on {machine} threads")
+        threads = machine
     threads = threads or max(1, available_cores() // jobs)
     outcome = BenchOutcome()
     for cell in adopt_finished(plan, cells, reuse):
