@@ -23,7 +23,7 @@ from . import __version__
 from .bitdepths import BitDepths
 from .campaign.presets import METHODS, PRESETS
 from .config import (BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITIVES, QPFS, RECIPES, FitConfig,
-                     RunOptions, default_curvature_warmup)
+                     RunOptions, check_distances, check_time_budget, default_curvature_warmup)
 from .control import RunControl
 from .defaults import (CHECKPOINT_SECONDS, DEFAULT_APERTURE, DEFAULT_LEVELS, DEFAULT_SWEEP, DEPTH_FILE, DEPTH_MODEL,
                        ENCODE_FINETUNE_STEPS, ENCODE_STEPS, ENCODINGS, RATE_FINETUNE_STEPS, SCENE_NAMES, SUFFIX,
@@ -112,6 +112,20 @@ def finite(text: str) -> float:
     return value
 
 
+INT64 = (-2**63, 2**63 - 1)
+
+
+def whole(text: str) -> int:
+    """An argparse type: a whole number that a 64-bit integer holds (what the libraries below compute with)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if not INT64[0] <= value <= INT64[1]:
+        raise argparse.ArgumentTypeError(f"{text} lies beyond the 64-bit integers [-2**63, 2**63 - 1]")
+    return value
+
+
 class FormerName(argparse.Action):
     """An option's name before a rename, kept for one release: it works as the new one and warns on stderr."""
 
@@ -160,14 +174,14 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
     count = p.add_mutually_exclusive_group()
     count.add_argument("--ratio", type=finite, default=DEFAULTS.primitives.ratio,
                        help="primitive count as a fraction of W·H/2 (RGB) or W·H/4 (grayscale)")
-    count.add_argument("--num-gaussians", type=int, metavar="N", help="explicit primitive count N")
+    count.add_argument("--num-gaussians", type=whole, metavar="N", help="explicit primitive count N")
     p.add_argument("--out", metavar="DIR", help="run folder [default: runs/<time>-<input>-<color>-"
                    "<primitive>]")
     p.add_argument("--overwrite", action="store_true", help="replace a run already in --out, as a whole, once the "
                    "new fit has succeeded")
     p.add_argument("--resume", metavar="RUN_DIR", help="continue an interrupted run from its last "
                    "checkpoint with its own settings (other options are ignored)")
-    p.add_argument("--checkpoint-every", type=int, metavar="K", help="save a checkpoint every K steps "
+    p.add_argument("--checkpoint-every", type=whole, metavar="K", help="save a checkpoint every K steps "
                    "(0: only when interrupted) [default: every 3 minutes of work]")
     p.add_argument("--view", action="store_true", help=f"at the end, also write the run's view page "
                    f"(RUN_DIR/{VIEW_FILE}, see `cvqpg view`)")
@@ -191,14 +205,14 @@ def _fit_options(p: argparse.ArgumentParser, steps: int = DEFAULTS.optimisation.
                    help="flat-phase baseline or CVQPG with learnable curvature")
     p.add_argument("--recipe", choices=tuple(RECIPES), default=DEFAULTS.recipe,
                    help="how to fit: " + "; ".join(f"'{r.name}': {r.summary}" for r in RECIPES.values()))
-    p.add_argument("--steps", type=int, help="optimisation steps (the loop runs indices 0..steps, as the "
+    p.add_argument("--steps", type=whole, help="optimisation steps (the loop runs indices 0..steps, as the "
                    f"reference) [default: {steps}]")
-    p.add_argument("--curvature-warmup", type=int, metavar="W", help="steps with curvature frozen at 0 (CVQPG "
+    p.add_argument("--curvature-warmup", type=whole, metavar="W", help="steps with curvature frozen at 0 (CVQPG "
                    f"only) [default: steps/5, {default_curvature_warmup(steps)} of {steps}]")
-    _former_name(p, "--warmup", "--curvature-warmup", type=int)
-    p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"),
+    _former_name(p, "--warmup", "--curvature-warmup", type=whole)
+    p.add_argument("--size", type=whole, nargs=2, metavar=("W", "H"),
                    default=(DEFAULTS.targets.width, DEFAULTS.targets.height), help="hologram size in px")
-    p.add_argument("--planes", type=int, metavar="M", help="depth planes at linspace(1 mm, 5 mm, M) "
+    p.add_argument("--planes", type=whole, metavar="M", help="depth planes at linspace(1 mm, 5 mm, M) "
                    "[default: 2; 1 for --scene star]")
     p.add_argument("--seed", type=int, default=DEFAULTS.optimisation.seed, help="random seed")
     p.add_argument("--device", default=RUN_DEFAULTS.device, choices=DEVICE_TYPES, help="torch device")
@@ -239,8 +253,8 @@ def _display_parsers(sub: argparse._SubParsersAction) -> None:
                    f"(.safetensors or {SUFFIX}) inside one")
     x.add_argument("--encoding", choices=ENCODINGS, default="dpac", help="double-phase amplitude coding, "
                    "or the bare phase of the field (drops the amplitude; for comparison)")
-    x.add_argument("--levels", type=int, default=DEFAULT_LEVELS, help="phase levels of the SLM")
-    x.add_argument("--slm", type=int, nargs=2, metavar=("W", "H"), help="SLM size in px: the pattern is "
+    x.add_argument("--levels", type=whole, default=DEFAULT_LEVELS, help="phase levels of the SLM")
+    x.add_argument("--slm", type=whole, nargs=2, metavar=("W", "H"), help="SLM size in px: the pattern is "
                    "centred on it, the rest at phase 0 (e.g. 4096 2400) [default: the hologram's size]")
     x.add_argument("--aperture", type=finite, default=DEFAULT_APERTURE, help="radius of the 4f filter's "
                    "circular Fourier aperture as a fraction of the Nyquist frequency (0 disables the filter)")
@@ -259,7 +273,7 @@ def _display_parsers(sub: argparse._SubParsersAction) -> None:
                        description="Render a model's hologram (amplitude.png, phase.png) and its reconstruction "
                        "at the model's planes or at --distance, optionally resampled to --size.")
     r.add_argument("target", metavar="RUN_DIR|MODEL", help="run folder or model file")
-    r.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="resample the same physical "
+    r.add_argument("--size", type=whole, nargs=2, metavar=("W", "H"), help="resample the same physical "
                    "hologram to W×H px (same aspect ratio; the pixel pitch scales accordingly)")
     r.add_argument("--distance", type=finite, nargs="+", metavar="M", help="reconstruction distances in m "
                    "(e.g. 0.001 0.002 0.003 to refocus) [default: the model's planes]")
@@ -299,7 +313,7 @@ def _compression_parsers(sub: argparse._SubParsersAction) -> None:
                         "(fractional bits), scale, rotation, amplitude, phase, curvature; or one number for all "
                         f"but position [default of each: {' '.join(f'{k}={v}' for k, v in vars(BitDepths()).items())}]")
     _rate_arguments(budget)
-    c.add_argument("--finetune", type=int, metavar="STEPS", help="quantisation-aware fine-tuning steps on the "
+    c.add_argument("--finetune", type=whole, metavar="STEPS", help="quantisation-aware fine-tuning steps on the "
                    "run's own targets (needs a run folder); kept only if it pays [default: 0; with --bpp or "
                    f"--max-bytes {RATE_FINETUNE_STEPS} in a run folder]")
     c.add_argument("--prune", type=finite, default=0.0, metavar="FRACTION", help="with --finetune: first remove "
@@ -314,7 +328,7 @@ def _compression_parsers(sub: argparse._SubParsersAction) -> None:
                        "continues it; once FILE is written that folder is removed.")
     _fit_options(e, steps=ENCODE_STEPS)
     _rate_arguments(e.add_mutually_exclusive_group())
-    e.add_argument("--finetune", type=int, default=ENCODE_FINETUNE_STEPS, metavar="STEPS",
+    e.add_argument("--finetune", type=whole, default=ENCODE_FINETUNE_STEPS, metavar="STEPS",
                    help="quantisation-aware fine-tuning steps after the fit's --steps, at the chosen bit depths; "
                    "kept only if it pays")
     e.add_argument("--out", metavar="FILE", help=f"the {SUFFIX} file (required, but with --resume)")
@@ -335,7 +349,7 @@ def _rate_arguments(group: argparse._MutuallyExclusiveGroup) -> None:
     group.add_argument("--bpp", type=finite, metavar="B", help="the file at most B bits per hologram pixel "
                        "(8·bytes / (W·H), all channels, as `cvqpg info` reports): the primitives kept and their bit "
                        "depths are searched, fine-tuned, and every size measured")
-    group.add_argument("--max-bytes", type=int, metavar="N", help="the file at most N bytes (as --bpp)")
+    group.add_argument("--max-bytes", type=whole, metavar="N", help="the file at most N bytes (as --bpp)")
 
 
 def _bench_parser(sub: argparse._SubParsersAction) -> None:
@@ -360,18 +374,18 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
     seeds.add_argument("--seed", type=int, help=f"random seed [default: {DEFAULTS.optimisation.seed}]")
     seeds.add_argument("--seeds", type=int, nargs="+", metavar="SEED", help="several seeds: every cell once "
                        "per seed (seed spread)")
-    p.add_argument("--steps", type=int, help="optimisation steps [default: the preset's]")
-    p.add_argument("--curvature-warmup", type=int, metavar="W",
+    p.add_argument("--steps", type=whole, help="optimisation steps [default: the preset's]")
+    p.add_argument("--curvature-warmup", type=whole, metavar="W",
                    help="curvature warm-up steps [default: steps/5]")
-    _former_name(p, "--warmup", "--curvature-warmup", type=int)
-    p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="hologram size in px [default: the "
+    _former_name(p, "--warmup", "--curvature-warmup", type=whole)
+    p.add_argument("--size", type=whole, nargs=2, metavar=("W", "H"), help="hologram size in px [default: the "
                    "preset's]")
     p.add_argument("--device", choices=DEVICE_TYPES, help="torch device [default: cpu]")
     p.add_argument("--backend", choices=BACKENDS, help="kernels [default: auto]")
     p.add_argument("--shard", metavar="I/N", help="fit only cells I, I+N, I+2N, ... of the grid (1 ≤ I ≤ N), "
                    "e.g. ${SLURM_ARRAY_TASK_ID}/${SLURM_ARRAY_TASK_COUNT} in a job array")
-    p.add_argument("--jobs", type=int, default=1, metavar="K", help="cells fitted at once")
-    p.add_argument("--threads", type=int, metavar="T", help="threads of each fit (PyTorch and Numba) [default: "
+    p.add_argument("--jobs", type=whole, default=1, metavar="K", help="cells fitted at once")
+    p.add_argument("--threads", type=whole, metavar="T", help="threads of each fit (PyTorch and Numba) [default: "
                    "cores/K, at least 1; cores are those this process may use, at most OMP_NUM_THREADS]")
     p.add_argument("--reuse", nargs="+", default=[], metavar="DIR", help="other bench folders whose finished "
                    "cells with the same settings are copied instead of fitted (e.g. the chromatic grid reuses "
@@ -380,7 +394,7 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
                    "compression or rate): bench folders whose finished cells with the same settings kept their "
                    "model.safetensors; a cell takes its model from the first that has it instead of fitting it "
                    "(e.g. runs/bench-paper)")
-    p.add_argument("--finetune", type=int, default=0, metavar="STEPS", help="rate–distortion grids: also record "
+    p.add_argument("--finetune", type=whole, default=0, metavar="STEPS", help="rate–distortion grids: also record "
                    "the codec after STEPS steps of quantisation-aware fine-tuning at each budget whose drop without it "
                    "is 0.1–4 dB (docs/compression.md)")
     p.add_argument("--summary-only", action="store_true", help="fit nothing; rebuild the tables, figures "
@@ -493,18 +507,22 @@ def device_memory_bytes(device: str) -> int | None:
     return available_memory_bytes()
 
 
-def check_memory(config: FitConfig, device: str, available: int | None) -> None:
-    """Refuse a fit whose estimated peak on `device` (`estimated_peak_bytes`) exceeds `available` bytes there
-    (None: unknown, accepted)."""
+def check_memory(config: FitConfig, device: str, work: str = "fit", remedy: str = "reduce --size or --planes",
+                 size: tuple[int, int] | None = None, planes: int | None = None) -> None:
+    """Refuse a fit of `config`, or another `work` on its model at `size` (W, H) px and `planes` planes (default:
+    the config's), whose estimated peak on `device` (`estimated_peak_bytes`) exceeds the memory there
+    (`device_memory_bytes`; unknown: accepted), with the `remedy`."""
     import torch
     from .fitting import estimated_peak_bytes
-    needed = estimated_peak_bytes(config, device)
+    needed, available = estimated_peak_bytes(config, device, size, planes), device_memory_bytes(device)
     if available is not None and needed > available:
         where = "free on the GPU" if torch.device(device).type == "cuda" else "available"
-        targets = config.targets
-        raise UsageError(f"a {targets.width}×{targets.height} fit with {targets.num_planes} plane(s) needs about "
-                         f"{needed / 2**30:.1f} GiB but {available / 2**30:.1f} GiB are {where}; "
-                         "reduce --size or --planes")
+        width, height = size or (config.targets.width, config.targets.height)
+        count = config.targets.num_planes if planes is None else planes
+        guard = (f" and a {config.optics.guard_band_px} px guard band"
+                 if config.optics.guard_band_px != DEFAULTS.optics.guard_band_px else "")
+        raise UsageError(f"a {width}×{height} {work} with {count} plane(s){guard} needs about "
+                         f"{needed / 2**30:.1f} GiB but {available / 2**30:.1f} GiB are {where}; {remedy}")
 
 
 class StopRequest:
@@ -581,6 +599,8 @@ def _resume_plan(args: argparse.Namespace) -> FitPlan:
     if final != work and (final / CONFIG_FILE).exists() and not args.overwrite:
         raise UsageError(f"{final} holds a run that this fit replaces when it finishes; pass --overwrite to "
                          "confirm")
+    check_memory(config, run.device, remedy=f"the run's {CONFIG_FILE} asks for it: resume it where more memory is "
+                 "free")
     scene = scene_from_source(source, config)
     return FitPlan(work, final, config, run, source, scene, resumed_state(work, config, run))
 
@@ -592,8 +612,8 @@ def _new_plan(args: argparse.Namespace) -> FitPlan:
                          "checkpoints only when interrupted")
     if args.time is not None and args.steps is not None:
         raise UsageError("give --steps or --time, not both")
-    if args.time is not None and not args.time > 0:
-        raise UsageError(f"--time {args.time:g}: give a positive number of minutes")
+    if args.time is not None:
+        check_time_budget(args.time)
     config, source = _config_and_source(args)
     run = _run_options(args)
     check_device(run.device)
@@ -602,7 +622,7 @@ def _new_plan(args: argparse.Namespace) -> FitPlan:
     work = final.with_name(final.name + PARTIAL_SUFFIX)
     if work.exists():
         raise UsageError(f"{work} holds an interrupted fit; continue it with cvqpg fit --resume {work}, or delete it")
-    check_memory(config, run.device, device_memory_bytes(run.device))
+    check_memory(config, run.device)
     scene, depth = _scene_and_depth(source, config)
     if depth is not None:
         source["depth"] = DEPTH_FILE  # kept in the run folder, wherever it moves
@@ -726,13 +746,14 @@ def run_and_model(target: Path) -> tuple[Path, Path | None]:
 def run_export(args: argparse.Namespace) -> int:
     from .app.outputs import check_output_folder
     from .files import staged_folder
-    from .runs import EXPORT_FOLDER, MODEL_FILE, export_run
+    from .runs import EXPORT_FOLDER, MODEL_FILE, export_run, read_run
     check_device(args.device)
     folder, model = run_and_model(Path(args.run_dir))
     if args.aperture < 0:
         raise UsageError(f"--aperture {args.aperture}: give a radius ≥ 0 (a fraction of Nyquist; 0: no filter)")
     out = Path(args.out) if args.out else folder / (EXPORT_FOLDER if model is None else f"{EXPORT_FOLDER}-{model.stem}")
     check_output_folder(out, [folder, model or folder / MODEL_FILE], args.overwrite)
+    check_memory(read_run(folder)[0], args.device, "export", "give a smaller --slm", size=tuple(args.slm) if args.slm else None)
     with staged_folder(out, args.overwrite) as staged:
         record = export_run(folder, args.encoding, args.levels, tuple(args.slm) if args.slm else None,
                             args.aperture or None, staged, model, args.device)
@@ -786,7 +807,8 @@ def run_info(args: argparse.Namespace) -> int:
 def run_render(args: argparse.Namespace) -> int:
     from .app.outputs import check_output_folder
     from .files import staged_folder
-    from .runs import RENDER_FOLDER, render_model
+    from .runs import RENDER_FOLDER, read_run, render_model
+    from .storage import load_model
     check_device(args.device)
     target = Path(args.target)
     if target.is_dir():
@@ -795,9 +817,12 @@ def run_render(args: argparse.Namespace) -> int:
         raise UsageError(f"{target}: no such run folder or model file")
     out = Path(args.out) if args.out else (target / RENDER_FOLDER if target.is_dir()
                                            else target.with_name(target.stem + "-render"))
-    if args.distance is not None and min(args.distance) <= 0:
-        raise UsageError("--distance: give positive distances in m (e.g. 0.001 for 1 mm)")
+    if args.distance is not None:
+        check_distances(args.distance, "`distance`", " (e.g. 0.001 for 1 mm)")
     check_output_folder(out, [target], args.overwrite)
+    config = read_run(target)[0] if target.is_dir() else load_model(target)[1]
+    check_memory(config, args.device, "render", "give a smaller --size or fewer --distance values",
+                 size=tuple(args.size) if args.size else None, planes=None if args.distance is None else len(args.distance))
     with staged_folder(out, args.overwrite) as staged:
         record = render_model(target, staged, tuple(args.size) if args.size else None, args.distance, args.device)
     width, height = record["hologram_px"]
@@ -813,7 +838,8 @@ def _print_view(record: ViewRecord) -> None:
 
 def run_view(args: argparse.Namespace) -> int:
     from .app.outputs import check_output_file
-    from .view import check_sweep, default_page, write_view
+    from .runs import read_run
+    from .view import SWEEP_BATCH, check_sweep, default_page, write_view
     if len(args.run_dirs) > 2:
         raise UsageError(f"{len(args.run_dirs)} run folders: give one or two")
     folders = [finished_run(Path(folder)) for folder in args.run_dirs]
@@ -821,15 +847,20 @@ def run_view(args: argparse.Namespace) -> int:
     if not float(count).is_integer():
         raise UsageError(f"--distances {start:g} {stop:g} {count:g}: COUNT is a whole number of distances")
     check_sweep(start, stop, int(count))
+    for folder in folders:
+        check_memory(read_run(folder)[0], "cpu", "view", "give a smaller COUNT to --distances",
+                     planes=min(SWEEP_BATCH, int(count)))
     out = check_output_file(args.out or default_page(folders), folders, args.overwrite)
     _print_view(write_view(folders, out, (start, stop, int(count)), progress=not args.quiet))
     return 0
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    from .runs import evaluate_run
+    from .runs import CONFIG_FILE, evaluate_run, read_run
     check_device(args.device)
     folder, model = run_and_model(Path(args.run_dir))
+    check_memory(read_run(folder)[0], args.device, "evaluation", f"the run's {CONFIG_FILE} asks for it: evaluate it "
+                 "where more memory is free")
     record = evaluate_run(folder, model, args.device)
     print(f"{folder}: {_summary(record)}")
     for name, reason in record["unavailable"].items():
@@ -927,7 +958,7 @@ def run_encode(args: argparse.Namespace) -> int:
             raise UsageError(f"{work} holds an interrupted encode; continue it with cvqpg encode --resume {work}, "
                              "or delete it")
         config = encode_config(config, budget)
-        check_memory(config, run.device, device_memory_bytes(run.device))
+        check_memory(config, run.device)
         scene, depth = _scene_and_depth(source, config)
         if depth is not None:
             source["depth"] = DEPTH_FILE  # kept in the encode's folder until the file is written

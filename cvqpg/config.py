@@ -15,7 +15,7 @@ import json
 import math
 import os
 from dataclasses import dataclass, field
-from typing import Any, Literal, get_args
+from typing import Any, Literal, Sequence, get_args
 
 from .errors import ConfigError, choices_error
 
@@ -327,9 +327,7 @@ class FitConfig:
                               f"{self.targets.color!r}")
         for index, wavelength in enumerate(wavelengths):
             _check_range(f"wavelengths_m[{index}]", wavelength, *WAVELENGTH_RANGE_M, "number")
-        if not all(MIN_DISTANCE_M <= d <= MAX_DISTANCE_M for d in self.plane_distances):
-            raise ConfigError(f"plane distances {', '.join(f'{d:g}' for d in self.plane_distances)} m must lie in "
-                              f"[{MIN_DISTANCE_M:g}, {MAX_DISTANCE_M:g}] m: change `plane_center` or `plane_span`")
+        check_distances(self.plane_distances, "plane distances", ": change `plane_center` or `plane_span`")
         count, pixels = self.primitive_count, self.targets.width * self.targets.height
         if not 0 < count <= pixels:
             raise ConfigError(f"{count} Gaussians for {pixels} pixels: need between 1 and the pixel count; "
@@ -366,6 +364,24 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "target_noise": (0.0, 1.0, "number"),
 }
 OPTIONAL = ("num_gaussians",)
+
+
+MAX_TIME_MINUTES = 365 * 24 * 60  # a fit's time budget: a year
+
+
+def check_distances(distances_m: Sequence[float], name: str, remedy: str = "") -> None:
+    """`ConfigError` unless every distance (m) lies in [`MIN_DISTANCE_M`, `MAX_DISTANCE_M`], where propagation
+    means something; `name` and `remedy` frame the message."""
+    if not all(MIN_DISTANCE_M <= d <= MAX_DISTANCE_M for d in distances_m):
+        raise ConfigError(f"{name} {', '.join(f'{d:g}' for d in distances_m)} m must lie in "
+                          f"[{MIN_DISTANCE_M:g}, {MAX_DISTANCE_M:g}] m{remedy}")
+
+
+def check_time_budget(minutes: float) -> None:
+    """`ConfigError` unless a fit's time budget is a positive number of minutes, at most `MAX_TIME_MINUTES`."""
+    if not 0 < minutes <= MAX_TIME_MINUTES:
+        raise ConfigError(f"`time` {minutes:g} min: give a positive number of minutes, at most {MAX_TIME_MINUTES} "
+                          "(a year)")
 
 
 def _check_range(name: str, value: Any, low: float, high: float, kind: str) -> None:

@@ -16,7 +16,7 @@ from PIL import Image
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from .config import FitConfig, RunOptions
+from .config import FitConfig, RunOptions, padded_size
 from .control import RunControl
 from .errors import InputError, ModelFileError
 from .metrics import MetricReport, evaluate
@@ -365,12 +365,24 @@ PEAK_MEMORY = {"cpu": PeakMemoryModel(base_bytes=2**30, bytes_per_plane_pixel=16
                "cuda": PeakMemoryModel(base_bytes=2**29, bytes_per_plane_pixel=256)}
 
 
-def estimated_peak_bytes(config: FitConfig, device: str = "cpu") -> int:
-    """Rough peak memory (bytes) of a fit on `device`: its RSS on the CPU, its allocated memory on a GPU
-    (`PEAK_MEMORY`)."""
+# The measured sizes pad to at most this many times their pixels (a 144 px guard band at 640×480: 2.3); a wider
+# guard band (a size of a few px, or a band that a config.json asks for) costs its padded pixels at that share.
+PADDED_PIXELS_PER_PIXEL = 4
+
+
+def estimated_peak_bytes(config: FitConfig, device: str = "cpu", size: tuple[int, int] | None = None,
+                         planes: int | None = None) -> int:
+    """Rough peak memory (bytes) of a fit of `config` on `device`, or of a render of its model at `size` (W, H)
+    px to `planes` planes (default: the config's): its RSS on the CPU, its allocated memory on a GPU
+    (`PEAK_MEMORY`), counting the guard band's padded pixels where they dominate (`PADDED_PIXELS_PER_PIXEL`)."""
     model = PEAK_MEMORY[torch.device(device).type]
-    plane_pixels = config.targets.num_planes * config.channels * config.targets.width * config.targets.height
-    return int(model.base_bytes + model.bytes_per_plane_pixel * plane_pixels)
+    width, height = size or (config.targets.width, config.targets.height)
+    optics = config.optics
+    padded = (padded_size(width, optics.guard_band_px, optics.pad_multiple_px)
+              * padded_size(height, optics.guard_band_px, optics.pad_multiple_px))
+    pixels = max(width * height, padded // PADDED_PIXELS_PER_PIXEL)
+    count = config.targets.num_planes if planes is None else planes
+    return int(model.base_bytes + model.bytes_per_plane_pixel * count * config.channels * pixels)
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ from PIL import Image
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from .config import FitConfig
+from .config import FitConfig, check_distances
 from .defaults import DEFAULT_SWEEP, VIEW_FILE
 from .errors import InputError
 from .fitting import hologram
@@ -34,6 +34,7 @@ from .targets import load_picture
 
 MAX_DISTANCE_M = 0.1  # farther, a few-mm hologram's band limit leaves almost nothing: a mm/m mix-up
 FRAME_QUALITY = 90  # JPEG quality of every embedded image, colour at full resolution (4:4:4)
+MAX_SWEEP_COUNT = 4096  # frames of one page: more than a slider's pixels
 SWEEP_BATCH = 8  # distances per propagation: they share each channel's forward transform
 SAME_DISTANCE_M = 1e-9
 TEMPLATE = "view_page.html"
@@ -73,12 +74,14 @@ class Run:
 
 
 def check_sweep(start_m: float, stop_m: float, count: int) -> None:
-    """Raise `InputError` unless START ≤ STOP are positive distances in m below `MAX_DISTANCE_M` and COUNT ≥ 1."""
-    given = f"`distances` {start_m:g} {stop_m:g} {count}"
-    if count < 1:
-        raise InputError(f"{given}: COUNT must be at least 1")
+    """Raise `InputError` unless 1 ≤ COUNT ≤ `MAX_SWEEP_COUNT` and START ≤ STOP are distances in m below
+    `MAX_DISTANCE_M`; `ConfigError` where they leave the configuration's range (`check_distances`)."""
+    given = f"`distances` {start_m:g} {stop_m:g} {count:g}"
+    if not 1 <= count <= MAX_SWEEP_COUNT:
+        raise InputError(f"{given}: COUNT must lie in [1, {MAX_SWEEP_COUNT}]")
     if not 0 < start_m <= stop_m:
         raise InputError(f"{given}: give 0 < START ≤ STOP in m (e.g. 0.0005 0.006 41 for 0.5–6 mm)")
+    check_distances((start_m, stop_m), given + ": START and STOP")
     if stop_m > MAX_DISTANCE_M:
         raise InputError(f"{given}: distances are in m and STOP is over {MAX_DISTANCE_M:g} m; for 0.5–6 mm give "
                         "0.0005 0.006 41")

@@ -290,7 +290,7 @@ def test_a_budget_below_the_smallest_file_is_one_line_exit_2(model_file, tmp_pat
     (["--bpp", "inf"], "--bpp: 'inf' is not a finite number"),
     (["--bpp", "nan"], "--bpp: 'nan' is not a finite number"),
     (["--max-bytes", "0"], "--max-bytes 0: give a positive whole number of bytes"),
-    (["--max-bytes", "1e3"], "argument --max-bytes: invalid int value"),
+    (["--max-bytes", "1e3"], "argument --max-bytes: '1e3' is not a whole number"),
     (["--bpp", "3", "--finetune", "-1"], "--finetune -1: give a number of steps ≥ 0"),
 ])
 def test_bad_rate_options_are_one_line_exit_2_and_write_nothing(model_file, tmp_path, arguments, message, capsys):

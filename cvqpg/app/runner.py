@@ -11,10 +11,10 @@ from typing import Any
 
 import torch
 
-from ..config import FitConfig, RunOptions
+from ..config import FitConfig, RunOptions, check_time_budget
 from ..control import RunControl
 from ..defaults import CHECKPOINT_SECONDS
-from ..errors import ConfigError, CvqpgError, ModelFileError
+from ..errors import CvqpgError, ModelFileError
 from ..fitting import (CheckpointPolicy, FitResult, FitState, fit_scene, initial_state, seconds_per_step,
                        state_from_payload, steps_within)
 from ..runs import CHECKPOINT_FILE, CONFIG_FILE, RESTORE_RUN, read_record, write_run
@@ -133,8 +133,7 @@ def timed_config(scene: Scene, config: FitConfig, minutes: float, run: RunOption
     seconds per step, and the seconds spent compiling the kernels (the fit itself then only loads them). Only
     the steps change, and the curvature warm-up with them (`FitConfig.with_steps`): the algorithm is the same
     on a fast machine and a slow one."""
-    if not minutes > 0:
-        raise ConfigError(f"`time` {minutes} min: give a positive number of minutes")
+    check_time_budget(minutes)
     compile_seconds = prepare_kernels(config, run, show_status=progress)
     seconds_each = seconds_per_step(scene, config, run)
     steps = steps_within(60 * minutes, seconds_each)
