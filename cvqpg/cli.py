@@ -1052,8 +1052,9 @@ def run_results(args: argparse.Namespace) -> int:
     if not Path(args.root).is_dir():
         raise UsageError(f"--root {args.root} is not a folder of recorded bench folders (e.g. results)")
     out = check_output_file(args.out, [], args.overwrite)
+    text = document(Path(args.root))  # refused before any figure is drawn where nothing is recorded
     figures = write_figures(Path(args.root), out.parent, args.overwrite)
-    write_atomic(out, document(Path(args.root)))
+    write_atomic(out, text)
     print(f"cvqpg results: {', '.join(map(str, [out, *figures]))}")
     return 0
 
