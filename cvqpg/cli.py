@@ -753,7 +753,8 @@ def run_export(args: argparse.Namespace) -> int:
         raise UsageError(f"--aperture {args.aperture}: give a radius ≥ 0 (a fraction of Nyquist; 0: no filter)")
     out = Path(args.out) if args.out else folder / (EXPORT_FOLDER if model is None else f"{EXPORT_FOLDER}-{model.stem}")
     check_output_folder(out, [folder, model or folder / MODEL_FILE], args.overwrite)
-    check_memory(read_run(folder)[0], args.device, "export", "give a smaller --slm", size=tuple(args.slm) if args.slm else None)
+    check_memory(read_run(folder)[0], args.device, "export", "give a smaller --slm",
+                 size=tuple(args.slm) if args.slm else None)
     with staged_folder(out, args.overwrite) as staged:
         record = export_run(folder, args.encoding, args.levels, tuple(args.slm) if args.slm else None,
                             args.aperture or None, staged, model, args.device)
@@ -822,7 +823,8 @@ def run_render(args: argparse.Namespace) -> int:
     check_output_folder(out, [target], args.overwrite)
     config = read_run(target)[0] if target.is_dir() else load_model(target)[1]
     check_memory(config, args.device, "render", "give a smaller --size or fewer --distance values",
-                 size=tuple(args.size) if args.size else None, planes=None if args.distance is None else len(args.distance))
+                 size=tuple(args.size) if args.size else None,
+                 planes=None if args.distance is None else len(args.distance))
     with staged_folder(out, args.overwrite) as staged:
         record = render_model(target, staged, tuple(args.size) if args.size else None, args.distance, args.device)
     width, height = record["hologram_px"]

@@ -14,7 +14,7 @@ from torch import Tensor
 
 from . import __version__
 from .config import MIN_SIZE_PX, SECTIONS, FitConfig, RunOptions
-from .errors import ConfigError, InputError, ModelFileError
+from .errors import ConfigError, CvqpgError, InputError, ModelFileError
 from .files import write_atomic
 from .export import (DEFAULT_APERTURE, DEFAULT_LEVELS, Display, Encoding, PhasePattern, phase_pattern, place_on_canvas,
                      simulate_display)
@@ -23,7 +23,7 @@ from .metrics import MetricReport, evaluate, mean_psnr
 from .ops.field import slm_field
 from .primitives import Primitives
 from .scenes import builtin_scene
-from .storage import load_model, model_info, save_model
+from .storage import load_model, model_info, model_run, save_model
 from .targets import Scene, load_scene
 
 CONFIG_FILE = "config.json"
@@ -39,6 +39,8 @@ RUN_KEYS = ("source", "width", "height", "color", "primitive", "pixel_pitch", "n
             "plane_span")
 SCHEMA_RUN_KEYS = ("source", *SECTIONS)
 RESTORE_RUN = "restore the file or fit the run again"
+# The schema of a fit's fingerprint (`fit_fingerprint`) in checkpoints and models.
+FINGERPRINT_SCHEMA = 2
 
 
 def write_json(path: Path, data: Any) -> None:
@@ -187,7 +189,7 @@ def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[
     killed while its files are written resumes from the checkpoint instead of starting over."""
     folder = start_run(folder, result.config, source, result.run, keep_checkpoint=True)
     config = result.config
-    save_model(folder / MODEL_FILE, result.primitives, config)
+    save_model(folder / MODEL_FILE, result.primitives, config, run=run_fit(folder))
     for plane, (target, image) in enumerate(zip(scene.targets, result.reconstructions)):
         to_8bit(target).save(folder / f"target_plane{plane}.png")
         to_8bit(image).save(folder / f"recon_plane{plane}.png")
@@ -244,7 +246,48 @@ def load_run_model(folder: str | Path, model: str | Path | None = None, device: 
         brief = _targets(config)[:3] != _targets(run_config)[:3]
         raise ModelFileError(f"{path} was fitted for {targets_label(config, brief)}, the run folder {folder} is "
                              f"{targets_label(run_config, brief)}: use it with its own run folder")
+    recorded = model_run(path)
+    if recorded is not None and not same_fit(recorded, run_fit(folder)):
+        raise ModelFileError(f"{path} was fitted in another run (other settings or inputs than "
+                             f"{folder / CONFIG_FILE} records): use it with its own run folder")
+    fitted = _fitted_count(folder) if model is None else None
+    if fitted is not None and fitted != primitives.count:
+        raise ModelFileError(f"{path} holds {primitives.count} primitives, the run's {METRICS_FILE} records a fit of "
+                             f"{fitted}: use the model with its own run folder")
     return primitives, config, source
+
+
+def run_fit(folder: str | Path) -> dict[str, Any]:
+    """The fingerprint (`fit_fingerprint`) of the fit that the run folder's `config.json` records."""
+    folder = Path(folder)
+    return fit_fingerprint(read_run(folder)[0], read_record(folder / CONFIG_FILE, RESTORE_RUN)["source"])
+
+
+def fit_fingerprint(config: FitConfig, source: dict[str, Any]) -> dict[str, Any]:
+    """What a checkpoint or a model records of the fit it belongs to: the settings and the inputs (`source`, as
+    `config.json` records it), with the record's schema (`FINGERPRINT_SCHEMA`). Where it ran is no part."""
+    return {"schema": FINGERPRINT_SCHEMA, "config": config.to_dict(), "source": source}
+
+
+def same_fit(recorded: object, fingerprint: dict[str, Any]) -> bool:
+    """Whether a `fit_fingerprint` record read back from a file is `fingerprint`: the settings it recorded read
+    as the same configuration (a setting added later takes the value the fit had) and the same inputs."""
+    if not (isinstance(recorded, dict) and recorded.get("schema") == FINGERPRINT_SCHEMA):
+        return False
+    try:
+        return (FitConfig.from_dict(recorded["config"]) == FitConfig.from_dict(fingerprint["config"])
+                and recorded["source"] == fingerprint["source"])
+    except (KeyError, TypeError, ValueError, CvqpgError):
+        return False
+
+
+def _fitted_count(folder: Path) -> int | None:
+    """The primitive count N that the run's `metrics.json` records, or None where it records none."""
+    path = folder / METRICS_FILE
+    if not path.is_file():
+        return None
+    count = read_record(path, "delete it and evaluate the run again").get("num_gaussians")
+    return count if isinstance(count, int) and not isinstance(count, bool) else None
 
 
 def evaluate_run(folder: str | Path, model: str | Path | None = None, device: str = "cpu") -> dict[str, Any]:
@@ -337,7 +380,7 @@ def half_precision_model(folder: str | Path) -> dict[str, Any]:
     """Store a run's model in float16 next to it and measure what that costs in PSNR (dB)."""
     folder = Path(folder)
     primitives, config, source = load_run_model(folder)
-    save_model(folder / HALF_MODEL_FILE, primitives, config, dtype="float16")
+    save_model(folder / HALF_MODEL_FILE, primitives, config, dtype="float16", run=model_run(folder / MODEL_FILE))
     half, _ = load_model(folder / HALF_MODEL_FILE)
     scene = scene_from_source(source, config)
     psnr_full = mean_psnr(render(primitives, config)[1], scene.targets)

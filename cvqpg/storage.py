@@ -21,15 +21,19 @@ from .primitives import REWRITE_MODEL, Primitives, check_settings, check_tensors
 
 MODEL_FORMAT = "cvqpg-model"
 MODEL_FORMAT_VERSION = "2"
+RUN_KEY = "run"  # the metadata entry of the fit a model came from (`save_model`)
 STORED_DTYPES = {"float32": torch.float32, "float16": torch.float16}
 UNITS = {"position_px": "px (x, y), pixel centres at integers", "scale_px": "px (σ along the Gaussian's axes)",
          "rotation_rad": "rad", "amplitude": "per channel, unitless", "phase_rad": "rad in [0, 2π), per channel",
          "opacity": "in (0, 1)", "curvature_per_m": "1/m (γ of the quadratic phase)"}
 
 
-def model_metadata(primitives: Primitives, config: FitConfig, dtype: str) -> dict[str, str]:
-    """What a model file says about itself: format, configuration, and the optics in plain numbers."""
-    return {"format": MODEL_FORMAT, "format_version": MODEL_FORMAT_VERSION, "dtype": dtype,
+def model_metadata(primitives: Primitives, config: FitConfig, dtype: str, run: dict[str, Any] | None = None
+                   ) -> dict[str, str]:
+    """What a model file says about itself: format, configuration, the optics in plain numbers, and the fit it
+    came from (`run`, `runs.fit_fingerprint`) where it was fitted in a run folder."""
+    return {**({} if run is None else {RUN_KEY: json.dumps(run)}),
+            "format": MODEL_FORMAT, "format_version": MODEL_FORMAT_VERSION, "dtype": dtype,
             "config": json.dumps(config.to_dict()), "num_primitives": str(primitives.count),
             "width_px": str(config.targets.width), "height_px": str(config.targets.height),
             "pixel_pitch_m": repr(config.optics.pixel_pitch), "wavelengths_m": json.dumps(config.wavelengths),
@@ -37,8 +41,10 @@ def model_metadata(primitives: Primitives, config: FitConfig, dtype: str) -> dic
             "units": json.dumps(UNITS)}
 
 
-def save_model(path: str | Path, primitives: Primitives, config: FitConfig, dtype: str = "float32") -> None:
-    """Write the activated primitives (physical units, see `UNITS`) and the optics, atomically.
+def save_model(path: str | Path, primitives: Primitives, config: FitConfig, dtype: str = "float32",
+               run: dict[str, Any] | None = None) -> None:
+    """Write the activated primitives (physical units, see `UNITS`) and the optics, atomically; `run` binds the
+    file to the fit of a run folder (`model_metadata`).
 
     `dtype="float16"` stores everything but the positions in float16 and about halves the file;
     positions stay float32 because float16's spacing grows to 2 px above 2048 px. Rendering casts
@@ -48,7 +54,26 @@ def save_model(path: str | Path, primitives: Primitives, config: FitConfig, dtyp
         raise choices_error("dtype", dtype, tuple(STORED_DTYPES))
     tensors = {name: t.detach().to("cpu", torch.float32 if name == "position_px" else STORED_DTYPES[dtype])
                .contiguous() for name, t in primitives.tensors().items()}
-    write_atomic(path, save(tensors, metadata=model_metadata(primitives, config, dtype)))
+    write_atomic(path, save(tensors, metadata=model_metadata(primitives, config, dtype, run)))
+
+
+def model_run(path: str | Path) -> Any:
+    """The fit a model file records that it came from (`save_model`'s `run`, read as JSON), or None where it
+    records none: a `.cvq` file, or a file of a version that did not write it."""
+    path = _model_file(path)
+    if is_compressed(path):
+        return None
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            recorded = (handle.metadata() or {}).get(RUN_KEY)
+    except (SafetensorError, OSError) as error:
+        raise ModelFileError(f"{path}: not a readable safetensors file ({error})") from None
+    if recorded is None:
+        return None
+    try:
+        return json.loads(recorded)
+    except ValueError:
+        raise ModelFileError(f"{path}: its record of the fit it came from is not JSON; {REWRITE_MODEL}") from None
 
 
 def is_compressed(path: str | Path) -> bool:

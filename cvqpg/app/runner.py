@@ -17,26 +17,18 @@ from ..defaults import CHECKPOINT_SECONDS
 from ..errors import CvqpgError, ModelFileError
 from ..fitting import (CheckpointPolicy, FitResult, FitState, fit_scene, initial_state, seconds_per_step,
                        state_from_payload, steps_within)
-from ..runs import CHECKPOINT_FILE, CONFIG_FILE, RESTORE_RUN, read_record, write_run
+from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, FINGERPRINT_SCHEMA, RESTORE_RUN, fit_fingerprint as run_fingerprint,
+                    read_record, same_fit, write_run)
 from ..storage import load_checkpoint, save_checkpoint
 from ..targets import Scene
 from .compilation import prepare_kernels
 from .provenance import code_commit, peak_memory, reset_peak_memory, run_record
 
 FINGERPRINT_KEY = "run_fingerprint"
-# What a checkpoint records of its run (`run_fingerprint`): the settings and inputs as `config.json` records them,
-# read back through `FitConfig.from_dict`, so that a setting added later takes the value the run had.
-FINGERPRINT_SCHEMA = 2
 # Checkpoints of earlier versions hold a SHA-256 of their config.json's settings (`legacy_fingerprint`): all but
 # these keys, and but the settings that versions before recipes lacked where they hold those versions' values.
 LEGACY_UNHASHED = ("cvqpg_version", "source", "device", "backend")
 LEGACY_VALUES = {"init": "uniform", "density": None}
-
-
-def run_fingerprint(config: FitConfig, source: dict[str, Any]) -> dict[str, Any]:
-    """What a checkpoint records of the run it belongs to: its settings and its inputs (`source`, as
-    `config.json` records it), with the record's schema (`FINGERPRINT_SCHEMA`). Where it runs is no part."""
-    return {"schema": FINGERPRINT_SCHEMA, "config": config.to_dict(), "source": source}
 
 
 def legacy_fingerprint(record: dict[str, Any]) -> str:
@@ -52,11 +44,8 @@ def belongs_to_run(recorded: object, folder: Path, config: FitConfig, source: di
     """Whether a checkpoint's fingerprint `recorded` is that of the fit of `config` on `source` in `folder`:
     the settings it recorded read as `config` and the same inputs, or for a checkpoint of an earlier version,
     the hash of the folder's `config.json` (which must hold `config`)."""
-    if isinstance(recorded, dict) and recorded.get("schema") == FINGERPRINT_SCHEMA:
-        try:
-            return FitConfig.from_dict(recorded["config"]) == config and recorded["source"] == source
-        except (KeyError, TypeError, ValueError, CvqpgError):
-            return False
+    if isinstance(recorded, dict):
+        return same_fit(recorded, run_fingerprint(config, source))
     record = read_record(Path(folder) / CONFIG_FILE, RESTORE_RUN)
     return (isinstance(recorded, str) and recorded == legacy_fingerprint(record) and record.get("source") == source
             and FitConfig.from_dict(record) == config)
