@@ -1049,14 +1049,14 @@ def run_bench(args: argparse.Namespace) -> int:
 
 def run_results(args: argparse.Namespace) -> int:
     from .app.outputs import check_output_file
-    from .campaign.results import document, write_figures
+    from .campaign.results import check_recorded, document, write_figures
     from .runs import write_atomic
     if not Path(args.root).is_dir():
         raise UsageError(f"--root {args.root} is not a folder of recorded bench folders (e.g. results)")
+    check_recorded(Path(args.root))
     out = check_output_file(args.out, [], args.overwrite)
-    text = document(Path(args.root))  # refused before any figure is drawn where nothing is recorded
     figures = write_figures(Path(args.root), out.parent, args.overwrite)
-    write_atomic(out, text)
+    write_atomic(out, document(Path(args.root)))
     print(f"cvqpg results: {', '.join(map(str, [out, *figures]))}")
     return 0
 

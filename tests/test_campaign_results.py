@@ -241,3 +241,12 @@ def test_the_psnr_against_seconds_figure_waits_for_both_histories_then_is_drawn(
     with pytest.raises(CvqpgError, match="exists"):
         write_figures(tmp_path, tmp_path / "docs")
     assert write_figures(tmp_path, tmp_path / "docs", overwrite=True) == [tmp_path / "docs" / figure]
+
+
+def test_a_root_without_any_recorded_cell_is_refused_and_one_with_a_cell_is_not(tmp_path):
+    from cvqpg.campaign.results import RecordError, check_recorded
+
+    with pytest.raises(RecordError, match="nothing to summarise"):
+        check_recorded(tmp_path)
+    record_cell(tmp_path, "paper", "sushi_gray-10_cvqpg_s100", 30.0)
+    check_recorded(tmp_path)

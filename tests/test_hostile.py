@@ -90,6 +90,10 @@ PLACES = {
     "cutmetrics": "cut_metrics",           # run_a with metrics.json truncated
     "cutexport": "cut_export",             # run_a with export/metrics.json truncated
     "cutdisplay": "cut_display",           # run_a with export/display_plane0.png truncated
+    "twin": "twin",                        # run_a's files with the model of a run of the same size and optics
+                                           # (another seed), also as foreign.safetensors
+    "guarded": "guarded",                  # an unfinished run_a whose config.json asks for a 16384 px guard band
+    "guardedrun": "guarded_run",           # run_a whose config.json asks for a 16384 px guard band
 }
 
 FIT = "--size 32 24 --steps 1 --quiet --out new_run"  # a fit that is wrongly accepted ends soon
@@ -173,7 +177,39 @@ NUMBERS = cases(
     ("export-slm-0", "export {run} --slm 0 0 --out new_export", "--slm"),
     ("export-slm-smaller-than-hologram", "export {run} --slm 10 10 --out new_export", "--slm 10×10 is smaller than"),
     ("export-slm-negative", "export {run} --slm -32 24 --out new_export", "--slm"),
-    ("render-distance-0", "render {run} --distance 0 --out new_render", "positive distances"),
+    ("render-distance-0", "render {run} --distance 0 --out new_render", "--distance 0 m must lie in [1e-06, 10] m"),
+    ("render-distance-1e300", "render {run} --distance 0.001 1e300 --out new_render",
+     "--distance 0.001, 1e+300 m must lie in [1e-06, 10] m"),
+    ("render-distance-11-m", "render {run} --distance 11 --out new_render", "must lie in [1e-06, 10] m"),
+    ("render-size-beyond-memory", "render {run} --size 60000 45000 --out new_render", "GiB are available"),
+    ("render-size-100000", "render {run} --size 100000 75000 --out new_render", "a 100000×75000 render"),
+    ("export-slm-beyond-memory", "export {run} --slm 100000 100000 --out new_export", "a 100000×100000 export"),
+    ("export-levels-beyond-64-bits", "export {run} --levels 100000000000000000000 --out new_export",
+     "--levels: 100000000000000000000 lies beyond the 64-bit integers"),
+    ("view-distances-stop-1e300", "view {run} --distances 0.001 1e300 3 --quiet --out new.html",
+     "must lie in [1e-06, 10] m"),
+    ("view-distances-start-1e-9", "view {run} --distances 1e-9 0.002 3 --quiet --out new.html",
+     "must lie in [1e-06, 10] m"),
+    ("view-distances-count-1e300", "view {run} --distances 0.001 0.002 1e300 --quiet --out new.html",
+     "COUNT must lie in [1, 4096]"),
+    ("fit-time-1e307", "fit --size 32 24 --quiet --out new_run --time 1e307", "at most 525600 (a year)"),
+    ("fit-checkpoint-every-beyond-64-bits", f"fit {FIT} --checkpoint-every 100000000000000000000000",
+     "--checkpoint-every: 100000000000000000000000 lies beyond the 64-bit integers"),
+    ("fit-steps-beyond-64-bits", "fit --size 32 24 --quiet --out new_run --steps 99999999999999999999", "--steps"),
+    ("fit-size-beyond-64-bits", f"fit {FIT} --size 99999999999999999999 24", "--size"),
+    ("fit-resume-huge-guard-band", "fit --resume {guarded} --quiet", "a 16384 px guard band needs about"),
+    ("eval-huge-guard-band", "eval {guardedrun}", "a 16384 px guard band needs about"),
+    ("compress-bpp-1e308", "compress {run} --bpp 1e308 --out new.cvq", "give a budget of at most 9007199254740992"),
+    ("compress-max-bytes-beyond-2-53", "compress {run} --max-bytes 1152921504606846976 --out new.cvq",
+     "at most 9007199254740992"),
+    ("compress-max-bytes-beyond-64-bits", "compress {run} --max-bytes 100000000000000000000000 --out new.cvq",
+     "beyond the 64-bit integers"),
+    ("compress-prune-0.999", "compress {run} --finetune 2 --prune 0.999 --out new.cvq", "--prune 0.999 removes all"),
+    ("encode-bpp-1e308", f"{ENCODE} --bpp 1e308 --out new.cvq", "give a budget of at most"),
+    ("encode-max-bytes-beyond-64-bits", f"{ENCODE} --max-bytes 100000000000000000000 --out new.cvq",
+     "beyond the 64-bit integers"),
+    ("bench-threads-beyond-64-bits", f"bench {BENCH} --threads 100000000000000000000", "--threads"),
+    ("bench-jobs-beyond-64-bits", f"bench {BENCH} --jobs 100000000000000000000", "--jobs"),
     ("render-distance-negative", "render {run} --distance -1 --out new_render", "--distance"),
     ("render-distance-inf", "render {run} --distance inf --out new_render", "--distance"),
     ("render-distance-nan", "render {run} --distance 0.001 nan --out new_render", "--distance"),
@@ -336,6 +372,10 @@ INPUTS = cases(
     ("eval-model-outside-its-run", "eval {loose}", "loose"),
     ("eval-corrupt-cvq", "eval {badcvq}", "bad.cvq"),
     ("eval-model-of-another-run", "eval {mixed}/foreign.safetensors", "foreign.safetensors"),
+    ("eval-model-of-a-twin-run", "eval {twin}/foreign.safetensors", "was fitted in another run"),
+    ("eval-run-holding-a-twin-run-model", "eval {twin}", "was fitted in another run"),
+    ("render-run-holding-a-twin-run-model", "render {twin} --out new_render", "was fitted in another run"),
+    ("export-model-of-a-twin-run", "export {twin}/foreign.safetensors --out new_export", "was fitted in another run"),
     ("eval-damaged-model", "eval {damaged}", "not a readable safetensors file"),
     ("eval-model-of-format-0", "eval {oldformat}", "format version"),
     ("eval-model-missing-a-tensor", "eval {lacking}", "missing tensors curvature_per_m"),
@@ -406,6 +446,8 @@ INPUTS = cases(
     ("results-root-missing", "results --root missing_root --out new.md", "missing_root"),
     ("results-root-a-file", "results --root {text} --out new.md", "notes.txt"),
     ("results-cell-of-other-settings", "results --root {badrecords} --out new.md", "badrecords"),
+    ("results-root-empty", "results --root {folder} --out new.md", "nothing to summarise"),
+    ("results-root-of-other-files", "results --root {notarun} --out new.md", "nothing to summarise"),
 )
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -601,6 +643,18 @@ def template(finished_run, tmp_path_factory) -> Template:
     shutil.copy(run_a / "config.json", t / "unfinished" / "config.json")
     (t / "loose").mkdir()
     shutil.copy(run_a / "model.safetensors", t / "loose" / "model.safetensors")
+    twin = t / "twin_run"
+    assert main(["fit", "--size", "32", "24", "--steps", "2", "--seed", "7", "--quiet", "--out", str(twin)]) == 0
+    shutil.copytree(run_a, t / "twin")
+    for name in ("model.safetensors", "foreign.safetensors"):
+        shutil.copy(twin / "model.safetensors", t / "twin" / name)
+    shutil.rmtree(twin)
+    shutil.copytree(run_a, t / "guarded_run")
+    (t / "guarded").mkdir()
+    for folder in (t / "guarded_run", t / "guarded"):
+        text = (run_a / "config.json").read_text()
+        assert '"guard_band_px": 144' in text
+        (folder / "config.json").write_text(text.replace('"guard_band_px": 144', '"guard_band_px": 16384'))
 
     # run_a's extras: every command's default output exists, so that rerunning it needs --overwrite.
     assert main(["compress", str(run_a), "--bits", "8"]) == 0                       # run_a/model.cvq

@@ -7,7 +7,7 @@ import re
 import pytest
 
 from cvqpg.cli import main
-from cvqpg.errors import InputError
+from cvqpg.errors import CvqpgError
 from cvqpg.view import DEFAULT_SWEEP, check_sweep, sweep_distances, write_view
 
 SMALL = ["--size", "48", "36", "--steps", "3", "--curvature-warmup", "1", "--quiet"]
@@ -40,13 +40,16 @@ def test_the_sweep_holds_count_distances_and_the_training_planes_exactly():
 
 
 @pytest.mark.parametrize("sweep, message", [
-    ((1e-3, 2e-3, 0), "COUNT must be at least 1"),
+    ((1e-3, 2e-3, 0), r"COUNT must lie in \[1, 4096\]"),
+    ((1e-3, 2e-3, 4097), r"COUNT must lie in \[1, 4096\]"),
     ((0.0, 2e-3, 5), "0 < START ≤ STOP"),
     ((3e-3, 2e-3, 5), "0 < START ≤ STOP"),
+    ((1e-9, 2e-3, 5), r"START and STOP 1e-09, 0.002 m must lie in \[1e-06, 10\] m"),
+    ((1e-3, 1e300, 5), r"must lie in \[1e-06, 10\] m"),
     ((0.5, 6, 41), "distances are in m"),
 ])
 def test_bad_sweeps_are_refused(sweep, message):
-    with pytest.raises(InputError, match=message):
+    with pytest.raises(CvqpgError, match=message):
         check_sweep(*sweep)
 
 

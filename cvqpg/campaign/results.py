@@ -680,13 +680,18 @@ def beyond_claims(paper: GridResults, beyond: GridResults, timed: GridResults) -
     return lines
 
 
+def check_recorded(root: Path) -> None:
+    """`RecordError` where `root` holds none of the campaign's cells: its document would summarise nothing."""
+    grids = [load_grid(g, root) for g in CAMPAIGN]
+    if not any(r.status == DONE for g in grids for r in g.results):
+        cells = sum(len(g.results) for g in grids)
+        raise RecordError(f"{root} holds none of the campaign's {cells} cells: nothing to summarise; give the folder "
+                          "of its bench folders (e.g. results)")
+
+
 def document(root: Path) -> str:
     """The whole of `docs/results.md` from the records under `root` (`results/`)."""
     grids = {g.preset: load_grid(g, root) for g in CAMPAIGN}
-    if not any(r.status == DONE for g in grids.values() for r in g.results):
-        cells = sum(len(g.results) for g in grids.values())
-        raise RecordError(f"{root} holds none of the campaign's {cells} cells: nothing to summarise; give the folder "
-                          "of its bench folders (e.g. results)")
     paper, chromatic, ablation = grids["paper"], grids["chromatic"], grids["ablation"]
     beyond, timed = grids["beyond"], grids["beyond-time"]
     parts = ["# Results against the paper", "",
