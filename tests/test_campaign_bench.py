@@ -4,6 +4,7 @@ paper, and the radial error spectrum of the frequency analysis."""
 import csv
 import json
 import math
+import os
 import re
 import subprocess
 import sys
@@ -501,3 +502,10 @@ def test_a_damaged_config_json_of_a_recorded_scene_is_one_line(tmp_path, capsys)
     assert main(["bench", "--preset", "paper", "--out", str(tmp_path / "bench"), "--summary-only", "--quiet"]) == 2
     error = capsys.readouterr().err
     assert f"{config_file} holds a JSON list, not an object; restore the file" in error and error.count("\n") == 1
+
+
+def test_threads_beyond_the_machine_s_cores_are_capped_with_a_note(tmp_path, caplog):
+    plan = make_plan("star", tmp_path / "bench", Overrides(**TINY_STAR))
+    with caplog.at_level("WARNING", logger="cvqpg"):
+        run_plan(plan, plan.cells[:0], control=SILENT, threads=100_000)
+    assert f"--threads 100000: this machine offers {os.cpu_count()} cores" in caplog.text

@@ -135,3 +135,13 @@ def test_a_cuda_fit_larger_than_the_gpus_free_memory_is_refused_before_writing(t
 def test_the_memory_estimate_of_each_device_sits_above_the_peak_measured_there(device, width, height, measured_gib):
     config = FitConfig.create(width=width, height=height, ratio=0.2)
     assert measured_gib * 2**30 < estimated_peak_bytes(config, device) < 1.5 * measured_gib * 2**30
+
+
+def test_the_memory_estimate_grows_with_the_render_size_the_plane_count_and_a_wide_guard_band():
+    config = FitConfig.create(width=640, height=480)
+    fit = estimated_peak_bytes(config)
+    assert estimated_peak_bytes(config, size=(640, 480), planes=2) == fit
+    assert estimated_peak_bytes(config, planes=4) - 2**30 == 2 * (fit - 2**30)
+    assert estimated_peak_bytes(config, size=(1280, 960)) - 2**30 == 4 * (fit - 2**30)
+    tiny = FitConfig.create(width=32, height=24)
+    assert estimated_peak_bytes(tiny.replace(guard_band_px=2**14)) > 200 * 2**30 > estimated_peak_bytes(tiny)

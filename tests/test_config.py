@@ -10,8 +10,9 @@ from pathlib import Path
 import pytest
 
 from cvqpg import ConfigError, CvqpgError, FitConfig
-from cvqpg.config import (BOUNDS, COLORS, CURVATURES, FLAT_NAMES, INITS, LONG_RUN_BETAS, PAPER_BETAS, PRIMITIVES,
-                          QPFS, LearningRates, RunOptions, resolve_backend)
+from cvqpg.config import (BOUNDS, COLORS, CURVATURES, FLAT_NAMES, INITS, LONG_RUN_BETAS, MAX_TIME_MINUTES, PAPER_BETAS,
+                          PRIMITIVES, QPFS, LearningRates, RunOptions, check_distances, check_time_budget,
+                          resolve_backend)
 
 ENUMERATED = {"color": COLORS, "primitive": PRIMITIVES, "bound": BOUNDS, "qpf": QPFS, "curvature": CURVATURES,
               "init": INITS}
@@ -176,3 +177,14 @@ def test_auto_picks_the_numba_kernels_on_the_cpu():
 def test_run_options_moved_to_another_device_keep_a_backend_only_where_it_runs(backend, device, kept):
     moved = RunOptions(backend=backend).on_device(device)
     assert (moved.device, moved.backend) == (device, kept)
+
+
+def test_distances_and_time_budgets_outside_their_ranges_are_refused_with_the_range():
+    check_distances((1e-3, 10.0), "`distance`")
+    for distances in ((0.0,), (1e-3, 1e300), (11.0,)):
+        with pytest.raises(ConfigError, match=r"must lie in \[1e-06, 10\] m"):
+            check_distances(distances, "`distance`")
+    check_time_budget(MAX_TIME_MINUTES)
+    for minutes in (0.0, -1.0, 1e307, float("nan")):
+        with pytest.raises(ConfigError, match="at most 525600"):
+            check_time_budget(minutes)

@@ -2,6 +2,7 @@
 against the run folder they are used with."""
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -10,8 +11,8 @@ from cvqpg import FitConfig
 from cvqpg.cli import main
 from cvqpg.errors import InputError, ModelFileError
 from cvqpg.primitives import Primitives, activate, init_gaussians
-from cvqpg.runs import MODEL_FILE, load_run_model, read_run, start_run
-from cvqpg.storage import save_model
+from cvqpg.runs import MODEL_FILE, load_run_model, read_run, run_fit, same_fit, start_run
+from cvqpg.storage import model_run, save_model
 
 RUN = FitConfig.create(width=64, height=48, num_gaussians=30, steps=2, guard_band_px=32)
 OTHER = RUN.replace(width=32, height=24, color="gray")
@@ -100,3 +101,28 @@ def test_the_history_keeps_every_kth_step_and_the_last_with_its_share_of_the_sec
     assert table["seconds"][-1] == pytest.approx(60.0) and table["seconds"][0] == pytest.approx(60.0 / updates, abs=1e-3)
     assert table["psnr"][1] == pytest.approx(10.03) and table["loss"][2] == pytest.approx(1 / 7, rel=1e-5)
 
+
+
+def test_a_model_records_its_fit_and_another_run_s_model_of_the_same_targets_is_refused(tmp_path):
+    """A model that `write_run` saves records the fit it came from: in a run folder of the same size and optics
+    but other settings (another seed) it is refused; a model without the record (an earlier version's) is not."""
+    first = tmp_path / "first"
+    assert main(["fit", "--size", "32", "24", "--steps", "1", "--quiet", "--out", str(first)]) == 0
+    recorded = model_run(first / MODEL_FILE)
+    assert same_fit(recorded, run_fit(first)) and recorded["source"] == {"scene": "demo"}
+    twin = start_run(tmp_path / "twin", read_run(first)[0].replace(seed=7), {"scene": "demo"})
+    shutil.copy(first / MODEL_FILE, twin / MODEL_FILE)
+    with pytest.raises(ModelFileError, match="was fitted in another run"):
+        load_run_model(twin)
+    primitives, config, _ = load_run_model(first)
+    save_model(twin / MODEL_FILE, primitives, config)  # no record: accepted as before
+    assert load_run_model(twin)[0].count == primitives.count
+
+
+def test_a_run_s_own_model_must_hold_the_n_of_its_metrics(tmp_path):
+    folder = run_folder(tmp_path)
+    (folder / "metrics.json").write_text(json.dumps({"num_gaussians": 31}))
+    with pytest.raises(ModelFileError, match="holds 30 primitives, the run's metrics.json records a fit of 31"):
+        load_run_model(folder)
+    (folder / "metrics.json").write_text(json.dumps({"num_gaussians": 30}))
+    assert load_run_model(folder)[0].count == 30

@@ -12,7 +12,8 @@ from cvqpg.errors import ConfigError
 from cvqpg.fitting import FitInterrupted
 from cvqpg.primitives import activate, field_energy, init_gaussians
 from cvqpg.search import (CLOSE, LADDER, Budget, Choice, CompressionSettings, FixedBits, MaxDrop, kept,
-                          largest_fitting, prune, rate_control, reference_for, refine, search, strongest_first, trial)
+                          largest_fitting, prune, pruned_count, rate_control, reference_for, refine, search,
+                          strongest_first, trial)
 
 W, H = 48, 36
 
@@ -193,3 +194,16 @@ def test_settings_choose_the_goal_a_drop_of_a_tenth_of_a_db_by_default():
     assert CompressionSettings(max_drop=0.4).goal(config) == MaxDrop(0.4)
     assert CompressionSettings(bits=BitDepths()).goal(config) == FixedBits()
     assert CompressionSettings(max_bytes=500).goal(config) == Budget(500, "`max_bytes` 500")
+
+
+def test_budgets_beyond_2_to_the_53_bytes_and_a_prune_of_every_primitive_are_refused():
+    config = FitConfig.create(width=32, height=24)
+    with pytest.raises(ConfigError, match="`bpp` 1e\\+308 asks for inf bytes"):
+        Budget.of(config, bpp=1e308)
+    assert Budget.of(config, bpp=8.0).max_bytes == 768
+    with pytest.raises(ConfigError, match="`max_bytes` 1152921504606846976: .* at most 9007199254740992"):
+        CompressionSettings(max_bytes=2**60)
+    assert CompressionSettings(max_bytes=2**53).max_bytes == 2**53
+    with pytest.raises(ConfigError, match="`prune_fraction` 0.999 removes all 77 primitives"):
+        pruned_count(77, 0.999)
+    assert pruned_count(77, 0.5) == 38 and pruned_count(2, 0.7) == 1
