@@ -23,8 +23,9 @@ from PIL import Image
 from . import __version__
 from .app.allocator import keep_freed_memory
 from .app.compilation import compile_all
-from .app.outputs import check_new_folder, check_output_file, check_output_folder, is_run_folder
-from .app.runner import (CHECKPOINT_SECONDS, encode_in_folder, fit_in_folder, read_encode, resumed_state,
+from .app.outputs import (BENCH, CVQ, DOCUMENT, EXPORT, MODEL, PAGE, RENDER, RUN, check_continued, check_output,
+                          claimed, is_run_folder, output, staged_output)
+from .app.runner import (BUDGET_FILE, CHECKPOINT_SECONDS, encode_in_folder, fit_in_folder, read_encode, resumed_state,
                          start_encode, timed_config, write_fitted_run)
 from .campaign.bench import (CELLS_DIR, METHODS, PRESETS, Overrides, RateDistortionOptions, describe_cells, folder_plan,
                              make_plan, parse_shard, peak_bytes, run_plan)
@@ -35,7 +36,7 @@ from .compression import ASSUMED_FIT_PSNR_DB, check_compression_settings, compre
 from .config import BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITIVES, QPFS, RECIPES, FitConfig
 from .depth import DEPTH_FILE, DEPTH_MODEL, estimate_depth, load_depth_model
 from .errors import CvqpgError
-from .files import replace_folder, staged_folder
+from .files import replace_folder
 from .export import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
 from .fitting import FitInterrupted, FitState, estimated_peak_bytes
 from .ratecontrol import (ENCODE_FINETUNE_STEPS, ENCODE_STEPS, RATE_FINETUNE_STEPS, check_budget_values,
@@ -502,32 +503,35 @@ class FitPlan:
     scene: Scene
     state: FitState | None = None
     depth: Image.Image | None = None  # an estimated depth map, saved in the run once `work` exists
+    role: str = "`out`"  # how messages name `final`
 
 
-def check_fit_destination(final: Path, overwrite: bool) -> None:
-    """`--out` may be a new or empty folder, or a run that `--overwrite` replaces; never a file or a folder
-    of other files."""
-    check_new_folder(final)
-    if is_run_folder(final):
-        if not overwrite:
-            raise UsageError(f"{final} already holds a run; choose another --out, pass --overwrite to replace it "
-                             f"once the new fit succeeds, or --resume {final}")
-    elif final.is_dir() and any(final.iterdir()):
-        raise UsageError(f"--out {final} holds other files; give a new or empty folder")
+def check_fit_destination(final: Path, overwrite: bool, role: str = "`out`") -> Path:
+    """`--out` may be a new or empty folder, or a run that `--overwrite` replaces; never a file, a link or a
+    folder of other files (`app.outputs`' rule). `role` names the place in messages."""
+    if is_run_folder(final) and not final.is_symlink() and not overwrite:
+        raise UsageError(f"{final} already holds a run; choose another --out, pass --overwrite to replace it "
+                         f"once the new fit succeeds, or --resume {final}")
+    return check_output(final, RUN, overwrite=overwrite, role=role, make_parents=True)
 
 
 def _resume_plan(args: argparse.Namespace) -> FitPlan:
     work = Path(args.resume)
     if not (work / CONFIG_FILE).is_file():
         raise UsageError(f"--resume {work}: not a run folder (no {CONFIG_FILE})")
+    if (work / BUDGET_FILE).is_file():
+        raise UsageError(f"--resume {work} is an encode's folder; continue it with cvqpg encode --resume {work}")
     config, source = read_run(work)
     check_device(config.device)
     final = work.with_name(work.name[:-len(PARTIAL_SUFFIX)]) if work.name.endswith(PARTIAL_SUFFIX) else work
-    if final != work and (final / CONFIG_FILE).exists() and not args.overwrite:
-        raise UsageError(f"{final} holds a run that this fit replaces when it finishes; pass --overwrite to "
-                         "confirm")
+    role = f"--resume {work}: its run's folder"
+    if final != work:
+        if is_run_folder(final) and not args.overwrite:
+            raise UsageError(f"{final} holds a run that this fit replaces when it finishes; pass --overwrite to "
+                             "confirm")
+        check_fit_destination(final, args.overwrite, role)
     scene = scene_from_source(source, config)
-    return FitPlan(work, final, config, source, scene, resumed_state(work, config))
+    return FitPlan(work, final, config, source, scene, resumed_state(work, config), role=role)
 
 
 def _new_plan(args: argparse.Namespace) -> FitPlan:
@@ -540,8 +544,7 @@ def _new_plan(args: argparse.Namespace) -> FitPlan:
         raise UsageError(f"--time {args.time:g}: give a positive number of minutes")
     config, source = _config_and_source(args)
     check_device(config.device)
-    final = Path(args.out) if args.out else _default_out(source, config)
-    check_fit_destination(final, args.overwrite)
+    final = check_fit_destination(Path(args.out) if args.out else _default_out(source, config), args.overwrite)
     work = final.with_name(final.name + PARTIAL_SUFFIX)
     if work.exists():
         raise UsageError(f"{work} holds an interrupted fit; continue it with cvqpg fit --resume {work}, or delete it")
@@ -603,9 +606,16 @@ def _fit(plan: FitPlan, args: argparse.Namespace) -> int:
                                stop_requested=stop_requested)
         write_fitted_run(plan.work, result, plan.scene, plan.source)
 
-    code = _resumable(plan.work, "fit", body)
-    if not code and plan.final != plan.work:
-        replace_folder(plan.work, plan.final)
+    with claimed(plan.final, plan.role):
+        if plan.final != plan.work:
+            check_fit_destination(plan.final, args.overwrite, plan.role)
+        code = _resumable(plan.work, "fit", body)
+        if not code and plan.final != plan.work:
+            try:  # the place is checked again: anything of the user's that appeared there meanwhile stays
+                check_fit_destination(plan.final, args.overwrite, plan.role)
+                replace_folder(plan.work, plan.final)
+            except CvqpgError as error:
+                raise UsageError(f"{error}; the finished run is kept in {plan.work}") from None
     return code
 
 
@@ -657,8 +667,7 @@ def run_export(args: argparse.Namespace) -> int:
     if args.aperture < 0:
         raise UsageError(f"--aperture {args.aperture}: give a radius ≥ 0 (a fraction of Nyquist; 0: no filter)")
     out = Path(args.out) if args.out else folder / (EXPORT_FOLDER if model is None else f"{EXPORT_FOLDER}-{model.stem}")
-    check_output_folder(out, [folder, model or folder / MODEL_FILE], args.overwrite)
-    with staged_folder(out, args.overwrite) as staged:
+    with staged_output(out, EXPORT, [folder, model or folder / MODEL_FILE], args.overwrite) as staged:
         record = export_run(folder, args.encoding, args.levels, tuple(args.slm) if args.slm else None,
                             args.aperture or None, staged, model, args.device)
     print(f"{out}: {len(record['files'])} files; mean PSNR against the targets:")
@@ -674,8 +683,8 @@ def run_info(args: argparse.Namespace) -> int:
         if target.is_file():
             raise UsageError(f"--half stores a float16 copy beside a run's model: give the run folder, not {target}")
         folder = finished_run(target)
-        check_output_file(folder / HALF_MODEL_FILE, [folder / MODEL_FILE], args.overwrite)
-        info = half_precision_model(folder)
+        with output(folder / HALF_MODEL_FILE, MODEL, [folder / MODEL_FILE], args.overwrite):
+            info = half_precision_model(folder)
     else:
         info = model_info(finished_run(target) / MODEL_FILE if target.is_dir() else target)
     if args.json:
@@ -715,8 +724,7 @@ def run_render(args: argparse.Namespace) -> int:
                                            else target.with_name(target.stem + "-render"))
     if args.distance is not None and min(args.distance) <= 0:
         raise UsageError("--distance: give positive distances in m (e.g. 0.001 for 1 mm)")
-    check_output_folder(out, [target], args.overwrite)
-    with staged_folder(out, args.overwrite) as staged:
+    with staged_output(out, RENDER, [target], args.overwrite) as staged:
         record = render_model(target, staged, tuple(args.size) if args.size else None, args.distance, args.device)
     width, height = record["hologram_px"]
     print(f"{out}: {width}×{height} px at {record['pixel_pitch_m'] * 1e6:.3f} µm, planes at "
@@ -737,8 +745,8 @@ def run_view(args: argparse.Namespace) -> int:
     if not float(count).is_integer():
         raise UsageError(f"--distances {start:g} {stop:g} {count:g}: COUNT is a whole number of distances")
     check_sweep(start, stop, int(count))
-    out = check_output_file(args.out or default_page(folders), folders, args.overwrite)
-    _print_view(write_view(folders, out, (start, stop, int(count)), progress=not args.quiet))
+    with output(args.out or default_page(folders), PAGE, folders, args.overwrite) as out:
+        _print_view(write_view(folders, out, (start, stop, int(count)), progress=not args.quiet))
     return 0
 
 
@@ -768,9 +776,14 @@ def run_compress(args: argparse.Namespace) -> int:
     if rate:
         check_budget_values(args.bpp, args.max_bytes)
     model = model_path(args.target)
-    out = args.out
-    if model.is_file() and not is_compressed(model):  # otherwise compress_model says what the target is
-        out = check_output_file(args.out or model.with_suffix(SUFFIX), [model], args.overwrite)
+    if not model.is_file() or is_compressed(model):  # compress_model says what the target is
+        return _compress(args, bits, rate, args.out)
+    with output(args.out or model.with_suffix(SUFFIX), CVQ, [model], args.overwrite) as out:
+        return _compress(args, bits, rate, out)
+
+
+def _compress(args: argparse.Namespace, bits: BitDepths | None, rate: bool, out: Path | None) -> int:
+    """`cvqpg compress` once its output is claimed: to a budget (`rate`) or at `bits`."""
     if rate:
         r = compress_to_budget(Path(args.target), out, args.bpp, args.max_bytes, args.finetune, progress=True)
         print(f"{r['file']}: {_rate_summary(r)}")
@@ -807,15 +820,16 @@ def _source_files(source: dict) -> list[Path]:
 
 
 def run_encode(args: argparse.Namespace) -> int:
-    depth = None
+    depth, role = None, "`out`"
     if args.resume:
         work = Path(args.resume)
         config, source, budget, finetune_steps = read_encode(work)
         if not work.name.endswith(PARTIAL_SUFFIX):
             raise UsageError(f"--resume {work}: an encode's folder is named after its file, FILE{PARTIAL_SUFFIX}")
         check_device(config.device)
-        out = check_output_file(work.with_name(work.name[:-len(PARTIAL_SUFFIX)]), _source_files(source),
-                                args.overwrite)
+        role = f"--resume {work}: its file"
+        out = check_output(work.with_name(work.name[:-len(PARTIAL_SUFFIX)]), CVQ, _source_files(source),
+                           args.overwrite, role)
         scene = scene_from_source(source, config)
     else:
         if args.bpp is None and args.max_bytes is None:
@@ -826,7 +840,7 @@ def run_encode(args: argparse.Namespace) -> int:
         check_device(config.device)
         check_compression_settings(None, args.finetune, 0.0)
         budget, finetune_steps = encode_budget(config, args.bpp, args.max_bytes), args.finetune
-        out = check_output_file(args.out, _source_files(source), args.overwrite)
+        out = check_output(args.out, CVQ, _source_files(source), args.overwrite)
         work = out.with_name(out.name + PARTIAL_SUFFIX)
         if work.exists():
             raise UsageError(f"{work} holds an interrupted encode; continue it with cvqpg encode --resume {work}, "
@@ -848,7 +862,8 @@ def run_encode(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"{out}: {_rate_summary(encoding_record(encoded, out, budget))}")
 
-    code = _resumable(work, "encode", body)
+    with output(out, CVQ, _source_files(source), args.overwrite, role):
+        code = _resumable(work, "encode", body)
     if not code:
         shutil.rmtree(work)
     return code
@@ -857,7 +872,8 @@ def run_encode(args: argparse.Namespace) -> int:
 def run_decompress(args: argparse.Namespace) -> int:
     source = Path(args.file)
     out = Path(args.out) if args.out else source.with_name(f"{source.stem}.decoded.safetensors")
-    print(f"{decompress_file(source, check_output_file(out, [source], args.overwrite))}")
+    with output(out, MODEL, [source], args.overwrite) as out:
+        print(f"{decompress_file(source, out)}")
     return 0
 
 
@@ -877,12 +893,10 @@ def run_bench(args: argparse.Namespace) -> int:
         for folder in folders:
             if not (Path(folder) / CELLS_DIR).is_dir():
                 raise UsageError(f"{option} {folder}: not a bench folder (no {CELLS_DIR}/ in it)")
-    if is_run_folder(plan.folder):
-        raise UsageError(f"--out {plan.folder} is a run folder; give a bench folder")
     if args.summary_only and not (plan.folder / CELLS_DIR).is_dir():
         raise UsageError(f"--summary-only: {plan.folder} holds no {CELLS_DIR}/ to summarise; fit the grid first, "
                          "or give its --out")
-    check_new_folder(plan.folder)
+    check_continued(plan.folder, BENCH)
     cells = plan.shard(*parse_shard(args.shard)) if args.shard else plan.cells
     if args.dry_run:
         listing = describe_cells(plan, cells, [Path(d) for d in args.reuse])
@@ -911,9 +925,9 @@ def run_bench(args: argparse.Namespace) -> int:
 def run_results(args: argparse.Namespace) -> int:
     if not Path(args.root).is_dir():
         raise UsageError(f"--root {args.root} is not a folder of recorded bench folders (e.g. results)")
-    out = check_output_file(args.out, [], args.overwrite)
-    figures = write_figures(Path(args.root), out.parent, args.overwrite)
-    write_atomic(out, document(Path(args.root)))
+    with output(args.out, DOCUMENT, [], args.overwrite) as out:
+        figures = write_figures(Path(args.root), out.parent, args.overwrite)
+        write_atomic(out, document(Path(args.root)))
     print(f"cvqpg results: {', '.join(map(str, [out, *figures]))}")
     return 0
 
