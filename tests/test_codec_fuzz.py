@@ -1,7 +1,8 @@
 """The `.cvq` reader given altered files: whatever a header field or a stream byte holds, decoding ends in a model or
 in one `ModelFileError` line, never in another exception (nor in the entropy coder's abort, which Python cannot
-catch as an error). The files are small valid ones (the largest uses every stream coding), written here with the current encoder; each alteration keeps
-the checksum valid, so that the reader's checks behind it are the ones tried."""
+catch as an error). The files are small valid ones (the largest uses every stream coding), written here with the
+current encoder; each alteration keeps the checksum valid, so that the reader's checks behind it are the ones
+tried."""
 
 from __future__ import annotations
 

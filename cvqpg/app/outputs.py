@@ -90,21 +90,21 @@ class Kind:
     """What a command writes at its output: a folder or a file, and how an existing one is recognised as one that
     `overwrite` may replace (`recognised(path)`)."""
 
-    name: str
+    name: str  # with its article, as messages say it
     folder: bool
     recognised: Callable[[Path], bool]
 
 
-RUN = Kind("run folder", True, is_run_folder)
-RENDER = Kind("render folder (amplitude.png, phase.png, recon_*.png)", True, _holds("amplitude.png", "phase.png"))
-EXPORT = Kind("export folder (metrics.json, display_plane*.png, ...)", True,
+RUN = Kind("a run folder", True, is_run_folder)
+RENDER = Kind("a render folder (amplitude.png, phase.png, recon_*.png)", True, _holds("amplitude.png", "phase.png"))
+EXPORT = Kind("an export folder (metrics.json, display_plane*.png, ...)", True,
               _holds(METRICS_FILE, "display_plane0.png"))
-BENCH = Kind("bench folder (cells/, summary.md, ...)", True, _holds("cells"))
-CVQ = Kind("compressed model (.cvq) file", False, _is_cvq)
-MODEL = Kind("safetensors model file", False, _is_safetensors)
-PAGE = Kind("HTML page", False, _is_page)
-DOCUMENT = Kind("Markdown (.md) document", False, _is_markdown)
-FIGURE = Kind("PNG image", False, _is_png)
+BENCH = Kind("a bench folder (cells/, summary.md, ...)", True, _holds("cells"))
+CVQ = Kind("a compressed model (.cvq) file", False, _is_cvq)
+MODEL = Kind("a safetensors model file", False, _is_safetensors)
+PAGE = Kind("an HTML page", False, _is_page)
+DOCUMENT = Kind("a Markdown (.md) document", False, _is_markdown)
+FIGURE = Kind("a PNG image", False, _is_png)
 
 
 def writable(folder: Path) -> bool:
@@ -165,17 +165,17 @@ def _check_existing(path: Path, given: Path, kind: Kind, overwrite: bool, role: 
     if path.is_dir() and not any(path.iterdir()):
         return  # an empty folder counts as new
     if kind.folder and not kind.recognised(path):
-        raise InputError(f"{role} {given} is not a {kind.name}: it holds other files, which `overwrite` does not "
+        raise InputError(f"{role} {given} is not {kind.name}: it holds other files, which `overwrite` does not "
                          "replace; choose another place, or move them away")
     if not kind.folder and path.stat().st_size and not kind.recognised(path):
-        raise InputError(f"{role} {given} is not a {kind.name}, which is all `overwrite` replaces; choose another "
+        raise InputError(f"{role} {given} is not {kind.name}, which is all `overwrite` replaces; choose another "
                          "path")
     if not overwrite:
         raise InputError(f"{role} {given} exists; choose another path, or pass `overwrite` to replace it")
     if kind.folder:
         inner = next((p for p in path.iterdir() if p.is_dir() and not p.is_symlink()), None)
         if inner is not None and kind is not RUN:
-            raise InputError(f"{role} {given} holds a folder ({inner.name}) that a {kind.name} does not; "
+            raise InputError(f"{role} {given} holds a folder ({inner.name}) that {kind.name} does not; "
                              "`overwrite` does not replace it; give a new or empty folder")
         if not writable(path):
             raise InputError(f"{role} {given} cannot be replaced (the folder is not writable); choose another place")
@@ -204,7 +204,7 @@ def check_continued(path: str | Path, kind: Kind, role: str = "`out`") -> Path:
     _check_parent(path, given, role, make_parents=True)
     if path.exists() and not (path.is_dir() and (not any(path.iterdir()) or kind.recognised(path))):
         what = "a run folder" if is_run_folder(path) else "a file" if not path.is_dir() else "a folder of other files"
-        raise InputError(f"{role} {given} is {what}, not a {kind.name}; give a new folder or a {kind.name}")
+        raise InputError(f"{role} {given} is {what}, not {kind.name}; give a new folder or {kind.name}")
     return path
 
 
