@@ -75,8 +75,9 @@ def prepare_depth(picture: Image.Image, width: int, height: int) -> Tensor:
 
 def unit_values(picture: Image.Image, role: str, width: int, height: int) -> Tensor:
     """A one-channel 16-bit or float picture → [H, W] in [0, 1], Lanczos-resized to W×H px in float so that no
-    precision is lost, with a note of the scaling: 16-bit values (0..65535) divided by 65535; float values in
-    [0, 1] as they are; others normalised from their own range. `InputError` where a value is not finite."""
+    precision is lost, with a note of the scaling (but for a 16-bit depth map): 16-bit values (0..65535) divided
+    by 65535; float values in [0, 1] as they are; others normalised from their own range. `InputError` where a
+    value is not finite."""
     values = np.asarray(picture, dtype=np.float64)
     name = f"{role} {picture.filename}" if getattr(picture, "filename", "") else f"the {role}"
     unknown = int(np.count_nonzero(~np.isfinite(values)))
@@ -86,7 +87,8 @@ def unit_values(picture: Image.Image, role: str, width: int, height: int) -> Ten
                          "every pixel a value and save it again")
     low, high = float(values.min()), float(values.max())
     if picture.mode.startswith("I;16") or (picture.mode == "I" and 0 <= low and high <= 65535):
-        log.warning(f"{name} has 16-bit values ({low:g}..{high:g}); scaled from 0..65535 to 0..1")
+        if role != "depth map":  # as depth maps always were: `--depth auto` saves one, read by every command
+            log.warning(f"{name} has 16-bit values ({low:g}..{high:g}); scaled from 0..65535 to 0..1")
         values = values / 65535.0
     elif low < 0 or high > 1:
         log.warning(f"{name} has values spanning {low:g}..{high:g}; normalised to 0..1")

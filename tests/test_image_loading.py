@@ -64,11 +64,15 @@ def test_a_float_image_with_nan_is_refused_in_one_line(tmp_path):
         prepare_image(load_picture(tmp_path / "holes.tiff"), 32, 24, "rgb")
 
 
-def test_a_16_bit_depth_map_is_scaled_with_a_note(tmp_path, notes):
+def test_a_16_bit_depth_map_is_scaled_as_always_and_a_float_one_with_a_note(tmp_path, notes):
     Image.fromarray((RAMP * 65535).round().astype(np.uint16)).save(tmp_path / "depth16.png")
     depth = prepare_depth(load_picture(tmp_path / "depth16.png", "depth map"), 32, 24)
     assert torch.allclose(depth, torch.from_numpy(RAMP).float(), atol=0.02)
-    assert any(note.startswith("depth map") and "16-bit" in note for note in notes)
+    assert notes == []  # `--depth auto` saves a 16-bit depth.png in the run: no note on every command
+    Image.fromarray((2 + RAMP * 5).astype(np.float32), "F").save(tmp_path / "metres.tiff")
+    depth = prepare_depth(load_picture(tmp_path / "metres.tiff", "depth map"), 32, 24)
+    assert torch.allclose(depth, torch.from_numpy(RAMP).float(), atol=0.02)
+    assert any(note.startswith("depth map") and "normalised" in note for note in notes)
 
 
 @pytest.mark.parametrize("role", ["image", "depth map"])

@@ -127,8 +127,8 @@ def _place(path: Path, role: str) -> Path:
 
 
 def _refuse_fixed(path: Path, given: Path, inputs: Iterable[Path], role: str) -> None:
-    """What no command writes over, even with `overwrite`: links, its inputs and the folders that hold them,
-    run folders (but for `fit`) and a run's own files."""
+    """What no command writes over, even with `overwrite`: links, its inputs and the folders that hold them, and
+    a run's own files."""
     if path.is_symlink():
         raise InputError(f"{role} {given} is a symbolic link (to {os.readlink(path)}); give the place itself, or "
                          "a new path")
