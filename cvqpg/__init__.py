@@ -9,7 +9,9 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-__version__ = "0.1.0"
+from .deprecations import install_moved_modules
+
+__version__ = "0.2.0"
 
 _API_MODULES = {
     "config": ("FitConfig", "LearningRates"),
@@ -30,6 +32,9 @@ _API_MODULES = {
 _MODULE_OF = {name: module for module, names in _API_MODULES.items() for name in names}
 
 __all__ = [*_MODULE_OF, "__version__"]
+
+
+install_moved_modules()
 
 
 def __getattr__(name: str) -> Any:

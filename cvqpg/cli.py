@@ -15,41 +15,35 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, NoReturn, Sequence
+from typing import TYPE_CHECKING, Callable, NoReturn, Sequence
 
-import torch
-from PIL import Image
-
+# Only light modules here: `cvqpg --version` and every `--help` answer without PyTorch or Numba; each command
+# imports what it runs.
 from . import __version__
-from .app.allocator import keep_freed_memory
-from .app.compilation import compile_all
-from .app.outputs import (BENCH, CVQ, DOCUMENT, EXPORT, MODEL, PAGE, RENDER, RUN, check_continued, check_output,
-                          claimed, is_run_folder, output, staged_output)
-from .app.runner import (BUDGET_FILE, CHECKPOINT_SECONDS, encode_in_folder, fit_in_folder, read_encode, resumed_state,
-                         start_encode, timed_config, write_fitted_run)
-from .campaign.bench import (CELLS_DIR, METHODS, PRESETS, Overrides, RateDistortionOptions, describe_cells, folder_plan,
-                             make_plan, parse_shard, peak_bytes, run_plan)
-from .campaign.report import write_summary
-from .campaign.results import document, write_figures
-from .codec import IMPORTANCE_VERSION, ROTATION_DEPTH_VERSION, SUFFIX, BitDepths
-from .compression import ASSUMED_FIT_PSNR_DB, check_compression_settings, compress_model, decompress_file
-from .config import BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITIVES, QPFS, RECIPES, FitConfig
-from .depth import DEPTH_FILE, DEPTH_MODEL, estimate_depth, load_depth_model
-from .errors import CvqpgError
-from .files import replace_folder
-from .export import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
-from .fitting import FitInterrupted, FitState, estimated_peak_bytes
-from .ratecontrol import (ENCODE_FINETUNE_STEPS, ENCODE_STEPS, RATE_FINETUNE_STEPS, check_budget_values,
-                          compress_to_budget, encode_budget, encode_config, encoding_record)
-from .runs import (CHECKPOINT_FILE, CONFIG_FILE, EXPORT_FOLDER, HALF_MODEL_FILE, METRICS_FILE, MODEL_FILE,
-                   RENDER_FOLDER, evaluate_run, export_run, half_precision_model, model_path, read_run, render_model,
-                   scene_from_source, start_run, write_atomic)
-from .scenes import SCENES
-from .storage import is_compressed, model_info
-from .targets import Scene, check_file, load_scene
-from .view import DEFAULT_SWEEP, VIEW_FILE, ViewRecord, check_sweep, default_page, write_view
+from .bitdepths import BitDepths
+from .campaign.presets import METHODS, PRESETS
+from .config import (BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITIVES, QPFS, RECIPES, FitConfig,
+                     default_curvature_warmup)
+from .defaults import (CHECKPOINT_SECONDS, DEFAULT_APERTURE, DEFAULT_LEVELS, DEFAULT_SWEEP, DEPTH_FILE, DEPTH_MODEL,
+                       ENCODE_FINETUNE_STEPS, ENCODE_STEPS, ENCODINGS, RATE_FINETUNE_STEPS, SCENE_NAMES, SUFFIX,
+                       VIEW_FILE)
+from .deprecations import REMOVED_IN
+from .errors import CvqpgError, allocation_failure, filesystem_refusal
+
+if TYPE_CHECKING:
+    from PIL import Image
+
+    from .fitting import FitState
+    from .targets import Scene
+    from .view import ViewRecord
 
 DEFAULTS = FitConfig()
+# Exit codes besides 0 (success), 128 + N (stopped by signal N) and 130 (Ctrl-C).
+EXIT_BUG, EXIT_USAGE, EXIT_FILESYSTEM, EXIT_MEMORY = 1, 2, 3, 4
+# Subcommands' names before a rename, kept for one release (`FormerName` keeps options').
+FORMER_COMMANDS = {"warmup": "compile"}
+MEMORY_HINT = ("try a smaller --size, fewer primitives (--ratio, --num-gaussians) or planes (--planes), or another "
+               "--device")
 
 # The library's parameter names (in backticks in its messages) as the command line spells them.
 FLAGS = {"width": "--size", "height": "--size", "size": "--size", "num_planes": "--planes", "pixel_pitch": "--pitch",
@@ -67,8 +61,29 @@ class UsageError(CvqpgError):
     """Bad command-line input: printed as one line, exit code 2."""
 
 
+class DefaultsFormatter(argparse.HelpFormatter):
+    """Help that ends an option's text with its default, "[default: X]", unless the text gives it already (a
+    default that other options decide) or the option has none to show (a flag, or None)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text, default = action.help or "", action.default
+        if "[default" in text or any(default is none for none in (None, False, argparse.SUPPRESS)) or default == []:
+            return text
+        shown = " ".join(map(_shown, default)) if isinstance(default, (list, tuple)) else _shown(default)
+        return f"{text} [default: {shown.replace('%', '%%')}]"
+
+
+def _shown(value: object) -> str:
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
 class OneLineParser(argparse.ArgumentParser):
-    """argparse whose usage errors are one line, like every other error (`cvqpg fit -h` shows the usage)."""
+    """argparse whose usage errors are one line, like every other error (`cvqpg fit -h` shows the usage), and
+    whose help shows every default one way (`DefaultsFormatter`)."""
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        kwargs.setdefault("formatter_class", DefaultsFormatter)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
@@ -95,6 +110,29 @@ def finite(text: str) -> float:
     return value
 
 
+class FormerName(argparse.Action):
+    """An option's name before a rename, kept for one release: it works as the new one and warns on stderr."""
+
+    def __init__(self, option_strings: list[str], dest: str, new: str, **kwargs: object) -> None:
+        self.new = new
+        super().__init__(option_strings, dest, **kwargs)
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: object,
+                 option_string: str | None = None) -> None:
+        _warn_former(option_string, self.new)
+        setattr(namespace, self.dest, values)
+
+
+def _warn_former(former: str | None, new: str) -> None:
+    print(f"cvqpg: warning: {former} is deprecated and goes in cvqpg {REMOVED_IN}; use {new}", file=sys.stderr)
+
+
+def _former_name(p: argparse.ArgumentParser, former: str, new: str, **kwargs: object) -> None:
+    """Accept `former`, hidden from the help, as the option `new` (`FormerName`)."""
+    p.add_argument(former, action=FormerName, new=new, dest=new.lstrip("-").replace("-", "_"), help=argparse.SUPPRESS,
+                   **kwargs)
+
+
 def _overwrite_argument(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument("--overwrite", action="store_true", help=f"replace {what} if it exists (only once the command "
                    "has succeeded; never the command's input or a run's own files)")
@@ -112,8 +150,7 @@ def flag_message(message: str) -> str:
 def _fit_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("fit", help="fit a hologram of Gaussian primitives to an image and its depth",
                        description="Fit N complex-valued 2D Gaussians so that the hologram they sum to "
-                       "reproduces defocus-aware targets at every depth plane (method.md §2–§7).",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                       "reproduces defocus-aware targets at every depth plane (method.md §2–§7).")
     _fit_options(p)
     p.add_argument("--time", type=finite, metavar="MINUTES", help="instead of --steps: fit for about this long; "
                    "a few steps are timed on this machine and fix the step count, which the run records (a --resume "
@@ -143,7 +180,7 @@ def _fit_options(p: argparse.ArgumentParser, steps: int = DEFAULTS.steps) -> Non
     p.add_argument("--depth", metavar="PATH|auto", help="depth map (0 = near); needed for --planes > 1. 'auto' "
                    f"estimates it with Depth Anything V2 ({DEPTH_MODEL}; needs the depth extra, fetches the weights "
                    f"on first use); `cvqpg fit` saves it as {DEPTH_FILE} in the run folder")
-    p.add_argument("--scene", choices=sorted(SCENES), help="built-in scene, generated at --size: "
+    p.add_argument("--scene", choices=SCENE_NAMES, help="built-in scene, generated at --size: "
                    "'demo' (RGB, 2 planes; the default without IMAGE) or 'star' (grayscale Siemens "
                    "star, single plane)")
     p.add_argument("--color", choices=COLORS, help="colour mode: RGB at 639/532/473 nm or "
@@ -151,12 +188,13 @@ def _fit_options(p: argparse.ArgumentParser, steps: int = DEFAULTS.steps) -> Non
     p.add_argument("--primitive", choices=PRIMITIVES, default=DEFAULTS.primitive,
                    help="flat-phase baseline or CVQPG with learnable curvature")
     p.add_argument("--recipe", choices=tuple(RECIPES), default=DEFAULTS.recipe,
-                   help="how to fit: 'paper' is the paper's recipe, bit for bit; the others, and what each "
-                   "gains, are in docs/beyond.md")
+                   help="how to fit: 'paper' is the paper's recipe, bit for bit; docs/beyond.md describes each "
+                   "recipe and what it gains")
     p.add_argument("--steps", type=int, help="optimisation steps (the loop runs indices 0..steps, as the "
                    f"reference) [default: {steps}]")
-    p.add_argument("--curvature-warmup", type=int, metavar="W",
-                   help="steps with curvature frozen at 0 (CVQPG only) [default: steps/5, as 400 of 2000]")
+    p.add_argument("--curvature-warmup", type=int, metavar="W", help="steps with curvature frozen at 0 (CVQPG "
+                   f"only) [default: steps/5, {default_curvature_warmup(steps)} of {steps}]")
+    _former_name(p, "--warmup", "--curvature-warmup", type=int)
     p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"),
                    default=(DEFAULTS.width, DEFAULTS.height), help="hologram size in px")
     p.add_argument("--planes", type=int, metavar="M", help="depth planes at linspace(1 mm, 5 mm, M) "
@@ -188,16 +226,14 @@ def _fit_options(p: argparse.ArgumentParser, steps: int = DEFAULTS.steps) -> Non
 
 
 def _device_argument(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--device", default=DEFAULTS.device, choices=DEVICE_TYPES, help="torch device to render on "
-                   f"[default: {DEFAULTS.device}]")
+    p.add_argument("--device", default=DEFAULTS.device, choices=DEVICE_TYPES, help="torch device to render on")
 
 
 def _display_parsers(sub: argparse._SubParsersAction) -> None:
     x = sub.add_parser("export", help="phase-only SLM patterns of a run, and their simulated display",
                        description="Encode RUN_DIR's hologram as phase-only patterns (method.md §8), one per colour "
                        "channel (PNG gray levels, g ↔ 2πg/LEVELS, and the unquantised phase in rad as .npy), "
-                       "then simulate showing them through a 4f system and compare with the complex field.",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                       "then simulate showing them through a 4f system and compare with the complex field.")
     x.add_argument("run_dir", metavar="RUN_DIR|MODEL", help="folder written by `cvqpg fit`, or a model file "
                    f"(.safetensors or {SUFFIX}) inside one")
     x.add_argument("--encoding", choices=ENCODINGS, default="dpac", help="double-phase amplitude coding, "
@@ -232,7 +268,6 @@ def _display_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def _view_parser(sub: argparse._SubParsersAction) -> None:
-    start, stop, count = DEFAULT_SWEEP
     v = sub.add_parser("view", help="one HTML page to refocus a run's hologram and compare it with another run",
                        description="Write one self-contained HTML page (no server, no network): a focal sweep of "
                        "RUN_DIR's reconstructions with a slider, side by side with RUN_DIR_2's and a linked zoom, "
@@ -241,8 +276,7 @@ def _view_parser(sub: argparse._SubParsersAction) -> None:
     v.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="one or two folders written by `cvqpg fit` "
                    "(of the same size and optics)")
     v.add_argument("--distances", type=finite, nargs=3, default=DEFAULT_SWEEP, metavar=("START", "STOP", "COUNT"),
-                   help=f"sweep COUNT distances from START to STOP in m, plus the training planes [default: "
-                   f"{start:g} {stop:g} {count}]")
+                   help="sweep COUNT distances from START to STOP in m, plus the training planes")
     _overwrite_argument(v, "the page")
     v.add_argument("--out", metavar="PAGE", help=f"the page [default: RUN_DIR/{VIEW_FILE}, or "
                    "RUN_DIR/view_vs_<RUN_DIR_2>.html for two runs]")
@@ -269,15 +303,14 @@ def _compression_parsers(sub: argparse._SubParsersAction) -> None:
                    f"--max-bytes {RATE_FINETUNE_STEPS} in a run folder]")
     c.add_argument("--prune", type=finite, default=0.0, metavar="FRACTION", help="with --finetune: first remove "
                    "this fraction (0 ≤ FRACTION < 1) of the primitives, those of least field energy, and let the "
-                   "fine-tuning make up for them [default: 0]")
+                   "fine-tuning make up for them")
     e = sub.add_parser("encode", help=f"fit an image straight into a {SUFFIX} file of a given size",
                        description=f"Fit an image (or a built-in --scene) with as many primitives as the budget "
                        "holds at the default bit depths (bytes per primitive measured with the codec, plus headroom), "
                        f"then write a {SUFFIX} file of at most --bpp bits per hologram pixel or --max-bytes bytes, as "
                        "`cvqpg compress --bpp` does. The fit keeps a checkpoint in the folder FILE.partial (every "
                        f"{CHECKPOINT_SECONDS / 60:g} minutes of work, and when Ctrl-C stops it), from which --resume "
-                       "continues it; once FILE is written that folder is removed.",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                       "continues it; once FILE is written that folder is removed.")
     _fit_options(e, steps=ENCODE_STEPS)
     _rate_arguments(e.add_mutually_exclusive_group())
     e.add_argument("--finetune", type=int, default=ENCODE_FINETUNE_STEPS, metavar="STEPS",
@@ -310,7 +343,7 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
                        "resume from their checkpoint. Then (re)write summary.md, summary.csv, cells.csv, "
                        "frequency.csv/png, figures/ and report.html in OUT from whatever cells are finished.")
     # argparse expands %-formats in help strings, and the presets' descriptions name percentages.
-    p.add_argument("--preset", default="quick", metavar="NAME", help="the grid [default: quick]: " + "; ".join(
+    p.add_argument("--preset", default="quick", metavar="NAME", help="the grid: " + "; ".join(
         f"{name}: {preset.description}" for name, preset in PRESETS.items()).replace("%", "%%"))
     p.add_argument("--scenes", metavar="DIR", help="folder of <name>/image.* + <name>/depth.png (e.g. "
                    "../shared/scenes); needed by paper and ablation, replaces the built-in scenes of star and quick")
@@ -327,14 +360,15 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
                        "per seed (seed spread)")
     p.add_argument("--steps", type=int, help="optimisation steps [default: the preset's]")
     p.add_argument("--curvature-warmup", type=int, metavar="W",
-                   help="curvature warm-up steps [default: steps/5, as 400 of 2000]")
+                   help="curvature warm-up steps [default: steps/5]")
+    _former_name(p, "--warmup", "--curvature-warmup", type=int)
     p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="hologram size in px [default: the "
                    "preset's]")
     p.add_argument("--device", choices=DEVICE_TYPES, help="torch device [default: cpu]")
     p.add_argument("--backend", choices=BACKENDS, help="kernels [default: auto]")
     p.add_argument("--shard", metavar="I/N", help="fit only cells I, I+N, I+2N, ... of the grid (1 ≤ I ≤ N), "
                    "e.g. ${SLURM_ARRAY_TASK_ID}/${SLURM_ARRAY_TASK_COUNT} in a job array")
-    p.add_argument("--jobs", type=int, default=1, metavar="K", help="cells fitted at once [default: 1]")
+    p.add_argument("--jobs", type=int, default=1, metavar="K", help="cells fitted at once")
     p.add_argument("--threads", type=int, metavar="T", help="threads of each fit (PyTorch and Numba) [default: "
                    "cores/K, at least 1; cores are those this process may use, at most OMP_NUM_THREADS]")
     p.add_argument("--reuse", nargs="+", default=[], metavar="DIR", help="other bench folders whose finished "
@@ -346,7 +380,7 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
                    "(e.g. runs/bench-paper)")
     p.add_argument("--finetune", type=int, default=0, metavar="STEPS", help="rate–distortion grids: also record "
                    "the codec after STEPS steps of quantisation-aware fine-tuning at each budget whose drop without it "
-                   "is 0.1–4 dB (docs/compression.md) [default: 0, none]")
+                   "is 0.1–4 dB (docs/compression.md)")
     p.add_argument("--summary-only", action="store_true", help="fit nothing; rebuild the tables, figures "
                    "and report from the finished cells")
     p.add_argument("--dry-run", action="store_true", help="list the cells (of the shard) and their status")
@@ -363,8 +397,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("results", help="write docs/results.md (and its figures) from the cell records in results/",
                        description="Tabulate the recorded cells of results/ (Table 1, per scene, ablation, "
                        "chromatic, frequency, runtime) beside the paper's numbers, with one line per claim.")
-    p.add_argument("--root", default="results", metavar="DIR", help="the recorded bench folders [default: results]")
-    p.add_argument("--out", default="docs/results.md", metavar="FILE", help="[default: docs/results.md]")
+    p.add_argument("--root", default="results", metavar="DIR", help="the recorded bench folders")
+    p.add_argument("--out", default="docs/results.md", metavar="FILE", help="the document")
     _overwrite_argument(p, "the document")
     e = sub.add_parser("eval", help="recompute the metrics of a saved run",
                        description="Recompute PSNR/SSIM/FLIP/LPIPS/CVVDP of RUN_DIR's model against "
@@ -379,10 +413,15 @@ def build_parser() -> argparse.ArgumentParser:
                    description="Compile the Numba CPU kernels that fits call (with 1 or 2 planes, the defaults) into "
                    "Numba's on-disk cache (next to the package, or NUMBA_CACHE_DIR), so that the first fit "
                    "starts at once.")
+    for former, command in FORMER_COMMANDS.items():
+        sub.add_parser(former, description=f"Former name of `cvqpg {command}`.")  # no help: not listed
+    sub.metavar = "{" + ",".join(name for name in sub.choices if name not in FORMER_COMMANDS) + "}"
     return parser
 
 
 def _config_and_source(args: argparse.Namespace) -> tuple[FitConfig, dict]:
+    from .scenes import SCENES
+    from .targets import check_file
     width, height = args.size
     if args.image is not None and args.scene is not None:
         raise UsageError("give either an IMAGE or --scene, not both")
@@ -443,6 +482,7 @@ def available_memory_bytes() -> int | None:
 
 def device_memory_bytes(device: str) -> int | None:
     """Memory a fit on `device` may take: the GPU's free memory (CUDA), else the host's MemAvailable."""
+    import torch
     if torch.device(device).type == "cuda":
         return torch.cuda.mem_get_info(torch.device(device))[0]
     return available_memory_bytes()
@@ -451,6 +491,8 @@ def device_memory_bytes(device: str) -> int | None:
 def check_memory(config: FitConfig, available: int | None) -> None:
     """Refuse a fit whose estimated peak on `config.device` (`estimated_peak_bytes`) exceeds `available`
     bytes there (None: unknown, accepted)."""
+    import torch
+    from .fitting import estimated_peak_bytes
     needed = estimated_peak_bytes(config)
     if available is not None and needed > available:
         where = "free on the GPU" if torch.device(config.device).type == "cuda" else "available"
@@ -484,6 +526,7 @@ class StopRequest:
 
 def check_device(device: str) -> None:
     """A CUDA device needs a GPU that PyTorch sees; checked before anything is written."""
+    import torch
     if torch.device(device).type == "cuda" and not torch.cuda.is_available():
         raise UsageError(f"device {device}: no CUDA GPU is visible to PyTorch; use --device cpu")
 
@@ -509,6 +552,7 @@ class FitPlan:
 def check_fit_destination(final: Path, overwrite: bool, role: str = "`out`") -> Path:
     """`--out` may be a new or empty folder, or a run that `--overwrite` replaces; never a file, a link or a
     folder of other files (`app.outputs`' rule). `role` names the place in messages."""
+    from .app.outputs import RUN, check_output, is_run_folder
     if is_run_folder(final) and not final.is_symlink() and not overwrite:
         raise UsageError(f"{final} already holds a run; choose another --out, pass --overwrite to replace it "
                          f"once the new fit succeeds, or --resume {final}")
@@ -516,6 +560,9 @@ def check_fit_destination(final: Path, overwrite: bool, role: str = "`out`") -> 
 
 
 def _resume_plan(args: argparse.Namespace) -> FitPlan:
+    from .app.outputs import is_run_folder
+    from .app.runner import BUDGET_FILE, resumed_state
+    from .runs import CONFIG_FILE, read_run, scene_from_source
     work = Path(args.resume)
     if not (work / CONFIG_FILE).is_file():
         raise UsageError(f"--resume {work}: not a run folder (no {CONFIG_FILE})")
@@ -535,6 +582,7 @@ def _resume_plan(args: argparse.Namespace) -> FitPlan:
 
 
 def _new_plan(args: argparse.Namespace) -> FitPlan:
+    from .app.runner import timed_config
     if args.checkpoint_every is not None and args.checkpoint_every < 0:
         raise UsageError(f"--checkpoint-every {args.checkpoint_every}: give a number of steps ≥ 1, or 0 for "
                          "checkpoints only when interrupted")
@@ -562,6 +610,9 @@ def _new_plan(args: argparse.Namespace) -> FitPlan:
 
 def _scene_and_depth(source: dict, config: FitConfig) -> tuple[Scene, Image.Image | None]:
     """The scene of `_config_and_source`'s `source`, and the depth map estimated for it (`--depth auto`)."""
+    from .depth import estimate_depth, load_depth_model
+    from .runs import scene_from_source
+    from .targets import load_scene
     if "depth_model" not in source:
         return scene_from_source(source, config), None
     depth = estimate_depth(source["image"], load_depth_model(source["depth_model"]))
@@ -572,6 +623,8 @@ def _resumable(work: Path, command: str, body: Callable[[Callable[[], bool]], No
     """Run `body(stop_requested)`, which fits in `work` with checkpoints: 0 when it finishes. A stop request
     (Ctrl-C, SIGTERM) keeps the checkpoint and returns the signal's exit code, with the line that resumes it; a
     failure removes what this command made, unless a checkpoint holds work worth resuming."""
+    from .fitting import FitInterrupted
+    from .runs import CHECKPOINT_FILE
     created = [folder for folder in (work, *work.parents) if not folder.exists()]
     try:
         with StopRequest() as stop_requested:
@@ -593,6 +646,10 @@ def _resumable(work: Path, command: str, body: Callable[[Callable[[], bool]], No
 
 def _fit(plan: FitPlan, args: argparse.Namespace) -> int:
     """Fit in `plan.work` (`_resumable`) and put the run at `plan.final`."""
+    from .app.outputs import claimed
+    from .app.runner import fit_in_folder, write_fitted_run
+    from .files import replace_folder
+    from .runs import start_run
     every = args.checkpoint_every
 
     def body(stop_requested: Callable[[], bool]) -> None:
@@ -620,10 +677,14 @@ def _fit(plan: FitPlan, args: argparse.Namespace) -> int:
 
 
 def run_fit(args: argparse.Namespace) -> int:
+    from .app.allocator import keep_freed_memory
+    from .runs import METRICS_FILE
+    from .view import write_view
     if args.resume and (Path(args.resume) / METRICS_FILE).is_file():
         print(f"{args.resume}: this run is finished; nothing to resume")
         return 0
     plan = _resume_plan(args) if args.resume else _new_plan(args)
+    keep_freed_memory()
     code = _fit(plan, args)
     if code:
         return code
@@ -642,6 +703,7 @@ def run_fit(args: argparse.Namespace) -> int:
 
 def finished_run(folder: Path) -> Path:
     """A run folder that holds a model, or a UsageError saying what it is instead."""
+    from .runs import CONFIG_FILE, MODEL_FILE
     if not (folder / CONFIG_FILE).is_file():
         raise UsageError(f"{folder} is not a run folder (no {CONFIG_FILE}); give a folder written by "
                          "`cvqpg fit`")
@@ -653,6 +715,7 @@ def finished_run(folder: Path) -> Path:
 
 def run_and_model(target: Path) -> tuple[Path, Path | None]:
     """A run folder and None (its own model), or the run folder that holds the model file `target`."""
+    from .runs import CONFIG_FILE
     if not target.is_file():
         return finished_run(target), None
     if not (target.parent / CONFIG_FILE).is_file():
@@ -662,6 +725,8 @@ def run_and_model(target: Path) -> tuple[Path, Path | None]:
 
 
 def run_export(args: argparse.Namespace) -> int:
+    from .app.outputs import EXPORT, staged_output
+    from .runs import EXPORT_FOLDER, MODEL_FILE, export_run
     check_device(args.device)
     folder, model = run_and_model(Path(args.run_dir))
     if args.aperture < 0:
@@ -678,6 +743,10 @@ def run_export(args: argparse.Namespace) -> int:
 
 
 def run_info(args: argparse.Namespace) -> int:
+    from .app.outputs import MODEL, output
+    from .codec import IMPORTANCE_VERSION, ROTATION_DEPTH_VERSION
+    from .runs import HALF_MODEL_FILE, MODEL_FILE, half_precision_model
+    from .storage import model_info
     target = Path(args.target)
     if args.half:
         if target.is_file():
@@ -714,6 +783,8 @@ def run_info(args: argparse.Namespace) -> int:
 
 
 def run_render(args: argparse.Namespace) -> int:
+    from .app.outputs import RENDER, staged_output
+    from .runs import RENDER_FOLDER, render_model
     check_device(args.device)
     target = Path(args.target)
     if target.is_dir():
@@ -738,6 +809,8 @@ def _print_view(record: ViewRecord) -> None:
 
 
 def run_view(args: argparse.Namespace) -> int:
+    from .app.outputs import PAGE, output
+    from .view import check_sweep, default_page, write_view
     if len(args.run_dirs) > 2:
         raise UsageError(f"{len(args.run_dirs)} run folders: give one or two")
     folders = [finished_run(Path(folder)) for folder in args.run_dirs]
@@ -751,6 +824,7 @@ def run_view(args: argparse.Namespace) -> int:
 
 
 def run_eval(args: argparse.Namespace) -> int:
+    from .runs import evaluate_run
     check_device(args.device)
     folder, model = run_and_model(Path(args.run_dir))
     record = evaluate_run(folder, model, args.device)
@@ -761,12 +835,18 @@ def run_eval(args: argparse.Namespace) -> int:
 
 
 def run_compile(_args: argparse.Namespace) -> int:
+    from .app.compilation import compile_all
     seconds = compile_all()
     print(f"cvqpg compile: CPU kernels compiled and cached in {seconds:.0f} s")
     return 0
 
 
 def run_compress(args: argparse.Namespace) -> int:
+    from .app.outputs import CVQ, output
+    from .compression import check_compression_settings
+    from .ratecontrol import check_budget_values
+    from .runs import model_path
+    from .storage import is_compressed
     bits = BitDepths.parse(args.bits) if args.bits else None
     rate = args.bpp is not None or args.max_bytes is not None
     if rate and args.prune:
@@ -784,6 +864,8 @@ def run_compress(args: argparse.Namespace) -> int:
 
 def _compress(args: argparse.Namespace, bits: BitDepths | None, rate: bool, out: Path | None) -> int:
     """`cvqpg compress` once its output is claimed: to a budget (`rate`) or at `bits`."""
+    from .compression import ASSUMED_FIT_PSNR_DB, compress_model
+    from .ratecontrol import compress_to_budget
     if rate:
         r = compress_to_budget(Path(args.target), out, args.bpp, args.max_bytes, args.finetune, progress=True)
         print(f"{r['file']}: {_rate_summary(r)}")
@@ -804,6 +886,7 @@ def _compress(args: argparse.Namespace, bits: BitDepths | None, rate: bool, out:
 
 def _rate_summary(r: dict) -> str:
     """A rate-controlled file (`compress_to_budget`, `encode_scene`) in one line."""
+    from .compression import ASSUMED_FIT_PSNR_DB
     budget = r["max_bytes"]
     return (f"{r['bytes']} bytes of a budget of {budget} ({r['bytes'] / budget:.1%}), {r['bits_per_pixel']:.3f} bpp; "
             f"{r['num_primitives']} primitives at bits " + " ".join(f"{k}={v}" for k, v in r["bits"].items())
@@ -820,6 +903,12 @@ def _source_files(source: dict) -> list[Path]:
 
 
 def run_encode(args: argparse.Namespace) -> int:
+    from .app.allocator import keep_freed_memory
+    from .app.outputs import CVQ, check_output, output
+    from .app.runner import encode_in_folder, read_encode, start_encode
+    from .compression import check_compression_settings
+    from .ratecontrol import encode_budget, encode_config, encoding_record
+    from .runs import scene_from_source, write_atomic
     depth, role = None, "`out`"
     if args.resume:
         work = Path(args.resume)
@@ -851,6 +940,8 @@ def run_encode(args: argparse.Namespace) -> int:
         if depth is not None:
             source["depth"] = DEPTH_FILE  # kept in the encode's folder until the file is written
 
+    keep_freed_memory()
+
     def body(stop_requested: Callable[[], bool]) -> None:
         if not args.resume:
             start_encode(work, config, source, budget, finetune_steps)
@@ -870,6 +961,8 @@ def run_encode(args: argparse.Namespace) -> int:
 
 
 def run_decompress(args: argparse.Namespace) -> int:
+    from .app.outputs import MODEL, output
+    from .compression import decompress_file
     source = Path(args.file)
     out = Path(args.out) if args.out else source.with_name(f"{source.stem}.decoded.safetensors")
     with output(out, MODEL, [source], args.overwrite) as out:
@@ -878,6 +971,11 @@ def run_decompress(args: argparse.Namespace) -> int:
 
 
 def run_bench(args: argparse.Namespace) -> int:
+    from .app.allocator import keep_freed_memory
+    from .app.outputs import BENCH, check_continued
+    from .campaign.bench import (CELLS_DIR, Overrides, RateDistortionOptions, describe_cells, folder_plan, make_plan,
+                                 parse_shard, peak_bytes, run_plan)
+    from .campaign.report import write_summary
     seeds = [args.seed] if args.seed is not None else args.seeds
     overrides = Overrides(scenes_dir=args.scenes, scene_names=args.scene_names, colors=args.colors,
                           ratios=args.ratios, methods=args.methods, seeds=seeds, size=args.size, steps=args.steps,
@@ -904,6 +1002,7 @@ def run_bench(args: argparse.Namespace) -> int:
         return 0
     code = 0
     if not args.summary_only:
+        keep_freed_memory()
         device = plan.cells[0].config.device
         needed, available = peak_bytes(cells, args.jobs), device_memory_bytes(device)
         if available is not None and needed > available:
@@ -923,6 +1022,9 @@ def run_bench(args: argparse.Namespace) -> int:
 
 
 def run_results(args: argparse.Namespace) -> int:
+    from .app.outputs import DOCUMENT, output
+    from .campaign.results import document, write_figures
+    from .runs import write_atomic
     if not Path(args.root).is_dir():
         raise UsageError(f"--root {args.root} is not a folder of recorded bench folders (e.g. results)")
     with output(args.out, DOCUMENT, [], args.overwrite) as out:
@@ -946,13 +1048,29 @@ def _show_notes() -> None:
         logger.propagate = False
 
 
+def _machine_or_bug(command: str, error: Exception) -> int:
+    """Report an error that is not the input's: the file system's refusal (exit 3) or a failed allocation (4),
+    each in one line that says what to do; anything else is a bug (1), with where to report it."""
+    if (refusal := filesystem_refusal(error)) is not None:
+        print(f"cvqpg {command}: error: {refusal}", file=sys.stderr)
+        return EXIT_FILESYSTEM
+    if (failure := allocation_failure(error)) is not None:
+        print(f"cvqpg {command}: error: {failure}; {MEMORY_HINT}", file=sys.stderr)
+        return EXIT_MEMORY
+    print(f"cvqpg {command}: internal error ({type(error).__name__}: {error}); this is a bug in cvqpg: "
+          "please report it with the command you ran (CVQPG_TRACEBACK=1 shows the traceback)", file=sys.stderr)
+    return EXIT_BUG
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
     except SystemExit as stop:  # --help, --version, or a usage error already printed in one line
         return stop.code if isinstance(stop.code, int) else 2
     _show_notes()
-    keep_freed_memory()
+    if args.command in FORMER_COMMANDS:
+        _warn_former(f"cvqpg {args.command}", f"cvqpg {FORMER_COMMANDS[args.command]}")
+        args.command = FORMER_COMMANDS[args.command]
     try:
         return {"fit": run_fit, "eval": run_eval, "export": run_export, "info": run_info,
                 "render": run_render, "bench": run_bench, "results": run_results,
@@ -960,13 +1078,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                 "decompress": run_decompress, "encode": run_encode}[args.command](args)
     except CvqpgError as error:
         print(f"cvqpg {args.command}: error: {flag_message(str(error))}", file=sys.stderr)
-        return 2
-    except Exception as error:  # a bug: one line and where to report it, the traceback on request
+        return EXIT_USAGE
+    except Exception as error:
         if os.environ.get("CVQPG_TRACEBACK") == "1":
             raise
-        print(f"cvqpg {args.command}: internal error ({type(error).__name__}: {error}); this is a bug in cvqpg: "
-              "please report it with the command you ran (CVQPG_TRACEBACK=1 shows the traceback)", file=sys.stderr)
-        return 1
+        return _machine_or_bug(args.command, error)
     except KeyboardInterrupt:
         print(f"cvqpg {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -21,7 +21,7 @@ import json
 import math
 import struct
 import zlib
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Callable
 
 import constriction
@@ -29,7 +29,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .bitdepths import MAX_BITS, MAX_POSITION_BITS, BitDepths
 from .config import FitConfig
+from .defaults import SUFFIX
 from .errors import ConfigError, ModelFileError
 from .primitives import (REWRITE_MODEL, Primitives, check_settings, check_tensors, curvature_bound,
                          model_shapes)
@@ -42,11 +44,8 @@ ROTATION_DEPTH_VERSION = 3  # files from this version on code rotation at a dept
 IMPORTANCE_VERSION = 4  # files from this version on code at `derived_depths`' importance rule
 # The order the decoder reads attributes in: each depth derives from attributes read before it.
 ATTRIBUTES = ("scale", "amplitude", "position", "rotation", "phase", "curvature")
-SUFFIX = ".cvq"
 PREFIX = struct.Struct("<8sHI")  # magic, format version, header length (bytes)
 CHECKSUM = struct.Struct("<I")
-MAX_POSITION_BITS = 8
-MAX_BITS = 16
 # Each depth of a file is a stream of its own in the header (`grouped`): the few values far from the median weight
 # share the depths ±MAX_OFFSET bits from it.
 MAX_OFFSET = 2
@@ -56,10 +55,6 @@ def bits_per_pixel(size_bytes: int, config: FitConfig) -> float:
     """8·bytes / (W·H): a file's bits per hologram pixel, all channels together (`cvqpg info`'s bpp)."""
     return 8 * size_bytes / (config.width * config.height)
 
-
-def _limits(name: str) -> tuple[int, int]:
-    """Valid bit depths of an attribute: positions from whole pixels (0) to 1/256 px; the others 2..16."""
-    return (0, MAX_POSITION_BITS) if name == "position" else (2, MAX_BITS)
 
 # Stream codings; each stream takes the smallest that applies, so a coding that does not pay is never used.
 RAW, LAPLACE, GAUSSIAN, CATEGORICAL, BIT_LENGTH = "raw", "laplace", "gaussian", "categorical", "bitlength"
@@ -72,59 +67,6 @@ CODINGS = (RAW, LAPLACE, GAUSSIAN, CATEGORICAL, BIT_LENGTH, WIDTHS, GROUPED)
 MAX_ANS_TOP, MAX_CATEGORICAL_TOP = 2**20, 2**12
 MAX_SYMBOL_BITS = 63  # symbols are int64
 MAX_HEADER_BYTES = 2**24  # a header decompresses to far less; more is not a file cvqpg wrote
-
-
-@dataclass(frozen=True)
-class BitDepths:
-    """Bits per attribute. `position` counts fractional bits (grid of 2^-b px); the others count
-    levels over the attribute's range: log scale over the model's range, |amplitude·opacity| over
-    [0, max], rotation over [0, π), phase over [0, 2π), curvature over [−γ_max, γ_max]. Position,
-    amplitude, rotation, phase and curvature take these depths for a value of median importance, and more
-    or fewer bits for others (`derived_depths`)."""
-
-    position: int = 3
-    scale: int = 8
-    rotation: int = 7
-    amplitude: int = 8
-    phase: int = 7
-    curvature: int = 8
-
-    def validate(self) -> "BitDepths":
-        for name, value in asdict(self).items():
-            low, top = _limits(name)
-            if not low <= value <= top:
-                raise ConfigError(f"`bits` {name}={value}: give {low}..{top} bits")
-        return self
-
-    def shifted(self, delta: int) -> "BitDepths":
-        """Every attribute `delta` bits finer (coarser when negative), kept within the valid ranges."""
-        return BitDepths(**{name: min(max(value + delta, _limits(name)[0]), _limits(name)[1])
-                            for name, value in asdict(self).items()})
-
-    def names(self) -> list[str]:
-        return [f.name for f in fields(self)]
-
-    def shifted_one(self, name: str, delta: int = -1) -> "BitDepths | None":
-        """`delta` bits finer (coarser when negative, by default one) in attribute `name`, or None beyond its
-        valid depths."""
-        value = getattr(self, name) + delta
-        low, top = _limits(name)
-        return replace(self, **{name: value}) if low <= value <= top else None
-
-    @classmethod
-    def parse(cls, items: list[str]) -> "BitDepths":
-        """`["position=3", "phase=6"]` or `["8"]` (8 bits for every attribute but position)."""
-        if len(items) == 1 and items[0].isdigit():
-            value = int(items[0])
-            return cls(**{f.name: value for f in fields(cls) if f.name != "position"}).validate()
-        known, values = {f.name for f in fields(cls)}, {}
-        for item in items:
-            name, _, value = item.partition("=")
-            if name not in known or not value.isdigit():
-                raise ConfigError(f"`bits` {item}: give ATTRIBUTE=BITS with ATTRIBUTE one of "
-                                  f"{', '.join(sorted(known))}, or one number for all but position")
-            values[name] = int(value)
-        return cls(**values).validate()
 
 
 @dataclass(frozen=True)

@@ -19,11 +19,10 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
+from .defaults import DEPTH_MODEL
 from .errors import InputError
 from .targets import load_picture
 
-DEPTH_MODEL = "depth-anything/Depth-Anything-V2-Small-hf"
-DEPTH_FILE = "depth.png"
 DEPTH_LEVELS = 65535  # 16-bit map
 
 

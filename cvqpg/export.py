@@ -11,15 +11,13 @@ import torch
 from torch import Tensor
 
 from .config import FitConfig, padded_size
+from .defaults import DEFAULT_APERTURE, DEFAULT_LEVELS, ENCODINGS
 from .errors import ConfigError, choices_error
 from .ops.field import Grid, slm_field
 from .ops.propagation import propagate_planes
 
 Encoding = Literal["dpac", "phase"]
-ENCODINGS: tuple[str, ...] = ("dpac", "phase")
-DEFAULT_LEVELS = 256
 MAX_LEVELS = 2**16
-DEFAULT_APERTURE = 0.5
 TWO_PI = 2 * math.pi
 
 

@@ -33,6 +33,10 @@ def atomic_file(path: str | Path) -> Iterator[BinaryIO]:
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(partial, path)
+    except OSError as error:
+        if error.filename is None:  # a full disk fails a write or a flush, which name no file
+            error.filename = str(path)
+        raise
     finally:
         partial.unlink(missing_ok=True)
 

@@ -31,6 +31,7 @@ from .codec import MAX_BITS, SUFFIX, BitDepths, bits_per_pixel, encode, range_ho
 from .compression import (Choice, Reference, check_compression_settings, choice_record, compression_input,
                           compression_record, kept, reference_for, strongest_first, trial)
 from .config import FitConfig
+from .defaults import ENCODE_FINETUNE_STEPS, ENCODE_STEPS, RATE_FINETUNE_STEPS
 from .errors import ConfigError
 from .files import write_atomic
 from .finetune import finetune
@@ -38,13 +39,6 @@ from .fitting import FitInterrupted, FitResult, fit_scene
 from .primitives import Primitives, activate, init_gaussians
 from .targets import Scene
 
-# Fine-tuning steps at the chosen rung where the caller gives none (the rate–distortion benchmark's).
-RATE_FINETUNE_STEPS = 100
-# `cvqpg encode`'s optimisation: float steps, then quantisation-aware ones at the bit depths rate control chose.
-# About a Table 1 fit's steps, split so: on 640×480 and 320×240 grayscale fits, 1500 + 600 wrote files above
-# 2000 + 100 at the same budget (docs/compression.md, "Where encode's steps go").
-ENCODE_STEPS = 1500
-ENCODE_FINETUNE_STEPS = 600
 # Fine-tuning moves a file's size by a few percent (small fits grew by 1–5%); tuning a model 4% above the
 # budget leaves the last search primitives to drop where it shrinks, rather than a file well below it.
 TUNING_HEADROOM = 0.04

@@ -10,6 +10,7 @@ import numpy as np
 from PIL import Image
 
 from .config import FitConfig
+from .defaults import SCENE_NAMES
 from .errors import InputError
 from .targets import Scene, load_scene
 
@@ -88,7 +89,7 @@ def siemens_star(width: int, height: int, spokes: int = 36) -> BuiltinScene:
     return BuiltinScene(Image.fromarray(gray, "L"), None)
 
 
-SCENES = {"demo": SceneRecipe(demo_scene, "rgb", 2), "star": SceneRecipe(siemens_star, "gray", 1)}
+SCENES = dict(zip(SCENE_NAMES, (SceneRecipe(demo_scene, "rgb", 2), SceneRecipe(siemens_star, "gray", 1)), strict=True))
 
 
 def builtin_pictures(name: str, width: int, height: int) -> BuiltinScene:

@@ -22,6 +22,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from .config import FitConfig
+from .defaults import DEFAULT_SWEEP, VIEW_FILE
 from .errors import InputError
 from .fitting import hologram
 from .metrics import METRIC_NAMES, psnr
@@ -31,8 +32,6 @@ from .runs import (EXPORT_FOLDER, METRICS_FILE, hologram_images, load_run_model,
                    to_8bit, write_atomic)
 from .targets import load_picture
 
-VIEW_FILE = "view.html"
-DEFAULT_SWEEP = (0.5e-3, 6e-3, 41)  # START (m), STOP (m), COUNT
 MAX_DISTANCE_M = 0.1  # farther, a few-mm hologram's band limit leaves almost nothing: a mm/m mix-up
 FRAME_QUALITY = 90  # JPEG quality of every embedded image, colour at full resolution (4:4:4)
 SWEEP_BATCH = 8  # distances per propagation: they share each channel's forward transform

@@ -9,11 +9,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numba
 import numpy as np
 import pytest
 import torch
 from PIL import Image
 
+from cvqpg.campaign import bench
 from cvqpg.campaign.bench import (DONE, INTERRUPTED, BenchError, Overrides, cell_status, folder_plan, make_plan,
                                   parse_shard, run_cell, run_plan)
 from cvqpg.cli import main
@@ -224,6 +226,22 @@ def test_threads_set_each_fit_s_thread_count_whatever_the_jobs(tmp_path):
     assert run_plan(plan, jobs=2, progress=False, threads=3).count(DONE) == 2
     runs = [json.loads((plan.cell_dir(c) / "metrics.json").read_text())["run"] for c in plan.cells]
     assert [run["torch_threads"] for run in runs] == [3, 3]
+
+
+def test_one_job_fits_with_its_threads_and_gives_the_caller_its_own_back(tmp_path, monkeypatch):
+    plan = make_plan("quick", tmp_path / "bench", Overrides(size=(48, 36), steps=2, methods=["cvqpg"]))
+    seen = []
+
+    def attempt(*_args: object) -> tuple[str, None]:
+        seen.append((torch.get_num_threads(), numba.get_num_threads()))
+        return DONE, None
+
+    monkeypatch.setattr(bench, "_attempt", attempt)
+    before = torch.get_num_threads(), numba.get_num_threads()
+    assert before != (1, 1)  # conftest.py sets 2 torch threads
+    assert run_plan(plan, progress=False, threads=1).count(DONE) == 2
+    assert seen == [(1, 1), (1, 1)]
+    assert (torch.get_num_threads(), numba.get_num_threads()) == before
 
 
 def test_a_run_on_some_scenes_or_one_colour_summarises_every_cell_the_folder_records(scenes_dir, tmp_path):

@@ -8,8 +8,9 @@ import shutil
 import pytest
 
 from cvqpg.cli import main
-from cvqpg.campaign.ratedistortion import (ENCODE_FRACTIONS, bd_rate, budget_fill, budgets_for, cell_summary,
-                                           equal_rate_gain, pareto, rate_base, wide_summary)
+from cvqpg.campaign.presets import ENCODE_FRACTIONS
+from cvqpg.campaign.ratedistortion import (bd_rate, budget_fill, budgets_for, cell_summary, equal_rate_gain, pareto,
+                                           rate_base, wide_summary)
 
 pytest.importorskip("imagecodecs", reason="the JPEG 2000 / JPEG XL anchors need the `compression` extra")
 

@@ -70,7 +70,7 @@ def test_map_has_the_image_size_spans_the_range_and_puts_the_largest_disparity_a
 
 @pytest.mark.slow
 def test_fit_with_depth_auto_saves_the_map_and_repeats_with_it(model, photo, tmp_path, monkeypatch):
-    monkeypatch.setattr(cli, "load_depth_model", lambda name: model)
+    monkeypatch.setattr(cvqpg.depth, "load_depth_model", lambda name: model)
     small = ["--size", "48", "36", "--steps", "1", "--quiet"]
     assert cli.main(["fit", str(photo), "--depth", "auto", *small, "--out", str(tmp_path / "auto")]) == 0
     saved = tmp_path / "auto" / "depth.png"

@@ -78,7 +78,7 @@ def test_a_bug_exits_1_in_one_line_asking_for_a_report(tmp_path, capsys, monkeyp
     def broken(*args, **kwargs):
         raise RuntimeError("boom")
 
-    monkeypatch.setattr("cvqpg.cli.compile_all", broken)
+    monkeypatch.setattr("cvqpg.app.compilation.compile_all", broken)
     assert main(["compile"]) == 1
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and "bug" in lines[0] and "boom" in lines[0]

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import gc
 import math
+import threading
+import weakref
+from typing import Sequence
 
 import numpy as np
 import pytest
 import torch
 
+import cvqpg.ops.rasterize as rasterize_module
 from cvqpg.config import FitConfig
 from cvqpg.primitives import Gaussians, Primitives, activate, curvature_bound, init_gaussians, major_sigma_px
 from cvqpg.fitting import render_hologram
@@ -449,3 +454,36 @@ def test_global_bound_exceeds_nyquist_only_for_large_primitives():
         assert f_large == pytest.approx(200.0 * 3 * large * PITCH**2 / 473e-9 * (1 if qpf == "standard" else large**2 / (large**2 + 0.1)), rel=1e-5)
         # the adaptive bound keeps the large primitive under Nyquist
         assert measured_frequency(large, isotropic_bound(large, "adaptive"), qpf, 3 * large, (473e-9,))[0] < 0.5
+
+
+# --------------------------------------------------------------------------- the CPU kernels' kept buffers
+
+
+def kept_buffers_after_a_step(prims: Primitives, sizes: Sequence[tuple[int, int]]) -> list[weakref.ref]:
+    """Rasterize (forward and backward, Numba) at each W×H in turn; weak references to the lane images the
+    calling thread keeps afterwards."""
+    for width, height in sizes:
+        leaves = [t.clone().requires_grad_() for t in (prims.position_px, prims.amplitude)]
+        moved = Primitives(**{**{name: getattr(prims, name) for name in FIELDS}, "position_px": leaves[0],
+                              "amplitude": leaves[1]})
+        _rasterize(moved, width, height, WAVELENGTHS, PITCH, backend="numba").abs().sum().backward()
+    return [weakref.ref(array) for array in vars(rasterize_module._kept).values()]
+
+
+def test_a_thread_keeps_one_buffer_per_pass_and_frees_them_when_it_ends():
+    prims = random_prims(20, 20, 14, seed=3)
+    kept: list[list[weakref.ref]] = []
+    worker = threading.Thread(target=lambda: kept.append(kept_buffers_after_a_step(prims, [(20, 14), (24, 16)])))
+    worker.start()
+    worker.join()
+    assert len(kept[0]) == 2  # the forward pass's partial images and the backward pass's lanes, of the last size
+    gc.collect()
+    assert all(ref() is None for ref in kept[0])
+
+
+def test_release_buffers_frees_the_calling_threads_buffers():
+    refs = kept_buffers_after_a_step(random_prims(20, 20, 14, seed=4), [(20, 14)])
+    assert [ref() is not None for ref in refs] == [True, True]
+    rasterize_module.release_buffers()
+    gc.collect()
+    assert all(ref() is None for ref in refs)

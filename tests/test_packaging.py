@@ -1,7 +1,8 @@
-"""Packaging: cvqpg's declared requirements leave a user's own (supported) torch in place."""
+"""Packaging: the requirements leave a user's own (supported) torch in place; the version is the changelog's."""
 
 import json
 import os
+import re
 import subprocess
 import sys
 import sysconfig
@@ -74,3 +75,8 @@ def test_version_is_the_package_version(capsys):
     assert main(["--version"]) == 0 and capsys.readouterr().out == f"cvqpg {cvqpg.__version__}\n"
     assert tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["dynamic"]["version"] == {
         "attr": "cvqpg.__version__"}
+
+
+def test_the_changelog_s_newest_release_is_the_package_version():
+    releases = re.findall(r"^## \[(\d+\.\d+\.\d+)\]", (REPO / "CHANGELOG.md").read_text(), re.MULTILINE)
+    assert releases and releases[0] == cvqpg.__version__

@@ -268,7 +268,7 @@ def test_a_failed_encode_keeps_its_folder_only_where_a_checkpoint_is_worth_resum
             (folder / "checkpoint.pt").write_bytes(b"")
         raise RuntimeError("a failure after the fit started")
 
-    monkeypatch.setattr(cli, "encode_in_folder", failing)
+    monkeypatch.setattr("cvqpg.app.runner.encode_in_folder", failing)
     assert main([*ENCODE, str(picture), "--bpp", "4", "--out", str(tmp_path / "ramp.cvq"), "--quiet"]) == 1
     error = capsys.readouterr().err
     assert "internal error (RuntimeError: a failure after the fit started)" in error

@@ -1,4 +1,4 @@
-"""The README's Python snippets run as written, at a smaller size and fewer steps."""
+"""The Python snippets of the README and the Python API guide run as written, at a smaller size and fewer steps."""
 
 from __future__ import annotations
 
@@ -7,26 +7,37 @@ from pathlib import Path
 
 import pytest
 
-README = Path(__file__).resolve().parents[1] / "README.md"
-# What makes a snippet a test: the same calls, on a grid and step count that finish in seconds.
+ROOT = Path(__file__).resolve().parents[1]
+PAGES = (ROOT / "README.md", ROOT / "docs" / "python.md")
+# What makes a snippet a test: the same calls, on a grid and step count that finish in seconds. Each
+# snippet must set its size and steps where a replacement finds them (`shrunk`).
 SHRINK = {"width=320, height=240": "width=48, height=36", "steps=300": "steps=4",
           'builtin_pictures("demo", 320, 240)': 'builtin_pictures("demo", 48, 36)'}
 
 
-def python_snippets() -> list[str]:
-    return re.findall(r"```python\n(.*?)```", README.read_text(), re.DOTALL)
+def python_snippets() -> list[tuple[str, str]]:
+    return [(f"{page.name} snippet {number}", code) for page in PAGES
+            for number, code in enumerate(re.findall(r"```python\n(.*?)```", page.read_text(), re.DOTALL), 1)]
 
 
-def test_the_readme_has_python_snippets():
-    assert python_snippets()
-
-
-@pytest.mark.parametrize("index", range(len(python_snippets())))
-def test_readme_python_snippet_runs(index, tmp_path, monkeypatch):
-    code = python_snippets()[index]
+def shrunk(code: str) -> str:
+    """`code` at the test's size. A snippet whose sizes or step count no replacement matched fails here, rather
+    than running at its full size."""
     for original, small in SHRINK.items():
         code = code.replace(original, small)
+    numbers = re.findall(r"(?:width|height|steps)=(\d+)|builtin_pictures\([^)]*?(\d+), (\d+)\)", code)
+    assert numbers and all(int(n) < 100 for group in numbers for n in group if n), \
+        "a size or step count of the snippet is not shrunk: update SHRINK"
+    return code
+
+
+@pytest.mark.parametrize("name, code", python_snippets(), ids=[name for name, _ in python_snippets()])
+def test_python_snippet_runs(name, code, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     namespace: dict = {}
-    exec(compile(code, f"README.md python snippet {index + 1}", "exec"), namespace)
+    exec(compile(shrunk(code), name, "exec"), namespace)
     assert namespace["result"].metrics.mean["psnr"] > 0
+
+
+def test_each_page_has_a_python_snippet():
+    assert sorted({name.split()[0] for name, _ in python_snippets()}) == sorted(page.name for page in PAGES)

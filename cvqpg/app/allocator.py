@@ -31,7 +31,7 @@ def keep_freed_memory() -> bool:
     """Ask glibc to serve large blocks from its heap and keep them when freed.
 
     Returns whether the setting took effect (False on other C libraries, where it does nothing).
-    The command line calls it; library users may call it once at start-up.
+    The commands that fit (`fit`, `encode`, `bench`) call it; a library user may call it once before fitting.
     """
     mallopt = getattr(_libc(), "mallopt", None)
     if mallopt is None:

@@ -13,6 +13,7 @@ from typing import Any, Callable
 import torch
 
 from ..config import FitConfig
+from ..defaults import CHECKPOINT_SECONDS
 from ..errors import ConfigError, CvqpgError, InputError, ModelFileError
 from ..fitting import (CheckpointPolicy, FitResult, FitState, fit_scene, initial_state, seconds_per_step,
                        state_from_payload, steps_within)
@@ -24,7 +25,6 @@ from ..targets import Scene
 from .compilation import prepare_kernels
 from .provenance import code_commit, peak_memory, reset_peak_memory, run_record
 
-CHECKPOINT_SECONDS = 180.0
 # Settings a resumed run may change: they move the last bits of a render only.
 UNFINGERPRINTED = ("device", "backend")
 # Settings that versions before recipes did not have, at the value those versions fitted with: left out of

@@ -1,4 +1,4 @@
-"""Benchmark grids (issue #4): scenes × colour × ratio × method × seed, one run folder per cell.
+"""Benchmark grids: scenes × colour × ratio × method × seed, one run folder per cell.
 
 A cell is a `cvqpg fit` run in `<bench>/cells/<cell name>/`. Its `metrics.json`, which
 `runs.write_run` writes last and atomically, is the only "done" marker: a folder holding just a
@@ -16,7 +16,8 @@ import math
 import multiprocessing
 import signal
 import traceback
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -30,7 +31,7 @@ from tqdm.auto import tqdm
 from ..app.allocator import keep_freed_memory
 from ..app.provenance import available_cores, machine_record
 from ..app.runner import fit_in_folder, resumed_state, write_fitted_run
-from ..config import BEYOND_RECIPE, PAPER_RECIPE, FitConfig, default_curvature_warmup
+from ..config import BEYOND_RECIPE, FitConfig, default_curvature_warmup
 from ..errors import CvqpgError
 from ..fitting import FitInterrupted, FitState, estimated_peak_bytes
 from ..initialisation import resolved_init
@@ -40,7 +41,7 @@ from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, HISTORY_FILE, METRICS_FILE, MO
                     scene_from_source, start_run, write_atomic, write_json)
 from ..scenes import SCENES
 from ..targets import check_depth_geometry, load_picture
-from .ratedistortion import BUDGET_FRACTIONS, ENCODE_FRACTIONS
+from .presets import COLORS, METHODS, PRESETS
 
 log = logging.getLogger("cvqpg")
 
@@ -53,7 +54,6 @@ ERROR_FILE = "error.log"
 SPECTRUM_BINS = 32
 FOLDER_SCENE_PLANES = 2
 POLL_SECONDS = 0.5
-COLORS = ("rgb", "gray")
 
 DONE, SKIPPED, INTERRUPTED, NOT_STARTED, FAILED = "done", "skipped", "interrupted", "not started", "failed"
 FITTED = "fitted"  # a rate–distortion cell whose fit is done and whose R-D points are not
@@ -63,92 +63,10 @@ REUSED = "reused"
 RECORD_FILES = (CONFIG_FILE, SPECTRUM_FILE, RD_FILE, ENCODE_PARTIAL_FILE, ENCODE_FILE, HISTORY_FILE, METRICS_FILE)
 STARTED, MISSING = "started", "missing"
 RESTORE_ENCODE = "restore it from git, or delete the encode grid's files of the cell to encode it again"
-# The paper's training time for grayscale and RGB 10% (8.7 and 17.0 min, its runtime table) as steps of the new
-# recipe on our 2-core CPU with 2 threads and the machine to itself, measured once (docs/beyond.md).
-PAPER_TIME_STEPS = {"gray": 7745, "rgb": 4503}
 
 
 class BenchError(CvqpgError):
     """A benchmark request that cannot work; the message names the option and the fix."""
-
-
-@dataclass(frozen=True)
-class Method:
-    """A row of the paper's tables: FitConfig changes, and the changes of the method whose parameter
-    count N grows to match (None: N as the setting's ratio gives it)."""
-
-    label: str
-    changes: dict[str, str]
-    params_of: dict[str, str] | None = None
-
-
-CVQPG = {"primitive": "cvqpg"}
-PER_CHANNEL = {"primitive": "cvqpg", "curvature": "per-channel"}
-METHODS = {
-    "baseline": Method("Baseline", {"primitive": "flat"}),
-    "baseline+": Method("Baseline⁺", {"primitive": "flat"}, params_of=CVQPG),
-    "cvqpg": Method("CVQPG", CVQPG),
-    "no-bound": Method("w/o adaptive bound", {"primitive": "cvqpg", "bound": "global"}),
-    "no-mahalanobis": Method("w/o Mahalanobis QPF", {"primitive": "cvqpg", "qpf": "standard"}),
-    "vanilla": Method("vanilla (neither)", {"primitive": "cvqpg", "bound": "global", "qpf": "standard"}),
-    "per-channel": Method("CVQPG, γ per channel", PER_CHANNEL),
-    "channel-bound": Method("CVQPG, bound per λ", {"primitive": "cvqpg", "curvature": "channel-bound"}),
-    "baseline+pc": Method("Baseline (per-channel's params)", {"primitive": "flat"}, params_of=PER_CHANNEL),
-    "cvqpg+pc": Method("CVQPG (per-channel's params)", CVQPG, params_of=PER_CHANNEL),
-}
-
-
-@dataclass(frozen=True)
-class Preset:
-    """Default axes and fit size of a named grid; `builtin_scenes` empty means `--scenes DIR` is needed."""
-
-    description: str
-    colors: tuple[str, ...]
-    ratios: tuple[float, ...]
-    methods: tuple[str, ...]
-    builtin_scenes: tuple[str, ...] = ()
-    size: tuple[int, int] = (640, 480)
-    steps: int = 2000
-    rate_distortion: bool = False  # each cell also records the R-D points of its model (`rd.json`)
-    recipe: str = PAPER_RECIPE  # every grid that compares with the paper pins its recipe
-    steps_by_color: tuple[tuple[str, int], ...] = ()  # where a colour has its own step count
-    budget_fractions: tuple[float, ...] = ()  # R-D grids: also the codec at `--bpp` budgets (`RateDistortionOptions`)
-    encode_fractions: tuple[float, ...] = ()  # the rate grid's cells encoded afresh at these (`run_encode_cell`)
-
-    def steps_for(self, color: str) -> int:
-        return dict(self.steps_by_color).get(color, self.steps)
-
-
-PRESETS = {
-    "paper": Preset("Table 1: every scene × {rgb, gray} × ratio {0.1, 0.2} × {baseline, baseline+, cvqpg}",
-                    COLORS, (0.1, 0.2), ("baseline", "baseline+", "cvqpg")),
-    "ablation": Preset("ablation table: RGB, ratio 0.1, CVQPG and its variants against the baseline",
-                       ("rgb",), (0.1,), ("baseline", "cvqpg", "no-bound", "no-mahalanobis", "vanilla")),
-    "star": Preset("Siemens star: single plane, grayscale, baseline vs CVQPG at equal N",
-                   ("gray",), (0.1,), ("baseline", "cvqpg"), ("star",)),
-    "chromatic": Preset("issue #6: RGB, ratio {0.1, 0.2}: per-channel curvature and its variant against shared "
-                        "CVQPG and the baseline, at equal N and at per-channel's parameter count",
-                        ("rgb",), (0.1, 0.2), ("baseline", "cvqpg", "per-channel", "channel-bound", "baseline+pc",
-                                               "cvqpg+pc")),
-    "compression": Preset("issue #28: the Table 1 CVQPG cells at {rgb, gray} 10%, each with the R-D points of the "
-                          ".cvq codec, JPEG 2000 and JPEG XL on its field, and its float32/float16 model files",
-                          COLORS, (0.1,), ("cvqpg",), rate_distortion=True),
-    "rate": Preset("issue #39: the Table 1 CVQPG cells at {rgb, gray} 10%, each with the .cvq codec at `--bpp` budgets "
-                   "from its fit down to below fit − 3 dB (rate control), beside JPEG 2000 and JPEG XL on its field",
-                   COLORS, (0.1,), ("cvqpg",), rate_distortion=True, budget_fractions=BUDGET_FRACTIONS),
-    "encode": Preset("issue #39: `cvqpg encode --bpp` at the rate grid's six budgets per cell, each a fit at the "
-                     "budget's primitive count rate-controlled into it; run into the rate grid's folder after "
-                     "`--preset rate`, whose tables then show both", COLORS, (0.1,), ("cvqpg",), rate_distortion=True,
-                     budget_fractions=BUDGET_FRACTIONS, encode_fractions=ENCODE_FRACTIONS),
-    "beyond": Preset("issue #38: the new recipe at 2000 steps, {rgb, gray} 10% × {baseline, cvqpg}, beside the "
-                     "paper grid's cells", COLORS, (0.1,), ("baseline", "cvqpg"), recipe=BEYOND_RECIPE),
-    "beyond-time": Preset("issue #38: CVQPG with the new recipe for the paper's own training time (8.7 min gray, "
-                          "17.0 min RGB, its runtime table), as fixed step counts measured on our 2-core CPU",
-                          COLORS, (0.1,), ("cvqpg",), recipe=BEYOND_RECIPE,
-                          steps_by_color=tuple(PAPER_TIME_STEPS.items())),
-    "quick": Preset("smoke test: built-in scenes, 160×120, 60 steps",
-                    ("gray",), (0.1,), ("baseline", "cvqpg"), ("demo", "star"), (160, 120), 60),
-}
 
 
 @dataclass(frozen=True)
@@ -736,6 +654,18 @@ def limit_threads(threads: int) -> None:
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
 
 
+@contextmanager
+def limited_threads(threads: int) -> Iterator[None]:
+    """`limit_threads` for the block; the caller's thread counts after it."""
+    before = torch.get_num_threads(), numba.get_num_threads()
+    limit_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before[0])
+        numba.set_num_threads(before[1])
+
+
 def _init_worker(threads: int, stop_event: Any) -> None:
     """Pool worker set-up: its share of the cores, the allocator setting of the command line (a
     spawned process does not inherit it), and signals left to the parent, which relays a stop."""
@@ -798,9 +728,9 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
             bar.update()
 
         if jobs == 1:
-            limit_threads(threads)
-            for cell in todo:
-                record(cell, *_attempt(cell, plan.cell_dir(cell), stop, rd_options))
+            with limited_threads(threads):
+                for cell in todo:
+                    record(cell, *_attempt(cell, plan.cell_dir(cell), stop, rd_options))
         else:
             _run_pool(plan, todo, jobs, threads, stop, record, rd_options)
     return outcome

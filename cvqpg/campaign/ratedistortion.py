@@ -47,14 +47,7 @@ FINETUNED_DROPS_DB = (0.1, 4.0)
 # The fractions of primitives that a cell prunes (least field energy first) before fine-tuning at the
 # finest of those rungs: fewer primitives, each at the same bits.
 PRUNE_FRACTIONS = (0.05, 0.1, 0.2)
-# The budgets of a rate grid's cell (`--preset rate`), as fractions of the rate of the codec's smallest ladder
-# file within 0.1 dB of the fit: from where the ladder at full N starts to lose (about 0.6) to below fit − 3 dB.
-BUDGET_FRACTIONS = (0.7, 0.5, 0.36, 0.26, 0.19, 0.14)
-# The budgets at which the encode grid (`--preset encode`) fits each cell's image afresh, as `cvqpg encode --bpp`
-# does: all of `BUDGET_FRACTIONS`, since its files lose less per halving of the rate than pruning does and only
-# its lowest budgets reach fit − 3 dB (at 0.26, every grayscale cell was 1.7 to 2.9 dB below its fit).
-ENCODE_FRACTIONS = BUDGET_FRACTIONS
-# The wide BD-rate range of issue #39: from 3 dB to 0.1 dB below the fit.
+# The wide BD-rate range: from 3 dB to 0.1 dB below the fit.
 WIDE_RANGE_DB = (3.0, 0.1)
 CODEC, FLOAT32, FLOAT16 = "cvqpg", "model float32", "model float16"
 ENCODER = "cvqpg encode"  # `.cvq` files of a fit at the budget's primitive count, not of the cell's fit

@@ -26,7 +26,7 @@ from .bench import (CELLS_DIR, DONE, ENCODE_FILE, METHODS, METRICS_FILE, PRESETS
                     Cell, setting_label)
 from ..errors import InputError
 from ..runs import read_record, write_atomic
-from ..view import VIEW_FILE
+from ..defaults import VIEW_FILE
 
 TABLE_METRICS = ("psnr", "ssim", "lpips", "flip", "cvvdp")
 HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "lpips": False, "flip": False, "cvvdp": True}
@@ -671,7 +671,7 @@ def frequency_curves(plan: BenchPlan, results: list[CellResult], reference: str 
 
 
 def channel_frequency_curves(plan: BenchPlan, results: list[CellResult]) -> list[FrequencyCurve]:
-    """Per colour channel, ΔMSE% of per-channel curvature over shared CVQPG (issue #6), where both ran."""
+    """Per colour channel, ΔMSE% of per-channel curvature over shared CVQPG, where both ran."""
     if not {"cvqpg", "per-channel"} <= set(plan.methods):
         return []
     return [curve for channel in range(len(CHANNEL_NAMES))
@@ -804,7 +804,7 @@ def summary_markdown(plan: BenchPlan, overview: list[str], tables: list[Table], 
 REPORT_STYLE = ("body{font-family:sans-serif;max-width:1200px;margin:auto;padding:1em}"
                 "table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #bbb;padding:2px 6px;"
                 "font-size:13px;text-align:right}td:first-child,th:first-child{text-align:left}"
-                "img{max-width:100%}.note{color:#555;font-size:13px}")
+                "img{max-width:100%}.note{color:rgb(85, 85, 85);font-size:13px}")
 
 
 def _paragraphs(lines: list[str]) -> str:

@@ -535,7 +535,7 @@ def _runtime(grid: GridResults, setting: str, method: str) -> dict[str, Any] | N
             "machines": "; ".join(f"{count} × {machine}" for machine, count in sorted(machines.items()))}
 
 
-BEYOND_TARGET_DB = 0.5  # issue #38: the new recipe's CVQPG over the paper grid's, at 2000 steps
+BEYOND_TARGET_DB = 0.5  # the target of the beyond recipe's CVQPG over the paper grid's, at 2000 steps
 BEYOND_TIME_TARGET_DB = 1.5  # and at the paper's training time over the paper's own per-scene values
 
 
@@ -639,7 +639,7 @@ def write_figures(root: Path, folder: Path, overwrite: bool = False) -> list[Pat
 
 
 def beyond_claims(paper: GridResults, beyond: GridResults, timed: GridResults) -> list[str]:
-    """Issue #38's targets, met or not, or how they stand while cells are missing."""
+    """The beyond recipe's targets, met or not, or how they stand while cells are missing."""
     lines = []
     scenes = len(beyond.grid.scenes)
     supplement = paper_numbers()["per_scene"]

@@ -14,7 +14,6 @@ kernels also run on the CPU under Triton's interpreter (`TRITON_INTERPRET=1`), w
 
 from __future__ import annotations
 
-import functools
 import math
 import threading
 from typing import Callable, Sequence
@@ -30,14 +29,28 @@ from . import cpu
 from .reference import FOOTPRINT_SIGMAS, Qpf, curvature_columns, splat_reference, splats
 
 PARTIAL_BUFFER_BYTES = 1 << 30
+# The lane images that the calling thread keeps between calls (`_reused_lanes`), by use: they live as long as the
+# thread, or until `release_buffers`.
+_kept = threading.local()
 
 
-@functools.lru_cache(maxsize=8)
-def _reused_lanes(shape: tuple[int, ...], thread: int) -> np.ndarray:
-    """A zero-initialised float32 array kept between calls (one per calling thread): allocating and
-    zeroing tens of MB per step costs more than the kernels' own passes over them. Its users keep the
-    parts they rely on zero."""
-    return np.zeros(shape, np.float32)
+def _reused_lanes(use: str, shape: tuple[int, ...]) -> np.ndarray:
+    """A zero-initialised float32 array kept between calls, one per calling thread and `use` (the forward pass's
+    partial images, the backward pass's lanes): allocating and zeroing tens of MB per step costs more than the
+    kernels' own passes over them. A call with another shape replaces it, so a thread keeps at most one array per
+    use. Its users keep the parts they rely on zero."""
+    array = getattr(_kept, use, None)
+    if array is None or array.shape != shape:
+        setattr(_kept, use, None)  # the former array goes before the new one is made
+        array = np.zeros(shape, np.float32)
+        setattr(_kept, use, array)
+    return array
+
+
+def release_buffers() -> None:
+    """Free the lane images that the calling thread keeps (`_reused_lanes`); for callers done rasterizing on the
+    CPU, such as a program that goes on after its fits."""
+    _kept.__dict__.clear()
 
 
 def _float32_arrays(*tensors: Tensor) -> tuple[np.ndarray, ...]:
@@ -73,7 +86,7 @@ class _FusedSplat(torch.autograd.Function):
         channels = color.shape[1]
         lane_width = cpu.lane_image_width(width, channels)
         threads = max(1, min(numba.get_num_threads(), PARTIAL_BUFFER_BYTES // (height * lane_width * 8)))
-        partial = _reused_lanes((threads, 2, height, lane_width), threading.get_ident())
+        partial = _reused_lanes("partial", (threads, 2, height, lane_width))
         out = torch.empty(channels, height, width, dtype=torch.complex64)
         try:
             cpu.splat_forward(order, *arrays, k, mahalanobis, partial)
@@ -91,7 +104,7 @@ class _FusedSplat(torch.autograd.Function):
         position, conic, _, chirp, color, phase, opacity = ctx.arrays
         grads = tuple(np.zeros(a.shape, np.float64) for a in (position, conic, chirp, color, phase, opacity))
         channels, height, width = grad.shape
-        lanes = _reused_lanes((2, height, cpu.lane_image_width(width, channels)), threading.get_ident())
+        lanes = _reused_lanes("lanes", (2, height, cpu.lane_image_width(width, channels)))
         cpu.split_lanes(grad.detach().to("cpu", torch.complex64).contiguous().numpy(), lanes)  # padding stays 0
         cpu.splat_backward(ctx.order, *ctx.arrays, ctx.wavenumbers, ctx.mahalanobis, lanes, *grads,
                                numba.get_num_threads())
