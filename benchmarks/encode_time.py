@@ -1,12 +1,12 @@
-"""`cvqpg encode` against a Table 1 fit of the same setting, timed side by side (issue #39's encode target).
+"""`cvqpg encode` against a Table 1 fit of the same setting, timed side by side (the encoder's time target).
 
     python benchmarks/encode_time.py ../shared/scenes/bento                  # RGB 10%, 640×480, 2000 steps, 1 bpp
     python benchmarks/encode_time.py ../shared/scenes/bento --steps 200     # a shorter run of both
     python benchmarks/encode_time.py ../shared/scenes/bento --color gray --bpp 0.5
 
 Times, in turns, the Table 1 fit (the paper's recipe, ratio 0.1, CVQPG, seed 100) for `--steps` and
-`ratecontrol.encode_scene` at the budget with the default recipe (what `cvqpg encode --bpp B` runs, without
-writing the file): `ratecontrol.encode_steps(--steps)`, 1500 float and 600 quantisation-aware steps for
+`app.encoding.encode_scene` at the budget with the default recipe (what `cvqpg encode --bpp B` runs, without
+writing the file): `app.encoding.encode_steps(--steps)`, 1500 float and 600 quantisation-aware steps for
 2000, in proportion for a shorter run, whose ratio then weighs the encoder's rate search more. Prints
 one JSON line per run, then the ratio of the encoder's seconds to the fit's.
 """
@@ -20,8 +20,9 @@ from pathlib import Path
 
 from cvqpg import FitConfig
 from cvqpg.app.compilation import prepare_kernels
+from cvqpg.app.encoding import encode_budget, encode_scene, encode_steps
 from cvqpg.fitting import fit_scene
-from cvqpg.ratecontrol import encode_budget, encode_scene, encode_steps
+from cvqpg.search import CompressionSettings
 from cvqpg.targets import load_scene
 
 
@@ -41,7 +42,8 @@ def main() -> None:
                         steps=fit_steps).validate()
     scene = load_scene(next(args.scene.glob("image.*")), args.scene / "depth.png", table1)
     prepare_kernels(table1, show_status=False)
-    budget = encode_budget(encoder, bpp=args.bpp)
+    settings = CompressionSettings(bpp=args.bpp, finetune_steps=finetune_steps)
+    budget = encode_budget(encoder, settings)
     seconds: dict[str, float] = {"fit": 0.0, "encode": 0.0}
     for _ in range(args.rounds):
         started = time.perf_counter()
@@ -51,7 +53,7 @@ def main() -> None:
         print(json.dumps({"run": "Table 1 fit", "primitives": table1.primitive_count, "seconds": round(elapsed, 1),
                           "psnr": round(fitted.metrics.mean["psnr"], 3)}), flush=True)
         started = time.perf_counter()
-        encoded = encode_scene(scene, encoder, budget, finetune_steps)
+        encoded = encode_scene(scene, encoder, settings)
         elapsed = time.perf_counter() - started
         seconds["encode"] += elapsed
         print(json.dumps({"run": f"encode --bpp {args.bpp:g}", "primitives": encoded.fit.config.primitive_count,

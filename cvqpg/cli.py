@@ -34,6 +34,7 @@ if TYPE_CHECKING:
     from PIL import Image
 
     from .fitting import FitState
+    from .search import CompressionSettings
     from .targets import Scene
     from .view import ViewRecord
 
@@ -843,34 +844,28 @@ def run_compile(_args: argparse.Namespace) -> int:
 
 def run_compress(args: argparse.Namespace) -> int:
     from .app.outputs import CVQ, output
-    from .compression import check_compression_settings
-    from .ratecontrol import check_budget_values
     from .runs import model_path
+    from .search import CompressionSettings
     from .storage import is_compressed
-    bits = BitDepths.parse(args.bits) if args.bits else None
-    rate = args.bpp is not None or args.max_bytes is not None
-    if rate and args.prune:
-        raise UsageError("--prune applies to --bits and --max-drop; with --bpp or --max-bytes the rate control "
-                         "chooses the primitives to keep")
-    check_compression_settings(args.max_drop, args.finetune or 0, args.prune)
-    if rate:
-        check_budget_values(args.bpp, args.max_bytes)
+    settings = CompressionSettings(bits=BitDepths.parse(args.bits) if args.bits else None, max_drop=args.max_drop,
+                                   bpp=args.bpp, max_bytes=args.max_bytes, finetune_steps=args.finetune,
+                                   prune_fraction=args.prune)
     model = model_path(args.target)
     if not model.is_file() or is_compressed(model):  # compress_model says what the target is
-        return _compress(args, bits, rate, args.out)
+        return _compress(args, settings, args.out)
     with output(args.out or model.with_suffix(SUFFIX), CVQ, [model], args.overwrite) as out:
-        return _compress(args, bits, rate, out)
+        return _compress(args, settings, out)
 
 
-def _compress(args: argparse.Namespace, bits: BitDepths | None, rate: bool, out: Path | None) -> int:
-    """`cvqpg compress` once its output is claimed: to a budget (`rate`) or at `bits`."""
-    from .compression import ASSUMED_FIT_PSNR_DB, compress_model
-    from .ratecontrol import compress_to_budget
-    if rate:
-        r = compress_to_budget(Path(args.target), out, args.bpp, args.max_bytes, args.finetune, progress=True)
+def _compress(args: argparse.Namespace, settings: CompressionSettings, out: Path | None) -> int:
+    """`cvqpg compress` once its output is claimed."""
+    from .app.compression import compress_model
+    from .control import RunControl
+    from .search import ASSUMED_FIT_PSNR_DB
+    r = compress_model(Path(args.target), settings, out, RunControl())
+    if settings.budgeted:
         print(f"{r['file']}: {_rate_summary(r)}")
         return 0
-    r = compress_model(Path(args.target), out, bits, args.max_drop, args.finetune or 0, args.prune)
     scored = (f", float {r['psnr_float']:.3f} dB" if r["psnr_float"] is not None
               else f" (drop estimated for a fit at {ASSUMED_FIT_PSNR_DB:g} dB)")
     print(f"{r['file']}: {r['bytes'] / 2**10:.1f} KiB, {r['bits_per_pixel']:.3f} bpp, {r['ratio']:.1f}× smaller than "
@@ -885,8 +880,8 @@ def _compress(args: argparse.Namespace, bits: BitDepths | None, rate: bool, out:
 
 
 def _rate_summary(r: dict) -> str:
-    """A rate-controlled file (`compress_to_budget`, `encode_scene`) in one line."""
-    from .compression import ASSUMED_FIT_PSNR_DB
+    """A rate-controlled file (`compress_model` within a budget, `encode_in_folder`) in one line."""
+    from .search import ASSUMED_FIT_PSNR_DB
     budget = r["max_bytes"]
     return (f"{r['bytes']} bytes of a budget of {budget} ({r['bytes'] / budget:.1%}), {r['bits_per_pixel']:.3f} bpp; "
             f"{r['num_primitives']} primitives at bits " + " ".join(f"{k}={v}" for k, v in r["bits"].items())
@@ -904,11 +899,11 @@ def _source_files(source: dict) -> list[Path]:
 
 def run_encode(args: argparse.Namespace) -> int:
     from .app.allocator import keep_freed_memory
+    from .app.encoding import encode_budget, encode_config, encode_in_folder, encoding_record, read_encode, start_encode
     from .app.outputs import CVQ, check_output, output
-    from .app.runner import encode_in_folder, read_encode, start_encode
-    from .compression import check_compression_settings
-    from .ratecontrol import encode_budget, encode_config, encoding_record
+    from .control import RunControl
     from .runs import scene_from_source, write_atomic
+    from .search import CompressionSettings
     depth, role = None, "`out`"
     if args.resume:
         work = Path(args.resume)
@@ -927,8 +922,8 @@ def run_encode(args: argparse.Namespace) -> int:
             raise UsageError(f"give the {SUFFIX} file to write with --out FILE")
         config, source = _config_and_source(args)
         check_device(config.device)
-        check_compression_settings(None, args.finetune, 0.0)
-        budget, finetune_steps = encode_budget(config, args.bpp, args.max_bytes), args.finetune
+        settings = CompressionSettings(bpp=args.bpp, max_bytes=args.max_bytes, finetune_steps=args.finetune)
+        budget, finetune_steps = encode_budget(config, settings), settings.finetune_steps
         out = check_output(args.out, CVQ, _source_files(source), args.overwrite)
         work = out.with_name(out.name + PARTIAL_SUFFIX)
         if work.exists():
@@ -947,8 +942,8 @@ def run_encode(args: argparse.Namespace) -> int:
             start_encode(work, config, source, budget, finetune_steps)
         if depth is not None:
             depth.save(work / DEPTH_FILE)
-        encoded = encode_in_folder(work, scene, config, budget, finetune_steps, progress=not args.quiet,
-                                   stop_requested=stop_requested)
+        encoded = encode_in_folder(work, scene, config, budget, finetune_steps,
+                                   RunControl(progress=not args.quiet, stop_requested=stop_requested))
         write_atomic(out, encoded.rate.choice.data)
         if not args.quiet:
             print(f"{out}: {_rate_summary(encoding_record(encoded, out, budget))}")
@@ -961,8 +956,8 @@ def run_encode(args: argparse.Namespace) -> int:
 
 
 def run_decompress(args: argparse.Namespace) -> int:
+    from .app.compression import decompress_file
     from .app.outputs import MODEL, output
-    from .compression import decompress_file
     source = Path(args.file)
     out = Path(args.out) if args.out else source.with_name(f"{source.stem}.decoded.safetensors")
     with output(out, MODEL, [source], args.overwrite) as out:

@@ -7,14 +7,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import Callable
 
 import torch
 from torch import Tensor
 
 from .codec import BitDepths, Quantiser, chained_quantisers, coding, folded, primitives_from, quantisers, stream_shapes
 from .config import FitConfig
-from .fitting import hologram, hologram_loss, psnr_from_mse
+from .control import SILENT, RunControl
+from .fitting import FitInterrupted, hologram, hologram_loss, psnr_from_mse
 from .primitives import Primitives
 from .targets import Scene
 
@@ -54,7 +54,7 @@ def quantised(values: dict[str, Tensor], ranges: dict[str, list[float]], config:
 
 
 def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitDepths, steps: int,
-             seed: int | None = None, on_step: Callable[[int, float], None] | None = None) -> Primitives:
+             seed: int | None = None, control: RunControl = SILENT) -> Primitives:
     """`steps` Adam steps on the coded attributes (position px, log scale, rotation, signed
     amplitude·opacity, phase, curvature as a share of γ_max) through their quantisers at `bits`.
 
@@ -63,8 +63,9 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
     moves a value by about that many bins at most. Returns float primitives (opacity 1) that the codec then
     quantises. The codec takes the ranges of log scale and |amplitude| from the model, so
     the entries at their extremes are held fixed and the others kept within them: the file's ranges,
-    and its bins, are then those the loop trained against. `on_step(step, psnr)` is called at each step with
-    the PSNR (dB, mean over planes) of the quantised render the step trains on.
+    and its bins, are then those the loop trained against. `control.on_step(step, loss, psnr)` is told each
+    step's loss and the PSNR (dB, mean over planes) of the quantised render it trains on; a stop request
+    (`control`) raises `FitInterrupted` before the next step.
     """
     coded = coding(primitives, config, bits)
     params = {name: value.to(config.device, copy=True) for name, value in coded.values.items()}
@@ -82,10 +83,12 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
                                                  * 0.5 * (1 + math.cos(math.pi * i / max(steps, 1))))
     generator = torch.Generator(device=config.device).manual_seed(config.seed if seed is None else seed)
     for step in range(steps):
+        if control.should_stop():
+            raise FitInterrupted(config.steps + 1, during="fine-tuning")
         loss, mse = hologram_loss(hologram(quantised(params, coded.ranges, config, bits), config), scene,
                                   config, generator)
-        if on_step is not None:  # reads the device back: only for a caller that shows progress
-            on_step(step, float(psnr_from_mse(mse)))
+        if control.on_step is not None:  # reads the device back: only for a caller that shows progress
+            control.report(step, float(loss.detach()), float(psnr_from_mse(mse.detach())))
         optimizer.zero_grad(set_to_none=True)
         if not torch.isfinite(loss):
             continue

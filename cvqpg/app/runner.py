@@ -1,7 +1,6 @@
 """A fit into a run folder, as the command line and the campaign run it: the kernels compiled ahead
 with a status line, checkpoints in the folder, peak memory measured, and the run record written with
-the results. An encode (`cvqpg encode`) fits in such a folder too, which keeps its budget beside the
-settings, so that an interrupted one resumes from its checkpoint."""
+the results. An encode (`cvqpg encode`, `app.encoding`) fits in such a folder too."""
 
 from __future__ import annotations
 
@@ -14,12 +13,10 @@ import torch
 
 from ..config import FitConfig
 from ..defaults import CHECKPOINT_SECONDS
-from ..errors import ConfigError, CvqpgError, InputError, ModelFileError
+from ..errors import ConfigError, CvqpgError, ModelFileError
 from ..fitting import (CheckpointPolicy, FitResult, FitState, fit_scene, initial_state, seconds_per_step,
                        state_from_payload, steps_within)
-from ..ratecontrol import Budget, Encoding, encode_fitted
-from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, RESTORE_RUN, read_record, read_run, start_run, write_json,
-                    write_run)
+from ..runs import CHECKPOINT_FILE, CONFIG_FILE, RESTORE_RUN, read_record, write_run
 from ..storage import load_checkpoint, save_checkpoint
 from ..targets import Scene
 from .compilation import prepare_kernels
@@ -31,7 +28,6 @@ UNFINGERPRINTED = ("device", "backend")
 # the fingerprint at that value, so that their checkpoints still resume.
 LEGACY_VALUES = {"init": "uniform", "density": None}
 FINGERPRINT_KEY = "run_fingerprint"
-BUDGET_FILE = "budget.json"  # an encode's folder: the budget and the fine-tuning steps, beside config.json
 
 
 def run_fingerprint(config: FitConfig, source: dict[str, Any]) -> str:
@@ -124,39 +120,3 @@ def write_fitted_run(folder: Path, result: FitResult, scene: Scene, source: dict
     record = run_record(torch.device(result.config.device), result.seconds, result.cpu_seconds,
                         result.compile_seconds, result.peak_memory)
     return write_run(folder, result, scene, source, record)
-
-
-def start_encode(folder: Path, config: FitConfig, source: dict[str, Any], budget: Budget, finetune_steps: int) -> Path:
-    """A folder for an encode of `config` (`ratecontrol.encode_config`'s) into `budget`: a run folder
-    (`runs.start_run`) that also records the budget and the fine-tuning steps (`BUDGET_FILE`)."""
-    start_run(folder, config, source)
-    write_json(Path(folder) / BUDGET_FILE, {"max_bytes": budget.max_bytes, "given": budget.given,
-                                            "finetune_steps": finetune_steps})
-    return Path(folder)
-
-
-def read_encode(folder: Path) -> tuple[FitConfig, dict[str, Any], Budget, int]:
-    """What `start_encode` recorded: settings, inputs, budget and fine-tuning steps; `InputError` naming the
-    folder where it holds no encode."""
-    path = Path(folder) / BUDGET_FILE
-    if not path.is_file():
-        raise InputError(f"{folder} holds no encode (no {BUDGET_FILE}); give a folder that `cvqpg encode` left")
-    config, source = read_run(folder)
-    recorded = read_record(path, "delete the folder and encode again")
-    try:
-        budget, steps = Budget(int(recorded["max_bytes"]), str(recorded["given"])), int(recorded["finetune_steps"])
-    except (KeyError, TypeError, ValueError):
-        raise InputError(f"{path} lacks the budget or the fine-tuning steps; delete the folder and encode "
-                         "again") from None
-    return config, source, budget, steps
-
-
-def encode_in_folder(folder: Path, scene: Scene, config: FitConfig, budget: Budget, finetune_steps: int,
-                     progress: bool = True, stop_requested: Callable[[], bool] | None = None) -> Encoding:
-    """`ratecontrol.encode_fitted` of a fit of `config` in `folder` (made by `start_encode`), from the folder's
-    checkpoint where it has one. The fit checkpoints every `CHECKPOINT_SECONDS` and at its end, and a stop request
-    raises `FitInterrupted`: within the fit after saving, within rate control with the finished fit saved, which
-    a resume then rate-controls again."""
-    fitted = fit_in_folder(folder, scene, config, resumed_state(folder, config), progress=progress,
-                           stop_requested=stop_requested, checkpoint_at_end=True)
-    return encode_fitted(fitted, scene, budget, finetune_steps, progress, stop_requested)

@@ -29,14 +29,15 @@ import torch
 from tqdm.auto import tqdm
 
 from ..app.allocator import keep_freed_memory
+from ..app.encoding import encode_steps
 from ..app.provenance import available_cores, machine_record
 from ..app.runner import fit_in_folder, resumed_state, write_fitted_run
 from ..config import BEYOND_RECIPE, FitConfig, default_curvature_warmup
+from ..defaults import RATE_FINETUNE_STEPS
 from ..errors import CvqpgError
 from ..fitting import FitInterrupted, FitState, estimated_peak_bytes
 from ..initialisation import resolved_init
 from ..metrics import radial_error_spectrum
-from ..ratecontrol import RATE_FINETUNE_STEPS, encode_steps
 from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, HISTORY_FILE, METRICS_FILE, MODEL_FILE, read_record, read_run,
                     scene_from_source, start_run, write_atomic, write_json)
 from ..scenes import SCENES

@@ -21,27 +21,31 @@ import torch
 from torch import Tensor
 
 from ..codec import BitDepths, decode, encode
-from ..compression import LADDER, Reference, choose_bits, prune
 from ..config import FitConfig
+from ..control import RunControl
+from ..defaults import ENCODE_FINETUNE_STEPS
 from ..errors import ConfigError
 from ..finetune import finetune
 from ..fitting import hologram, render
 from ..metrics import mean_psnr, mean_ssim
 from ..optics import reconstruct
-from ..ratecontrol import (ENCODE_FINETUNE_STEPS, Budget, encode_budget, encode_config,
-                          rate_control, smallest_file)
 from ..primitives import Primitives
 from ..app.provenance import machine_record
-from ..app.runner import encode_in_folder, start_encode
+from ..app.encoding import encode_budget, encode_config, encode_in_folder, start_encode
 from ..runs import CONFIG_FILE
+from ..search import (LADDER, Budget, CompressionSettings, MaxDrop, Reference, prune, rate_control, search,
+                      smallest_file)
 from ..storage import load_model, save_model
 from ..targets import Scene
 
 JPEG2K_PSNRS = (30, 35, 40, 43, 46, 50, 55, 60, 70)  # OpenJPEG's quality layer, the planes' own PSNR in dB
 JPEGXL_DISTANCES = (16.0, 12.0, 8.0, 4.0, 3.0, 2.0, 1.5, 1.0, 0.7, 0.5, 0.25)  # butteraugli distances, smaller is finer
 RANGE_BYTES = 8  # float32 low and high per plane
+# A cell's ladder points: the search's rungs from 3 bits coarser than the defaults to 6 finer, those every recorded
+# cell holds (finer ones render as the float model does).
+CELL_LADDER = LADDER[:LADDER.index(BitDepths().shifted(6)) + 1]
 MAX_DROPS_DB = (0.1, 0.5)  # the `--max-drop` budgets of a benchmark cell (each search takes tens of renders)
-# The rungs of `LADDER` that a cell fine-tunes: those whose drop without it lies in this range (dB). Rungs
+# The rungs of `CELL_LADDER` that a cell fine-tunes: those whose drop without it lies in this range (dB). Rungs
 # already within 0.1 dB gain nothing; rungs below 4 dB cannot be brought back within the fit's last decibel.
 FINETUNED_DROPS_DB = (0.1, 4.0)
 # The fractions of primitives that a cell prunes (least field energy first) before fine-tuning at the
@@ -97,7 +101,7 @@ def _describe(bits: BitDepths) -> str:
 
 
 def codec_points(primitives: Primitives, config: FitConfig, targets: Tensor,
-                 ladder: Sequence[BitDepths] = LADDER) -> list[Point]:
+                 ladder: Sequence[BitDepths] = CELL_LADDER) -> list[Point]:
     """The `.cvq` codec at each budget of `ladder`."""
     points = []
     for bits in ladder:
@@ -115,7 +119,7 @@ def searched_points(primitives: Primitives, config: FitConfig, targets: Tensor, 
     points, seen = [], set()
     for max_drop in max_drops:
         started = time.perf_counter()
-        choice = choose_bits(primitives, config, reference, max_drop)
+        choice = search(primitives, config, reference, MaxDrop(max_drop))
         searched = time.perf_counter() - started
         if choice.bits not in seen:
             seen.add(choice.bits)
@@ -130,7 +134,7 @@ def finetuned_points(primitives: Primitives, config: FitConfig, scene: Scene, fi
     """The `.cvq` codec after `steps` steps of quantisation-aware fine-tuning on the run's own targets, at
     each rung of `ladder` whose drop without it (`untuned`, the points of `codec_points` in ladder
     order) lies within `FINETUNED_DROPS_DB`, and at the finest of those rungs after pruning each of
-    `prune_fractions` of the primitives (`compression.prune`). Fine-tuning counts as encoding time."""
+    `prune_fractions` of the primitives (`search.prune`). Fine-tuning counts as encoding time."""
     low, high = FINETUNED_DROPS_DB
     rungs = [bits for bits, point in zip(ladder, untuned) if low < fit_psnr - point.psnr <= high]
     settings = [(bits, 0.0) for bits in rungs] + [(rungs[-1], fraction) for fraction in prune_fractions if rungs]
@@ -146,7 +150,7 @@ def finetuned_points(primitives: Primitives, config: FitConfig, scene: Scene, fi
 def budget_points(primitives: Primitives, config: FitConfig, scene: Scene, fit_psnr: float,
                   budgets_bpp: Sequence[float], steps: int) -> list[Point]:
     """The `.cvq` codec at each budget of `budgets_bpp` (bits per hologram pixel) as `cvqpg compress --bpp`
-    writes it (`ratecontrol.rate_control`: primitives and bit depths chosen for the budget, then `steps` of
+    writes it (`search.rate_control`: primitives and bit depths chosen for the budget, then `steps` of
     quantisation-aware fine-tuning on the scene's targets), the whole rate control counted as encoding time.
     Budgets below the smallest file the format can write of the model get no point."""
     reference = Reference(scene.targets, "the run's targets", fit_psnr)
@@ -169,20 +173,20 @@ def encode_point(scene: Scene, config: FitConfig, source: dict[str, Any], bpp: f
                  finetune_steps: int = ENCODE_FINETUNE_STEPS, stop_requested: Callable[[], bool] | None = None
                  ) -> Point | None:
     """The file `cvqpg encode --bpp` writes of `scene` (its inputs `source`) with `config`'s settings: a fit at the
-    budget's primitive count in the folder `work` (`app.runner.encode_in_folder`), rate control and
+    budget's primitive count in the folder `work` (`app.encoding.encode_in_folder`), rate control and
     `finetune_steps` of fine-tuning; None where the budget is below the smallest file of a model of the fit's
     shape. The fit, or its rate control, raises `fitting.FitInterrupted` once `stop_requested()` turns true, with
     a checkpoint saved, from which the same call resumes; `work` is removed once the point is made. Its encode time is
-    the fit's, over every segment, and the rate control's (`ratecontrol.Encoding.seconds`), wall and CPU."""
+    the fit's, over every segment, and the rate control's (`app.encoding.Encoding.seconds`), wall and CPU."""
     try:
-        budget = encode_budget(config, bpp=bpp)
+        budget = encode_budget(config, CompressionSettings(bpp=bpp))
     except ConfigError:
         return None
     fit_config = encode_config(config, budget)
     if not (work / CONFIG_FILE).is_file():
         start_encode(work, fit_config, source, budget, finetune_steps)
-    encoded = encode_in_folder(work, scene, fit_config, budget, finetune_steps, progress=False,
-                               stop_requested=stop_requested)
+    encoded = encode_in_folder(work, scene, fit_config, budget, finetune_steps,
+                               RunControl(progress=False, stop_requested=stop_requested))
     chosen = encoded.rate.choice
     point = _decoded_point(ENCODER, f"--bpp {bpp:.3f}: {fit_config.primitive_count} fitted, {_describe(chosen.bits)}",
                            chosen.data, config, scene.targets, encoded.seconds)
@@ -270,7 +274,7 @@ def anchor_points(primitives: Primitives, config: FitConfig, targets: Tensor,
     return points
 
 
-def rd_points(primitives: Primitives, config: FitConfig, targets: Tensor, ladder: Sequence[BitDepths] = LADDER,
+def rd_points(primitives: Primitives, config: FitConfig, targets: Tensor, ladder: Sequence[BitDepths] = CELL_LADDER,
               anchors: bool = True) -> list[dict[str, Any]]:
     """All R-D points of one model against `targets` [M, C, H, W], as plain dicts (for JSON and tables)."""
     points = [*model_file_points(primitives, config, targets), *codec_points(primitives, config, targets, ladder)]
@@ -279,7 +283,7 @@ def rd_points(primitives: Primitives, config: FitConfig, targets: Tensor, ladder
     return [asdict(p) for p in points]
 
 
-def cell_record(model_file: Path, scene: Scene, ladder: Sequence[BitDepths] = LADDER,
+def cell_record(model_file: Path, scene: Scene, ladder: Sequence[BitDepths] = CELL_LADDER,
                 max_drops: Sequence[float] = MAX_DROPS_DB, finetune_steps: int = 0,
                 budget_fractions: Sequence[float] = (), budget_finetune_steps: int = 0) -> dict[str, Any]:
     """A benchmark cell's R-D record (`rd.json`) for the model in `model_file` against the scene's

@@ -1,0 +1,175 @@
+"""`cvqpg encode`: an image fitted straight into a `.cvq` file of at most a given size. The fit takes as many
+primitives as the budget holds at the default depths, with headroom (`encode_config`), then rate control
+(`search.rate_control`) chooses the primitives and depths of the file and fine-tunes them. In a folder
+(`start_encode`, `encode_in_folder`) the fit keeps checkpoints beside its budget, so that an interrupted encode
+resumes (`read_encode`)."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ..bitdepths import BitDepths
+from ..codec import encode
+from ..config import FitConfig
+from ..control import SILENT, RunControl
+from ..defaults import ENCODE_FINETUNE_STEPS, ENCODE_STEPS
+from ..errors import InputError
+from ..fitting import FitResult, fit_scene
+from ..primitives import Primitives, activate, init_gaussians
+from ..runs import read_record, read_run, start_run, write_json
+from ..search import Budget, CompressionSettings, RateChoice, Reference, rate_control, reference_for, smallest_file
+from ..targets import Scene
+from .compression import choice_record
+from .runner import fit_in_folder, resumed_state
+
+# `cvqpg encode` fits more primitives than the budget holds at the default bit depths, so that the rate
+# search can choose between coarser depths for all of them and the default depths for the strongest.
+ENCODE_HEADROOM = 1.2
+BUDGET_FILE = "budget.json"  # an encode's folder: the budget and the fine-tuning steps, beside config.json
+
+
+def encode_steps(steps: int) -> tuple[int, int]:
+    """`cvqpg encode`'s float and quantisation-aware steps in the place of a fit of `steps` steps: `ENCODE_STEPS`
+    and `ENCODE_FINETUNE_STEPS` for a Table 1 fit's 2000, in proportion for others (one float step at least)."""
+    share = steps / FitConfig().steps
+    return max(round(share * ENCODE_STEPS), 1), round(share * ENCODE_FINETUNE_STEPS)
+
+
+def stand_in(config: FitConfig, count: int, seed: int = 0) -> Primitives:
+    """`count` random primitives of the fit's shape, coded about as a fitted model is: the initialisation's
+    positions, scales and amplitudes, with phases and curvatures spread over their whole range (a fit
+    starts them at 0, which would code in almost no bits)."""
+    raw = init_gaussians(count, config.channels, config.width, config.height, seed,
+                         per_channel_curvature=config.curvature == "per-channel")
+    generator = torch.Generator().manual_seed(seed)
+    raw.phase.uniform_(0, 2 * math.pi, generator=generator)
+    raw.curvature.uniform_(-1, 1, generator=generator)
+    return activate(raw, config)
+
+
+def encode_budget(config: FitConfig, settings: CompressionSettings) -> Budget:
+    """The budget of `settings` for a fit of `config` to be encoded, checked before any fitting: not below the
+    smallest file of a model of its shape (`stand_in`, `search.smallest_file`)."""
+    budget = settings.budget(config)
+    budget.check(smallest_file(stand_in(config, 1), config), config)
+    return budget
+
+
+def primitives_for_budget(config: FitConfig, max_bytes: int) -> int:
+    """How many primitives to fit for a file of `max_bytes` bytes: `ENCODE_HEADROOM` times the count whose
+    file at the default bit depths takes the budget, from the header's bytes and the bytes per primitive
+    measured on `stand_in` models; 1 at least, W·H at most."""
+    header = len(encode(stand_in(config, 1), config, BitDepths()))
+    count = max(config.primitive_count, 2)
+    # Positions cost fewer bits the denser the primitives (Morton gaps): measured again at the first estimate
+    for _ in range(2):
+        per_primitive = (len(encode(stand_in(config, count), config, BitDepths())) - header) / (count - 1)
+        count = min(max(round((max_bytes - header) / per_primitive), 2), config.width * config.height)
+    return min(max(round(count * ENCODE_HEADROOM), 1), config.width * config.height)
+
+
+def encode_config(config: FitConfig, budget: Budget) -> FitConfig:
+    """`config` with the primitive count that `primitives_for_budget` picks for `budget`: the fit `cvqpg encode`
+    runs."""
+    return config.replace(num_gaussians=primitives_for_budget(config, budget.max_bytes)).validate()
+
+
+@dataclass
+class Encoding:
+    """What `encode_fitted` made: the fit (its settings name the primitives fitted), the file chosen, and the
+    wall and process CPU seconds of rate control and fine-tuning."""
+
+    fit: FitResult
+    reference: Reference
+    rate: RateChoice
+    rate_seconds: float
+    rate_cpu_seconds: float
+
+    @property
+    def seconds(self) -> float:
+        """Encoding time (s): the fit's loop, over every segment of a resumed fit, and rate control."""
+        return self.fit.seconds + self.rate_seconds
+
+    @property
+    def cpu_seconds(self) -> float | None:
+        """The process's CPU time (s, all threads) over `seconds`; None where a segment of the fit went unmeasured."""
+        return None if self.fit.cpu_seconds is None else self.fit.cpu_seconds + self.rate_cpu_seconds
+
+
+def encode_fitted(fitted: FitResult, scene: Scene, budget: Budget, finetune_steps: int = ENCODE_FINETUNE_STEPS,
+                  control: RunControl = SILENT) -> Encoding:
+    """Rate-control a fit of `scene` (of `encode_config`'s settings) into a file within `budget`, fine-tuned for
+    `finetune_steps` on the scene's targets; a progress bar (`control.progress`) shows the search's bpp and PSNR.
+    A stop request (`control`) ends it between two rungs or tuning steps with `fitting.FitInterrupted`."""
+    started, cpu_started = time.perf_counter(), time.process_time()
+    primitives = fitted.primitives  # activated once: `FitResult.primitives` activates on every access
+    reference = reference_for(primitives, fitted.config, scene.targets, "the scene's targets")
+    rate = rate_control(primitives, fitted.config, reference, budget, scene, finetune_steps, control)
+    return Encoding(fitted, reference, rate, time.perf_counter() - started, time.process_time() - cpu_started)
+
+
+def encode_scene(scene: Scene, config: FitConfig, settings: CompressionSettings, control: RunControl = SILENT
+                 ) -> Encoding:
+    """Fit `scene` with `encode_config`'s primitive count (replacing `config`'s) for `config.steps` (`cvqpg encode`
+    fits for `ENCODE_STEPS`) and `encode_fitted` the model into a file within the budget of `settings`
+    (`encode_budget`), fine-tuned for its `finetune_steps` (default `ENCODE_FINETUNE_STEPS`). Progress bars
+    (`control.progress`) show the fit's PSNR, then the rate search's bpp and PSNR; `control.on_step` is told the
+    fit's steps. A stop request (`control`) stops the fit or the rate control between two steps
+    (`fitting.FitInterrupted`); `encode_in_folder` runs the same with checkpoints."""
+    budget = encode_budget(config, settings)
+    steps = ENCODE_FINETUNE_STEPS if settings.finetune_steps is None else settings.finetune_steps
+    fitted = fit_scene(scene, encode_config(config, budget), progress=control.progress, on_step=control.on_step,
+                       stop_requested=control.stop_requested)
+    return encode_fitted(fitted, scene, budget, steps, control)
+
+
+def encoding_record(encoded: Encoding, out: str | Path, budget: Budget) -> dict[str, Any]:
+    """What `cvqpg encode` reports of its file (`compression.choice_record`, the budget, the fine-tuning) and
+    of the fit: the primitives it fitted and its seconds."""
+    return {"file": str(out), **choice_record(encoded.rate.choice, encoded.reference, encoded.fit.config),
+            **encoded.rate.record(budget), "fitted_primitives": encoded.fit.config.primitive_count,
+            "fit_seconds": encoded.fit.seconds, "fit_cpu_seconds": encoded.fit.cpu_seconds}
+
+
+def start_encode(folder: Path, config: FitConfig, source: dict[str, Any], budget: Budget, finetune_steps: int) -> Path:
+    """A folder for an encode of `config` (`encode_config`'s) into `budget`: a run folder (`runs.start_run`) that
+    also records the budget and the fine-tuning steps (`BUDGET_FILE`)."""
+    start_run(folder, config, source)
+    write_json(Path(folder) / BUDGET_FILE, {"max_bytes": budget.max_bytes, "given": budget.given,
+                                            "finetune_steps": finetune_steps})
+    return Path(folder)
+
+
+def read_encode(folder: Path) -> tuple[FitConfig, dict[str, Any], Budget, int]:
+    """What `start_encode` recorded: settings, inputs, budget and fine-tuning steps; `InputError` naming the
+    folder where it holds no encode."""
+    path = Path(folder) / BUDGET_FILE
+    if not path.is_file():
+        raise InputError(f"{folder} holds no encode (no {BUDGET_FILE}); give a folder that `cvqpg encode` left")
+    config, source = read_run(folder)
+    recorded = read_record(path, "delete the folder and encode again")
+    try:  # checked as they enter again, as `CompressionSettings` (a `ConfigError` is a `ValueError`)
+        settings = CompressionSettings(max_bytes=int(recorded["max_bytes"]),
+                                       finetune_steps=int(recorded["finetune_steps"]))
+        budget = Budget(settings.max_bytes, str(recorded["given"]))
+    except (KeyError, TypeError, ValueError):
+        raise InputError(f"{path} lacks the budget or the fine-tuning steps; delete the folder and encode "
+                         "again") from None
+    return config, source, budget, settings.finetune_steps
+
+
+def encode_in_folder(folder: Path, scene: Scene, config: FitConfig, budget: Budget, finetune_steps: int,
+                     control: RunControl = SILENT) -> Encoding:
+    """`encode_fitted` of a fit of `config` in `folder` (made by `start_encode`), from the folder's checkpoint where
+    it has one. The fit checkpoints every `runner.CHECKPOINT_SECONDS` and at its end, and a stop request
+    (`control`) raises `FitInterrupted`: within the fit after saving, within rate control with the finished fit
+    saved, which a resume then rate-controls again."""
+    fitted = fit_in_folder(folder, scene, config, resumed_state(folder, config), progress=control.progress,
+                           stop_requested=control.stop_requested, checkpoint_at_end=True)
+    return encode_fitted(fitted, scene, budget, finetune_steps, control)

@@ -1,0 +1,226 @@
+"""The `.cvq` codec (`cvqpg.codec`): streams, quantisers and depths, files that decode as they were written, and
+files or model files that make no physical sense refused in one line."""
+
+import json
+import math
+import re
+import zlib
+
+import numpy as np
+import pytest
+import torch
+
+from cvqpg import FitConfig, load_model
+from cvqpg.cli import main
+from cvqpg.codec import (CHECKSUM, MAGIC, PREFIX, BitDepths, coding, decode, decode_stream, derived_depths, encode,
+                         encode_stream, file_order, importance_offsets, rotation_depths)
+from cvqpg.errors import ModelFileError
+from cvqpg.fitting import render
+from cvqpg.primitives import activate, init_gaussians
+from cvqpg.storage import save_model
+
+FINE = BitDepths(position=8, scale=16, rotation=16, amplitude=16, phase=16, curvature=16)
+
+
+def random_primitives(config: FitConfig, seed: int = 3):
+    """Initialised primitives with signed amplitudes, wrapped phases and curvature near its bounds."""
+    raw = init_gaussians(config.primitive_count, config.channels, config.width, config.height, seed)
+    g = torch.Generator().manual_seed(seed)
+    raw.amplitude.uniform_(-1, 1, generator=g)
+    raw.phase.uniform_(-7, 14, generator=g)
+    raw.rotation.uniform_(-7, 7, generator=g)
+    raw.curvature.uniform_(-3, 3, generator=g)
+    raw.opacity.uniform_(-2, 2, generator=g)
+    return activate(raw, config)
+
+
+@pytest.mark.parametrize("curvature", ["shared", "per-channel"])
+def test_fine_budget_renders_like_the_float_model(curvature):
+    config = FitConfig(width=48, height=32, ratio=0.3, curvature=curvature, guard_band_px=32)
+    primitives = random_primitives(config)
+    decoded = decode(encode(primitives, config, FINE)).primitives
+    assert decoded.count == primitives.count and torch.all(decoded.opacity == 1)
+    field, decoded_field = render(primitives, config)[0], render(decoded, config)[0]
+    assert (decoded_field - field).abs().max() < 1e-2 * field.abs().max()  # 1/256 px positions, chirps near Nyquist
+
+
+def test_decoding_is_deterministic_and_encoding_reproducible():
+    config = FitConfig(width=48, height=32, color="gray", ratio=0.3)
+    primitives = random_primitives(config)
+    data = encode(primitives, config, BitDepths())
+    assert encode(primitives, config, BitDepths()) == data
+    first, second = decode(data).primitives, decode(data).primitives
+    for name, tensor in first.tensors().items():
+        assert torch.equal(tensor, second.tensors()[name]), name
+
+
+@pytest.mark.parametrize("values", [torch.zeros(7, dtype=torch.long), torch.arange(-5, 300),
+                                    torch.tensor([0, 0, 0, 1, 0, 2, 0, 0, 90000]), torch.tensor([2**40, 5, 0, 3]),
+                                    torch.tensor([3])])
+def test_streams_round_trip_exactly(values):
+    array = values.numpy()
+    descriptor, data = encode_stream(array)
+    assert (decode_stream(descriptor, data) == array).all()
+
+
+@pytest.mark.parametrize("skewed, coding", [(False, "widths"), (True, "grouped")])
+def test_streams_at_derived_widths_round_trip_in_their_smaller_coding(skewed, coding):
+    """Symbols whose widths the decoder derives: uniform within their widths, raw bits (`widths`) are smallest;
+    peaked, each width's own entropy coding (`grouped`) pays for its descriptors."""
+    rng = np.random.default_rng(1)
+    widths = rng.integers(0, 7, 5000)
+    symbols = (np.minimum(rng.geometric(0.4, widths.shape) - 1, 2**widths - 1) if skewed
+               else rng.integers(0, 2**widths))
+    descriptor, data = encode_stream(symbols, widths)
+    assert descriptor["coding"] == coding
+    assert (decode_stream(descriptor, data, widths) == symbols).all()
+    with pytest.raises(ValueError):
+        decode_stream(descriptor, data, None)
+
+
+def test_rotation_s_depth_follows_anisotropy():
+    sigma = torch.tensor([[2.0, 2.0], [2.0, 2.1], [2.0, 2.9], [1.0, 2.0], [1.0, 8.0]])
+    assert rotation_depths(sigma, 7).tolist() == [0, 4, 7, 8, 10]  # a − 1/a: 0, 0.098, 0.76, 1.5, 7.9
+    assert rotation_depths(sigma, torch.tensor([7, 7, 5, 9, 7])).tolist() == [0, 4, 5, 10, 10]
+
+
+def test_importance_offsets_give_a_bit_per_fourfold_weight_and_none_to_what_does_not_show():
+    # binary exponents 1, 2, 3, 5, −1 (frexp: w = m·2^e, 0.5 ≤ m < 1): median 2
+    weights = torch.tensor([1.0, 2.0, 4.0, 16.0, 0.25, 0.0], dtype=torch.float64)
+    assert importance_offsets(weights).tolist() == [-1, 0, 0, 1, -2, -16]
+
+
+@pytest.mark.parametrize("attribute", ["position", "rotation", "phase"])
+def test_every_value_s_error_costs_about_alike_in_the_field(attribute):
+    """Position, rotation and phase errors, weighted by what they cost in the field (√(Σ_c |w_c|²) for position,
+    a shifted Gaussian's error energy being independent of its size; √(|w|²·σx·σy) for phase; for rotation
+    √(Σ_c |w_c|²·σx·σy) times a − 1/a, whose bits `rotation_depths` gives), stay within twice the half-step of
+    a value of median weight, where the depths are not clamped."""
+    config = FitConfig(width=48, height=32, color="rgb", ratio=0.6)
+    primitives = random_primitives(config)
+    bits = BitDepths(position=2, rotation=6, phase=6)
+    decoded = decode(encode(primitives, config, bits)).primitives
+    # at the same positions' depths, in the same order
+    reference = decode(encode(primitives, config, BitDepths(position=2, rotation=16, phase=16))).primitives
+    scale = decoded.scale_px.double()
+    power = (decoded.amplitude.double() ** 2).sum(1)
+    weight = {"position": power[:, None].expand(-1, 2), "rotation": power * scale.prod(1),
+              "phase": decoded.amplitude.double() ** 2 * scale.prod(1)[:, None]}[attribute]
+    _, exponent = torch.frexp(weight)
+    median = exponent[weight > 0].sort().values[int((weight > 0).sum()) // 2]
+    if attribute == "position":
+        # a primitive's two coordinates share one depth; the median is over the primitives
+        median = exponent[:, 0].sort().values[weight.shape[0] // 2]
+        # against the float positions: a coarser grid may round a primitive into the next pixel, and so change the
+        # file's order
+        truth = primitives.position_px.double()[file_order(coding(primitives, config, bits))]
+        half_step, error = 2.0 ** -(bits.position + 1), decoded.position_px.double() - truth
+    else:
+        period = math.pi if attribute == "rotation" else 2 * math.pi
+        values, truth = ((decoded.rotation_rad, reference.rotation_rad) if attribute == "rotation"
+                         else (decoded.phase_rad, reference.phase_rad))
+        error = torch.remainder(values.double() - truth.double() + period / 2, period) - period / 2
+        half_step = period / 2 ** (getattr(bits, attribute) + 1)
+    if attribute == "rotation":
+        aspect = scale.max(1).values / scale.min(1).values
+        weight = weight * (aspect - 1 / aspect) ** 2
+    depths = derived_depths(attribute, {"scale": decoded.scale_px, "amplitude": decoded.amplitude.double()}, bits,
+                            tuple(error.shape))
+    top = 8 if attribute == "position" else 16
+    unclamped = (depths > 0) & (depths < top)
+    assert bool((error.abs() * weight.sqrt() <= 2 * half_step * 2.0 ** (median / 2))[unclamped].all())
+    base = getattr(bits, attribute)
+    assert int((depths < base).sum()) > 0 and int((depths > base).sum()) > 0
+
+
+def test_periodic_attributes_wrap():
+    config = FitConfig(width=48, height=32, color="gray", ratio=0.3)
+    primitives = random_primitives(config)
+    values = primitives.tensors()
+    values["rotation_rad"] = values["rotation_rad"] + math.pi
+    values["phase_rad"] = values["phase_rad"] + 2 * math.pi
+    shifted = type(primitives).from_tensors(values)
+    assert encode(shifted, config, BitDepths()) == encode(primitives, config, BitDepths())
+
+
+def test_long_tailed_streams_take_the_bit_length_coding():
+    # Morton gaps: geometric, with one jump beyond the parametric models' range, which `raw` pays on every symbol
+    gaps = np.random.default_rng(0).geometric(1e-3, 4000)
+    gaps[17] = 3 << 21
+    descriptor, data = encode_stream(gaps)
+    assert descriptor["coding"] == "bitlength" and len(data) < 0.6 * 4000 * 23 / 8
+    assert (decode_stream(descriptor, data) == gaps).all()
+
+
+def tampered(data: bytes, change) -> bytes:
+    """A `.cvq` file whose header `change` (a function of the header's dict) altered, checksum recomputed."""
+    _, version, length = PREFIX.unpack_from(data)
+    header = json.loads(zlib.decompress(data[PREFIX.size:PREFIX.size + length]))
+    change(header)
+    packed = zlib.compress(json.dumps(header).encode())
+    body = PREFIX.pack(MAGIC, version, len(packed)) + packed + data[PREFIX.size + length:-CHECKSUM.size]
+    return body + CHECKSUM.pack(zlib.crc32(body))
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda h: h["optics"].update(pixel_pitch=0), "`pixel_pitch` must be positive"),
+    (lambda h: h["optics"].update(pixel_pitch=-3.74e-6), "`pixel_pitch` must be positive"),
+    (lambda h: h["optics"].update(width=8), "too small"),
+    (lambda h: h["optics"].update(wavelengths=[639e-9, 532e-9]), "`wavelengths_m`"),
+    (lambda h: h.update(num_primitives=0), "holds 0 primitives"),
+    (lambda h: h.update(num_primitives=h["num_primitives"] + 1), "its streams have shapes"),
+    (lambda h: h["streams"][1].update(shape=[h["num_primitives"], 3]), "its streams have shapes"),
+    (lambda h: h["bits"].update(scale=40), "`bits` scale=40"),
+    (lambda h: h.pop("optics"), "its header is malformed (KeyError: 'optics')"),
+    (lambda h: h["ranges"].update(amplitude=[0.0, math.inf]), "its ranges of log scale and amplitude"),
+    (lambda h: h["ranges"].update(scale=[math.nan, math.nan]), "are not finite"),
+    (lambda h: h["ranges"].update(scale="wide"), "its header is malformed (ValueError"),
+    # exp → 0: the depths that derive from the scale are no longer those the streams were grouped by
+    (lambda h: h["ranges"].update(scale=[-300.0, -299.0]), "does not decode"),
+])
+def test_a_file_whose_checksum_holds_is_still_checked_for_physical_sense(change, message):
+    config = FitConfig(width=48, height=32, ratio=0.3)
+    data = tampered(encode(random_primitives(config), config, BitDepths()), change)
+    with pytest.raises(ModelFileError, match=f"^model.cvq: .*{re.escape(message)}.*write it again") as refused:
+        decode(data, "model.cvq")
+    assert "\n" not in str(refused.value)
+
+
+@pytest.mark.parametrize("damage, message", [
+    ("nan", "tensor 'phase_rad' holds values that are not finite"),
+    ("negative scale", "some scales (px) are not finite and positive"),
+    ("pitch", "`pixel_pitch` must be positive"),
+    ("config", "holds no readable configuration"),
+    ("count", "its metadata says 5 primitives"),
+])
+def test_a_model_file_that_makes_no_physical_sense_is_refused(tmp_path, damage, message):
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    config = FitConfig(width=48, height=32, ratio=0.3)
+    path = tmp_path / "model.safetensors"
+    save_model(path, random_primitives(config), config.replace(pixel_pitch=0) if damage == "pitch" else config)
+    tensors = load_file(path)
+    with safe_open(str(path), framework="pt") as handle:
+        metadata = handle.metadata()
+    if damage == "nan":
+        tensors["phase_rad"][2, 1] = math.nan
+    elif damage == "negative scale":
+        tensors["scale_px"][0, 0] = -1.0
+    elif damage == "config":
+        metadata["config"] = "{not json"
+    elif damage == "count":
+        metadata["num_primitives"] = "5"
+    save_file(tensors, str(path), metadata=metadata)
+    with pytest.raises(ModelFileError, match=re.escape(message)) as refused:
+        load_model(path)
+    assert str(path) in str(refused.value) and "\n" not in str(refused.value)
+
+
+def test_a_tampered_file_is_one_line_exit_2_with_the_flag_named(tmp_path, capsys):
+    config = FitConfig(width=48, height=32, ratio=0.3)
+    (tmp_path / "model.cvq").write_bytes(tampered(encode(random_primitives(config), config, BitDepths()),
+                                                  lambda h: h["optics"].update(pixel_pitch=0)))
+    assert main(["info", str(tmp_path / "model.cvq")]) == 2
+    error = capsys.readouterr().err
+    assert "--pitch must be positive" in error and len(error.strip().splitlines()) == 1 and "Traceback" not in error

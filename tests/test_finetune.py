@@ -1,0 +1,82 @@
+"""Quantisation-aware fine-tuning (`cvqpg.finetune`): through the codec's own quantisers, on the file's own bins."""
+
+import pytest
+import torch
+
+from cvqpg import FitConfig
+from cvqpg.codec import BitDepths, coding, dequantise, file_order, quantise
+from cvqpg.control import RunControl
+from cvqpg.finetune import finetune, learning_rate_bins, quantised
+from cvqpg.fitting import FitInterrupted, render
+from cvqpg.metrics import mean_psnr
+from cvqpg.targets import Scene
+from test_codec import FINE, random_primitives
+
+
+@pytest.mark.parametrize("bits", [BitDepths(), BitDepths().shifted(-3), FINE,
+                                  BitDepths(position=0, scale=2, rotation=2, amplitude=2, phase=2, curvature=2)])
+@pytest.mark.parametrize("color, curvature, primitive", [("gray", "shared", "cvqpg"), ("rgb", "per-channel", "cvqpg"),
+                                                         ("rgb", "channel-bound", "cvqpg"), ("rgb", "shared", "flat")])
+def test_finetune_rounds_through_the_codec_s_own_quantisers(bits, color, curvature, primitive):
+    config = FitConfig(width=48, height=32, color=color, ratio=0.3, curvature=curvature, primitive=primitive)
+    primitives = random_primitives(config)
+    coded = coding(primitives, config, bits)
+    values = {name: value.clone().requires_grad_(True) for name, value in coded.values.items()}
+    forward = quantised(values, coded.ranges, config, bits)
+    decoded = dequantise(quantise(primitives, config, bits), config, bits).tensors()
+    order = file_order(coded)
+    tuned = {name: tensor.detach()[order] for name, tensor in forward.tensors().items()}
+    for name in ("position_px", "rotation_rad", "amplitude", "phase_rad", "opacity"):
+        assert torch.equal(tuned[name], decoded[name]), name
+    # the same bins; the scale then goes through torch's float32 exp, the file's through numpy's, which
+    # differ in the last bit, and the curvature bound of that scale (float32) by a few
+    for name in ("scale_px", "curvature_per_m"):
+        torch.testing.assert_close(tuned[name], decoded[name], rtol=5e-7, atol=0, msg=name)
+    forward.position_px.sum().backward()
+    assert torch.equal(values["position"].grad, torch.ones_like(values["position"]))
+
+
+def test_finetune_leaves_its_input_alone_and_trains_on_the_file_s_own_bins():
+    from cvqpg.campaign.ratedistortion import Point, finetuned_points
+
+    config = FitConfig(width=48, height=32, color="gray", num_planes=1, ratio=0.3, guard_band_px=32)
+    primitives = random_primitives(config)
+    targets = render(primitives, config)[1].clamp(0.05, 0.95).detach()
+    scene = Scene(targets[0], torch.ones(targets.shape[0], 32, 48), targets)
+    before = primitives.detached()
+    bits = BitDepths().shifted(-3)
+    tuned = finetune(primitives, config, scene, bits, 4)
+    for name, tensor in primitives.tensors().items():
+        assert torch.equal(tensor, before.tensors()[name]), name
+    # the file's ranges (and so its bins) are those the loop quantised against
+    assert quantise(tuned, config, bits).ranges == quantise(primitives, config, bits).ranges
+    assert not torch.equal(tuned.position_px, primitives.position_px)
+    fit = mean_psnr(render(primitives, config)[1], targets)
+    untuned = [Point("cvqpg", "", 1, 1.0, fit - drop, 0.5, 0.0, 0.0) for drop in (5.0, 1.0, 0.05)]
+    points = finetuned_points(primitives, config, scene, fit, 2, [bits, bits.shifted(3), bits.shifted(6)], untuned,
+                              prune_fractions=(0.5,))
+    assert [p.setting.split(":")[0] for p in points] == ["--finetune 2", "--prune 0.5 --finetune 2"]
+    assert points[0].setting.endswith("position=3 scale=8 rotation=7 amplitude=8 phase=7 curvature=8")
+    assert points[1].bytes < 0.7 * points[0].bytes
+
+
+def test_fine_tuning_s_rate_is_a_quarter_bin_for_short_tunings_and_grows_to_four_bins_for_long_ones():
+    assert [learning_rate_bins(steps) for steps in (1, 10, 100)] == [0.25, 0.25, 0.25]
+    assert learning_rate_bins(200) == pytest.approx(1.0) and learning_rate_bins(400) == pytest.approx(4.0)
+    rates = [learning_rate_bins(steps) for steps in range(100, 2001, 50)]
+    assert rates == sorted(rates) and max(rates) == 4.0
+
+
+def test_finetune_tells_its_control_each_step_and_stops_on_request():
+    config = FitConfig(width=48, height=32, color="gray", num_planes=1, ratio=0.3, guard_band_px=32)
+    primitives = random_primitives(config)
+    targets = render(primitives, config)[1].clamp(0.05, 0.95).detach()
+    scene = Scene(targets[0], torch.ones(targets.shape[0], 32, 48), targets)
+    steps = []
+    finetune(primitives, config, scene, BitDepths(), 3, control=RunControl(on_step=lambda *step: steps.append(step)))
+    assert [step for step, _, _ in steps] == [0, 1, 2] and all(psnr > 0 for _, _, psnr in steps)
+    steps.clear()
+    stop = RunControl(stop_requested=lambda: len(steps) == 2, on_step=lambda *step: steps.append(step))
+    with pytest.raises(FitInterrupted, match="stopped during fine-tuning"):
+        finetune(primitives, config, scene, BitDepths(), 5, control=stop)
+    assert len(steps) == 2
