@@ -561,8 +561,9 @@ def check_fit_destination(final: Path, overwrite: bool, role: str = "`out`") -> 
 
 
 def _resume_plan(args: argparse.Namespace) -> FitPlan:
+    from .app.encoding import BUDGET_FILE
     from .app.outputs import is_run_folder
-    from .app.runner import BUDGET_FILE, resumed_state
+    from .app.runner import resumed_state
     from .runs import CONFIG_FILE, read_run, scene_from_source
     work = Path(args.resume)
     if not (work / CONFIG_FILE).is_file():
