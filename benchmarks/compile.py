@@ -65,7 +65,7 @@ def measure(color: str, planes: int, alongside: bool) -> None:
     times = CompileTimes()
     (own, children), wall = process_cpu_seconds(), time.perf_counter()
     with event.install_listener("numba:compile", times):
-        compile_kernels(FitConfig(color=color, num_planes=planes), alongside=alongside)
+        compile_kernels(FitConfig.create(color=color, num_planes=planes), alongside=alongside)
     own, children = (after - before for after, before in zip(process_cpu_seconds(), (own, children)))
     wall = time.perf_counter() - wall
     how = "alongside another process" if alongside else "in one process"

@@ -20,6 +20,7 @@ import statistics
 import torch
 
 from cvqpg import FitConfig
+from cvqpg.config import RunOptions
 from cvqpg.app.allocator import keep_freed_memory
 from cvqpg.codec import BitDepths, decode, encode
 from cvqpg.fitting import hologram
@@ -42,9 +43,9 @@ def main() -> None:
     if args.model:
         primitives, config = load_model(model_path(args.model))
     else:
-        config = FitConfig(width=640, height=480, color="rgb", ratio=0.1)
-        primitives = activate(init_gaussians(config.primitive_count, config.channels, config.width, config.height,
-                                             config.seed), config)
+        config = FitConfig.create(width=640, height=480, color="rgb", ratio=0.1)
+        primitives = activate(init_gaussians(config.primitive_count, config.channels, config.targets.width,
+                                             config.targets.height, config.optimisation.seed), config)
     bits = BitDepths() if args.bits is None else BitDepths.parse(args.bits)
     data = encode(primitives, config, bits)
 
@@ -53,12 +54,13 @@ def main() -> None:
         with torch.no_grad():
             return reconstruct(hologram(decoded.primitives, decoded.config), decoded.config)
 
-    step = stage_actions(config.replace(backend="numba"), primitives)["whole step"]
+    step = stage_actions(config, RunOptions(backend="numba"), primitives)["whole step"]
     times = interleaved_seconds({"decode": lambda: decode(data), "decode + render": decode_and_render,
                                  "optimisation step": step}, args.rounds)
     ratios = [render / one_step for render, one_step in zip(times["decode + render"], times["optimisation step"])]
-    print(f"{config.width}×{config.height} {config.color}, N = {primitives.count}, {config.num_planes} planes, "
-          f"file {len(data):,} B ({8 * len(data) / (config.width * config.height):.2f} bpp), "
+    targets = config.targets
+    print(f"{targets.width}×{targets.height} {targets.color}, N = {primitives.count}, {targets.num_planes} planes, "
+          f"file {len(data):,} B ({8 * len(data) / (targets.width * targets.height):.2f} bpp), "
           f"{torch.get_num_threads()} threads, medians of {args.rounds} rounds")
     for name, values in times.items():
         print(f"{name:>20}: {1000 * statistics.median(values):9.1f} ms")

@@ -18,6 +18,7 @@ import json
 import time
 from pathlib import Path
 
+from cvqpg.control import SILENT
 from cvqpg import FitConfig
 from cvqpg.app.compilation import prepare_kernels
 from cvqpg.app.encoding import encode_budget, encode_scene, encode_steps
@@ -35,11 +36,11 @@ def main() -> None:
     parser.add_argument("--size", type=int, nargs=2, default=(640, 480), metavar=("W", "H"))
     parser.add_argument("--rounds", type=int, default=1, help="turns of (fit, encode); medians are not taken")
     args = parser.parse_args()
-    table1 = FitConfig(width=args.size[0], height=args.size[1], color=args.color, ratio=0.1,
-                       steps=args.steps).with_recipe("paper").validate()
+    table1 = FitConfig.create(width=args.size[0], height=args.size[1], color=args.color, ratio=0.1,
+                              steps=args.steps).with_recipe("paper").validate()
     fit_steps, finetune_steps = encode_steps(args.steps)
-    encoder = FitConfig(width=args.size[0], height=args.size[1], color=args.color, ratio=0.1,
-                        steps=fit_steps).validate()
+    encoder = FitConfig.create(width=args.size[0], height=args.size[1], color=args.color, ratio=0.1,
+                               steps=fit_steps).validate()
     scene = load_scene(next(args.scene.glob("image.*")), args.scene / "depth.png", table1)
     prepare_kernels(table1, show_status=False)
     settings = CompressionSettings(bpp=args.bpp, finetune_steps=finetune_steps)
@@ -47,7 +48,7 @@ def main() -> None:
     seconds: dict[str, float] = {"fit": 0.0, "encode": 0.0}
     for _ in range(args.rounds):
         started = time.perf_counter()
-        fitted = fit_scene(scene, table1, progress=False)
+        fitted = fit_scene(scene, table1, control=SILENT)
         elapsed = time.perf_counter() - started
         seconds["fit"] += elapsed
         print(json.dumps({"run": "Table 1 fit", "primitives": table1.primitive_count, "seconds": round(elapsed, 1),

@@ -3,10 +3,10 @@
     python benchmarks/recipes.py SCENE_DIR                        # every variant, 320×240, 2000 steps
     python benchmarks/recipes.py SCENE_DIR --size 640 480 --variants paper init-targets
     python benchmarks/recipes.py SCENE_DIR --steps 300 --variants paper init-targets
-    python benchmarks/recipes.py SCENE_DIR --steps 8000 --variants density-2pct-every-5pct
+    python benchmarks/recipes.py SCENE_DIR --steps 300 --variants beyond beyond-short
 
-Each variant is the paper's recipe with one set of `FitConfig` changes (`beyond`: the whole beyond recipe; `beyond-*`: it
-with one more change); every fit is grayscale 10%,
+Each variant is the paper's recipe with one set of `FitConfig` changes (`beyond`, `beyond-short`: the whole recipe;
+`beyond-lr-*`: the beyond recipe with one more change); every fit is grayscale 10%,
 CVQPG, seed 100, on SCENE_DIR's image.* and depth.png. The fits' PSNR does not depend on the machine's
 load, only on its CPU and thread count; run it with OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 to compare
 with docs/beyond.md's table. Prints one JSON line per variant: its PSNR, SSIM and difference to `paper`.
@@ -20,7 +20,8 @@ import json
 from pathlib import Path
 
 from cvqpg import FitConfig
-from cvqpg.config import BEYOND_RECIPE, RECIPES, DensityControl, LearningRates
+from cvqpg.config import BEYOND_RECIPE, BEYOND_SHORT_RECIPE, RECIPES, LearningRates
+from cvqpg.control import SILENT
 from cvqpg.fitting import fit_scene
 from cvqpg.targets import load_scene
 
@@ -54,24 +55,20 @@ VARIANTS = {
     "init-targets": {"init": "targets"},
     "init-edges": {"init": "edges"},
     "adan-beta2-0.99-init-edges": {"betas": (0.98, 0.99, 0.99), "init": "edges"},
-    "density-2pct-every-5pct": {"density": DensityControl(every=0.05, until=0.6, fraction=0.02)},
-    "density-5pct-every-2.5pct": {"density": DensityControl(every=0.025, until=0.6, fraction=0.05)},
-    "density-5pct-every-5pct": {"density": DensityControl(every=0.05, until=0.6, fraction=0.05)},
-    "density-2pct-every-2.5pct-until-80pct": {"density": DensityControl(every=0.025, until=0.8, fraction=0.02)},
     "loss-mse-ssim": {"focus_weight": 0.0, "product_weight": 0.0},
     "loss-mse-only": {"focus_weight": 0.0, "product_weight": 0.0, "ssim_weight": 0.0},
     "loss-mse-ssim-3x": {"focus_weight": 0.0, "product_weight": 0.0, "ssim_weight": 0.015},
-    "beyond": RECIPES[BEYOND_RECIPE],  # the whole recipe
-    "beyond-lr-1.5": {**RECIPES[BEYOND_RECIPE], "lr": rates(**{k: 1.5 for k in vars(PAPER_LR)})},
-    "beyond-lr-2": {**RECIPES[BEYOND_RECIPE], "lr": rates(**{k: 2.0 for k in vars(PAPER_LR)})},
-    "beyond-density": {**RECIPES[BEYOND_RECIPE], "density": DensityControl()},
+    "beyond": RECIPES[BEYOND_RECIPE].settings(),  # the whole recipe
+    "beyond-short": RECIPES[BEYOND_SHORT_RECIPE].settings(),
+    "beyond-lr-1.5": {**RECIPES[BEYOND_RECIPE].settings(), "lr": rates(**{k: 1.5 for k in vars(PAPER_LR)})},
+    "beyond-lr-2": {**RECIPES[BEYOND_RECIPE].settings(), "lr": rates(**{k: 2.0 for k in vars(PAPER_LR)})},
 }
 
 
 def variant_config(base: FitConfig, name: str) -> FitConfig:
     changes = dict(VARIANTS[name])
     if changes.get("curvature_warmup") == "5%":
-        changes["curvature_warmup"] = round(0.05 * base.steps)
+        changes["curvature_warmup"] = round(0.05 * base.optimisation.steps)
     return base.replace(**changes).validate()
 
 
@@ -82,13 +79,13 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=2000)
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     args = parser.parse_args()
-    base = FitConfig(width=args.size[0], height=args.size[1], color="gray", ratio=0.1, steps=args.steps)
-    base = base.with_recipe("paper")
+    base = FitConfig.create("paper", width=args.size[0], height=args.size[1], color="gray", ratio=0.1,
+                            steps=args.steps)
     image = next(args.scene.glob("image.*"))
     scene = load_scene(image, args.scene / "depth.png", base)
     reference = None
     for name in dict.fromkeys(["paper", *args.variants]):
-        result = fit_scene(scene, variant_config(base, name), progress=False)
+        result = fit_scene(scene, variant_config(base, name), control=SILENT)
         psnr = result.metrics.mean["psnr"]
         reference = psnr if name == "paper" else reference
         print(json.dumps({"variant": name, "scene": args.scene.name, "size": list(args.size), "steps": args.steps,

@@ -44,10 +44,10 @@ import torch
 import cvqpg
 from cvqpg import FitConfig
 from cvqpg.app.allocator import keep_freed_memory
-from cvqpg.config import default_curvature_warmup
 from cvqpg.app.runner import fit_in_folder
+from cvqpg.config import RunOptions, default_curvature_warmup
+from cvqpg.control import SILENT
 from cvqpg.fitting import apply_gradients, initial_state, optimisation_step, render_hologram
-from cvqpg.ops import resolve_backend
 from cvqpg.ops.field import Grid, clamped_intensity, guarded_field
 from cvqpg.ops.loss import multiplane_loss, noisy_targets, standard_normal
 from cvqpg.ops.propagation import propagate_content
@@ -87,7 +87,7 @@ def interleaved_seconds(actions: dict[str, Callable[[], object]], rounds: int,
     return times
 
 
-def transform_actions(config: FitConfig) -> dict[str, Callable[[], object]]:
+def transform_actions(config: FitConfig, run: RunOptions) -> dict[str, Callable[[], object]]:
     """A step's transforms alone, forward pass only (the backward pass has as many): the floor's 2D
     transforms batched over channels and planes and one array at a time (which one is faster depends
     on the machine's caches: here a single 1536×1920 transform takes about half the time per array of
@@ -95,9 +95,9 @@ def transform_actions(config: FitConfig) -> dict[str, Callable[[], object]]:
     grid = Grid.for_config(config)
     rows, cols = 2 * grid.padded_height, 2 * grid.padded_width
     shape = (config.channels, rows, cols)
-    options = {"dtype": torch.complex64, "device": config.device}
+    options = {"dtype": torch.complex64, "device": run.device}
     field = torch.randn(shape, **options)
-    spectra = torch.randn((config.num_planes, *shape), **options)
+    spectra = torch.randn((config.targets.num_planes, *shape), **options)
     field_rows = torch.randn(grid.padded_height, cols, **options)
     content_rows = torch.randn(grid.height, cols, **options)
     columns = torch.randn(cols, rows, **options)
@@ -109,13 +109,13 @@ def transform_actions(config: FitConfig) -> dict[str, Callable[[], object]]:
     def one_at_a_time():
         for channel in range(config.channels):
             torch.fft.fft2(field[channel])
-            for plane in range(config.num_planes):
+            for plane in range(config.targets.num_planes):
                 torch.fft.ifft2(spectra[plane, channel])
 
     def pruned():  # x pass over the rows needed, y pass over all columns
         for _ in range(config.channels):
             torch.fft.fft(field_rows), torch.fft.fft(columns)
-            for _ in range(config.num_planes):
+            for _ in range(config.targets.num_planes):
                 torch.fft.ifft(columns), torch.fft.ifft(content_rows)
 
     return {"floor, batched": batched, "floor, one at a time": one_at_a_time, "pruned transforms": pruned}
@@ -124,7 +124,7 @@ def transform_actions(config: FitConfig) -> dict[str, Callable[[], object]]:
 def load_raw_parameters(gaussians: Gaussians, primitives: Primitives, config: FitConfig) -> None:
     """Set raw parameters so that they activate to `primitives` (method.md §2's activations inverted)."""
     inside = 1 - OPEN_INTERVAL_MARGIN
-    extent = torch.tensor([config.width, config.height], dtype=primitives.position_px.dtype)
+    extent = torch.tensor([config.targets.width, config.targets.height], dtype=primitives.position_px.dtype)
     share = primitives.curvature_per_m / curvature_bound(primitives.scale_px, config)
     with torch.no_grad():
         gaussians.position.copy_(torch.atanh((2 * primitives.position_px / extent - 1).clamp(-inside, inside)))
@@ -136,21 +136,22 @@ def load_raw_parameters(gaussians: Gaussians, primitives: Primitives, config: Fi
         gaussians.curvature.copy_(torch.atanh(share.clamp(-inside, inside)).view_as(gaussians.curvature))
 
 
-def demo_scene(config: FitConfig) -> Scene:
-    """The built-in demo scene at `config`'s size, its tensors on `config`'s device."""
-    builtin = builtin_pictures("demo", config.width, config.height)
+def demo_scene(config: FitConfig, run: RunOptions) -> Scene:
+    """The built-in demo scene at `config`'s size, its tensors on `run`'s device."""
+    builtin = builtin_pictures("demo", config.targets.width, config.targets.height)
     scene = load_scene(builtin.image, builtin.depth, config)
-    return Scene(*(t.to(config.device) for t in (scene.image, scene.masks, scene.targets)))
+    return Scene(*(t.to(run.device) for t in (scene.image, scene.masks, scene.targets)))
 
 
-def stage_actions(config: FitConfig, primitives: Primitives | None = None,
+def stage_actions(config: FitConfig, run: RunOptions, primitives: Primitives | None = None,
                   curved: bool = True) -> dict[str, Callable[[], object]]:
     """Each stage of a step, and whole steps. `curved` unlocks the curvature (at initialisation, each
     a random fraction of its bound); otherwise it stays frozen at zero, as in the warm-up, through the
     whole steps too."""
-    scene = demo_scene(config)
+    scene = demo_scene(config, run)
+    backend = run.backend
     config = config.replace(curvature_warmup=0 if curved else 10**9)
-    state = initial_state(config, scene)
+    state = initial_state(config, scene, run)
     if primitives is not None:
         load_raw_parameters(state.gaussians, primitives, config)
     elif curved:
@@ -159,44 +160,46 @@ def stage_actions(config: FitConfig, primitives: Primitives | None = None,
             curvature.copy_(2 * torch.rand(curvature.shape, generator=torch.Generator().manual_seed(1)) - 1)
     state.gaussians.curvature.requires_grad_(curved)
     gaussians, optimizer, generator = state.gaussians, state.optimizer, state.generator
-    hologram_grad = torch.randn(config.channels, config.height, config.width, dtype=torch.complex64,
-                                device=config.device)
+    hologram_grad = torch.randn(config.channels, config.targets.height, config.targets.width, dtype=torch.complex64,
+                                device=run.device)
 
     def raster_forward():
         with torch.no_grad():
-            return render_hologram(gaussians, config)
+            return render_hologram(gaussians, config, backend)
 
     def raster_forward_backward():
-        render_hologram(gaussians, config).backward(hologram_grad)
+        render_hologram(gaussians, config, backend).backward(hologram_grad)
 
     leaf = raster_forward().requires_grad_(True)
-    recon_grad = torch.rand(config.num_planes, config.channels, config.height, config.width, device=config.device)
+    recon_grad = torch.rand(config.targets.num_planes, config.channels, config.targets.height, config.targets.width,
+                            device=run.device)
 
     def propagation():
-        reconstruct(leaf, config).backward(recon_grad)
+        reconstruct(leaf, config, backend=backend).backward(recon_grad)
 
     def pruned_propagation():  # the step's propagation with the pruned transforms, through PyTorch's operations
         grid = Grid.for_config(config)
-        field = guarded_field(leaf, grid, config.backend)
-        planes = propagate_content(field, grid, config.plane_distances, config.wavelengths, config.pixel_pitch,
+        field = guarded_field(leaf, grid, backend)
+        planes = propagate_content(field, grid, config.plane_distances, config.wavelengths, config.optics.pixel_pitch,
                                    fused=False)
-        clamped_intensity(planes, config.backend).backward(recon_grad)
+        clamped_intensity(planes, backend).backward(recon_grad)
 
-    recon = reconstruct(leaf, config).detach().requires_grad_(True)
+    recon = reconstruct(leaf, config, backend=backend).detach().requires_grad_(True)
 
     def loss():
-        noise = standard_normal(scene.targets.shape, generator, config.backend)
+        noise = standard_normal(scene.targets.shape, generator, backend)
         value, _ = multiplane_loss(recon, scene.targets, scene.masks,
-                                   noisy_targets(scene.targets, noise, config.target_noise), config.ssim_weight,
-                                   config.backend, *config.loss_weights)
+                                   noisy_targets(scene.targets, noise, config.loss.target_noise),
+                                   config.loss.ssim_weight, backend, config.loss.focus_weight,
+                                   config.loss.product_weight)
         value.backward()
 
-    render_hologram(gaussians, config).backward(hologram_grad)
+    render_hologram(gaussians, config, backend).backward(hologram_grad)
     actions = {"raster forward": raster_forward, "raster forward+backward": raster_forward_backward,
                "propagation forward+backward": propagation, "loss forward+backward": loss,
                "optimizer": lambda: apply_gradients(optimizer, config, state.step),
-               "whole step": lambda: optimisation_step(state, scene, config)}
-    if resolve_backend(config.backend, config.device) != "numba":  # the numba step's propagation is the pruned one
+               "whole step": lambda: optimisation_step(state, scene, config, backend)}
+    if run.kernels != "numba":  # the numba step's propagation is the pruned one
         actions[PRUNED_STAGE] = pruned_propagation
     return actions
 
@@ -207,9 +210,10 @@ def peak_rss_gib(config: FitConfig, steps: int) -> float:
     from the forked copy of the parent, so both RUSAGE_CHILDREN and the child's RUSAGE_SELF would
     report at least the parent's size at the fork. The child starts in the folder that holds this
     process's `cvqpg`, so that it imports the same code (a worktree on PYTHONPATH, for instance)."""
-    arguments = ["fit", "--size", str(config.width), str(config.height), "--color", config.color, "--ratio",
-                 str(config.ratio), "--steps", str(steps), "--curvature-warmup", "1",
-                 "--out", f"/tmp/cvqpg-bench-rss-{config.color}", "--overwrite", "--quiet"]
+    targets = config.targets
+    arguments = ["fit", "--size", str(targets.width), str(targets.height), "--color", targets.color, "--ratio",
+                 str(config.primitives.ratio), "--steps", str(steps), "--curvature-warmup", "1",
+                 "--out", f"/tmp/cvqpg-bench-rss-{config.targets.color}", "--overwrite", "--quiet"]
     program = ("import sys; from cvqpg.cli import main; main(sys.argv[1:]); "
                "print(next(line.split()[1] for line in open('/proc/self/status') if line.startswith('VmHWM:')))")
     output = subprocess.run([sys.executable, "-c", program, *arguments], check=True, capture_output=True,
@@ -217,21 +221,22 @@ def peak_rss_gib(config: FitConfig, steps: int) -> float:
     return int(output.split()[-1]) / 2**20
 
 
-def whole_fit(config: FitConfig) -> dict[str, float]:
-    """A whole fit of the demo scene on `config.device`, as `cvqpg fit` runs it (`app.runner`, kernels
+def whole_fit(config: FitConfig, run: RunOptions) -> dict[str, float]:
+    """A whole fit of the demo scene on `run`, as `cvqpg fit` runs it (`app.runner`, kernels
     compiled ahead, peak memory measured): the first fit (a 2-step fit of the same configuration, run
     first), the fit loop's seconds and the whole call's, the peak memory (GiB) and the final PSNR (dB)."""
-    scene = demo_scene(config)
-    device = torch.device(config.device)
+    scene = demo_scene(config, run)
+    device = torch.device(run.device)
     with tempfile.TemporaryDirectory() as folder:
         synchronize(device)
         started = time.perf_counter()
-        fit_in_folder(Path(folder), scene, config.replace(steps=2, curvature_warmup=min(config.curvature_warmup_steps, 1)),
-                      progress=False, checkpoint_every_seconds=None, source={"scene": "demo"})
+        fit_in_folder(Path(folder), scene, config.replace(steps=2, curvature_warmup=min(
+            config.optimisation.curvature_warmup, 1)), run, SILENT, checkpoint_every_seconds=None,
+                      source={"scene": "demo"})
         synchronize(device)
         first = time.perf_counter() - started
         started = time.perf_counter()
-        result = fit_in_folder(Path(folder), scene, config, progress=False, checkpoint_every_seconds=None,
+        result = fit_in_folder(Path(folder), scene, config, run, SILENT, checkpoint_every_seconds=None,
                                source={"scene": "demo"})
         synchronize(device)
     return {"first fit s": first, "fit loop s": result.seconds, "fit call s": time.perf_counter() - started,
@@ -245,12 +250,12 @@ def fast_backend(device: str) -> str:
     return "numba" if torch.device(device).type == "cpu" else "auto"
 
 
-def report(label: str, config: FitConfig, rounds: int, reference_rounds: int,
+def report(label: str, config: FitConfig, run: RunOptions, rounds: int, reference_rounds: int,
            primitives: Primitives | None = None, curved: bool = True) -> dict[str, float]:
-    fast = config.replace(backend=fast_backend(config.device))
-    device = torch.device(config.device)
-    times = interleaved_seconds({**stage_actions(fast, primitives, curved), **transform_actions(fast)}, rounds,
-                                device)
+    fast = RunOptions(run.device, fast_backend(run.device))
+    device = torch.device(run.device)
+    times = interleaved_seconds({**stage_actions(config, fast, primitives, curved),
+                                 **transform_actions(config, fast)}, rounds, device)
     per_round = {name: torch.tensor(values, dtype=torch.float64) for name, values in times.items()}
     per_round["raster backward"] = per_round["raster forward+backward"] - per_round["raster forward"]
     per_round["FFT floor"] = 2 * torch.minimum(per_round["floor, batched"], per_round["floor, one at a time"])
@@ -263,13 +268,14 @@ def report(label: str, config: FitConfig, rounds: int, reference_rounds: int,
     reference = None
     if reference_rounds:
         reference_times = interleaved_seconds(
-            {name: action for name, action in stage_actions(fast.replace(backend="torch"), primitives, curved).items()
+            {name: action for name, action in stage_actions(config, RunOptions(run.device, "torch"), primitives,
+                                                            curved).items()
              if name in ("raster forward+backward", "whole step")}, reference_rounds, device)
         reference = {name: statistics.median(values) for name, values in reference_times.items()}
     count = config.primitive_count if primitives is None else primitives.position_px.shape[0]
     where = f"{torch.get_num_threads()} threads" if device.type == "cpu" else torch.cuda.get_device_name(device)
-    print(f"\n## {label}: {config.width}×{config.height}, N = {count}, "
-          f"{config.num_planes} planes, {config.device} ({where}), medians of {rounds} rounds")
+    print(f"\n## {label}: {config.targets.width}×{config.targets.height}, N = {count}, "
+          f"{config.targets.num_planes} planes, {run.device} ({where}), medians of {rounds} rounds")
     for name in ("raster forward", "raster backward", "propagation forward+backward", PRUNED_STAGE,
                  "loss forward+backward", "optimizer", "whole step", "FFT floor"):
         if name in median:
@@ -287,21 +293,23 @@ def report(label: str, config: FitConfig, rounds: int, reference_rounds: int,
     return {**median, **ratios, "torch backend": reference}
 
 
-def print_whole_fits(base: FitConfig, big: tuple[int, int], steps: int, which: str) -> dict[str, dict[str, float]]:
+def print_whole_fits(base: FitConfig, run: RunOptions, big: tuple[int, int], steps: int, which: str
+                     ) -> dict[str, dict[str, float]]:
     """`whole_fit` of RGB 20% and grayscale 10% at `base`'s size (`which` small or all) and of RGB 20% at
     `big` (W, H) px (big or all)."""
     fits = {}
     if which in ("small", "all"):
-        fits[f"RGB 20%, {base.width}×{base.height}"] = base.replace(color="rgb", ratio=0.2)
-        fits[f"grayscale 10%, {base.width}×{base.height}"] = base.replace(color="gray", ratio=0.1)
+        size = f"{base.targets.width}×{base.targets.height}"
+        fits[f"RGB 20%, {size}"] = base.replace(color="rgb", ratio=0.2)
+        fits[f"grayscale 10%, {size}"] = base.replace(color="gray", ratio=0.1)
     if which in ("big", "all"):
         fits[f"RGB 20%, {big[0]}×{big[1]}"] = base.replace(color="rgb", ratio=0.2, width=big[0], height=big[1])
-    print(f"\n## whole fits of the demo scene on {base.device}, {steps} steps (indices 0..{steps}), "
+    print(f"\n## whole fits of the demo scene on {run.device}, {steps} steps (indices 0..{steps}), "
           f"curvature warm-up {default_curvature_warmup(steps)}, 2 planes")
     print(f"{'fit':>28}  {'first fit':>9}  {'fit loop':>9}  {'whole call':>10}  {'peak':>9}  {'PSNR':>9}")
     results = {}
     for label, config in fits.items():
-        numbers = whole_fit(config.replace(steps=steps, curvature_warmup=default_curvature_warmup(steps)))
+        numbers = whole_fit(config.replace(steps=steps, curvature_warmup=default_curvature_warmup(steps)), run)
         results[label] = numbers
         print(f"{label:>28}  {numbers['first fit s']:8.1f}s  {numbers['fit loop s']:8.1f}s  "
               f"{numbers['fit call s']:9.1f}s  {numbers['peak GiB']:5.2f} GiB  {numbers['psnr dB']:6.2f} dB"
@@ -331,13 +339,14 @@ def main() -> None:
     if args.device == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda: no CUDA GPU is visible to PyTorch")
     width, height = (320, 240) if args.quick else (640, 480)
-    rgb = FitConfig(width=width, height=height, color="rgb", ratio=0.2, device=args.device)
+    rgb = FitConfig.create(width=width, height=height, color="rgb", ratio=0.2)
+    run = RunOptions(args.device)
     if args.model and args.quick:
         parser.error("--quick sets the size, --model brings its own; pass one of them")
     gray = rgb.replace(color="gray", ratio=0.1)
     if args.model:
         primitives, config = load_model(model_path(args.model))
-        settings = {f"fitted model {args.model}": (config.replace(device=args.device), primitives, True)}
+        settings = {f"fitted model {args.model}": (config, primitives, True)}
     else:
         settings = {"RGB 20%, at initialisation, flat (warm-up)": (rgb, None, False),
                     "RGB 20%, at initialisation, curved": (rgb, None, True),
@@ -347,13 +356,13 @@ def main() -> None:
         parser.error("--fits-only goes with --whole-fit")
     for label, (config, primitives, curved) in settings.items():
         if not args.fits_only:
-            results[label] = report(label, config, args.rounds, args.reference_rounds, primitives, curved)
+            results[label] = report(label, config, run, args.rounds, args.reference_rounds, primitives, curved)
     if args.device == "cpu" and not args.fits_only:
         rss = peak_rss_gib(rgb, args.rss_steps)
         print(f"\npeak RSS of an RGB 20% fit ({args.rss_steps} steps, separate process): {rss:.2f} GiB")
         results["peak rss gib"] = rss
     if args.whole_fit:
-        results["whole fits"] = print_whole_fits(rgb, tuple(args.big_size), args.fit_steps, args.whole_fit)
+        results["whole fits"] = print_whole_fits(rgb, run, tuple(args.big_size), args.fit_steps, args.whole_fit)
     if args.json:
         with open(args.json, "w") as handle:
             json.dump(results, handle, indent=2)

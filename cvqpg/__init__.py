@@ -14,7 +14,8 @@ from .deprecations import install_moved_modules
 __version__ = "0.2.0"
 
 _API_MODULES = {
-    "config": ("FitConfig", "LearningRates"),
+    "config": ("FitConfig", "LearningRates", "RunOptions"),
+    "control": ("RunControl",),
     "errors": ("CvqpgError", "ConfigError", "InputError", "ModelFileError"),
     "depth": ("estimate_depth", "load_depth_model"),
     "fitting": ("FitResult", "fit", "fit_scene", "hologram", "render", "render_hologram"),

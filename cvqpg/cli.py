@@ -23,7 +23,8 @@ from . import __version__
 from .bitdepths import BitDepths
 from .campaign.presets import METHODS, PRESETS
 from .config import (BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITIVES, QPFS, RECIPES, FitConfig,
-                     default_curvature_warmup)
+                     RunOptions, default_curvature_warmup)
+from .control import RunControl
 from .defaults import (CHECKPOINT_SECONDS, DEFAULT_APERTURE, DEFAULT_LEVELS, DEFAULT_SWEEP, DEPTH_FILE, DEPTH_MODEL,
                        ENCODE_FINETUNE_STEPS, ENCODE_STEPS, ENCODINGS, RATE_FINETUNE_STEPS, SCENE_NAMES, SUFFIX,
                        VIEW_FILE)
@@ -38,7 +39,8 @@ if TYPE_CHECKING:
     from .targets import Scene
     from .view import ViewRecord
 
-DEFAULTS = FitConfig()
+DEFAULTS = FitConfig.create()  # the default recipe's
+RUN_DEFAULTS = RunOptions()
 # Exit codes besides 0 (success), 128 + N (stopped by signal N) and 130 (Ctrl-C).
 EXIT_BUG, EXIT_USAGE, EXIT_FILESYSTEM, EXIT_MEMORY = 1, 2, 3, 4
 # Subcommands' names before a rename, kept for one release (`FormerName` keeps options').
@@ -157,7 +159,7 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
                    "a few steps are timed on this machine and fix the step count, which the run records (a --resume "
                    "or a rerun with that --steps is exact)")
     count = p.add_mutually_exclusive_group()
-    count.add_argument("--ratio", type=finite, default=DEFAULTS.ratio,
+    count.add_argument("--ratio", type=finite, default=DEFAULTS.primitives.ratio,
                        help="primitive count as a fraction of W·H/2 (RGB) or W·H/4 (grayscale)")
     count.add_argument("--num-gaussians", type=int, metavar="N", help="explicit primitive count N")
     p.add_argument("--out", metavar="DIR", help="run folder [default: runs/<time>-<input>-<color>-"
@@ -173,7 +175,7 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
 
-def _fit_options(p: argparse.ArgumentParser, steps: int = DEFAULTS.steps) -> None:
+def _fit_options(p: argparse.ArgumentParser, steps: int = DEFAULTS.optimisation.steps) -> None:
     """What to fit and how (`_config_and_source` reads them): shared by `fit` and `encode` (whose fit takes
     `steps` by default)."""
     p.add_argument("image", nargs="?", help="input image file (any format Pillow reads); "
@@ -186,48 +188,47 @@ def _fit_options(p: argparse.ArgumentParser, steps: int = DEFAULTS.steps) -> Non
                    "star, single plane)")
     p.add_argument("--color", choices=COLORS, help="colour mode: RGB at 639/532/473 nm or "
                    "grayscale at 639 nm [default: rgb; gray for --scene star]")
-    p.add_argument("--primitive", choices=PRIMITIVES, default=DEFAULTS.primitive,
+    p.add_argument("--primitive", choices=PRIMITIVES, default=DEFAULTS.primitives.kind,
                    help="flat-phase baseline or CVQPG with learnable curvature")
     p.add_argument("--recipe", choices=tuple(RECIPES), default=DEFAULTS.recipe,
-                   help="how to fit: 'paper' is the paper's recipe, bit for bit; docs/beyond.md describes each "
-                   "recipe and what it gains")
+                   help="how to fit: " + "; ".join(f"'{r.name}': {r.summary}" for r in RECIPES.values()))
     p.add_argument("--steps", type=int, help="optimisation steps (the loop runs indices 0..steps, as the "
                    f"reference) [default: {steps}]")
     p.add_argument("--curvature-warmup", type=int, metavar="W", help="steps with curvature frozen at 0 (CVQPG "
                    f"only) [default: steps/5, {default_curvature_warmup(steps)} of {steps}]")
     _former_name(p, "--warmup", "--curvature-warmup", type=int)
     p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"),
-                   default=(DEFAULTS.width, DEFAULTS.height), help="hologram size in px")
+                   default=(DEFAULTS.targets.width, DEFAULTS.targets.height), help="hologram size in px")
     p.add_argument("--planes", type=int, metavar="M", help="depth planes at linspace(1 mm, 5 mm, M) "
                    "[default: 2; 1 for --scene star]")
-    p.add_argument("--seed", type=int, default=DEFAULTS.seed, help="random seed")
-    p.add_argument("--device", default=DEFAULTS.device, choices=DEVICE_TYPES, help="torch device")
-    p.add_argument("--backend", default=DEFAULTS.backend, choices=BACKENDS,
+    p.add_argument("--seed", type=int, default=DEFAULTS.optimisation.seed, help="random seed")
+    p.add_argument("--device", default=RUN_DEFAULTS.device, choices=DEVICE_TYPES, help="torch device")
+    p.add_argument("--backend", default=RUN_DEFAULTS.backend, choices=BACKENDS,
                    help="kernels: Numba (CPU), Triton (GPU), PyTorch only (the reference, everywhere), "
                    "or auto (Numba on CPU, Triton on GPU)")
-    p.add_argument("--bound", choices=BOUNDS, default=DEFAULTS.bound,
+    p.add_argument("--bound", choices=BOUNDS, default=DEFAULTS.primitives.bound,
                    help="curvature bound: per-primitive Nyquist (γ_max = ηλ/(6σΔx²)) or global "
-                   f"{DEFAULTS.global_bound:g} 1/m (ablation)")
-    p.add_argument("--qpf", choices=QPFS, default=DEFAULTS.qpf,
+                   f"{DEFAULTS.primitives.global_bound:g} 1/m (ablation)")
+    p.add_argument("--qpf", choices=QPFS, default=DEFAULTS.primitives.qpf,
                    help="quadratic phase: follows the Gaussian's ellipse, or circular (ablation)")
-    p.add_argument("--curvature", choices=CURVATURES, default=DEFAULTS.curvature,
+    p.add_argument("--curvature", choices=CURVATURES, default=DEFAULTS.primitives.curvature,
                    help="CVQPG curvature in colour: one γ for all channels bounded by the shortest "
                    "wavelength (the paper), one γ_c per channel bounded by its own λ_c (15 parameters "
                    "per RGB primitive), or one shared raw value scaled by each channel's own bound")
-    p.add_argument("--pitch", type=finite, default=DEFAULTS.pixel_pitch, metavar="M",
+    p.add_argument("--pitch", type=finite, default=DEFAULTS.optics.pixel_pitch, metavar="M",
                    help="SLM pixel pitch in m")
     p.add_argument("--wavelengths", type=finite, nargs="+", metavar="M",
                    help="wavelength per channel in m [default: 639e-9 532e-9 473e-9 (rgb), 639e-9 (gray)]")
-    p.add_argument("--plane-center", type=finite, default=DEFAULTS.plane_center, metavar="M",
+    p.add_argument("--plane-center", type=finite, default=DEFAULTS.targets.plane_center, metavar="M",
                    help="middle of the plane range d in m (planes span d ± V/2)")
-    p.add_argument("--plane-span", type=finite, default=DEFAULTS.plane_span, metavar="M",
+    p.add_argument("--plane-span", type=finite, default=DEFAULTS.targets.plane_span, metavar="M",
                    help="plane range V in m")
     p.add_argument("--resize-depth", action="store_true",
                    help="accept a depth map whose aspect ratio differs from the image's (it is stretched)")
 
 
 def _device_argument(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--device", default=DEFAULTS.device, choices=DEVICE_TYPES, help="torch device to render on")
+    p.add_argument("--device", default=RUN_DEFAULTS.device, choices=DEVICE_TYPES, help="torch device to render on")
 
 
 def _display_parsers(sub: argparse._SubParsersAction) -> None:
@@ -322,7 +323,8 @@ def _compression_parsers(sub: argparse._SubParsersAction) -> None:
                    "checkpoint in its folder, with its own settings and budget (other options are ignored)")
     _overwrite_argument(e, "the output file")
     e.add_argument("--quiet", action="store_true", help="no progress bars or summary")
-    e.set_defaults(ratio=DEFAULTS.ratio, num_gaussians=None, steps=ENCODE_STEPS)  # the count follows from the budget
+    # the count follows from the budget
+    e.set_defaults(ratio=DEFAULTS.primitives.ratio, num_gaussians=None, steps=ENCODE_STEPS)
     d = sub.add_parser("decompress", help=f"turn a {SUFFIX} file back into a model file",
                        description=f"Decode a {SUFFIX} file into a float32 model file (model.safetensors format).")
     d.add_argument("file", metavar="FILE", help=f"{SUFFIX} file")
@@ -356,7 +358,7 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--methods", nargs="+", metavar="METHOD", help=f"any of {', '.join(METHODS)} "
                    "[default: the preset's]")
     seeds = p.add_mutually_exclusive_group()
-    seeds.add_argument("--seed", type=int, help=f"random seed [default: {DEFAULTS.seed}]")
+    seeds.add_argument("--seed", type=int, help=f"random seed [default: {DEFAULTS.optimisation.seed}]")
     seeds.add_argument("--seeds", type=int, nargs="+", metavar="SEED", help="several seeds: every cell once "
                        "per seed (seed spread)")
     p.add_argument("--steps", type=int, help="optimisation steps [default: the preset's]")
@@ -447,21 +449,24 @@ def _config_and_source(args: argparse.Namespace) -> tuple[FitConfig, dict]:
                          "or use --planes 1")
     if args.resize_depth:
         source["resize_depth"] = True
-    config = FitConfig(width=width, height=height, color=color, primitive=args.primitive,
-                       ratio=args.ratio, num_gaussians=args.num_gaussians,
-                       steps=DEFAULTS.steps if args.steps is None else args.steps,
-                       curvature_warmup=args.curvature_warmup,
-                       seed=args.seed, num_planes=planes, bound=args.bound,
-                       qpf=args.qpf, curvature=args.curvature, device=args.device, backend=args.backend,
-                       pixel_pitch=args.pitch,
-                       plane_center=args.plane_center, plane_span=args.plane_span,
-                       wavelengths_m=tuple(args.wavelengths) if args.wavelengths else None).with_recipe(args.recipe)
+    config = FitConfig.create(args.recipe, width=width, height=height, color=color, primitive=args.primitive,
+                              ratio=args.ratio, num_gaussians=args.num_gaussians,
+                              steps=DEFAULTS.optimisation.steps if args.steps is None else args.steps,
+                              curvature_warmup=args.curvature_warmup, seed=args.seed, num_planes=planes,
+                              bound=args.bound, qpf=args.qpf, curvature=args.curvature, pixel_pitch=args.pitch,
+                              plane_center=args.plane_center, plane_span=args.plane_span,
+                              wavelengths_m=tuple(args.wavelengths) if args.wavelengths else None)
     return config.validate(), source
+
+
+def _run_options(args: argparse.Namespace) -> RunOptions:
+    """Where `fit` and `encode` run: `--device` and `--backend`."""
+    return RunOptions(args.device, args.backend).validate()
 
 
 def _default_out(source: dict, config: FitConfig) -> Path:
     label = source.get("scene") or Path(source["image"]).stem
-    return Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{label}-{config.color}-{config.primitive}"
+    return Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{label}-{config.targets.color}-{config.primitives.kind}"
 
 
 def _summary(record: dict) -> str:
@@ -489,15 +494,16 @@ def device_memory_bytes(device: str) -> int | None:
     return available_memory_bytes()
 
 
-def check_memory(config: FitConfig, available: int | None) -> None:
-    """Refuse a fit whose estimated peak on `config.device` (`estimated_peak_bytes`) exceeds `available`
-    bytes there (None: unknown, accepted)."""
+def check_memory(config: FitConfig, device: str, available: int | None) -> None:
+    """Refuse a fit whose estimated peak on `device` (`estimated_peak_bytes`) exceeds `available` bytes there
+    (None: unknown, accepted)."""
     import torch
     from .fitting import estimated_peak_bytes
-    needed = estimated_peak_bytes(config)
+    needed = estimated_peak_bytes(config, device)
     if available is not None and needed > available:
-        where = "free on the GPU" if torch.device(config.device).type == "cuda" else "available"
-        raise UsageError(f"a {config.width}×{config.height} fit with {config.num_planes} plane(s) needs about "
+        where = "free on the GPU" if torch.device(device).type == "cuda" else "available"
+        targets = config.targets
+        raise UsageError(f"a {targets.width}×{targets.height} fit with {targets.num_planes} plane(s) needs about "
                          f"{needed / 2**30:.1f} GiB but {available / 2**30:.1f} GiB are {where}; "
                          "reduce --size or --planes")
 
@@ -543,6 +549,7 @@ class FitPlan:
     work: Path
     final: Path
     config: FitConfig
+    run: RunOptions
     source: dict
     scene: Scene
     state: FitState | None = None
@@ -564,14 +571,15 @@ def _resume_plan(args: argparse.Namespace) -> FitPlan:
     from .app.encoding import BUDGET_FILE
     from .app.outputs import is_run_folder
     from .app.runner import resumed_state
-    from .runs import CONFIG_FILE, read_run, scene_from_source
+    from .runs import CONFIG_FILE, read_run, read_run_options, scene_from_source
     work = Path(args.resume)
     if not (work / CONFIG_FILE).is_file():
         raise UsageError(f"--resume {work}: not a run folder (no {CONFIG_FILE})")
     if (work / BUDGET_FILE).is_file():
         raise UsageError(f"--resume {work} is an encode's folder; continue it with cvqpg encode --resume {work}")
     config, source = read_run(work)
-    check_device(config.device)
+    run = read_run_options(work)
+    check_device(run.device)
     final = work.with_name(work.name[:-len(PARTIAL_SUFFIX)]) if work.name.endswith(PARTIAL_SUFFIX) else work
     role = f"--resume {work}: its run's folder"
     if final != work:
@@ -580,7 +588,7 @@ def _resume_plan(args: argparse.Namespace) -> FitPlan:
                              "confirm")
         check_fit_destination(final, args.overwrite, role)
     scene = scene_from_source(source, config)
-    return FitPlan(work, final, config, source, scene, resumed_state(work, config), role=role)
+    return FitPlan(work, final, config, run, source, scene, resumed_state(work, config, run), role=role)
 
 
 def _new_plan(args: argparse.Namespace) -> FitPlan:
@@ -593,21 +601,23 @@ def _new_plan(args: argparse.Namespace) -> FitPlan:
     if args.time is not None and not args.time > 0:
         raise UsageError(f"--time {args.time:g}: give a positive number of minutes")
     config, source = _config_and_source(args)
-    check_device(config.device)
+    run = _run_options(args)
+    check_device(run.device)
     final = check_fit_destination(Path(args.out) if args.out else _default_out(source, config), args.overwrite)
     work = final.with_name(final.name + PARTIAL_SUFFIX)
     if work.exists():
         raise UsageError(f"{work} holds an interrupted fit; continue it with cvqpg fit --resume {work}, or delete it")
-    check_memory(config, device_memory_bytes(config.device))
+    check_memory(config, run.device, device_memory_bytes(run.device))
     scene, depth = _scene_and_depth(source, config)
     if depth is not None:
         source["depth"] = DEPTH_FILE  # kept in the run folder, wherever it moves
     if args.time is not None:
-        config, source["time_budget"] = timed_config(scene, config, args.time, progress=not args.quiet)
+        config, source["time_budget"] = timed_config(scene, config, args.time, run, progress=not args.quiet)
         if not args.quiet:
-            print(f"--time {args.time:g}: {config.steps} steps at {source['time_budget']['seconds_per_step'] * 1e3:.0f} "
+            each_ms = source['time_budget']['seconds_per_step'] * 1e3
+            print(f"--time {args.time:g}: {config.optimisation.steps} steps at {each_ms:.0f} "
                   "ms each, measured here", file=sys.stderr)
-    return FitPlan(work, final, config, source, scene, depth=depth)
+    return FitPlan(work, final, config, run, source, scene, depth=depth)
 
 
 def _scene_and_depth(source: dict, config: FitConfig) -> tuple[Scene, Image.Image | None]:
@@ -656,13 +666,13 @@ def _fit(plan: FitPlan, args: argparse.Namespace) -> int:
 
     def body(stop_requested: Callable[[], bool]) -> None:
         if plan.state is None:
-            start_run(plan.work, plan.config, plan.source)
+            start_run(plan.work, plan.config, plan.source, plan.run)
         if plan.depth is not None:
             plan.depth.save(plan.work / DEPTH_FILE)
-        result = fit_in_folder(plan.work, plan.scene, plan.config, plan.state, progress=not args.quiet,
+        result = fit_in_folder(plan.work, plan.scene, plan.config, plan.run,
+                               RunControl(progress=not args.quiet, stop_requested=stop_requested), plan.state,
                                checkpoint_every_steps=every if every else None,
-                               checkpoint_every_seconds=None if every == 0 else CHECKPOINT_SECONDS,
-                               stop_requested=stop_requested)
+                               checkpoint_every_seconds=None if every == 0 else CHECKPOINT_SECONDS)
         write_fitted_run(plan.work, result, plan.scene, plan.source)
 
     with claimed(plan.final, plan.role):
@@ -903,7 +913,7 @@ def run_encode(args: argparse.Namespace) -> int:
     from .app.encoding import encode_budget, encode_config, encode_in_folder, encoding_record, read_encode, start_encode
     from .app.outputs import CVQ, check_output, output
     from .control import RunControl
-    from .runs import scene_from_source, write_atomic
+    from .runs import read_run_options, scene_from_source, write_atomic
     from .search import CompressionSettings
     depth, role = None, "`out`"
     if args.resume:
@@ -911,7 +921,8 @@ def run_encode(args: argparse.Namespace) -> int:
         config, source, budget, finetune_steps = read_encode(work)
         if not work.name.endswith(PARTIAL_SUFFIX):
             raise UsageError(f"--resume {work}: an encode's folder is named after its file, FILE{PARTIAL_SUFFIX}")
-        check_device(config.device)
+        run = read_run_options(work)
+        check_device(run.device)
         role = f"--resume {work}: its file"
         out = check_output(work.with_name(work.name[:-len(PARTIAL_SUFFIX)]), CVQ, _source_files(source),
                            args.overwrite, role)
@@ -922,7 +933,8 @@ def run_encode(args: argparse.Namespace) -> int:
         if args.out is None:
             raise UsageError(f"give the {SUFFIX} file to write with --out FILE")
         config, source = _config_and_source(args)
-        check_device(config.device)
+        run = _run_options(args)
+        check_device(run.device)
         settings = CompressionSettings(bpp=args.bpp, max_bytes=args.max_bytes, finetune_steps=args.finetune)
         budget, finetune_steps = encode_budget(config, settings), settings.finetune_steps
         out = check_output(args.out, CVQ, _source_files(source), args.overwrite)
@@ -931,7 +943,7 @@ def run_encode(args: argparse.Namespace) -> int:
             raise UsageError(f"{work} holds an interrupted encode; continue it with cvqpg encode --resume {work}, "
                              "or delete it")
         config = encode_config(config, budget)
-        check_memory(config, device_memory_bytes(config.device))
+        check_memory(config, run.device, device_memory_bytes(run.device))
         scene, depth = _scene_and_depth(source, config)
         if depth is not None:
             source["depth"] = DEPTH_FILE  # kept in the encode's folder until the file is written
@@ -940,10 +952,10 @@ def run_encode(args: argparse.Namespace) -> int:
 
     def body(stop_requested: Callable[[], bool]) -> None:
         if not args.resume:
-            start_encode(work, config, source, budget, finetune_steps)
+            start_encode(work, config, source, budget, finetune_steps, run)
         if depth is not None:
             depth.save(work / DEPTH_FILE)
-        encoded = encode_in_folder(work, scene, config, budget, finetune_steps,
+        encoded = encode_in_folder(work, scene, config, budget, finetune_steps, run,
                                    RunControl(progress=not args.quiet, stop_requested=stop_requested))
         write_atomic(out, encoded.rate.choice.data)
         if not args.quiet:
@@ -999,13 +1011,14 @@ def run_bench(args: argparse.Namespace) -> int:
     code = 0
     if not args.summary_only:
         keep_freed_memory()
-        device = plan.cells[0].config.device
+        device = plan.cells[0].run.device
         needed, available = peak_bytes(cells, args.jobs), device_memory_bytes(device)
         if available is not None and needed > available:
             raise UsageError(f"--jobs {args.jobs} needs about {needed / 2**30:.1f} GiB but {available / 2**30:.1f} "
                              f"GiB are available on {device}; lower --jobs or --size")
         with StopRequest() as stop_requested:
-            outcome = run_plan(plan, cells, args.jobs, progress=not args.quiet, stop_requested=stop_requested,
+            control = RunControl(progress=not args.quiet, stop_requested=stop_requested)
+            outcome = run_plan(plan, cells, args.jobs, control,
                                reuse=[Path(d) for d in args.reuse],
                                rate_distortion=RateDistortionOptions(tuple(Path(d) for d in args.fits), args.finetune),
                                threads=args.threads)

@@ -53,7 +53,7 @@ MAX_OFFSET = 2
 
 def bits_per_pixel(size_bytes: int, config: FitConfig) -> float:
     """8·bytes / (W·H): a file's bits per hologram pixel, all channels together (`cvqpg info`'s bpp)."""
-    return 8 * size_bytes / (config.width * config.height)
+    return 8 * size_bytes / (config.targets.width * config.targets.height)
 
 
 # Stream codings; each stream takes the smallest that applies, so a coding that does not pay is never used.
@@ -272,7 +272,7 @@ def coding(primitives: Primitives, config: FitConfig, bits: BitDepths) -> Coding
               "amplitude": weight, "phase": p["phase_rad"]}
     ranges = {"scale": _outward_range(float(values["scale"].min()), float(values["scale"].max())),
               "amplitude": [0.0, _outward_range(0.0, float(weight.abs().max()))[1]]}
-    if config.primitive == "cvqpg":
+    if config.primitives.kind == "cvqpg":
         # the decoder knows only the decoded scale: the curvature's bound follows it
         scale = quantiser("scale", ranges, bits.scale)
         bound = curvature_bound(decoded_scale(scale.values(scale.codes(values["scale"]))), config).double()
@@ -307,7 +307,8 @@ def primitives_from(values: dict[str, Tensor], scale_px: Tensor, config: FitConf
         # γ_max follows the decoded scale and is not trained: fine-tuning moves the share alone
         curvature = (values["curvature"] * curvature_bound(scale_px.detach(), config).double()).float()
     else:
-        curvature = torch.zeros((count,) if config.curvature == "shared" else (count, config.channels), device=device)
+        shape = (count,) if config.primitives.curvature == "shared" else (count, config.channels)
+        curvature = torch.zeros(shape, device=device)
     return Primitives(position_px=values["position"].float(), scale_px=scale_px,
                       rotation_rad=values["rotation"].float(), amplitude=values["amplitude"].float(),
                       phase_rad=values["phase"].float(), opacity=torch.ones(count, device=device),
@@ -689,30 +690,32 @@ def encode(primitives: Primitives, config: FitConfig, bits: BitDepths) -> bytes:
     return body + CHECKSUM.pack(zlib.crc32(body))
 
 
-# What rendering depends on, beside the primitives; the fitting settings stay in the run's config.json.
-RENDER_FIELDS = ("width", "height", "color", "primitive", "curvature", "qpf", "bound", "eta", "global_bound",
-                 "pixel_pitch", "num_planes", "plane_center", "plane_span", "guard_band_px", "pad_multiple_px")
+# What rendering depends on, beside the primitives, by the names the header keeps (`FitConfig.setting`); the
+# fitting settings stay in the run's config.json.
+RENDER_SETTINGS = ("width", "height", "color", "primitive", "curvature", "qpf", "bound", "eta", "global_bound",
+                   "pixel_pitch", "num_planes", "plane_center", "plane_span", "guard_band_px", "pad_multiple_px")
 
 
 def optics(config: FitConfig) -> dict[str, Any]:
     """The header's rendering settings, lengths in m (`wavelengths` one per channel)."""
-    return {**{name: getattr(config, name) for name in RENDER_FIELDS}, "wavelengths": list(config.wavelengths)}
+    return {**{name: config.setting(name) for name in RENDER_SETTINGS}, "wavelengths": list(config.wavelengths)}
 
 
 def config_from_optics(values: dict[str, Any]) -> FitConfig:
-    """A configuration that renders like the encoded one; settings that only fitting uses are defaults.
+    """A configuration that renders like the encoded one; settings that only fitting uses are the paper's.
     `ValueError` where a value is not of the type of its setting (a whole number below 2^31, a finite number,
     a name)."""
     values, defaults = dict(values), FitConfig()
-    for name in RENDER_FIELDS:
-        value, default = values[name], getattr(defaults, name)
+    for name in RENDER_SETTINGS:
+        value, default = values[name], defaults.setting(name)
         valid = (isinstance(value, str) if isinstance(default, str) else _integer(value, 0, 2**31 - 1)
                  if isinstance(default, int) else _number(value))
         if not valid:
             raise ValueError(f"{name} {value!r} is not a {type(default).__name__}")
     if not (isinstance(values["wavelengths"], list) and all(map(_number, values["wavelengths"]))):
         raise ValueError(f"wavelengths {values['wavelengths']!r} are not a list of numbers")
-    return FitConfig(**{name: values[name] for name in RENDER_FIELDS}, wavelengths_m=tuple(values["wavelengths"]))
+    return defaults.replace(**{name: values[name] for name in RENDER_SETTINGS},
+                            wavelengths_m=tuple(values["wavelengths"]))
 
 
 @dataclass
@@ -736,7 +739,7 @@ def stream_shapes(count: int, config: FitConfig, version: int = FORMAT_VERSION) 
                "amplitude": shapes["amplitude"], "phase": shapes["phase_rad"]}
     if version >= IMPORTANCE_VERSION:
         streams["fraction"] = (count, 2)
-    return {**streams, "curvature": shapes["curvature_per_m"]} if config.primitive == "cvqpg" else streams
+    return {**streams, "curvature": shapes["curvature_per_m"]} if config.primitives.kind == "cvqpg" else streams
 
 
 def _checked_header(header: Any, name: str, version: int) -> tuple[FitConfig, BitDepths]:

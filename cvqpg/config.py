@@ -1,11 +1,19 @@
-"""Fit configuration: every setting of method.md §2–§6 with the paper's value as default, and the recipes
-(`RECIPES`): the paper's, and the default one, which differs from it in Adan's β2, where its positions are
-drawn and, in short runs, its loss (docs/beyond.md)."""
+"""Fit configuration: every setting of method.md §2–§6 with the paper's value as default, grouped by concern
+(`TargetSettings`, `OpticsSettings`, `PrimitiveSettings`, `OptimisationSettings`, `LossSettings`) into one
+`FitConfig`, and the recipes (`RECIPES`) that choose what the paper leaves to the fit: the paper's own, and the
+default one (docs/beyond.md). Where a fit runs (`RunOptions`: device and kernels) is no part of it.
+
+A recipe is resolved when the configuration is made (`FitConfig.create`): every setting is a concrete value,
+which `config.json` records. `FitConfig.from_dict` reads the records of every earlier version."""
 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import importlib.util
+import json
 import math
+import os
 from dataclasses import dataclass, field
 from typing import Any, Literal, get_args
 
@@ -17,7 +25,7 @@ Bound = Literal["adaptive", "global"]
 Qpf = Literal["mahalanobis", "standard"]
 Curvature = Literal["shared", "per-channel", "channel-bound"]
 Backend = Literal["auto", "numba", "triton", "torch"]
-Init = Literal["uniform", "targets", "edges", "auto"]
+Init = Literal["uniform", "targets", "edges"]
 COLORS: tuple[str, ...] = get_args(Color)
 PRIMITIVES: tuple[str, ...] = get_args(Primitive)
 BOUNDS: tuple[str, ...] = get_args(Bound)
@@ -29,6 +37,16 @@ DEVICE_TYPES = ("cpu", "cuda")
 
 RGB_WAVELENGTHS_M = (639e-9, 532e-9, 473e-9)
 GRAY_WAVELENGTH_M = 639e-9
+PAPER_BETAS = (0.98, 0.92, 0.99)  # method.md §6
+LONG_RUN_BETAS = (0.98, 0.99, 0.99)  # β2 averages the gradient's differences over ~100 steps, not ~12
+CURVATURE_WARMUP_SHARE = 400 / 2000  # the paper's curvature warm-up share of the steps
+MIN_SIZE_PX = 16  # the SSIM window
+CONFIG_SCHEMA = 2  # the layout `FitConfig.to_dict` writes; records without the key are the flat layout before it
+
+
+def default_curvature_warmup(steps: int) -> int:
+    """The curvature warm-up (steps) of a run of `steps` steps: the paper's 400 of 2000, in proportion."""
+    return round(steps * CURVATURE_WARMUP_SHARE)
 
 
 @dataclass(frozen=True)
@@ -46,137 +64,208 @@ class LearningRates:
 
 
 @dataclass(frozen=True)
-class DensityControl:
-    """Relocation at a fixed N (docs/beyond.md): at every `every` share of the steps, until the `until`
-    share, the `fraction` of primitives with the least field energy are moved onto splits of others, drawn
-    with a probability proportional to the reconstruction's error where they sit."""
-
-    every: float = 0.05
-    until: float = 0.6
-    fraction: float = 0.02
-
-    def event_steps(self, steps: int) -> tuple[int, ...]:
-        """The steps (indices) before whose update primitives are relocated, for a run of `steps` steps."""
-        interval = max(1, round(self.every * steps))
-        return tuple(range(interval, int(self.until * steps), interval))
-
-
-CURVATURE_WARMUP_SHARE = 400 / 2000  # the paper's curvature warm-up share of the steps
-
-
-def default_curvature_warmup(steps: int) -> int:
-    """The curvature warm-up (steps) of a run of `steps` steps: the paper's 400 of 2000, in proportion."""
-    return round(steps * CURVATURE_WARMUP_SHARE)
-
-
-# Names that recorded configurations (config.json, model metadata) used before a rename, and their names now.
-RENAMED_FIELDS = {"warmup": "curvature_warmup"}
-RENAMED_LEARNING_RATES = {"color": "amplitude"}
-
-
-@dataclass(frozen=True)
-class FitConfig:
-    """Everything a fit depends on. Lengths in metres unless the name says px."""
+class TargetSettings:
+    """The targets: W×H px, colour, the depth planes (centre and span in m) and their defocus (method.md §5)."""
 
     width: int = 640
     height: int = 480
     color: Color = "rgb"
-    primitive: Primitive = "cvqpg"
-    ratio: float = 0.2
-    num_gaussians: int | None = None
-    steps: int = 2000
-    curvature_warmup: int | None = None  # steps with γ frozen at 0; None: default_curvature_warmup(steps)
-    seed: int = 100
-    pixel_pitch: float = 3.74e-6
     num_planes: int = 2
     plane_center: float = 3e-3
     plane_span: float = 4e-3
-    eta: float = 0.9
-    bound: Bound = "adaptive"
-    global_bound: float = 200.0
-    qpf: Qpf = "mahalanobis"
-    curvature: Curvature = "shared"
-    lr: LearningRates = field(default_factory=lambda: RECIPES[DEFAULT_RECIPE]["lr"])
-    # The default recipe's (`RECIPES`), as `lr`; `initialisation.resolved_init` resolves `auto`.
-    init: Init = field(default_factory=lambda: RECIPES[DEFAULT_RECIPE]["init"])
-    density: DensityControl | None = field(default_factory=lambda: RECIPES[DEFAULT_RECIPE]["density"])
-    # Adan's (β1, β2, β3), as `lr`; None: `adan_betas` resolves them by the run's length.
-    betas: tuple[float, float, float] | None = field(default_factory=lambda: RECIPES[DEFAULT_RECIPE]["betas"])
-    adan_eps: float = 1e-8
-    grad_clip_norm: float = 1.0
-    ssim_weight: float = 0.005
-    # The weights of the loss's masked and correlation MSE terms (method.md §6: 1 each), as `lr`; None:
-    # `loss_weights` resolves them by the run's length.
-    focus_weight: float | None = field(default_factory=lambda: RECIPES[DEFAULT_RECIPE]["focus_weight"])
-    product_weight: float | None = field(default_factory=lambda: RECIPES[DEFAULT_RECIPE]["product_weight"])
-    target_noise: float = 1e-3
-    guard_band_px: int = 144
-    pad_multiple_px: int = 64
     defocus_sigma_px: float = 8.0
     depth_exponent: float = 1.0
-    device: str = "cpu"
-    backend: Backend = "auto"
-    wavelengths_m: tuple[float, ...] | None = None
 
-    @property
-    def recipe(self) -> str:
-        """The name of the recipe (`RECIPES`) whose settings this configuration has, or 'custom'."""
-        return next((name for name, settings in RECIPES.items()
-                     if all(getattr(self, k) == v for k, v in settings.items())), "custom")
+
+@dataclass(frozen=True)
+class OpticsSettings:
+    """The SLM and its light: pixel pitch (m), wavelengths (m; None: the paper's for the colour), and the guard
+    band around the hologram (px, rounded up to a multiple of `pad_multiple_px`) (method.md §3)."""
+
+    pixel_pitch: float = 3.74e-6
+    wavelengths_m: tuple[float, ...] | None = None
+    guard_band_px: int = 144
+    pad_multiple_px: int = 64
+
+
+@dataclass(frozen=True)
+class PrimitiveSettings:
+    """The primitives: kind, count (`count`, or `ratio` of the pixels, method.md §2) and curvature bound (§4)."""
+
+    kind: Primitive = "cvqpg"
+    ratio: float = 0.2
+    count: int | None = None
+    bound: Bound = "adaptive"
+    global_bound: float = 200.0  # 1/m
+    eta: float = 0.9
+    qpf: Qpf = "mahalanobis"
+    curvature: Curvature = "shared"
+
+
+@dataclass(frozen=True)
+class OptimisationSettings:
+    """The loop (method.md §6): its steps, the curvature's warm-up (steps with γ frozen at 0; `steps + 1`: all),
+    the seed, Adan's learning rates, betas and ε, the gradient clip norm, and where the primitives start (`init`)."""
+
+    steps: int = 2000
+    curvature_warmup: int = 400
+    seed: int = 100
+    lr: LearningRates = field(default_factory=LearningRates)
+    betas: tuple[float, float, float] = PAPER_BETAS
+    adan_eps: float = 1e-8
+    grad_clip_norm: float = 1.0
+    init: Init = "uniform"
+
+
+@dataclass(frozen=True)
+class LossSettings:
+    """The loss's weights (method.md §6: SSIM 0.005, the masked and correlation MSE terms 1 each) and the
+    relative noise on the targets that the last two see."""
+
+    ssim_weight: float = 0.005
+    focus_weight: float = 1.0
+    product_weight: float = 1.0
+    target_noise: float = 1e-3
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """The choices a fit makes beyond its problem, by name: Adan's learning rates and betas, where the
+    primitives start, and the weights of the loss's masked and correlation terms."""
+
+    name: str
+    summary: str
+    lr: LearningRates
+    betas: tuple[float, float, float]
+    init: Init
+    focus_weight: float
+    product_weight: float
+
+    def settings(self) -> dict[str, Any]:
+        """The recipe's settings under their `FitConfig.create` names."""
+        return {"lr": self.lr, "betas": self.betas, "init": self.init, "focus_weight": self.focus_weight,
+                "product_weight": self.product_weight}
+
+
+RECIPES: dict[str, Recipe] = {}
+
+
+def register_recipe(recipe: Recipe) -> Recipe:
+    """Make `recipe` available by its name (`FitConfig.create(recipe=...)`, `cvqpg fit --recipe`)."""
+    RECIPES[recipe.name] = recipe
+    return recipe
+
+
+PAPER_RECIPE = register_recipe(Recipe(
+    "paper", "the paper's settings (method.md §6)", LearningRates(), PAPER_BETAS, "uniform", 1.0, 1.0)).name
+BEYOND_RECIPE = register_recipe(Recipe(
+    "beyond", "positions at the targets' edges, Adan's β2 0.99 (docs/beyond.md)",
+    LearningRates(), LONG_RUN_BETAS, "edges", 1.0, 1.0)).name
+# Short fits (some hundred steps): each choice pays there and not in long ones, or the other way round.
+BEYOND_SHORT_RECIPE = register_recipe(Recipe(
+    "beyond-short", "for a few hundred steps: positions at the targets' energy, the paper's β2, no masked or "
+    "correlation terms (docs/beyond.md)", LearningRates(), PAPER_BETAS, "targets", 0.0, 0.0)).name
+DEFAULT_RECIPE = BEYOND_RECIPE  # measured better than the paper's on every scene (docs/beyond.md)
+CUSTOM_RECIPE = "custom"  # what `FitConfig.recipe` says where a setting differs from its recipe's
+
+SECTIONS = ("targets", "optics", "primitives", "optimisation", "loss")
+# `FitConfig.create`'s and `FitConfig.replace`'s flat names: (section, field) each.
+FLAT_NAMES: dict[str, tuple[str, str]] = {
+    **{name: ("targets", name) for name in ("width", "height", "color", "num_planes", "plane_center", "plane_span",
+                                             "defocus_sigma_px", "depth_exponent")},
+    **{name: ("optics", name) for name in ("pixel_pitch", "wavelengths_m", "guard_band_px", "pad_multiple_px")},
+    "primitive": ("primitives", "kind"), "num_gaussians": ("primitives", "count"),
+    **{name: ("primitives", name) for name in ("ratio", "bound", "global_bound", "eta", "qpf", "curvature")},
+    **{name: ("optimisation", name) for name in ("steps", "curvature_warmup", "seed", "lr", "betas", "adan_eps",
+                                                  "grad_clip_norm", "init")},
+    **{name: ("loss", name) for name in ("ssim_weight", "focus_weight", "product_weight", "target_noise")},
+}
+# Names that flat records (config.json, model metadata) used before a rename, and their names now.
+RENAMED_FIELDS = {"warmup": "curvature_warmup"}
+RENAMED_LEARNING_RATES = {"color": "amplitude"}
+# A flat record of a run of at most this many steps resolved its unset (None, `auto`) recipe settings to the
+# short-run choices (`BEYOND_SHORT_RECIPE`'s), a longer one to the long-run choices.
+SHORT_RUN_STEPS = 400
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Everything a fit's numbers depend on, by concern, and the name of the recipe its choices come from.
+    Lengths in metres unless the name says px. Make one with `create` (flat names, a recipe)."""
+
+    targets: TargetSettings = field(default_factory=TargetSettings)
+    optics: OpticsSettings = field(default_factory=OpticsSettings)
+    primitives: PrimitiveSettings = field(default_factory=PrimitiveSettings)
+    optimisation: OptimisationSettings = field(default_factory=OptimisationSettings)
+    loss: LossSettings = field(default_factory=LossSettings)
+    recipe: str = field(default=PAPER_RECIPE, compare=False)  # a label: two configurations compare by settings
+
+    @classmethod
+    def create(cls, recipe: str = DEFAULT_RECIPE, **settings: Any) -> "FitConfig":
+        """A configuration from flat names (`FLAT_NAMES`: `width`, `steps`, `pixel_pitch`, ...), with the recipe
+        `recipe`'s settings where not given; an unset (None) `curvature_warmup` is the paper's share of `steps`.
+        `recipe` names the result's recipe, or `custom` where a given setting differs from it."""
+        config = cls().with_recipe(recipe)
+        own = {k: v for k, v in settings.items() if not (k == "curvature_warmup" and v is None)}
+        steps = own.get("steps", config.optimisation.steps)
+        warmup = default_curvature_warmup(steps) if _is_integer(steps) else 0  # `validate` names bad steps
+        made = config.replace(**{"curvature_warmup": warmup, **own})
+        return made if made.with_recipe(recipe) == made else made.replace(recipe=CUSTOM_RECIPE)
+
+    def replace(self, **changes: Any) -> "FitConfig":
+        """This configuration with settings changed: flat names (`FLAT_NAMES`), whole sections, or `recipe`.
+        Nothing else follows (`with_steps` scales the warm-up with the steps)."""
+        sections = {name: {} for name in SECTIONS}
+        top = {}
+        for name, value in changes.items():
+            if name in FLAT_NAMES:
+                section, key = FLAT_NAMES[name]
+                sections[section][key] = tuple(value) if isinstance(value, list) else value
+            elif name in SECTIONS or name == "recipe":
+                top[name] = value
+            else:
+                raise ConfigError(f"`{name}` is not a setting; the settings are {', '.join(FLAT_NAMES)}")
+        merged = {name: dataclasses.replace(top.get(name, getattr(self, name)), **values)
+                  for name, values in sections.items() if values}
+        return dataclasses.replace(self, **{**top, **merged})
 
     def with_recipe(self, name: str) -> "FitConfig":
         """This configuration with the settings of the recipe `name` (`RECIPES`)."""
         if name not in RECIPES:
             raise choices_error("recipe", name, tuple(RECIPES))
-        return self.replace(**RECIPES[name])
+        return self.replace(**RECIPES[name].settings(), recipe=name)
 
-    @property
-    def loss_weights(self) -> tuple[float, float]:
-        """The weights of the loss's masked and correlation MSE terms; one that is None is 0 in runs of at most
-        `SHORT_RUN_STEPS` steps and the paper's 1 in longer ones (docs/beyond.md, "The loss")."""
-        auto = 0.0 if self.steps <= SHORT_RUN_STEPS else 1.0
-        return tuple(auto if w is None else w for w in (self.focus_weight, self.product_weight))
-
-    @property
-    def adan_betas(self) -> tuple[float, float, float]:
-        """Adan's (β1, β2, β3): `betas`, or where None the paper's in runs of at most `SHORT_RUN_STEPS` steps and
-        `LONG_RUN_BETAS` in longer ones (docs/beyond.md)."""
-        if self.betas is not None:
-            return self.betas
-        return PAPER_BETAS if self.steps <= SHORT_RUN_STEPS else LONG_RUN_BETAS
-
-    @property
-    def curvature_warmup_steps(self) -> int:
-        """Steps with the curvature frozen at γ = 0: `curvature_warmup`, or the paper's share of `steps`."""
-        if self.curvature_warmup is None:
-            return default_curvature_warmup(self.steps)
-        return self.curvature_warmup
+    def with_steps(self, steps: int) -> "FitConfig":
+        """The same algorithm over `steps` steps: the curvature warm-up keeps its share of them."""
+        current = self.optimisation
+        warmup = round(steps * current.curvature_warmup / current.steps) if current.steps else 0
+        return self.replace(steps=steps, curvature_warmup=warmup)
 
     @property
     def channels(self) -> int:
-        return 3 if self.color == "rgb" else 1
+        return 3 if self.targets.color == "rgb" else 1
 
     @property
     def wavelengths(self) -> tuple[float, ...]:
-        """One wavelength (m) per colour channel: `wavelengths_m`, or the paper's."""
-        if self.wavelengths_m is not None:
-            return tuple(self.wavelengths_m)
-        return RGB_WAVELENGTHS_M if self.color == "rgb" else (GRAY_WAVELENGTH_M,)
+        """One wavelength (m) per colour channel: `optics.wavelengths_m`, or the paper's."""
+        if self.optics.wavelengths_m is not None:
+            return tuple(self.optics.wavelengths_m)
+        return RGB_WAVELENGTHS_M if self.targets.color == "rgb" else (GRAY_WAVELENGTH_M,)
 
     @property
     def primitive_count(self) -> int:
-        """N: explicit, or `ratio · W·H/2` (RGB) / `ratio · W·H/4` (grayscale), method.md §2."""
-        if self.num_gaussians is not None:
-            return self.num_gaussians
-        pixels_per_primitive = 2 if self.color == "rgb" else 4
-        return int(round(self.ratio * self.width * self.height / pixels_per_primitive))
+        """N: `primitives.count`, or `ratio · W·H/2` (RGB) / `ratio · W·H/4` (grayscale), method.md §2."""
+        if self.primitives.count is not None:
+            return self.primitives.count
+        pixels_per_primitive = 2 if self.targets.color == "rgb" else 4
+        return int(round(self.primitives.ratio * self.targets.width * self.targets.height / pixels_per_primitive))
 
     @property
     def learnable_curvatures(self) -> int:
         """Curvature parameters per primitive: none (flat), one per channel (`per-channel`), else one."""
-        if self.primitive != "cvqpg":
+        if self.primitives.kind != "cvqpg":
             return 0
-        return self.channels if self.curvature == "per-channel" else 1
+        return self.channels if self.primitives.curvature == "per-channel" else 1
 
     @property
     def params_per_primitive(self) -> int:
@@ -186,131 +275,230 @@ class FitConfig:
     @property
     def plane_distances(self) -> tuple[float, ...]:
         """Propagation distances (m): `linspace(d − V/2, d + V/2, M)` (one plane: d − V/2, as linspace)."""
-        start = self.plane_center - self.plane_span / 2
-        step = self.plane_span / max(self.num_planes - 1, 1)
-        return tuple(start + m * step for m in range(self.num_planes))
-
-    def replace(self, **changes: Any) -> "FitConfig":
-        return dataclasses.replace(self, **changes)
+        targets = self.targets
+        start = targets.plane_center - targets.plane_span / 2
+        step = targets.plane_span / max(targets.num_planes - 1, 1)
+        return tuple(start + m * step for m in range(targets.num_planes))
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
-
-    def on_device(self, device: str) -> "FitConfig":
-        """The same fit rendered on `device`: a backend that cannot run there (`numba` off the CPU,
-        `triton` off CUDA) becomes `auto`, which changes the last bits of a render only."""
-        kind = device.split(":")[0]
-        runs_there = {"numba": kind == "cpu", "triton": kind == "cuda"}.get(self.backend, True)
-        return self.replace(device=device, backend=self.backend if runs_there else "auto")
+        """The record `config.json` and model files keep (JSON types), with its layout's `config_schema`."""
+        return {"config_schema": CONFIG_SCHEMA, **json.loads(json.dumps(dataclasses.asdict(self)))}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "FitConfig":
-        """The configuration a `to_dict` recorded, also under the names of earlier versions; other keys
-        (a run's `source`, settings that no longer exist) are ignored."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        data = {RENAMED_FIELDS.get(k, k): v for k, v in data.items()}
-        # A record older than a recipe's setting has the paper's value for it.
-        values = {**RECIPES[PAPER_RECIPE], **{k: v for k, v in data.items() if k in known}}
-        if isinstance(values.get("density"), dict):
-            values["density"] = DensityControl(**values["density"])
-        if isinstance(values.get("lr"), dict):
-            values["lr"] = LearningRates(**{RENAMED_LEARNING_RATES.get(k, k): v for k, v in values["lr"].items()})
-        for name in ("betas", "wavelengths_m"):
-            if isinstance(values.get(name), list):
-                values[name] = tuple(values[name])
-        return cls(**values)
+        """The configuration a `to_dict` recorded, or a flat record of an earlier version (`from_flat_record`).
+        Other keys (a run's `source`, its `run` options) are ignored; a setting the record lacks has its default,
+        the value versions before it fitted with."""
+        if "config_schema" not in data:
+            return from_flat_record(data)
+        sections = {}
+        for name in SECTIONS:
+            section_class = SECTION_CLASSES[name]
+            known = {f.name for f in dataclasses.fields(section_class)}
+            values = {k: v for k, v in dict(data.get(name) or {}).items() if k in known}
+            if isinstance(values.get("lr"), dict):
+                values["lr"] = LearningRates(**values["lr"])
+            sections[name] = section_class(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
+        return cls(**sections, recipe=str(data.get("recipe", CUSTOM_RECIPE)))
 
     def validate(self) -> "FitConfig":
-        """Raise `ConfigError` naming the first setting that cannot work, and what to do."""
+        """Raise `ConfigError` naming the first setting that cannot work, with the values it may take."""
         for name, choices in (("color", COLORS), ("primitive", PRIMITIVES), ("bound", BOUNDS), ("qpf", QPFS),
-                              ("curvature", CURVATURES), ("backend", BACKENDS), ("init", INITS)):
-            if getattr(self, name) not in choices:
-                raise choices_error(name, getattr(self, name), choices)
-        if not isinstance(self.device, str) or self.device.split(":")[0] not in DEVICE_TYPES:
-            raise choices_error("device", self.device, DEVICE_TYPES)
-        for name in ("width", "height", "steps", "seed", "num_planes", "guard_band_px", "pad_multiple_px"):
-            if not _is_integer(getattr(self, name)):
-                raise ConfigError(f"`{name}` must be a whole number, got {getattr(self, name)!r}")
-        for name in ("num_gaussians", "curvature_warmup"):
-            if getattr(self, name) is not None and not _is_integer(getattr(self, name)):
-                raise ConfigError(f"`{name}` must be a whole number or None, got {getattr(self, name)!r}")
-        numbers = {"ratio": self.ratio, "pixel_pitch": self.pixel_pitch, "plane_center": self.plane_center,
-                   "plane_span": self.plane_span, "eta": self.eta, "global_bound": self.global_bound,
-                   "adan_eps": self.adan_eps, "grad_clip_norm": self.grad_clip_norm,
-                   "ssim_weight": self.ssim_weight, "target_noise": self.target_noise,
-                   "defocus_sigma_px": self.defocus_sigma_px, "depth_exponent": self.depth_exponent,
-                   **{f"lr.{k}": v for k, v in dataclasses.asdict(self.lr).items()},
-                   **{f"betas[{i}]": b for i, b in enumerate(self.betas or ())},
-                   **{f"density.{k}": v for k, v in (dataclasses.asdict(self.density) if self.density else {}).items()},
-                   **{f"wavelengths_m[{i}]": w for i, w in enumerate(self.wavelengths_m or ())},
-                   **{k: w for k, w in (("focus_weight", self.focus_weight), ("product_weight", self.product_weight))
-                      if w is not None}}
-        for name, value in numbers.items():
-            if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
-                raise ConfigError(f"`{name}` must be a finite number, got {value!r}")
-        positive = {"steps": self.steps, "ratio": self.ratio, "pixel_pitch": self.pixel_pitch,
-                    "plane_span": self.plane_span if self.num_planes > 1 else 1.0,
-                    "num_planes": self.num_planes, "eta": self.eta, "pad_multiple_px": self.pad_multiple_px}
-        for name, value in positive.items():
-            if not value > 0:
-                raise ConfigError(f"`{name}` must be positive, got {value}")
-        for name in ("seed", "ssim_weight", "focus_weight", "product_weight"):
-            if getattr(self, name) is not None and getattr(self, name) < 0:
-                raise ConfigError(f"`{name}` must be 0 or more, got {getattr(self, name)}")
-        if self.density is not None and not (0 < self.density.every <= 1 and 0 <= self.density.until <= 1
-                                             and 0 <= self.density.fraction < 1):
-            raise ConfigError(f"`density` {self.density}: `every` must lie in (0, 1], `until` in [0, 1] (shares of "
-                              "the steps) and `fraction` in [0, 1)")
-        if self.guard_band_px < 0:
-            raise ConfigError(f"`guard_band_px` must be 0 or more, got {self.guard_band_px}")
-        if self.width < MIN_SIZE_PX or self.height < MIN_SIZE_PX:
-            raise ConfigError(f"size {self.width}×{self.height} px is too small: `width` and `height` need at "
-                              f"least {MIN_SIZE_PX} px (the SSIM window)")
-        if any(not d > 0 for d in self.plane_distances):
-            raise ConfigError(f"plane distances {', '.join(f'{d:g}' for d in self.plane_distances)} m must all "
-                              "be positive: raise `plane_center` or shrink `plane_span`")
-        if len(self.wavelengths) != self.channels or any(not w > 0 for w in self.wavelengths):
-            raise ConfigError(f"`wavelengths_m` {self.wavelengths}: need {self.channels} positive value(s) "
-                              f"for `color` {self.color!r}")
-        kind = self.device.split(":")[0]
-        if self.backend == "numba" and kind != "cpu":
-            raise ConfigError(f"`backend` 'numba' runs on the CPU only, not on {self.device}; use `backend` auto "
-                              "(or torch) with `device` cuda")
-        if self.backend == "triton" and kind == "cpu":
-            raise ConfigError("`backend` 'triton' runs on the GPU only; use `backend` auto (or numba, torch) with "
-                              "`device` cpu")
-        if not 0 <= self.curvature_warmup_steps <= self.steps:
-            raise ConfigError(f"`curvature_warmup` {self.curvature_warmup_steps} must lie in 0..`steps` "
-                              f"({self.steps})")
-        count, pixels = self.primitive_count, self.width * self.height
+                              ("curvature", CURVATURES), ("init", INITS)):
+            value = self.setting(name)
+            if value not in choices:
+                raise choices_error(name, value, choices)
+        for name, (low, high, kind) in RANGES.items():
+            value = self.setting(name)
+            if not (value is None and name in OPTIONAL):
+                _check_range(name, value, low, high, kind)
+        steps = self.optimisation.steps
+        # steps + 1: the curvature never trains (the loop's last update has index `steps`)
+        _check_range("curvature_warmup", self.optimisation.curvature_warmup, 0, steps + 1, "integer")
+        for key, value in dataclasses.asdict(self.optimisation.lr).items():
+            _check_range(f"lr.{key}", value, 0.0, MAX_LEARNING_RATE, "number")
+        if not (isinstance(self.optimisation.betas, tuple) and len(self.optimisation.betas) == 3):
+            raise ConfigError(f"`betas` must be three numbers (β1, β2, β3), got {self.optimisation.betas!r}")
+        for index, beta in enumerate(self.optimisation.betas):
+            _check_range(f"betas[{index}]", beta, 0.0, 1.0, "fraction")
+        wavelengths = self.wavelengths
+        if len(wavelengths) != self.channels:
+            raise ConfigError(f"`wavelengths_m` {wavelengths}: need {self.channels} value(s) for `color` "
+                              f"{self.targets.color!r}")
+        for index, wavelength in enumerate(wavelengths):
+            _check_range(f"wavelengths_m[{index}]", wavelength, *WAVELENGTH_RANGE_M, "number")
+        if not all(MIN_DISTANCE_M <= d <= MAX_DISTANCE_M for d in self.plane_distances):
+            raise ConfigError(f"plane distances {', '.join(f'{d:g}' for d in self.plane_distances)} m must lie in "
+                              f"[{MIN_DISTANCE_M:g}, {MAX_DISTANCE_M:g}] m: change `plane_center` or `plane_span`")
+        count, pixels = self.primitive_count, self.targets.width * self.targets.height
         if not 0 < count <= pixels:
             raise ConfigError(f"{count} Gaussians for {pixels} pixels: need between 1 and the pixel count; "
                               "change `ratio` or `num_gaussians`")
         return self
 
+    def setting(self, name: str) -> Any:
+        """The value of the setting of flat name `name` (`FLAT_NAMES`)."""
+        section, key = FLAT_NAMES[name]
+        return getattr(getattr(self, section), key)
 
-# A run of at most this many steps is short: the default recipe draws its positions from the targets' energy
-# rather than their edges, keeps the paper's Adan β2 and trains it without the masked and correlation terms; each
-# pays there and not in longer runs, or the other way round (docs/beyond.md).
-SHORT_RUN_STEPS = 400
-PAPER_BETAS = (0.98, 0.92, 0.99)  # method.md §6
-LONG_RUN_BETAS = (0.98, 0.99, 0.99)  # β2 averages the gradient's differences over ~100 steps, not ~12
-# The recorded choices of a fit beyond its problem (method.md §6; docs/beyond.md): `FitConfig.with_recipe`.
-PAPER_RECIPE, BEYOND_RECIPE = "paper", "beyond"
-RECIPES: dict[str, dict[str, Any]] = {
-    PAPER_RECIPE: {"lr": LearningRates(), "init": "uniform", "density": None, "focus_weight": 1.0,
-                   "product_weight": 1.0, "betas": PAPER_BETAS},
-    BEYOND_RECIPE: {"lr": LearningRates(), "init": "auto", "density": None, "focus_weight": None,
-                    "product_weight": None, "betas": None},
+
+SECTION_CLASSES = {"targets": TargetSettings, "optics": OpticsSettings, "primitives": PrimitiveSettings,
+                   "optimisation": OptimisationSettings, "loss": LossSettings}
+
+# The range of every number (flat names): (lowest, highest, kind), both ends allowed. Lengths in m.
+MAX_SIZE_PX = 65536
+MAX_LEARNING_RATE = 10.0
+WAVELENGTH_RANGE_M = (100e-9, 20e-6)  # deep UV to far infrared: what BLASM's scalar optics can mean
+MIN_DISTANCE_M, MAX_DISTANCE_M = 1e-6, 10.0
+MAX_SEED = 2**62  # the initialisation's own generators draw from seed + an offset: both fit in 64 bits
+RANGES: dict[str, tuple[float, float, str]] = {
+    "width": (MIN_SIZE_PX, MAX_SIZE_PX, "integer"), "height": (MIN_SIZE_PX, MAX_SIZE_PX, "integer"),
+    "num_planes": (1, 256, "integer"), "plane_center": (-MAX_DISTANCE_M, MAX_DISTANCE_M, "number"),
+    "plane_span": (0.0, MAX_DISTANCE_M, "number"), "defocus_sigma_px": (0.0, 1e4, "number"),
+    "depth_exponent": (1e-3, 1e3, "positive"),
+    "pixel_pitch": (1e-7, 1e-3, "number"), "guard_band_px": (0, 2**14, "integer"),
+    "pad_multiple_px": (1, 2**12, "integer"),
+    "ratio": (0.0, 4.0, "positive"), "num_gaussians": (1, 2**31, "integer"), "global_bound": (0.0, 1e9, "number"),
+    "eta": (0.0, 100.0, "positive"),
+    "steps": (1, 10**8, "integer"), "seed": (0, MAX_SEED, "integer"), "adan_eps": (0.0, 1.0, "positive"),
+    "grad_clip_norm": (0.0, 1e9, "positive"),
+    "ssim_weight": (0.0, 1e6, "number"), "focus_weight": (0.0, 1e6, "number"), "product_weight": (0.0, 1e6, "number"),
+    "target_noise": (0.0, 1.0, "number"),
 }
-DEFAULT_RECIPE = BEYOND_RECIPE  # measured better than the paper's on every scene (docs/beyond.md)
+OPTIONAL = ("num_gaussians",)
+
+
+def _check_range(name: str, value: Any, low: float, high: float, kind: str) -> None:
+    """`ConfigError` unless `value` is a number of `kind` in its range: `integer` (a whole number in [low, high]),
+    `number` (finite, in [low, high]), `positive` (in (low, high]) or `fraction` (in [low, high))."""
+    low_text, high_text = (str(v) if isinstance(v, int) else f"{v:g}" for v in (low, high))
+    interval = {"positive": f"({low_text}, {high_text}]", "fraction": f"[{low_text}, {high_text})"}.get(
+        kind, f"[{low_text}, {high_text}]")
+    whole = kind == "integer"
+    if whole and not _is_integer(value):
+        raise ConfigError(f"`{name}` must be a whole number in {interval}, got {value!r}")
+    if not whole and not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)):
+        raise ConfigError(f"`{name}` must be a finite number in {interval}, got {value!r}")
+    inside = {"positive": low < value <= high, "fraction": low <= value < high}.get(kind, low <= value <= high)
+    if not inside:
+        raise ConfigError(f"`{name}` must lie in {interval}, got {value!r}")
 
 
 def _is_integer(value: object) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
-MIN_SIZE_PX = 16
+def from_flat_record(data: dict[str, Any]) -> FitConfig:
+    """A flat record of a version before `CONFIG_SCHEMA` (config.json, model metadata) as the configuration it
+    ran with: renamed settings under their names now; a recipe setting the record lacks at the paper's value
+    (versions before recipes fitted with it); unset ones (None, `auto`) resolved by the record's own steps,
+    as those versions resolved them when the fit ran. Its device and backend are `RunOptions.from_dict`'s."""
+    data = {RENAMED_FIELDS.get(k, k): v for k, v in data.items()}
+    values = {**RECIPES[PAPER_RECIPE].settings(), **{k: v for k, v in data.items() if k in FLAT_NAMES}}
+    if isinstance(values.get("lr"), dict):
+        values["lr"] = LearningRates(**{RENAMED_LEARNING_RATES.get(k, k): v for k, v in values["lr"].items()})
+    steps = values.get("steps", OptimisationSettings.steps)
+    short = _is_integer(steps) and steps <= SHORT_RUN_STEPS
+    resolved = RECIPES[BEYOND_SHORT_RECIPE if short else BEYOND_RECIPE].settings()
+    for name in ("betas", "focus_weight", "product_weight"):
+        if values.get(name) is None:
+            values[name] = resolved[name]
+    if values.get("init") == "auto":
+        # Versions whose `auto` started long runs from the edges recorded unset betas; earlier ones started
+        # them from the paper's uniform draws.
+        values["init"] = resolved["init"] if short or data.get("betas", ()) is None else "uniform"
+    warmup = values.get("curvature_warmup")
+    if warmup is None and _is_integer(steps):
+        values["curvature_warmup"] = default_curvature_warmup(steps)
+    elif _is_integer(warmup) and _is_integer(steps) and warmup > steps + 1:
+        values["curvature_warmup"] = steps + 1  # the first versions kept 400 in shorter runs: never trained
+    recipe = next((name for name, r in RECIPES.items() if all(values[k] == v or (isinstance(v, tuple) and
+                   tuple(values[k]) == v) for k, v in r.settings().items())), CUSTOM_RECIPE)
+    return FitConfig().replace(**values, recipe=recipe)
+
+
+# Which kernels run where: one rule (`resolve_backend`) for validation and for the ops alike.
+BACKEND_NAMES = ("numba", "torch", "triton")
+
+
+@functools.cache
+def triton_installed() -> bool:
+    """Whether the triton package is importable (CUDA builds of torch ship it)."""
+    return importlib.util.find_spec("triton") is not None
+
+
+def triton_interpreting() -> bool:
+    """Whether Triton runs its kernels on the CPU through its interpreter (`TRITON_INTERPRET=1`, for tests)."""
+    return os.environ.get("TRITON_INTERPRET") == "1"
+
+
+def device_kind(device: object) -> str:
+    """`cpu` or `cuda` of a device or its name (`cuda:1`); `ConfigError` for any other."""
+    kind = getattr(device, "type", None) or (device.split(":")[0] if isinstance(device, str) else None)
+    if kind not in DEVICE_TYPES:
+        raise choices_error("device", device, DEVICE_TYPES)
+    return kind
+
+
+def resolve_backend(backend: str, device: object) -> str:
+    """The kernels that run a fit on `device`: `auto` → the Numba kernels on the CPU, the Triton kernels on
+    CUDA where Triton is installed, the PyTorch reference elsewhere; a named backend where it can run there,
+    else `ConfigError` saying what can."""
+    kind = device_kind(device)
+    if backend == "auto":
+        if kind == "cpu":
+            return "numba"
+        return "triton" if triton_installed() else "torch"
+    if backend not in BACKEND_NAMES:
+        raise choices_error("backend", backend, BACKENDS)
+    if backend == "numba" and kind != "cpu":
+        raise ConfigError(f"`backend` numba runs on the CPU, not on {device}; use `backend` torch (or auto) with "
+                          "`device` cuda")
+    if backend == "triton" and not triton_installed():
+        raise ConfigError("`backend` triton needs the triton package: pip install triton, or use `backend` torch")
+    if backend == "triton" and kind != "cuda" and not triton_interpreting():
+        raise ConfigError(f"`backend` triton runs on CUDA, not on {device}; use `backend` numba or torch "
+                          "with `device` cpu")
+    return backend
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """Where a fit or render runs: the torch `device` (`cpu`, `cuda`, `cuda:1`) and the kernels (`backend`,
+    `resolve_backend`). They change the last bits of a render only, never the configuration."""
+
+    device: str = "cpu"
+    backend: Backend = "auto"
+
+    def validate(self) -> "RunOptions":
+        """`ConfigError` where the device is unknown or the backend cannot run on it (`resolve_backend`)."""
+        if not isinstance(self.device, str):
+            raise choices_error("device", self.device, DEVICE_TYPES)
+        resolve_backend(self.backend, self.device)
+        return self
+
+    @property
+    def kernels(self) -> str:
+        """The backend that runs here (`resolve_backend`)."""
+        return resolve_backend(self.backend, self.device)
+
+    def on_device(self, device: str) -> "RunOptions":
+        """The same options on `device`: a backend that cannot run there becomes `auto`."""
+        moved = dataclasses.replace(self, device=device)
+        try:
+            moved.validate()
+        except ConfigError:
+            return dataclasses.replace(moved, backend="auto")
+        return moved
+
+    def to_dict(self) -> dict[str, str]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "RunOptions":
+        """The options a record holds: a `config.json`'s `run`, or a flat record's `device` and `backend`."""
+        values = data.get("run") if isinstance(data.get("run"), dict) else data
+        return cls(device=str(values.get("device", "cpu")), backend=values.get("backend", "auto"))
 
 
 def padded_size(n: int, guard_px: int, multiple_px: int) -> int:

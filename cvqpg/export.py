@@ -91,25 +91,26 @@ class Display:
     aperture: float | None = DEFAULT_APERTURE
 
 
-def simulate_display(canvas_field: Tensor, display: Display, config: FitConfig) -> Tensor:
+def simulate_display(canvas_field: Tensor, display: Display, config: FitConfig, backend: str = "auto") -> Tensor:
     """Intensity [M, C, H, W] at `config`'s planes of a field [C, canvas H, canvas W] shown on `display`.
 
     The canvas sits in a zero-padded array (no light beyond the SLM), the 4f aperture filters its
-    spectrum, and the hologram's W×H region of each propagated plane is returned, clamped to [0, 1].
+    spectrum, and the hologram's W×H region of each propagated plane is returned, clamped to [0, 1], propagated
+    with the kernels of `backend`.
     """
     canvas_h, canvas_w = display.canvas
-    grid = Grid(config.height, config.width,
-                padded_size(canvas_h, config.guard_band_px, config.pad_multiple_px),
-                padded_size(canvas_w, config.guard_band_px, config.pad_multiple_px))
-    inner_top, inner_left = canvas_offset(display.canvas, (config.height, config.width))
+    grid = Grid(config.targets.height, config.targets.width,
+                padded_size(canvas_h, config.optics.guard_band_px, config.optics.pad_multiple_px),
+                padded_size(canvas_w, config.optics.guard_band_px, config.optics.pad_multiple_px))
+    inner_top, inner_left = canvas_offset(display.canvas, (config.targets.height, config.targets.width))
     top, left = grid.top - inner_top, grid.left - inner_left
     padded = canvas_field.new_zeros(canvas_field.shape[0], grid.padded_height, grid.padded_width)
     padded[:, top:top + canvas_h, left:left + canvas_w] = canvas_field
     if display.aperture is not None:
         aperture = fourier_aperture(grid.padded_height, grid.padded_width, display.aperture, padded.device)
         padded = torch.fft.ifft2(torch.fft.fft2(padded) * aperture)
-    planes = propagate_planes(padded, grid, config.plane_distances, config.wavelengths, config.pixel_pitch,
-                              config.backend)
+    planes = propagate_planes(padded, grid, config.plane_distances, config.wavelengths, config.optics.pixel_pitch,
+                              backend)
     return torch.clamp(planes.abs() ** 2, 0.0, 1.0)
 
 

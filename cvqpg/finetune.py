@@ -68,9 +68,10 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
     (`control`) raises `FitInterrupted` before the next step.
     """
     coded = coding(primitives, config, bits)
-    params = {name: value.to(config.device, copy=True) for name, value in coded.values.items()}
+    device = primitives.position_px.device  # where the primitives were fitted or loaded
+    params = {name: value.to(device, copy=True) for name, value in coded.values.items()}
     # scenes are built on the CPU; a run fitted on a GPU tunes there, as `fit_scene` fits there
-    scene = scene.to(config.device)
+    scene = scene.to(device)
     held = {"scale": _extremes(params["scale"]), "amplitude": _extremes(params["amplitude"].abs())}
     held_values = {name: params[name].view(-1)[index].clone() for name, index in held.items()}
     for value in params.values():
@@ -81,10 +82,10 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
     optimizer = torch.optim.Adam([{"params": [value], "lr": rate * bins[name]} for name, value in params.items()])
     schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda i: min(1.0, (i + 1) / (RAMP_STEPS + 1))
                                                  * 0.5 * (1 + math.cos(math.pi * i / max(steps, 1))))
-    generator = torch.Generator(device=config.device).manual_seed(config.seed if seed is None else seed)
+    generator = torch.Generator(device=device).manual_seed(config.optimisation.seed if seed is None else seed)
     for step in range(steps):
         if control.should_stop():
-            raise FitInterrupted(config.steps + 1, during="fine-tuning")
+            raise FitInterrupted(config.optimisation.steps + 1, during="fine-tuning")
         loss, mse = hologram_loss(hologram(quantised(params, coded.ranges, config, bits), config), scene,
                                   config, generator)
         if control.on_step is not None:  # reads the device back: only for a caller that shows progress

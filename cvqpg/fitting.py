@@ -16,8 +16,8 @@ from PIL import Image
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from .config import FitConfig
-from .density import Relocator
+from .config import FitConfig, RunOptions
+from .control import RunControl
 from .errors import InputError, ModelFileError
 from .metrics import MetricReport, evaluate
 from .ops.loss import multiplane_loss, noisy_targets, standard_normal
@@ -49,6 +49,7 @@ class FitResult:
     peak_memory: dict[str, Any] = field(default_factory=dict)  # what the caller noted in the state (FitState)
     compile_seconds: float = 0.0  # what the caller noted: kernel compilation outside `seconds`
     cpu_seconds: float | None = None  # the process's CPU time over `seconds` (FitState.cpu_seconds)
+    run: RunOptions = field(default_factory=RunOptions)  # where it was fitted
 
     @property
     def primitives(self) -> Primitives:
@@ -56,29 +57,30 @@ class FitResult:
         return activate(self.gaussians, self.config)
 
 
-def hologram(primitives: Primitives, config: FitConfig) -> Tensor:
-    """Complex hologram [C, H, W] of activated primitives on `config`'s W×H SLM grid."""
-    return rasterize(primitives, config.width, config.height, config.wavelengths, config.pixel_pitch,
-                     config.qpf, config.backend)
+def hologram(primitives: Primitives, config: FitConfig, backend: str = "auto") -> Tensor:
+    """Complex hologram [C, H, W] of activated primitives on `config`'s W×H SLM grid, with the kernels of
+    `backend` (`config.resolve_backend`) on the primitives' device."""
+    return rasterize(primitives, config.targets.width, config.targets.height, config.wavelengths,
+                     config.optics.pixel_pitch, config.primitives.qpf, backend)
 
 
-def render_hologram(gaussians: Gaussians, config: FitConfig) -> Tensor:
+def render_hologram(gaussians: Gaussians, config: FitConfig, backend: str = "auto") -> Tensor:
     """Complex hologram [C, H, W] of raw parameters under `config` (differentiable)."""
-    return hologram(activate(gaussians, config), config)
+    return hologram(activate(gaussians, config), config, backend)
 
 
-def render(primitives: Primitives, config: FitConfig, distances_m: Sequence[float] | None = None
-           ) -> tuple[Tensor, Tensor]:
+def render(primitives: Primitives, config: FitConfig, distances_m: Sequence[float] | None = None,
+           backend: str = "auto") -> tuple[Tensor, Tensor]:
     """Hologram [C, H, W] and clamped reconstructions [M, C, H, W] at `config`'s planes (or at
-    `distances_m`, m), without gradients."""
+    `distances_m`, m), without gradients, with the kernels of `backend`."""
     with torch.no_grad():
-        field = hologram(primitives, config)
-        return field, reconstruct(field, config, distances_m)
+        field = hologram(primitives, config, backend)
+        return field, reconstruct(field, config, distances_m, backend)
 
 
 def trainable_groups(config: FitConfig) -> tuple[str, ...]:
     """Parameter groups the optimiser owns: the flat primitive has no curvature."""
-    if config.primitive == "flat":
+    if config.primitives.kind == "flat":
         return tuple(g for g in LEARNING_RATE_GROUPS if g != "curvature")
     return LEARNING_RATE_GROUPS
 
@@ -89,16 +91,17 @@ def make_optimizer(gaussians: Gaussians, config: FitConfig) -> Adan:
     # which the first run's compile processes, importing this module, do not need.
     from pytorch_optimizer import Adan
 
-    groups = [{"params": [getattr(gaussians, name)], "lr": getattr(config.lr, name), "name": name}
+    groups = [{"params": [getattr(gaussians, name)], "lr": getattr(config.optimisation.lr, name), "name": name}
               for name in trainable_groups(config)]
-    return Adan(groups, betas=config.adan_betas, eps=config.adan_eps, weight_decay=0.0, max_grad_norm=0.0)
+    return Adan(groups, betas=config.optimisation.betas, eps=config.optimisation.adan_eps, weight_decay=0.0,
+                max_grad_norm=0.0)
 
 
 def position_learning_rate(step: int, config: FitConfig) -> float:
     """Cosine annealing from `lr.position` to `lr.position_final` over the run's `steps + 1` updates."""
-    progress = step / (config.steps + 1)
-    return config.lr.position_final + (config.lr.position - config.lr.position_final) * (
-        1 + math.cos(math.pi * progress)) / 2
+    progress = step / (config.optimisation.steps + 1)
+    lr = config.optimisation.lr
+    return lr.position_final + (lr.position - lr.position_final) * (1 + math.cos(math.pi * progress)) / 2
 
 
 def psnr_from_mse(mse: Tensor) -> Tensor:
@@ -113,7 +116,6 @@ class FitState:
     gaussians: Gaussians
     optimizer: Adan
     generator: torch.Generator
-    relocator: Relocator | None = None  # density control (`config.density`), beside the optimiser
     step: int = 0  # the next step index to run
     history: dict[str, list[float]] = field(default_factory=lambda: {"loss": [], "psnr": []})
     seconds: float = 0.0
@@ -166,38 +168,39 @@ class FitState:
                 "step": self.step, "history": self.history, "seconds": self.seconds, "cpu_seconds": self.cpu_seconds,
                 "skipped_steps": self.skipped_steps, "sanitised_steps": self.sanitised_steps,
                 "peak_memory": self.peak_memory, "compile_seconds": self.compile_seconds,
-                "device": self.generator.device.type,
-                "relocator": None if self.relocator is None else self.relocator.to_payload()}
+                "device": self.generator.device.type}
 
 
-def initial_state(config: FitConfig, scene: Scene | None = None) -> FitState:
-    """The state before step 0: the initialisation of `config.init` (`initialisation.initial_gaussians`;
-    `targets` needs the `scene`), the optimiser, the noise generator and density control."""
-    device = torch.device(config.device)
-    gaussians = initial_gaussians(config, scene)
+def initial_state(config: FitConfig, scene: Scene | None = None, run: RunOptions = RunOptions()) -> FitState:
+    """The state on `run.device` before step 0: the initialisation of `config.optimisation.init`
+    (`initialisation.initial_gaussians`; all but `uniform` need the `scene`), the optimiser and the noise
+    generator."""
+    device = torch.device(run.device)
+    gaussians = initial_gaussians(config, scene, run.device)
     for name in trainable_groups(config):
         getattr(gaussians, name).requires_grad_(True)
     optimizer = make_optimizer(gaussians, config)
-    generator = torch.Generator(device=device).manual_seed(config.seed)
-    return FitState(gaussians, optimizer, generator, Relocator.for_config(config))
+    generator = torch.Generator(device=device).manual_seed(config.optimisation.seed)
+    return FitState(gaussians, optimizer, generator)
 
 
-def blank_state(config: FitConfig) -> FitState:
+def blank_state(config: FitConfig, run: RunOptions = RunOptions()) -> FitState:
     """A state of `config`'s shapes whose values do not matter (a checkpoint overwrites them): the paper's
     initialisation, which needs no scene."""
-    return initial_state(config.replace(init="uniform"))
+    return initial_state(config.replace(init="uniform"), run=run)
 
 
-def state_from_payload(payload: dict, config: FitConfig, name: str = "the checkpoint") -> FitState:
-    """Inverse of `FitState.to_payload` on `config.device`. A checkpoint (`name` in messages) from another
+def state_from_payload(payload: dict, config: FitConfig, run: RunOptions = RunOptions(),
+                       name: str = "the checkpoint") -> FitState:
+    """Inverse of `FitState.to_payload` on `run.device`. A checkpoint (`name` in messages) from another
     device type is refused (`ModelFileError`): CPU and CUDA noise generators have different states; so is
     one whose primitives have other shapes than `config` gives them."""
     written_on = payload.get("device", "cpu")
-    if written_on != torch.device(config.device).type:
-        raise ModelFileError(f"{name} was written on {written_on}, this run is on {config.device}: "
+    if written_on != torch.device(run.device).type:
+        raise ModelFileError(f"{name} was written on {written_on}, this run is on {run.device}: "
                              f"resume it with `device` {written_on}, or delete the checkpoint to restart from "
                              "step 0")
-    state = blank_state(config)
+    state = blank_state(config, run)
     with torch.no_grad():
         for key, tensor in state.gaussians.tensors().items():
             stored = payload["gaussians"][key]
@@ -210,28 +213,24 @@ def state_from_payload(payload: dict, config: FitConfig, name: str = "the checkp
     state.step, state.history, state.seconds = payload["step"], payload["history"], payload["seconds"]
     state.cpu_seconds = payload.get("cpu_seconds")
     state.skipped_steps, state.sanitised_steps = payload["skipped_steps"], payload["sanitised_steps"]
-    if state.relocator is not None:
-        if not isinstance(payload.get("relocator"), dict):
-            raise ModelFileError(f"{name} holds no state of density control, which this run has (`density`): "
-                                 "delete it to restart from step 0")
-        state.relocator.load_payload(payload["relocator"])
     state.peak_memory = payload.get("peak_memory", {})
     state.compile_seconds = payload.get("compile_seconds", 0.0)
     return state
 
 
-def hologram_loss(field: Tensor, scene: Scene, config: FitConfig,
-                  generator: torch.Generator) -> tuple[Tensor, Tensor]:
+def hologram_loss(field: Tensor, scene: Scene, config: FitConfig, generator: torch.Generator,
+                  backend: str = "auto") -> tuple[Tensor, Tensor]:
     """method.md §6's training loss of a complex hologram [C, H, W]: propagated to the scene's planes and
     compared with its targets under fresh noise drawn from `generator`; returns it and the plain MSE. Where
     both terms that see the noisy targets weigh 0, no noise is drawn: it would enter nothing."""
-    weights = config.loss_weights
+    loss = config.loss
+    weights = (loss.focus_weight, loss.product_weight)
     noisy = scene.targets
     if any(weights):
-        noise = standard_normal(scene.targets.shape, generator, config.backend)
-        noisy = noisy_targets(scene.targets, noise, config.target_noise)
-    return multiplane_loss(reconstruct(field, config), scene.targets, scene.masks, noisy, config.ssim_weight,
-                           config.backend, *weights)
+        noise = standard_normal(scene.targets.shape, generator, backend)
+        noisy = noisy_targets(scene.targets, noise, loss.target_noise)
+    return multiplane_loss(reconstruct(field, config, backend=backend), scene.targets, scene.masks, noisy,
+                           loss.ssim_weight, backend, *weights)
 
 
 @dataclass
@@ -246,7 +245,7 @@ class StepOutcome:
     fresh_state: tuple[Tensor, ...] = ()  # parameters whose optimiser state this update created
 
 
-def update(state: FitState, scene: Scene, config: FitConfig) -> StepOutcome:
+def update(state: FitState, scene: Scene, config: FitConfig, backend: str = "auto") -> StepOutcome:
     """One update of method.md §6: render, propagate, loss, sanitise and clip gradients, Adan, without
     reading anything back to the host (on CUDA the step is queued, not waited for).
 
@@ -255,11 +254,9 @@ def update(state: FitState, scene: Scene, config: FitConfig) -> StepOutcome:
     the host.
     """
     gaussians, step = state.gaussians, state.step
-    if state.relocator is not None and state.relocator.due(step, config.steps):
-        with torch.no_grad():
-            state.relocator.relocate(gaussians, state.optimizer, scene, config, render_hologram(gaussians, config))
-    gaussians.curvature.requires_grad_(config.primitive == "cvqpg" and step >= config.curvature_warmup_steps)
-    loss, mse = hologram_loss(render_hologram(gaussians, config), scene, config, state.generator)
+    gaussians.curvature.requires_grad_(config.primitives.kind == "cvqpg"
+                                       and step >= config.optimisation.curvature_warmup)
+    loss, mse = hologram_loss(render_hologram(gaussians, config, backend), scene, config, state.generator, backend)
     optimizer = state.optimizer
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
@@ -270,10 +267,11 @@ def update(state: FitState, scene: Scene, config: FitConfig) -> StepOutcome:
     return StepOutcome(step, loss, psnr_from_mse(mse), skipped, sanitised, fresh)
 
 
-def optimisation_step(state: FitState, scene: Scene, config: FitConfig) -> tuple[float, float]:
+def optimisation_step(state: FitState, scene: Scene, config: FitConfig, backend: str = "auto"
+                      ) -> tuple[float, float]:
     """`update`, read back at once: the loss and the progress PSNR (dB); counts a skipped or sanitised
     step in `state`. `state.step` is left to the caller."""
-    return state.settle([update(state, scene, config)])[0]
+    return state.settle([update(state, scene, config, backend)])[0]
 
 
 def all_finite(tensors: list[Tensor]) -> Tensor:
@@ -303,7 +301,7 @@ def apply_gradients(optimizer: Adan, config: FitConfig, step: int, finite_loss: 
     if not surely_false(~finite_grads):
         for grad in grads:
             torch.nan_to_num_(grad, nan=0.0, posinf=0.0, neginf=0.0)
-    torch.nn.utils.clip_grad_norm_(params, config.grad_clip_norm)
+    torch.nn.utils.clip_grad_norm_(params, config.optimisation.grad_clip_norm)
     for group in optimizer.param_groups:
         if group["name"] == "position":
             group["lr"] = position_learning_rate(step, config)
@@ -322,19 +320,19 @@ def apply_gradients(optimizer: Adan, config: FitConfig, step: int, finite_loss: 
 PROBE_STEPS = 12
 
 
-def seconds_per_step(scene: Scene, config: FitConfig, probe_steps: int = PROBE_STEPS) -> float:
-    """Seconds one update of a fit of `config` takes here, timed over `probe_steps` updates of a throwaway
-    state after one untimed update (first-call costs), past the curvature warm-up, where most steps are.
-    Density control's renders are left out: a render per event, under 1% of a run (docs/beyond.md)."""
-    scene = scene.to(config.device)
-    state = initial_state(config, scene)
-    state.relocator = None
-    first = config.curvature_warmup_steps
+def seconds_per_step(scene: Scene, config: FitConfig, run: RunOptions = RunOptions(),
+                     probe_steps: int = PROBE_STEPS) -> float:
+    """Seconds one update of a fit of `config` takes here on `run`, timed over `probe_steps` updates of a
+    throwaway state after one untimed update (first-call costs), past the curvature warm-up, where most steps
+    are."""
+    scene = scene.to(run.device)
+    state = initial_state(config, scene, run)
+    first = config.optimisation.curvature_warmup
     for step in range(first, first + probe_steps + 1):
         if step == first + 1:
             start = time.perf_counter()
         state.step = step
-        optimisation_step(state, scene, config)
+        optimisation_step(state, scene, config, run.backend)
     return (time.perf_counter() - start) / probe_steps
 
 
@@ -367,11 +365,11 @@ PEAK_MEMORY = {"cpu": PeakMemoryModel(base_bytes=2**30, bytes_per_plane_pixel=16
                "cuda": PeakMemoryModel(base_bytes=2**29, bytes_per_plane_pixel=256)}
 
 
-def estimated_peak_bytes(config: FitConfig) -> int:
-    """Rough peak memory (bytes) of a fit on `config.device`: its RSS on the CPU, its allocated memory
-    on a GPU (`PEAK_MEMORY`)."""
-    model = PEAK_MEMORY[torch.device(config.device).type]
-    plane_pixels = config.num_planes * config.channels * config.width * config.height
+def estimated_peak_bytes(config: FitConfig, device: str = "cpu") -> int:
+    """Rough peak memory (bytes) of a fit on `device`: its RSS on the CPU, its allocated memory on a GPU
+    (`PEAK_MEMORY`)."""
+    model = PEAK_MEMORY[torch.device(device).type]
+    plane_pixels = config.targets.num_planes * config.channels * config.targets.width * config.targets.height
     return int(model.base_bytes + model.bytes_per_plane_pixel * plane_pixels)
 
 
@@ -401,47 +399,49 @@ class FitInterrupted(Exception):
 
 
 def fit(image: str | Path | Image.Image | Tensor, depth: str | Path | Image.Image | Tensor | None = None,
-        config: FitConfig = FitConfig(), progress: bool = True,
-        on_step: Callable[[int, float, float], None] | None = None) -> FitResult:
+        config: FitConfig | None = None, run: RunOptions = RunOptions(), control: RunControl = RunControl()
+        ) -> FitResult:
     """Fit an image (file, PIL image or [C, H, W] tensor) and its depth map; see `fit_scene`."""
-    return fit_scene(load_scene(image, depth, config), config, progress, on_step)
+    config = FitConfig.create() if config is None else config
+    return fit_scene(load_scene(image, depth, config), config, run, control)
 
 
-def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = True,
-              on_step: Callable[[int, float, float], None] | None = None,
-              state: FitState | None = None, checkpoint: CheckpointPolicy | None = None,
-              stop_requested: Callable[[], bool] | None = None) -> FitResult:
-    """Fit N primitives to a scene's targets; returns the fitted model and its final metrics.
+def fit_scene(scene: Scene, config: FitConfig | None = None, run: RunOptions = RunOptions(),
+              control: RunControl = RunControl(), state: FitState | None = None,
+              checkpoint: CheckpointPolicy | None = None) -> FitResult:
+    """Fit N primitives to a scene's targets on `run` (device and kernels); returns the fitted model and its
+    final metrics. `config` defaults to `FitConfig.create()` (the default recipe).
 
-    Runs the reference loop's `config.steps + 1` updates (indices 0..steps); curvature is frozen at
-    γ = 0 for the first `config.curvature_warmup_steps` of them. Pass a `state` (from a checkpoint)
-    to continue a run: the result is bit-identical to an uninterrupted one on CPU. When
-    `stop_requested()` turns true the loop saves a checkpoint between two steps and raises
-    `FitInterrupted`. The CPU kernels compile on their first call (Numba caches them on disk);
-    `cvqpg.app.compilation` compiles them ahead with a status line.
+    Runs the reference loop's `steps + 1` updates (indices 0..steps); curvature is frozen at γ = 0 for the
+    first `optimisation.curvature_warmup` of them. Pass a `state` (from a checkpoint) to continue a run: the
+    result is bit-identical to an uninterrupted one on CPU. `control` shows the progress bar, asks to stop
+    (the loop then saves a checkpoint between two steps and raises `FitInterrupted`) and hears of each step.
+    The CPU kernels compile on their first call (Numba caches them on disk); `cvqpg.app.compilation`
+    compiles them ahead with a status line.
 
     The steps run without host synchronisations; the loop reads their losses back (`readback_due`:
     after every step on the CPU, every `READBACK_SECONDS` on CUDA, and before a checkpoint and at
-    the end), and calls `on_step(step, loss, psnr)` for each step as it reads it back.
+    the end), and reports each step to `control` as it reads it back.
     """
-    config.validate()
-    expected = (config.num_planes, config.channels, config.height, config.width)
+    config = (FitConfig.create() if config is None else config).validate()
+    run.validate()
+    steps = config.optimisation.steps
+    expected = (config.targets.num_planes, config.channels, config.targets.height, config.targets.width)
     if tuple(scene.targets.shape) != expected:
         raise InputError(f"the scene's targets are {tuple(scene.targets.shape)} (planes, channels, height, width) "
                          f"but the configuration fits {expected}; build the scene with the same configuration")
-    device = torch.device(config.device)
+    device = torch.device(run.device)
     scene = scene.to(device)
-    state = state or initial_state(config, scene)
+    state = state or initial_state(config, scene, run)
     last_save, clock, cpu_clock = time.perf_counter(), time.perf_counter(), time.process_time()
-    bar = tqdm(range(state.step, config.steps + 1), initial=state.step, total=config.steps + 1,
-               disable=not progress, desc=f"fit {config.primitive}", unit="step", dynamic_ncols=True)
+    bar = tqdm(range(state.step, steps + 1), initial=state.step, total=steps + 1, disable=not control.progress,
+               desc=f"fit {config.primitives.kind}", unit="step", dynamic_ncols=True)
     pending: list[StepOutcome] = []
 
     def read_back() -> None:
         nonlocal clock, cpu_clock
         for outcome, (loss, psnr) in zip(pending, state.settle(pending)):
-            if on_step is not None:
-                on_step(outcome.step, loss, psnr)
+            control.report(outcome.step, loss, psnr)
         if pending:
             bar.set_postfix(loss=f"{state.history['loss'][-1]:.4f}", psnr=f"{state.history['psnr'][-1]:.2f}dB",
                             refresh=False)
@@ -453,24 +453,23 @@ def fit_scene(scene: Scene, config: FitConfig = FitConfig(), progress: bool = Tr
         clock, cpu_clock = now, cpu_now
 
     for step in bar:
-        if stop_requested is not None and stop_requested():
+        if control.should_stop():
             read_back()
             if checkpoint is not None:
                 checkpoint.save(state)
             raise FitInterrupted(step)
-        pending.append(update(state, scene, config))
+        pending.append(update(state, scene, config, run.backend))
         state.step = step + 1
         now = time.perf_counter()
-        saving = (checkpoint is not None and state.step <= config.steps
-                  and checkpoint.due(state.step, now - last_save))
-        if saving or state.step > config.steps or readback_due(device, now - clock):
+        saving = checkpoint is not None and state.step <= steps and checkpoint.due(state.step, now - last_save)
+        if saving or state.step > steps or readback_due(device, now - clock):
             read_back()
         if saving:
             checkpoint.save(state)
             last_save = time.perf_counter()
     fitted = state.gaussians.detached()
-    hologram, recon = render(activate(fitted, config), config)
+    hologram, recon = render(activate(fitted, config), config, backend=run.backend)
     metrics = evaluate(recon, scene.targets)
     return FitResult(fitted, config, metrics, hologram, recon, state.history, state.seconds,
                      state.skipped_steps, state.sanitised_steps, state.peak_memory, state.compile_seconds,
-                     state.cpu_seconds)
+                     state.cpu_seconds, run)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .config import SHORT_RUN_STEPS, FitConfig
+from .config import FitConfig
 from .errors import ConfigError
 from .ops.propagation.reference import propagate
 from .primitives import Gaussians, init_gaussians, raw_positions
@@ -17,19 +17,11 @@ SEED_OFFSET = 0x1417  # the position draws have their own generator: the paper's
 EDGES_UNIFORM_SHARE = 0.3
 
 
-def resolved_init(config: FitConfig) -> str:
-    """`config.init`, with `auto` resolved by the run's length: to `targets` in short runs (`SHORT_RUN_STEPS`), and
-    to `edges` in longer ones; each trails the other where it is not chosen (docs/beyond.md)."""
-    if config.init != "auto":
-        return config.init
-    return "targets" if config.steps <= SHORT_RUN_STEPS else "edges"
-
-
 def implied_slm_field(scene: Scene, config: FitConfig) -> Tensor:
     """The field [C, H, W] that the targets imply on the SLM plane: each plane's target amplitude √I with
     a flat phase, propagated back by its distance (BLASM, −d m), averaged over the planes."""
     amplitude = scene.targets.clamp(min=0).sqrt().to(torch.complex64)
-    fields = [propagate(amplitude[plane], [-distance], config.wavelengths, config.pixel_pitch)[0]
+    fields = [propagate(amplitude[plane], [-distance], config.wavelengths, config.optics.pixel_pitch)[0]
               for plane, distance in enumerate(config.plane_distances)]
     return torch.stack(fields).mean(dim=0)
 
@@ -63,13 +55,14 @@ def positions_from_energy(energy: Tensor, count: int, generator: torch.Generator
     return pixel + torch.rand(count, 2, generator=generator) - 0.5
 
 
-def initial_gaussians(config: FitConfig, scene: Scene | None = None) -> Gaussians:
-    """The raw parameters a fit starts from (`resolved_init`): the paper's uniform draws, or the same draws with
-    positions moved, which needs the `scene`: with `targets` to where the implied SLM field (`implied_slm_field`)
-    carries its energy, with `edges` mostly to the targets' edges (`edge_density`)."""
-    gaussians = init_gaussians(config.primitive_count, config.channels, config.width, config.height, config.seed,
-                               "cpu", config.curvature == "per-channel")
-    init = resolved_init(config)
+def initial_gaussians(config: FitConfig, scene: Scene | None = None, device: str = "cpu") -> Gaussians:
+    """The raw parameters a fit starts from (`optimisation.init`), on `device`: the paper's uniform draws, or the
+    same draws with positions moved, which needs the `scene`: with `targets` to where the implied SLM field
+    (`implied_slm_field`) carries its energy, with `edges` mostly to the targets' edges (`edge_density`)."""
+    width, height, seed = config.targets.width, config.targets.height, config.optimisation.seed
+    gaussians = init_gaussians(config.primitive_count, config.channels, width, height, seed, "cpu",
+                               config.primitives.curvature == "per-channel")
+    init = config.optimisation.init
     if init != "uniform":
         if scene is None:
             raise ConfigError(f"`init` {init} draws from the targets and needs the scene; pass it, or set `init` "
@@ -80,7 +73,7 @@ def initial_gaussians(config: FitConfig, scene: Scene | None = None) -> Gaussian
                 energy = implied_slm_field(scene, config).abs().square().sum(dim=0)
             else:
                 energy = edge_density(scene.targets)
-            generator = torch.Generator().manual_seed(config.seed + SEED_OFFSET)
+            generator = torch.Generator().manual_seed(seed + SEED_OFFSET)
             position = positions_from_energy(energy, config.primitive_count, generator)
-            gaussians.position.copy_(raw_positions(position, config.width, config.height))
-    return gaussians.to(config.device)
+            gaussians.position.copy_(raw_positions(position, width, height))
+    return gaussians.to(device)

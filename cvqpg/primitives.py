@@ -84,7 +84,7 @@ def model_shapes(count: int, config: FitConfig) -> dict[str, tuple[int, ...]]:
     channels = config.channels
     return {"position_px": (count, 2), "scale_px": (count, 2), "rotation_rad": (count,),
             "amplitude": (count, channels), "phase_rad": (count, channels), "opacity": (count,),
-            "curvature_per_m": (count,) if config.curvature == "shared" else (count, channels)}
+            "curvature_per_m": (count,) if config.primitives.curvature == "shared" else (count, channels)}
 
 
 def check_settings(config: FitConfig, count: object, name: str) -> None:
@@ -170,19 +170,19 @@ def curvature_bound(scale_px: Tensor, config: FitConfig) -> Tensor:
     Shared curvature: [N], bounded with the shortest wavelength, whose fringes are the finest.
     `per-channel` and `channel-bound`: [N, C], each channel bounded with its own wavelength.
     """
-    per_channel = config.curvature != "shared"
-    if config.bound == "global":
+    per_channel = config.primitives.curvature != "shared"
+    if config.primitives.bound == "global":
         shape = (scale_px.shape[0], config.channels) if per_channel else scale_px.shape[:1]
-        return torch.full(shape, config.global_bound, dtype=scale_px.dtype, device=scale_px.device)
+        return torch.full(shape, config.primitives.global_bound, dtype=scale_px.dtype, device=scale_px.device)
     sigma_px = scale_px.max(dim=1).values
-    scale = config.eta / (6 * sigma_px * config.pixel_pitch**2)
+    scale = config.primitives.eta / (6 * sigma_px * config.optics.pixel_pitch**2)
     if not per_channel:
         return scale * min(config.wavelengths)
     return scale[:, None] * device_constants(config.wavelengths, scale_px.dtype, scale_px.device)
 
 
 def activate(raw: Gaussians, config: FitConfig) -> Primitives:
-    """Apply method.md §2's activations; the curvature bound follows `config.bound` and `config.curvature`.
+    """Apply method.md §2's activations; the curvature bound follows `primitives.bound` and `primitives.curvature`.
 
     `channel-bound` shares one raw curvature: every channel gets the same fraction of its own bound.
     """
@@ -192,7 +192,7 @@ def activate(raw: Gaussians, config: FitConfig) -> Primitives:
     if share.dim() < bound.dim():
         share = share[:, None]
     return Primitives(
-        position_px=positions_px(raw.position, config.width, config.height),
+        position_px=positions_px(raw.position, config.targets.width, config.targets.height),
         scale_px=scale,
         rotation_rad=raw.rotation,
         amplitude=raw.amplitude,

@@ -13,7 +13,7 @@ from PIL import Image
 from torch import Tensor
 
 from . import __version__
-from .config import MIN_SIZE_PX, FitConfig
+from .config import MIN_SIZE_PX, SECTIONS, FitConfig, RunOptions
 from .errors import ConfigError, InputError, ModelFileError
 from .files import write_atomic
 from .export import (DEFAULT_APERTURE, DEFAULT_LEVELS, Display, Encoding, PhasePattern, phase_pattern, place_on_canvas,
@@ -33,9 +33,11 @@ CHECKPOINT_FILE = "checkpoint.pt"
 HISTORY_FILE = "history.csv"
 HISTORY_ROWS = 1000  # at most about this many steps per history.csv: a bench cell keeps it in git
 PLANE_IMAGES = ("target_plane*.png", "recon_plane*.png")
-# What every config.json has held since the first version: without them a run would take the defaults.
+# What every config.json of the flat layout (before `config_schema`) has held since the first version, and what
+# every later one holds: without them a run would take the defaults.
 RUN_KEYS = ("source", "width", "height", "color", "primitive", "pixel_pitch", "num_planes", "plane_center",
             "plane_span")
+SCHEMA_RUN_KEYS = ("source", *SECTIONS)
 RESTORE_RUN = "restore the file or fit the run again"
 
 
@@ -116,20 +118,22 @@ def read_history(path: Path) -> dict[str, np.ndarray]:
 
 def metrics_record(report: MetricReport, config: FitConfig, seconds: float,
                    extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    return {**report.to_dict(), "steps": config.steps, "num_gaussians": config.primitive_count,
+    return {**report.to_dict(), "steps": config.optimisation.steps, "num_gaussians": config.primitive_count,
             "num_params": config.primitive_count * config.params_per_primitive,
             "seconds": seconds, **(extra or {})}
 
 
-def start_run(folder: str | Path, config: FitConfig, source: dict[str, Any], keep_checkpoint: bool = False) -> Path:
-    """Create the run folder with its `config.json` (enough to resume); clear a previous run's outputs
-    (and its checkpoint, unless `keep_checkpoint`)."""
+def start_run(folder: str | Path, config: FitConfig, source: dict[str, Any], run: RunOptions = RunOptions(),
+              keep_checkpoint: bool = False) -> Path:
+    """Create the run folder with its `config.json` (enough to resume: the settings, the inputs and where it runs);
+    clear a previous run's outputs (and its checkpoint, unless `keep_checkpoint`)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     for pattern in (METRICS_FILE, MODEL_FILE, HISTORY_FILE, *PLANE_IMAGES, *(() if keep_checkpoint else (CHECKPOINT_FILE,))):
         for stale in folder.glob(pattern):
             stale.unlink()
-    write_json(folder / CONFIG_FILE, {"cvqpg_version": __version__, "source": source, **config.to_dict()})
+    write_json(folder / CONFIG_FILE, {"cvqpg_version": __version__, "source": source, **config.to_dict(),
+                                      "run": run.to_dict()})
     return folder
 
 
@@ -154,7 +158,7 @@ def read_run(folder: str | Path) -> tuple[FitConfig, dict[str, Any]]:
     if not path.is_file():
         raise InputError(f"{folder} is not a run folder (no {CONFIG_FILE}); give a folder written by `cvqpg fit`")
     recorded = read_record(path, RESTORE_RUN)
-    missing = [key for key in RUN_KEYS if key not in recorded]
+    missing = [key for key in (SCHEMA_RUN_KEYS if "config_schema" in recorded else RUN_KEYS) if key not in recorded]
     if missing:
         raise InputError(f"{path} lacks {', '.join(missing)}; {RESTORE_RUN}")
     source = recorded["source"]
@@ -164,8 +168,14 @@ def read_run(folder: str | Path) -> tuple[FitConfig, dict[str, Any]]:
               for key, value in source.items()}
     try:
         return FitConfig.from_dict(recorded).validate(), source
-    except (ConfigError, TypeError) as error:
+    except (ConfigError, TypeError, ValueError, AttributeError) as error:
         raise InputError(f"{path}: its settings cannot work ({error}); {RESTORE_RUN}") from None
+
+
+def read_run_options(folder: str | Path) -> RunOptions:
+    """Where the run in `folder` ran, as its `config.json` records it (device and backend): what a resume runs
+    on, and the kernels a render of it takes where they run (`RunOptions.on_device`)."""
+    return RunOptions.from_dict(read_record(Path(folder) / CONFIG_FILE, RESTORE_RUN))
 
 
 def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[str, Any],
@@ -175,7 +185,7 @@ def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[
 
     The checkpoint goes only once `metrics.json`, the mark of a finished run, is written: a run
     killed while its files are written resumes from the checkpoint instead of starting over."""
-    folder = start_run(folder, result.config, source, keep_checkpoint=True)
+    folder = start_run(folder, result.config, source, result.run, keep_checkpoint=True)
     config = result.config
     save_model(folder / MODEL_FILE, result.primitives, config)
     for plane, (target, image) in enumerate(zip(scene.targets, result.reconstructions)):
@@ -201,40 +211,35 @@ def scene_from_source(source: dict[str, Any], config: FitConfig) -> Scene:
     return load_scene(source["image"], source.get("depth"), config, source.get("resize_depth", False))
 
 
-def load_model_on(path: str | Path, device: str) -> tuple[Primitives, FitConfig]:
-    """A model file's primitives and settings, to render on `device` (`FitConfig.on_device`)."""
-    primitives, config = load_model(path, device)
-    return primitives, config.on_device(device)
-
-
 def optics_label(config: FitConfig) -> str:
     """E.g. `640×480 px, 3.74 µm pitch, 639/532/473 nm`."""
-    return (f"{config.width}×{config.height} px, {config.pixel_pitch * 1e6:g} µm pitch, "
+    return (f"{config.targets.width}×{config.targets.height} px, {config.optics.pixel_pitch * 1e6:g} µm pitch, "
             + "/".join(f"{w * 1e9:g}" for w in config.wavelengths) + " nm")
 
 
 def _targets(config: FitConfig) -> tuple[Any, ...]:
     """What a run's targets, and a render compared with them, depend on: size and colour first."""
-    return (config.width, config.height, config.color, config.pixel_pitch, config.wavelengths,
+    return (config.targets.width, config.targets.height, config.targets.color, config.optics.pixel_pitch,
+            config.wavelengths,
             config.plane_distances)
 
 
 def targets_label(config: FitConfig, brief: bool) -> str:
     """The targets `config` fits: size and colour (`brief`: `64×48 rgb`), or the optics and planes."""
     if brief:
-        return f"{config.width}×{config.height} {config.color}"
+        return f"{config.targets.width}×{config.targets.height} {config.targets.color}"
     return f"{optics_label(config)}, planes at {', '.join(f'{d * 1e3:g}' for d in config.plane_distances)} mm"
 
 
 def load_run_model(folder: str | Path, model: str | Path | None = None, device: str | None = None
                    ) -> tuple[Primitives, FitConfig, dict[str, Any]]:
     """The model of the run in `folder` (its own, or the model file `model`) with its settings, on `device`
-    (None: the CPU, settings as recorded), and the run's `source`. `ModelFileError` where the model was
+    (None: the CPU), and the run's `source`. `ModelFileError` where the model was
     fitted for other targets than the run's: another size, colour, pixel pitch, wavelengths or planes."""
     folder = Path(folder)
     run_config, source = read_run(folder)
     path = folder / MODEL_FILE if model is None else Path(model)
-    primitives, config = load_model(path) if device is None else load_model_on(path, device)
+    primitives, config = load_model(path, device or "cpu")
     if _targets(config) != _targets(run_config):
         brief = _targets(config)[:3] != _targets(run_config)[:3]
         raise ModelFileError(f"{path} was fitted for {targets_label(config, brief)}, the run folder {folder} is "
@@ -244,12 +249,12 @@ def load_run_model(folder: str | Path, model: str | Path | None = None, device: 
 
 def evaluate_run(folder: str | Path, model: str | Path | None = None, device: str = "cpu") -> dict[str, Any]:
     """Recompute a saved run's metrics from its model (or `model`, e.g. a compressed file in the
-    run folder) and inputs, rendered on `device`; rewrites `metrics.json`, or writes
-    `<model stem>.metrics.json` for `model`."""
+    run folder) and inputs, rendered on `device` with the run's kernels where they run there
+    (`RunOptions.on_device`); rewrites `metrics.json`, or writes `<model stem>.metrics.json` for `model`."""
     folder = Path(folder)
     primitives, config, source = load_run_model(folder, model, device)
     scene = scene_from_source(source, config)
-    _, recon = render(primitives, config)
+    _, recon = render(primitives, config, backend=read_run_options(folder).on_device(device).backend)
     metrics_file = folder / METRICS_FILE if model is None else folder / f"{Path(model).stem}.{METRICS_FILE}"
     previous = {}
     if (folder / METRICS_FILE).is_file():
@@ -301,7 +306,7 @@ def export_run(folder: str | Path, encoding: Encoding = "dpac", levels: int = DE
     out.mkdir(parents=True, exist_ok=True)
     scene = scene_from_source(source, config)
     hologram, complex_recon = render(primitives, config)
-    canvas = (config.height, config.width) if slm is None else (slm[1], slm[0])
+    canvas = (config.targets.height, config.targets.width) if slm is None else (slm[1], slm[0])
     pattern = phase_pattern(hologram, encoding, levels, canvas)
     files = save_phase_pattern(pattern, channel_labels(config), out)
     display = Display(canvas, aperture)
@@ -313,7 +318,7 @@ def export_run(folder: str | Path, encoding: Encoding = "dpac", levels: int = DE
         to_8bit(image).save(out / f"display_plane{plane}.png")
         files.append(f"display_plane{plane}.png")
     record = {"encoding": encoding, "levels": levels, "slm_px": list(slm) if slm else None,
-              "hologram_px": [config.width, config.height], "aperture_of_nyquist": aperture,
+              "hologram_px": [config.targets.width, config.targets.height], "aperture_of_nyquist": aperture,
               "files": files,
               "phase_only_display": evaluate(shown, scene.targets).to_dict(),
               "complex_display": evaluate(complex_shown, scene.targets).to_dict(),
@@ -347,15 +352,16 @@ def rescaled(primitives: Primitives, config: FitConfig, width: int, height: int)
     the pixel pitch shrinks by as much, curvature (1/m) stays. Refuses another aspect ratio."""
     if min(width, height) < MIN_SIZE_PX:
         raise ConfigError(f"size {width}×{height}: `width` and `height` need at least {MIN_SIZE_PX} px")
-    factor = width / config.width
-    if abs(height / config.height - factor) > 0.01 * factor:
-        raise ConfigError(f"size {width}×{height} changes the aspect ratio of the {config.width}×"
-                          f"{config.height} model; keep W/H = {config.width / config.height:.4f} (`size`)")
+    factor = width / config.targets.width
+    if abs(height / config.targets.height - factor) > 0.01 * factor:
+        raise ConfigError(f"size {width}×{height} changes the aspect ratio of the {config.targets.width}×"
+                          f"{config.targets.height} model; keep W/H = "
+                          f"{config.targets.width / config.targets.height:.4f} (`size`)")
     values = primitives.tensors()
     values["position_px"] = (values["position_px"] + 0.5) * factor - 0.5
     values["scale_px"] = values["scale_px"] * factor
     return Primitives.from_tensors(values), config.replace(
-        width=width, height=height, pixel_pitch=config.pixel_pitch / factor, num_gaussians=primitives.count)
+        width=width, height=height, pixel_pitch=config.optics.pixel_pitch / factor, num_gaussians=primitives.count)
 
 
 def render_model(target: str | Path, out: str | Path, size: tuple[int, int] | None = None,
@@ -366,7 +372,7 @@ def render_model(target: str | Path, out: str | Path, size: tuple[int, int] | No
     if Path(target).is_dir():
         primitives, config, _ = load_run_model(target, device=device)
     else:
-        primitives, config = load_model_on(target, device)
+        primitives, config = load_model(target, device)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if size is not None:
@@ -379,5 +385,5 @@ def render_model(target: str | Path, out: str | Path, size: tuple[int, int] | No
         name = f"recon_{distance * 1e3:g}mm.png"
         to_8bit(image).save(out / name)
         files.append(name)
-    return {"hologram_px": [config.width, config.height], "pixel_pitch_m": config.pixel_pitch,
+    return {"hologram_px": [config.targets.width, config.targets.height], "pixel_pitch_m": config.optics.pixel_pitch,
             "distances_m": list(distances), "files": files}

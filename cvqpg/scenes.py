@@ -101,5 +101,5 @@ def builtin_pictures(name: str, width: int, height: int) -> BuiltinScene:
 
 def builtin_scene(name: str, config: FitConfig) -> Scene:
     """The named built-in scene with its targets for `config` (size, colour, planes): what `fit_scene` takes."""
-    pictures = builtin_pictures(name, config.width, config.height)
+    pictures = builtin_pictures(name, config.targets.width, config.targets.height)
     return load_scene(pictures.image, pictures.depth, config)

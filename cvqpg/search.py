@@ -272,8 +272,8 @@ class Budget(Goal):
         """The budget of `bpp` bits per hologram pixel (the file at most ⌊bpp·W·H/8⌋ bytes) or of `max_bytes`
         bytes, one of them, as `CompressionSettings` checks them."""
         if bpp is not None:
-            size = math.floor(bpp * config.width * config.height / 8)
-            return cls(size, f"`bpp` {bpp:g} ({size} bytes for {config.width}×{config.height} px)")
+            size = math.floor(bpp * config.targets.width * config.targets.height / 8)
+            return cls(size, f"`bpp` {bpp:g} ({size} bytes for {config.targets.width}×{config.targets.height} px)")
         return cls(max_bytes, f"`max_bytes` {max_bytes}")
 
     def check(self, smallest: int, config: FitConfig) -> None:
@@ -300,7 +300,7 @@ def _check_stop(control: RunControl, config: FitConfig, goal: Goal) -> None:
     """`FitInterrupted` once `control` asks to stop (after the fit of the model, whose checkpoint the caller
     keeps)."""
     if control.should_stop():
-        raise FitInterrupted(config.steps + 1, during=goal.work)
+        raise FitInterrupted(config.optimisation.steps + 1, during=goal.work)
 
 
 def refine(primitives: Primitives, config: FitConfig, reference: Reference, goal: Goal, choice: Choice,

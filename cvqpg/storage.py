@@ -31,9 +31,9 @@ def model_metadata(primitives: Primitives, config: FitConfig, dtype: str) -> dic
     """What a model file says about itself: format, configuration, and the optics in plain numbers."""
     return {"format": MODEL_FORMAT, "format_version": MODEL_FORMAT_VERSION, "dtype": dtype,
             "config": json.dumps(config.to_dict()), "num_primitives": str(primitives.count),
-            "width_px": str(config.width), "height_px": str(config.height),
-            "pixel_pitch_m": repr(config.pixel_pitch), "wavelengths_m": json.dumps(config.wavelengths),
-            "plane_distances_m": json.dumps(config.plane_distances), "qpf": config.qpf,
+            "width_px": str(config.targets.width), "height_px": str(config.targets.height),
+            "pixel_pitch_m": repr(config.optics.pixel_pitch), "wavelengths_m": json.dumps(config.wavelengths),
+            "plane_distances_m": json.dumps(config.plane_distances), "qpf": config.primitives.qpf,
             "units": json.dumps(UNITS)}
 
 
@@ -125,10 +125,10 @@ def model_info(path: str | Path) -> dict[str, Any]:
         primitives, config, metadata = _read_safetensors(path)
         dtype = metadata.get("dtype", "float32")
     file_bytes = path.stat().st_size
-    return {"file": str(path), "num_primitives": primitives.count, "primitive": config.primitive,
+    return {"file": str(path), "num_primitives": primitives.count, "primitive": config.primitives.kind,
             "learnable_params": primitives.count * config.params_per_primitive,
             "stored_values": sum(t.numel() for t in primitives.tensors().values()), "dtype": dtype,
-            "file_bytes": file_bytes, "hologram_px": [config.width, config.height],
+            "file_bytes": file_bytes, "hologram_px": [config.targets.width, config.targets.height],
             "channels": config.channels, "bits_per_pixel": bits_per_pixel(file_bytes, config), **extra}
 
 

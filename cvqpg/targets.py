@@ -199,18 +199,18 @@ def defocus_targets(image: Tensor, masks: Tensor, sigma_per_plane_px: float = 8.
 
 def build_scene(image: Tensor, depth: Tensor | None, config: FitConfig) -> Scene:
     """Scene from a prepared image [C, H, W] and optional depth [H, W] (needed for M > 1)."""
-    planes = config.num_planes
+    planes = config.targets.num_planes
     if depth is None and planes > 1:
         raise InputError(f"{planes} planes need a depth map (`depth`), or set `num_planes` to 1")
     if depth is not None and planes > 1 and float(depth.max() - depth.min()) < 1e-6:
         raise InputError(f"the depth map is constant ({float(depth.min()):.3g}), so it cannot separate "
                          f"{planes} planes; set `num_planes` to 1")
-    masks = plane_masks(depth, planes, config.depth_exponent, tuple(image.shape[1:]))
+    masks = plane_masks(depth, planes, config.targets.depth_exponent, tuple(image.shape[1:]))
     empty = [m for m in range(planes) if not masks[m].any()]
     if empty:
         raise InputError(f"the depth map puts no pixel on plane(s) {', '.join(map(str, empty))} of {planes}: "
                          f"it separates only {planes - len(empty)}; lower `num_planes`")
-    targets = defocus_targets(image, masks, config.defocus_sigma_px)
+    targets = defocus_targets(image, masks, config.targets.defocus_sigma_px)
     return Scene(image=image, masks=masks, targets=targets)
 
 
@@ -239,11 +239,11 @@ def load_scene(image: str | Path | Image.Image | Tensor, depth: str | Path | Ima
     if picture is not None and depth_picture is not None:
         check_depth_geometry(picture, depth_picture, resize_depth)
     if picture is not None:
-        image = prepare_image(picture, config.width, config.height, config.color)
+        image = prepare_image(picture, config.targets.width, config.targets.height, config.targets.color)
     else:
-        check_tensor(image, "image", (config.channels, config.height, config.width))
+        check_tensor(image, "image", (config.channels, config.targets.height, config.targets.width))
     if depth_picture is not None:
-        depth = prepare_depth(depth_picture, config.width, config.height)
+        depth = prepare_depth(depth_picture, config.targets.width, config.targets.height)
     elif depth is not None:
-        check_tensor(depth, "depth", (config.height, config.width))
+        check_tensor(depth, "depth", (config.targets.height, config.targets.width))
     return build_scene(image.float(), None if depth is None else depth.float(), config)

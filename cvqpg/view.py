@@ -29,7 +29,7 @@ from .metrics import METRIC_NAMES, psnr
 from .ops.propagation import release_transfer_functions
 from .optics import reconstruct
 from .runs import (EXPORT_FOLDER, METRICS_FILE, hologram_images, load_run_model, optics_label, read_record, read_run,
-                   to_8bit, write_atomic)
+                   read_run_options, to_8bit, write_atomic)
 from .targets import load_picture
 
 MAX_DISTANCE_M = 0.1  # farther, a few-mm hologram's band limit leaves almost nothing: a mm/m mix-up
@@ -103,17 +103,18 @@ def check_comparable(folders: Sequence[Path], configs: Sequence[FitConfig]) -> N
                             "scene)")
 
 
-def run_device(config: FitConfig) -> str:
-    """The device the run was fitted on, or the CPU (with a note) where that GPU is absent."""
-    if config.device.startswith("cuda") and not torch.cuda.is_available():
-        log.warning(f"the run was fitted on {config.device}, which is not available; rendering on the CPU")
+def run_device(folder: Path) -> str:
+    """The device the run in `folder` was fitted on, or the CPU (with a note) where that GPU is absent."""
+    device = read_run_options(folder).device
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        log.warning(f"the run was fitted on {device}, which is not available; rendering on the CPU")
         return "cpu"
-    return config.device
+    return device
 
 
 def load_run(folder: Path) -> Run:
     """Read a finished run folder and render its hologram; its model must belong to it (`load_run_model`)."""
-    primitives, config, source = load_run_model(folder, device=run_device(read_run(folder)[0]))
+    primitives, config, source = load_run_model(folder, device=run_device(folder))
     metrics_file = folder / METRICS_FILE
     metrics = (read_record(metrics_file, "delete it, then `cvqpg eval` on the run writes it again")
                if metrics_file.is_file() else None)
@@ -203,20 +204,20 @@ def settings_rows(run: Run) -> dict[str, str]:
     config, metrics = run.config, run.metrics or {}
     mean, per_plane = metrics.get("mean", {}), metrics.get("per_plane", {})
     record = metrics.get("run", {})
-    rows = {"input": input_label(run.source), "primitive": config.primitive, "colour": config.color,
+    rows = {"input": input_label(run.source), "primitive": config.primitives.kind, "colour": config.targets.color,
             "optics": optics_label(config),
             "planes": ", ".join(f"{d * 1e3:g} mm" for d in run.planes),
             "N primitives": f"{config.primitive_count:,}",
             "parameters": f"{config.primitive_count * config.params_per_primitive:,}",
-            "steps (warm-up)": f"{config.steps} ({config.curvature_warmup_steps})",
-            "curvature": f"{config.curvature}, {config.bound} bound, {config.qpf} QPF"
-            if config.primitive == "cvqpg" else "–",
-            "seed": str(config.seed)}
+            "steps (warm-up)": f"{config.optimisation.steps} ({config.optimisation.curvature_warmup})",
+            "curvature": f"{config.primitives.curvature}, {config.primitives.bound} bound, {config.primitives.qpf} QPF"
+            if config.primitives.kind == "cvqpg" else "–",
+            "seed": str(config.optimisation.seed)}
     rows.update({name.upper(): _value(mean.get(name), 4 if name in ("ssim", "flip", "lpips") else 3)
                  for name in METRIC_NAMES})
     rows["PSNR per plane (dB)"] = " / ".join(_value(v, 3) for v in per_plane.get("psnr", [])) or "–"
     rows["fit time"] = f"{metrics['seconds']:.0f} s" if "seconds" in metrics else "–"
-    rows["device"] = record.get("device", config.device)
+    rows["device"] = record.get("device", run.field.device.type)
     rows["commit"] = str(record.get("commit") or "–")[:12]
     return rows
 
@@ -246,7 +247,7 @@ def page_data(runs: Sequence[Run], distances_m: Sequence[float], progress: bool)
         images = {name: data_uri(image) for name, image in hologram_images(run.field).items()}
         shown.append({"name": run.name, **sweep_frames(run, distances_m, progress), **images,
                       "display": display_images(run)})
-    return {"width": runs[0].config.width, "height": runs[0].config.height,
+    return {"width": runs[0].config.targets.width, "height": runs[0].config.targets.height,
             "distances_mm": [round(d * 1e3, 6) for d in distances_m], "marks": marks, "runs": shown}
 
 

@@ -27,10 +27,10 @@ def main() -> None:
     _, source = read_run(args.run_dir)
     targets = scene_from_source(source, config).targets
     hologram, fitted = render(primitives, config)
-    canvas = (config.height, config.width)
+    canvas = (config.targets.height, config.targets.width)
     pattern = phase_pattern(hologram, "dpac", DEFAULT_LEVELS, canvas)
     m = args.margin
-    inner = (..., slice(m, config.height - m), slice(m, config.width - m))
+    inner = (..., slice(m, config.targets.height - m), slice(m, config.targets.width - m))
 
     def both(recon) -> str:
         return f"{mean_psnr(recon, targets):7.3f} {mean_psnr(recon[inner], targets[inner]):9.3f}"

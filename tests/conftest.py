@@ -20,7 +20,7 @@ torch.set_num_threads(2)
 @pytest.fixture
 def tiny_config() -> FitConfig:
     """64×48 px, two planes, a narrow guard band: a fit step costs a few tens of ms."""
-    return FitConfig(width=64, height=48, steps=20, curvature_warmup=5, guard_band_px=32)
+    return FitConfig.create(width=64, height=48, steps=20, curvature_warmup=5, guard_band_px=32)
 
 
 def write_scenes(root):
@@ -42,3 +42,14 @@ def scenes_dir(tmp_path):
 def module_scenes_dir(tmp_path_factory):
     """Scene folders shared by a module's tests, left unchanged (see `write_scenes`)."""
     return write_scenes(tmp_path_factory.mktemp("scenes"))
+
+
+@pytest.fixture(scope="session")
+def finished_run(tmp_path_factory):
+    """One finished run for every module: the demo scene at 32×24 px, RGB, two planes, 2 steps. Read it, or copy it
+    (`shutil.copytree`) to change it: commands such as `eval` and `export` write into a run."""
+    from cvqpg.cli import main
+
+    out = tmp_path_factory.mktemp("finished") / "run"
+    assert main(["fit", "--size", "32", "24", "--steps", "2", "--quiet", "--out", str(out)]) == 0
+    return out

@@ -16,6 +16,7 @@ from numba.core import event
 from numba.core.dispatcher import Dispatcher
 from numba.core.types import UniTuple
 
+from cvqpg.control import SILENT
 from cvqpg.app import compilation
 from cvqpg.ops.field import cpu as field_kernels
 from cvqpg.ops.loss import cpu as loss_kernels
@@ -38,10 +39,12 @@ def kernel_signatures():
             for signature in function.signatures}
 
 
-KINDS = pytest.mark.parametrize("config", [FitConfig(width=48, height=36, steps=2, curvature_warmup=1),
-                                           FitConfig(width=40, height=30, steps=2, curvature_warmup=1, color="gray",
-                                                     num_planes=1, primitive="flat", qpf="standard"),
-                                           FitConfig(width=48, height=36, steps=2, curvature_warmup=1, curvature="per-channel")],
+KINDS = pytest.mark.parametrize("config", [FitConfig.create(width=48, height=36, steps=2, curvature_warmup=1),
+                                           FitConfig.create(width=40, height=30, steps=2, curvature_warmup=1,
+                                                            color="gray", num_planes=1, primitive="flat",
+                                                            qpf="standard"),
+                                           FitConfig.create(width=48, height=36, steps=2, curvature_warmup=1,
+                                                            curvature="per-channel")],
                                 ids=["demo", "gray-flat-one-plane", "per-channel"])
 
 
@@ -50,9 +53,9 @@ KINDS = pytest.mark.parametrize("config", [FitConfig(width=48, height=36, steps=
 def test_after_the_probe_a_fit_needs_no_other_kernel_specialisation(config):
     compile_kernels(config)
     probed = kernel_signatures()
-    demo = builtin_pictures("demo", config.width, config.height)
-    scene = load_scene(demo.image, demo.depth if config.num_planes > 1 else None, config)
-    fit_scene(scene, config, progress=False)
+    demo = builtin_pictures("demo", config.targets.width, config.targets.height)
+    scene = load_scene(demo.image, demo.depth if config.targets.num_planes > 1 else None, config)
+    fit_scene(scene, config, control=SILENT)
     assert kernel_signatures() == probed
 
 
@@ -68,9 +71,9 @@ def test_the_rasterizer_kernels_are_compiled_from_the_types_a_fit_calls_them_wit
 
 
 def test_the_probe_serves_more_planes_than_the_demo_depth_separates():
-    config = FitConfig(num_planes=5, color="gray")
+    config = FitConfig.create(num_planes=5, color="gray")
     probe = compilation.probe_config(config)
-    demo = builtin_pictures("demo", probe.width, probe.height)
+    demo = builtin_pictures("demo", probe.targets.width, probe.targets.height)
     with pytest.raises(ValueError, match="separates only 3"):  # the demo's own depth at the probe's size
         load_scene(demo.image, demo.depth, probe)
     scene = compilation.probe_scene(probe)
@@ -260,9 +263,9 @@ def test_a_compile_starts_the_helper_processes_and_the_block_waits_for_them(tmp_
 
 
 def test_without_a_compile_no_helper_process_starts():
-    compile_kernels(FitConfig(width=48, height=36))
+    compile_kernels(FitConfig.create(width=48, height=36))
     with CompileAlongside([[sys.executable, "-c", "pass"]]) as alongside:
-        compile_kernels(FitConfig(width=48, height=36), alongside=False)  # now loads from the cache
+        compile_kernels(FitConfig.create(width=48, height=36), alongside=False)  # now loads from the cache
     assert alongside.processes == []
 
 
@@ -278,6 +281,6 @@ def test_an_interrupted_block_stops_the_helper_processes_instead_of_waiting(tmp_
 
 @pytest.mark.slow
 def test_the_alongside_process_compiles_its_parts():
-    probe = compilation.probe_config(FitConfig(width=48, height=36))
+    probe = compilation.probe_config(FitConfig.create(width=48, height=36))
     done = subprocess.run(compilation.alongside_command(probe), capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr

@@ -29,7 +29,7 @@ W, H = 48, 36
 @pytest.fixture(scope="module")
 def model_file(tmp_path_factory):
     """A bare model file of random primitives, in a folder of its own; a narrow guard band renders it at once."""
-    config = FitConfig(width=W, height=H, color="gray", num_planes=1, ratio=0.3, guard_band_px=32).validate()
+    config = FitConfig.create(width=W, height=H, color="gray", num_planes=1, ratio=0.3, guard_band_px=32).validate()
     path = tmp_path_factory.mktemp("model") / "model.safetensors"
     save_model(path, random_primitives(config), config)
     return path
@@ -193,7 +193,7 @@ def test_rate_distortion_points_and_bd_rate():
     pytest.importorskip("imagecodecs")
     from cvqpg.campaign.ratedistortion import anchor_points, bd_rate, rd_points
 
-    config = FitConfig(width=48, height=32, color="gray", ratio=0.3, guard_band_px=32)
+    config = FitConfig.create(width=48, height=32, color="gray", ratio=0.3, guard_band_px=32)
     primitives = random_primitives(config)
     targets = render(primitives, config)[1].clamp(0.05, 0.95)
     points = rd_points(primitives, config, targets, ladder=[BitDepths(), BitDepths().shifted(2)], anchors=False)

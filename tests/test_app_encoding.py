@@ -26,7 +26,7 @@ def one_line_error(capsys) -> str:
 
 
 def test_the_primitive_count_for_a_budget_fills_it_at_the_default_depths_with_headroom():
-    config = FitConfig(width=64, height=48, color="gray", num_planes=1)
+    config = FitConfig.create(width=64, height=48, color="gray", num_planes=1)
     counts = [primitives_for_budget(config, size) for size in (1000, 2000, 4000)]
     assert counts == sorted(counts) and counts[0] >= 1
     # the stand-in model of the estimate, less the headroom, takes about the budget
@@ -36,8 +36,9 @@ def test_the_primitive_count_for_a_budget_fills_it_at_the_default_depths_with_he
 
 
 def test_encode_splits_a_fits_steps_into_float_and_quantisation_aware_ones_in_proportion():
-    assert encode_steps(FitConfig().steps) == (ENCODE_STEPS, ENCODE_FINETUNE_STEPS)
-    assert encode_steps(FitConfig().steps // 10) == (round(ENCODE_STEPS / 10), round(ENCODE_FINETUNE_STEPS / 10))
+    assert encode_steps(FitConfig().optimisation.steps) == (ENCODE_STEPS, ENCODE_FINETUNE_STEPS)
+    tenth = FitConfig().optimisation.steps // 10
+    assert encode_steps(tenth) == (round(ENCODE_STEPS / 10), round(ENCODE_FINETUNE_STEPS / 10))
     assert encode_steps(1) == (1, 0)
 
 

@@ -19,6 +19,7 @@ from cvqpg.campaign import bench
 from cvqpg.campaign.bench import (DONE, INTERRUPTED, BenchError, Overrides, cell_status, folder_plan, make_plan,
                                   parse_shard, run_cell, run_plan)
 from cvqpg.cli import main
+from cvqpg.control import SILENT, RunControl
 from cvqpg.app import provenance
 from cvqpg.metrics import radial_error_spectrum
 from cvqpg.campaign.report import CellResult, cells_table, devices_line, main_table, paper_numbers, seed_tables
@@ -119,16 +120,17 @@ def test_methods_map_to_the_papers_configurations(scenes_dir, tmp_path):
         for method, values in methods.items():
             assert counts[(setting, method)] == values["n"], (setting, method)
     ablation_plan = make_plan("ablation", tmp_path / "a", Overrides(scenes_dir=scenes_dir))
-    ablation = {c.method: c.config for c in ablation_plan.cells}
-    assert (ablation["baseline"].primitive, ablation["cvqpg"].bound, ablation["cvqpg"].qpf) == ("flat", "adaptive",
-                                                                                                 "mahalanobis")
+    ablation = {c.method: c.config.primitives for c in ablation_plan.cells}
+    assert (ablation["baseline"].kind, ablation["cvqpg"].bound, ablation["cvqpg"].qpf) == ("flat", "adaptive",
+                                                                                           "mahalanobis")
     assert (ablation["no-bound"].bound, ablation["no-bound"].qpf) == ("global", "mahalanobis")
     assert (ablation["no-mahalanobis"].bound, ablation["no-mahalanobis"].qpf) == ("adaptive", "standard")
-    assert (ablation["vanilla"].bound, ablation["vanilla"].qpf, ablation["vanilla"].primitive) == (
+    assert (ablation["vanilla"].bound, ablation["vanilla"].qpf, ablation["vanilla"].kind) == (
         "global", "standard", "cvqpg")
     star = make_plan("star").cells
-    assert {(c.config.num_planes, c.config.color, c.config.primitive_count) for c in star} == {(1, "gray", 7680)}
-    assert make_plan("quick", overrides=Overrides(steps=50)).cells[0].config.curvature_warmup == 10
+    assert {(c.config.targets.num_planes, c.config.targets.color, c.config.primitive_count)
+            for c in star} == {(1, "gray", 7680)}
+    assert make_plan("quick", overrides=Overrides(steps=50)).cells[0].config.optimisation.curvature_warmup == 10
 
 
 def test_chromatic_preset_compares_at_equal_n_and_at_per_channel_parameter_count(scenes_dir, tmp_path):
@@ -139,7 +141,8 @@ def test_chromatic_preset_compares_at_equal_n_and_at_per_channel_parameter_count
         assert {m: configs[(setting, m)].primitive_count for m in plan.methods} == {
             "baseline": n, "cvqpg": n, "per-channel": n, "channel-bound": n,
             "baseline+pc": round(n * 15 / 12), "cvqpg+pc": round(n * 15 / 13)}
-    curvatures = {m: (configs[("rgb-10", m)].primitive, configs[("rgb-10", m)].curvature) for m in plan.methods}
+    curvatures = {m: (configs[("rgb-10", m)].primitives.kind, configs[("rgb-10", m)].primitives.curvature)
+                  for m in plan.methods}
     assert curvatures["per-channel"] == ("cvqpg", "per-channel")
     assert curvatures["channel-bound"] == ("cvqpg", "channel-bound")
     assert curvatures["cvqpg+pc"] == ("cvqpg", "shared") and curvatures["baseline+pc"][0] == "flat"
@@ -175,7 +178,7 @@ def test_partial_files_do_not_mark_a_cell_done_and_it_restarts(tmp_path):
     (folder / "metrics.json.4242.partial").write_text("{}")
     (folder / "checkpoint.pt").write_bytes(b"cut short")
     assert cell_status(folder) == INTERRUPTED
-    outcome = run_plan(plan, progress=False)
+    outcome = run_plan(plan, control=SILENT)
     assert outcome.statuses == {cell.name: DONE} and cell_status(folder) == DONE
     assert json.loads((folder / "metrics.json").read_text())["updates"] == 4
 
@@ -187,11 +190,11 @@ def test_interrupted_cell_resumes_from_its_checkpoint_to_the_same_result(tmp_pat
     cell = plan.cells[0]
     folder = plan.cell_dir(cell)
     checks = iter(range(100))
-    assert run_cell(cell, folder, lambda: next(checks) > 5) == INTERRUPTED
+    assert run_cell(cell, folder, RunControl(progress=False, stop_requested=lambda: next(checks) > 5)) == INTERRUPTED
     assert cell_status(folder) == INTERRUPTED and not (folder / "metrics.json").exists()
     assert load_checkpoint(folder / "checkpoint.pt")["step"] == 5
-    assert run_plan(plan, progress=False).statuses == {cell.name: DONE}
-    assert run_plan(reference, progress=False).statuses == {cell.name: DONE}
+    assert run_plan(plan, control=SILENT).statuses == {cell.name: DONE}
+    assert run_plan(reference, control=SILENT).statuses == {cell.name: DONE}
     resumed, fresh = (json.loads((p.cell_dir(cell) / "metrics.json").read_text()) for p in (plan, reference))
     assert resumed["mean"] == fresh["mean"] and resumed["updates"] == 9
 
@@ -202,19 +205,19 @@ def test_a_cell_checkpointed_on_another_device_restarts_from_step_0(tmp_path, ca
     cell = plan.cells[0]
     folder = plan.cell_dir(cell)
     checks = iter(range(100))
-    assert run_cell(cell, folder, lambda: next(checks) > 2) == INTERRUPTED
+    assert run_cell(cell, folder, RunControl(progress=False, stop_requested=lambda: next(checks) > 2)) == INTERRUPTED
     payload = load_checkpoint(folder / "checkpoint.pt")
     payload["device"], payload["generator"] = "cuda", torch.zeros(16, dtype=torch.uint8)
     save_checkpoint(folder / "checkpoint.pt", payload)
     with caplog.at_level("WARNING", logger="cvqpg"):
-        assert run_plan(plan, progress=False).statuses == {cell.name: DONE}
+        assert run_plan(plan, control=SILENT).statuses == {cell.name: DONE}
     assert "written on cuda" in caplog.text and "restarts from step 0" in caplog.text
 
 
 @pytest.mark.slow
 def test_jobs_run_cells_in_worker_processes(tmp_path):
     plan = make_plan("quick", tmp_path / "bench", Overrides(size=(48, 36), steps=2))
-    outcome = run_plan(plan, jobs=2, progress=False)
+    outcome = run_plan(plan, jobs=2, control=SILENT)
     assert outcome.count(DONE) == 4 and not outcome.failures
     assert all((plan.cell_dir(c) / "spectrum.json").is_file() for c in plan.cells)
 
@@ -223,7 +226,7 @@ def test_jobs_run_cells_in_worker_processes(tmp_path):
 def test_threads_set_each_fit_s_thread_count_whatever_the_jobs(tmp_path):
     """Three threads each, two fits at once: not the cores/jobs share of any machine with under 6 cores."""
     plan = make_plan("quick", tmp_path / "bench", Overrides(size=(48, 36), steps=2, methods=["cvqpg"]))
-    assert run_plan(plan, jobs=2, progress=False, threads=3).count(DONE) == 2
+    assert run_plan(plan, jobs=2, control=SILENT, threads=3).count(DONE) == 2
     runs = [json.loads((plan.cell_dir(c) / "metrics.json").read_text())["run"] for c in plan.cells]
     assert [run["torch_threads"] for run in runs] == [3, 3]
 
@@ -239,7 +242,7 @@ def test_one_job_fits_with_its_threads_and_gives_the_caller_its_own_back(tmp_pat
     monkeypatch.setattr(bench, "_attempt", attempt)
     before = torch.get_num_threads(), numba.get_num_threads()
     assert before != (1, 1)  # conftest.py sets 2 torch threads
-    assert run_plan(plan, progress=False, threads=1).count(DONE) == 2
+    assert run_plan(plan, control=SILENT, threads=1).count(DONE) == 2
     assert seen == [(1, 1), (1, 1)]
     assert (torch.get_num_threads(), numba.get_num_threads()) == before
 
@@ -300,8 +303,8 @@ def test_table_rows_are_means_over_the_scenes_every_method_has_finished(scenes_d
 def test_seed_spread_table_pairs_methods_within_each_seed(tmp_path):
     plan = make_plan("quick", tmp_path / "bench", Overrides(seeds=[1, 2]))
     psnr = {("baseline", 1): 20.0, ("cvqpg", 1): 20.5, ("baseline", 2): 21.0, ("cvqpg", 2): 21.1}
-    results = [CellResult(c, DONE, {"mean": {"psnr": psnr[(c.method, c.config.seed)], "ssim": 0.5, "lpips": None,
-                                             "flip": 0.2, "cvvdp": None}}, None) for c in plan.cells]
+    results = [CellResult(c, DONE, {"mean": {"psnr": psnr[(c.method, c.config.optimisation.seed)], "ssim": 0.5,
+                                             "lpips": None, "flip": 0.2, "cvvdp": None}}, None) for c in plan.cells]
     (table,) = seed_tables(plan, results)
     assert table.rows[0][2:] == ["20.000", "21.000", f"{math.sqrt(0.5):.3f}"]
     assert table.rows[2][1:] == ["Δ (CVQPG − Baseline)", "+0.500", "+0.100", f"{math.sqrt(0.08):.3f}"]
@@ -385,7 +388,7 @@ TINY_PAPER = {"size": (48, 36), "steps": 2, "curvature_warmup": 1, "colors": ["g
 @pytest.mark.slow
 def test_every_cell_records_commit_machine_threads_time_and_peak_memory(tmp_path):
     plan = make_plan("star", tmp_path / "bench", Overrides(**TINY_STAR))
-    run_plan(plan, progress=False)
+    run_plan(plan, control=SILENT)
     metrics = json.loads((plan.cell_dir(plan.cells[0]) / "metrics.json").read_text())
     run = metrics["run"]
     assert run["commit"] == provenance.code_commit() and run["cvqpg_version"]  # tests/test_app_provenance.py

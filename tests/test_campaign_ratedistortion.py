@@ -280,10 +280,11 @@ def test_an_encode_cell_resumes_at_the_first_budget_it_has_no_point_for(tmp_path
                                                             "points": [done], "skipped_bpp": [1.0]}))
     encoded = []
     monkeypatch.setattr(ratedistortion, "encode_point",
-                        lambda scene, config, source, bpp, work, finetune_steps, stop_requested=None:
-                        encoded.append((bpp, work, config.steps, config.curvature_warmup, finetune_steps)))
+                        lambda scene, config, source, bpp, work, finetune_steps, run, control:
+                        encoded.append((bpp, work, config.optimisation.steps, config.optimisation.curvature_warmup,
+                                        finetune_steps)))
     monkeypatch.setattr(bench, "scene_from_source", lambda source, config: None)
-    cell = bench.Cell(bench.BenchScene("sushi", {}, 2), "cvqpg", FitConfig(color="gray", ratio=0.1))
+    cell = bench.Cell(bench.BenchScene("sushi", {}, 2), "cvqpg", FitConfig.create(color="gray", ratio=0.1))
     assert bench.run_encode_cell(cell, folder, (0.7, 0.5, 0.36)) == bench.DONE
     # 1.4 bpp has its point and 1.0 was below the smallest file; the fit works in a folder of the cell's
     # (`cvqpg encode`'s 1500 float and 600 quantisation-aware steps in the place of the cell's 2000)
@@ -304,21 +305,23 @@ def test_an_encode_cell_resumes_at_the_first_budget_it_has_no_point_for(tmp_path
 def test_a_stopped_encode_cell_keeps_its_finished_points_and_is_interrupted(tmp_path, monkeypatch):
     from cvqpg import FitConfig
     from cvqpg.campaign import bench, ratedistortion
+    from cvqpg.control import RunControl
     from cvqpg.fitting import FitInterrupted
 
     folder = tmp_path / CELL
     folder.mkdir()
     (folder / "rd.json").write_text(json.dumps({"budget_fractions": [0.7], "points": [{"budget_bpp": 1.4}]}))
 
-    def encode_point(scene, config, source, bpp, work, finetune_steps, stop_requested=None):
-        if stop_requested():
+    def encode_point(scene, config, source, bpp, work, finetune_steps, run, control):
+        if control.should_stop():
             raise FitInterrupted(3)
         return ratedistortion.Point("cvqpg encode", "--bpp", 10, bpp, 30.0, 0.9, 1.0, 0.1, 5, bpp)
 
     monkeypatch.setattr(ratedistortion, "encode_point", encode_point)
     monkeypatch.setattr(bench, "scene_from_source", lambda source, config: None)
-    cell = bench.Cell(bench.BenchScene("sushi", {}, 2), "cvqpg", FitConfig(color="gray", ratio=0.1))
+    cell = bench.Cell(bench.BenchScene("sushi", {}, 2), "cvqpg", FitConfig.create(color="gray", ratio=0.1))
     calls = iter([False, False, False, True])  # the second budget's fit is stopped
-    assert bench.run_encode_cell(cell, folder, (0.7, 0.5), lambda: next(calls)) == bench.INTERRUPTED
+    control = RunControl(progress=False, stop_requested=lambda: next(calls))
+    assert bench.run_encode_cell(cell, folder, (0.7, 0.5), control) == bench.INTERRUPTED
     record = json.loads((folder / "encode.partial.json").read_text())
     assert [p["budget_bpp"] for p in record["points"]] == [pytest.approx(1.4)] and not (folder / "encode.json").exists()

@@ -211,7 +211,7 @@ def test_the_papers_ablation_means_are_those_of_five_of_its_per_scene_rows():
     ("metrics.json", lambda record: {**record, "run": {"commit": None}}, "lacks run.device"),
     ("spectrum.json", lambda record: [], "spectrum.json holds a JSON list, not an object"),
     ("config.json", lambda record: "", "config.json is not a readable JSON file"),
-    ("config.json", lambda record: {k: v for k, v in record.items() if k != "height"}, "config.json lacks height"),
+    ("config.json", lambda record: {k: v for k, v in record.items() if k != "targets"}, "config.json lacks targets"),
 ])
 def test_a_damaged_cell_record_is_one_line_naming_it(tmp_path, name, damage, message, capsys):
     folder = record_cell(tmp_path, "paper", "tiger_rgb-10_cvqpg_s100", 28.0)

@@ -1,17 +1,18 @@
-"""The command line as a user drives it: outputs of `fit`, `eval`, and clear errors for bad input."""
+"""The command line as a user drives it: the outputs of `fit` and `eval`, help, devices and memory (refusals of
+bad input: test_hostile.py)."""
 
 import json
+import re
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from PIL import Image
 
 from cvqpg.cli import main
 from cvqpg.config import FitConfig
-from cvqpg.fitting import blank_state, estimated_peak_bytes
-from cvqpg.runs import read_run
-from cvqpg.storage import load_checkpoint, save_checkpoint
+from cvqpg.fitting import estimated_peak_bytes
 
 SMALL = ["--size", "48", "36", "--steps", "3", "--curvature-warmup", "1", "--quiet"]
 RUN_FILES = {"config.json", "metrics.json", "model.safetensors", "target_plane0.png", "target_plane1.png",
@@ -19,28 +20,28 @@ RUN_FILES = {"config.json", "metrics.json", "model.safetensors", "target_plane0.
 
 
 @pytest.fixture(scope="module")
-def demo_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("runs") / "demo"
-    assert main(["fit", *SMALL, "--out", str(out)]) == 0
-    return out
+def demo_run(finished_run, tmp_path_factory):
+    """The shared run (`cvqpg fit --size 32 24 --steps 2`), copied: `eval` writes into it."""
+    return Path(shutil.copytree(finished_run, tmp_path_factory.mktemp("runs") / "demo"))
 
 
 def test_fit_writes_the_whole_run_folder(demo_run):
     assert RUN_FILES <= {p.name for p in demo_run.iterdir()}
     history = (demo_run / "history.csv").read_text().splitlines()
-    assert history[0] == "step,seconds,loss,psnr" and [row.split(",")[0] for row in history[1:]] == ["0", "1", "2", "3"]
+    assert history[0] == "step,seconds,loss,psnr" and [row.split(",")[0] for row in history[1:]] == ["0", "1", "2"]
     config = json.loads((demo_run / "config.json").read_text())
-    assert config["seed"] == 100 and config["cvqpg_version"] and config["source"] == {"scene": "demo"}
-    assert config["pixel_pitch"] == 3.74e-6 and config["width"] == 48
+    assert config["optimisation"]["seed"] == 100 and config["cvqpg_version"] and config["source"] == {"scene": "demo"}
+    assert config["optics"]["pixel_pitch"] == 3.74e-6 and config["targets"]["width"] == 32
+    assert config["run"] == {"device": "cpu", "backend": "auto"} and config["recipe"] == "beyond"
     metrics = json.loads((demo_run / "metrics.json").read_text())
     assert set(metrics["mean"]) == {"psnr", "ssim", "flip", "lpips", "cvvdp"}
     assert len(metrics["per_plane"]["psnr"]) == 2
-    assert metrics["steps"] == 3 and metrics["num_gaussians"] == round(0.2 * 48 * 36 / 2)
+    assert metrics["steps"] == 2 and metrics["num_gaussians"] == round(0.2 * 32 * 24 / 2)
     assert metrics["num_params"] == metrics["num_gaussians"] * 13
-    assert metrics["skipped_steps"] == 0 and metrics["sanitised_steps"] == 0 and metrics["updates"] == 4
+    assert metrics["skipped_steps"] == 0 and metrics["sanitised_steps"] == 0 and metrics["updates"] == 3
     for name in ("lpips", "cvvdp"):
         assert (metrics["mean"][name] is None) == (name in metrics["unavailable"])
-    assert Image.open(demo_run / "recon_plane1.png").size == (48, 36)
+    assert Image.open(demo_run / "recon_plane1.png").size == (32, 24)
 
 
 @pytest.mark.slow
@@ -49,7 +50,7 @@ def test_fewer_steps_scale_the_warm_up_as_the_paper_does(tmp_path):
     out = tmp_path / "short"
     assert main(["fit", "--size", "48", "36", "--steps", "10", "--quiet", "--out", str(out)]) == 0
     recorded = json.loads((out / "config.json").read_text())
-    assert recorded["curvature_warmup"] is None and FitConfig.from_dict(recorded).curvature_warmup_steps == 2
+    assert recorded["optimisation"]["curvature_warmup"] == 2
 
 
 def test_eval_recomputes_the_saved_metrics(demo_run, capsys):
@@ -71,7 +72,7 @@ def test_fit_on_image_and_depth_files(tmp_path):
                  "--primitive", "flat", *SMALL, "--out", str(out)])
     assert code == 0
     config = json.loads((out / "config.json").read_text())
-    assert config["color"] == "gray" and config["primitive"] == "flat"
+    assert config["targets"]["color"] == "gray" and config["primitives"]["kind"] == "flat"
     assert config["source"]["depth"].endswith("d.png")
 
 
@@ -79,14 +80,12 @@ def test_fit_on_image_and_depth_files(tmp_path):
 def test_per_channel_curvature_is_a_fit_option_and_counts_its_parameters(tmp_path, capsys):
     out = tmp_path / "chromatic"
     assert main(["fit", "--curvature", "per-channel", *SMALL, "--out", str(out)]) == 0
-    assert json.loads((out / "config.json").read_text())["curvature"] == "per-channel"
+    assert json.loads((out / "config.json").read_text())["primitives"]["curvature"] == "per-channel"
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["num_params"] == metrics["num_gaussians"] * 15
     assert main(["info", str(out), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["learnable_params"] == info["stored_values"] == metrics["num_gaussians"] * 15
-    assert main(["fit", "--curvature", "rainbow", *SMALL, "--out", str(tmp_path / "bad")]) == 2
-    assert "invalid choice: 'rainbow'" in capsys.readouterr().err
 
 
 @pytest.mark.slow
@@ -94,35 +93,8 @@ def test_star_scene_runs_single_plane_grayscale(tmp_path):
     out = tmp_path / "star"
     assert main(["fit", "--scene", "star", *SMALL, "--out", str(out)]) == 0
     config = json.loads((out / "config.json").read_text())
-    assert config["num_planes"] == 1 and config["color"] == "gray"
+    assert config["targets"]["num_planes"] == 1 and config["targets"]["color"] == "gray"
     assert (out / "recon_plane0.png").exists() and not (out / "recon_plane1.png").exists()
-
-
-@pytest.mark.parametrize("arguments, message", [
-    (["missing.png"], "no such file"),
-    (["--scene", "demo", "--depth", "x.png"], "--depth applies to an IMAGE"),
-    (["--device", "cuda"], "no CUDA GPU"),
-    (["--device", "cuda", "--backend", "numba"], "backend 'numba' runs on the CPU only"),
-])
-def test_bad_input_is_one_line_and_exit_code_2(arguments, message, capsys, tmp_path, monkeypatch):
-    monkeypatch.setattr("torch.cuda.is_available", lambda: False)
-    assert main(["fit", *arguments, *SMALL, "--out", str(tmp_path / "r")]) == 2
-    error = capsys.readouterr().err
-    assert message in error and "Traceback" not in error and error.count("\n") == 1
-    assert not (tmp_path / "r").exists()
-
-
-def test_image_without_depth_needs_a_single_plane(tmp_path, capsys):
-    Image.new("RGB", (40, 30)).save(tmp_path / "a.png")
-    assert main(["fit", str(tmp_path / "a.png"), *SMALL, "--out", str(tmp_path / "r")]) == 2
-    assert "needs a depth map" in capsys.readouterr().err
-
-
-def test_existing_run_is_not_overwritten_without_flag(demo_run, capsys):
-    before = (demo_run / "model.safetensors").read_bytes()
-    assert main(["fit", *SMALL, "--out", str(demo_run)]) == 2
-    assert "--overwrite" in capsys.readouterr().err
-    assert (demo_run / "model.safetensors").read_bytes() == before
 
 
 def test_help_explains_options_with_units_and_defaults(capsys):
@@ -132,51 +104,13 @@ def test_help_explains_options_with_units_and_defaults(capsys):
         assert expected in text, expected
 
 
-@pytest.mark.parametrize("command", ["fit", "eval", "render", "export", "info", "view", "compress", "decompress",
-                                     "encode", "bench", "results", "compile"])
-def test_every_command_prints_its_help(command, capsys):
-    assert main([command, "--help"]) == 0
-    assert f"usage: cvqpg {command}" in capsys.readouterr().out
-
-
-@pytest.mark.slow
-def test_resume_checks_the_recorded_device_before_writing(tmp_path, capsys, monkeypatch):
-    out = tmp_path / "run"
-    assert main(["fit", *SMALL, "--checkpoint-every", "1", "--out", str(out)]) == 0
-    config = json.loads((out / "config.json").read_text())
-    (out / "metrics.json").unlink()
-    (out / "config.json").write_text(json.dumps({**config, "device": "cuda"}))
-    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
-    monkeypatch.setattr("torch.cuda.is_available", lambda: False)
-    assert main(["fit", "--resume", str(out)]) == 2
-    error = capsys.readouterr().err
-    assert "no CUDA GPU" in error and error.count("\n") == 1
-    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
-
-
-@pytest.mark.slow
-def test_a_checkpoint_from_another_device_is_refused_with_its_device_named(tmp_path, capsys):
-    out = tmp_path / "run"
-    assert main(["fit", *SMALL, "--out", str(out)]) == 0
-    (out / "metrics.json").unlink()
-    payload = blank_state(read_run(out)[0]).to_payload()
-    assert payload["device"] == "cpu"
-    payload["device"], payload["generator"] = "cuda", torch.zeros(16, dtype=torch.uint8)  # a CUDA generator's state
-    save_checkpoint(out / "checkpoint.pt", payload)
-    assert main(["fit", "--resume", str(out)]) == 2
-    error = capsys.readouterr().err
-    assert "written on cuda" in error and "--device cuda" in error and error.count("\n") == 1
-    assert load_checkpoint(out / "checkpoint.pt")["device"] == "cuda"
-
-
-@pytest.mark.parametrize("command", [["eval"], ["export"], ["render"]])
-def test_eval_export_and_render_refuse_an_absent_gpu_before_writing(command, demo_run, capsys, monkeypatch):
-    before = sorted(p.relative_to(demo_run) for p in demo_run.rglob("*"))
-    monkeypatch.setattr("torch.cuda.is_available", lambda: False)
-    assert main([*command, str(demo_run), "--device", "cuda"]) == 2
-    error = capsys.readouterr().err
-    assert "no CUDA GPU" in error and "--device cpu" in error and error.count("\n") == 1
-    assert sorted(p.relative_to(demo_run) for p in demo_run.rglob("*")) == before
+def test_every_command_prints_its_help(capsys):
+    assert main(["--help"]) == 0
+    commands = re.search(r"\{([a-z,]+)\}", capsys.readouterr().out).group(1).split(",")
+    assert "fit" in commands
+    for command in commands:
+        assert main([command, "--help"]) == 0
+        assert f"usage: cvqpg {command}" in capsys.readouterr().out, command
 
 
 def test_render_takes_a_device_and_renders_there(demo_run, tmp_path, capsys):
@@ -199,5 +133,5 @@ def test_a_cuda_fit_larger_than_the_gpus_free_memory_is_refused_before_writing(t
     ("cuda", 640, 480, 0.67), ("cuda", 3840, 2160, 11.38),  # max_memory_allocated on an H200, results/gpu/
 ])
 def test_the_memory_estimate_of_each_device_sits_above_the_peak_measured_there(device, width, height, measured_gib):
-    config = FitConfig(width=width, height=height, ratio=0.2, device=device)
-    assert measured_gib * 2**30 < estimated_peak_bytes(config) < 1.5 * measured_gib * 2**30
+    config = FitConfig.create(width=width, height=height, ratio=0.2)
+    assert measured_gib * 2**30 < estimated_peak_bytes(config, device) < 1.5 * measured_gib * 2**30

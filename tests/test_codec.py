@@ -24,7 +24,7 @@ FINE = BitDepths(position=8, scale=16, rotation=16, amplitude=16, phase=16, curv
 
 def random_primitives(config: FitConfig, seed: int = 3):
     """Initialised primitives with signed amplitudes, wrapped phases and curvature near its bounds."""
-    raw = init_gaussians(config.primitive_count, config.channels, config.width, config.height, seed)
+    raw = init_gaussians(config.primitive_count, config.channels, config.targets.width, config.targets.height, seed)
     g = torch.Generator().manual_seed(seed)
     raw.amplitude.uniform_(-1, 1, generator=g)
     raw.phase.uniform_(-7, 14, generator=g)
@@ -36,7 +36,7 @@ def random_primitives(config: FitConfig, seed: int = 3):
 
 @pytest.mark.parametrize("curvature", ["shared", "per-channel"])
 def test_fine_budget_renders_like_the_float_model(curvature):
-    config = FitConfig(width=48, height=32, ratio=0.3, curvature=curvature, guard_band_px=32)
+    config = FitConfig.create(width=48, height=32, ratio=0.3, curvature=curvature, guard_band_px=32)
     primitives = random_primitives(config)
     decoded = decode(encode(primitives, config, FINE)).primitives
     assert decoded.count == primitives.count and torch.all(decoded.opacity == 1)
@@ -45,7 +45,7 @@ def test_fine_budget_renders_like_the_float_model(curvature):
 
 
 def test_decoding_is_deterministic_and_encoding_reproducible():
-    config = FitConfig(width=48, height=32, color="gray", ratio=0.3)
+    config = FitConfig.create(width=48, height=32, color="gray", ratio=0.3)
     primitives = random_primitives(config)
     data = encode(primitives, config, BitDepths())
     assert encode(primitives, config, BitDepths()) == data
@@ -96,7 +96,7 @@ def test_every_value_s_error_costs_about_alike_in_the_field(attribute):
     a shifted Gaussian's error energy being independent of its size; √(|w|²·σx·σy) for phase; for rotation
     √(Σ_c |w_c|²·σx·σy) times a − 1/a, whose bits `rotation_depths` gives), stay within twice the half-step of
     a value of median weight, where the depths are not clamped."""
-    config = FitConfig(width=48, height=32, color="rgb", ratio=0.6)
+    config = FitConfig.create(width=48, height=32, color="rgb", ratio=0.6)
     primitives = random_primitives(config)
     bits = BitDepths(position=2, rotation=6, phase=6)
     decoded = decode(encode(primitives, config, bits)).primitives
@@ -134,7 +134,7 @@ def test_every_value_s_error_costs_about_alike_in_the_field(attribute):
 
 
 def test_periodic_attributes_wrap():
-    config = FitConfig(width=48, height=32, color="gray", ratio=0.3)
+    config = FitConfig.create(width=48, height=32, color="gray", ratio=0.3)
     primitives = random_primitives(config)
     values = primitives.tensors()
     values["rotation_rad"] = values["rotation_rad"] + math.pi
@@ -163,9 +163,9 @@ def tampered(data: bytes, change) -> bytes:
 
 
 @pytest.mark.parametrize("change, message", [
-    (lambda h: h["optics"].update(pixel_pitch=0), "`pixel_pitch` must be positive"),
-    (lambda h: h["optics"].update(pixel_pitch=-3.74e-6), "`pixel_pitch` must be positive"),
-    (lambda h: h["optics"].update(width=8), "too small"),
+    (lambda h: h["optics"].update(pixel_pitch=0), "`pixel_pitch` must lie in [1e-07, 0.001]"),
+    (lambda h: h["optics"].update(pixel_pitch=-3.74e-6), "`pixel_pitch` must lie in [1e-07, 0.001]"),
+    (lambda h: h["optics"].update(width=8), "`width` must lie in [16, 65536], got 8"),
     (lambda h: h["optics"].update(wavelengths=[639e-9, 532e-9]), "`wavelengths_m`"),
     (lambda h: h.update(num_primitives=0), "holds 0 primitives"),
     (lambda h: h.update(num_primitives=h["num_primitives"] + 1), "its streams have shapes"),
@@ -179,7 +179,7 @@ def tampered(data: bytes, change) -> bytes:
     (lambda h: h["ranges"].update(scale=[-300.0, -299.0]), "does not decode"),
 ])
 def test_a_file_whose_checksum_holds_is_still_checked_for_physical_sense(change, message):
-    config = FitConfig(width=48, height=32, ratio=0.3)
+    config = FitConfig.create(width=48, height=32, ratio=0.3)
     data = tampered(encode(random_primitives(config), config, BitDepths()), change)
     with pytest.raises(ModelFileError, match=f"^model.cvq: .*{re.escape(message)}.*write it again") as refused:
         decode(data, "model.cvq")
@@ -189,7 +189,7 @@ def test_a_file_whose_checksum_holds_is_still_checked_for_physical_sense(change,
 @pytest.mark.parametrize("damage, message", [
     ("nan", "tensor 'phase_rad' holds values that are not finite"),
     ("negative scale", "some scales (px) are not finite and positive"),
-    ("pitch", "`pixel_pitch` must be positive"),
+    ("pitch", "`pixel_pitch` must lie in [1e-07, 0.001]"),
     ("config", "holds no readable configuration"),
     ("count", "its metadata says 5 primitives"),
 ])
@@ -197,7 +197,7 @@ def test_a_model_file_that_makes_no_physical_sense_is_refused(tmp_path, damage, 
     from safetensors import safe_open
     from safetensors.torch import load_file, save_file
 
-    config = FitConfig(width=48, height=32, ratio=0.3)
+    config = FitConfig.create(width=48, height=32, ratio=0.3)
     path = tmp_path / "model.safetensors"
     save_model(path, random_primitives(config), config.replace(pixel_pitch=0) if damage == "pitch" else config)
     tensors = load_file(path)
@@ -218,9 +218,10 @@ def test_a_model_file_that_makes_no_physical_sense_is_refused(tmp_path, damage, 
 
 
 def test_a_tampered_file_is_one_line_exit_2_with_the_flag_named(tmp_path, capsys):
-    config = FitConfig(width=48, height=32, ratio=0.3)
+    config = FitConfig.create(width=48, height=32, ratio=0.3)
     (tmp_path / "model.cvq").write_bytes(tampered(encode(random_primitives(config), config, BitDepths()),
                                                   lambda h: h["optics"].update(pixel_pitch=0)))
     assert main(["info", str(tmp_path / "model.cvq")]) == 2
     error = capsys.readouterr().err
-    assert "--pitch must be positive" in error and len(error.strip().splitlines()) == 1 and "Traceback" not in error
+    assert "--pitch must lie in [1e-07, 0.001]" in error
+    assert len(error.strip().splitlines()) == 1 and "Traceback" not in error

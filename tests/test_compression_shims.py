@@ -31,7 +31,7 @@ def test_importing_a_moved_module_warns_naming_the_new_ones(name, new):
 
 @pytest.fixture(scope="module")
 def model():
-    config = FitConfig(width=32, height=24, color="gray", num_planes=1, ratio=0.3, guard_band_px=32).validate()
+    config = FitConfig.create(width=32, height=24, color="gray", num_planes=1, ratio=0.3, guard_band_px=32).validate()
     primitives = stand_in(config, config.primitive_count)
     return primitives, config, reference_for(primitives, config, None)
 

@@ -16,7 +16,8 @@ from PIL import Image
 import cvqpg
 from cvqpg import cli
 from cvqpg.runs import read_run
-from cvqpg.depth import DEPTH_LEVELS, DepthModel, DepthModelError, depth_from_disparity, estimate_depth, load_depth_model
+from cvqpg.depth import (DEPTH_LEVELS, DepthModel, DepthModelError, depth_from_disparity, estimate_depth,
+                         load_depth_model)
 
 REPO = Path(cvqpg.__file__).resolve().parent.parent
 

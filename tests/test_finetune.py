@@ -18,7 +18,7 @@ from test_codec import FINE, random_primitives
 @pytest.mark.parametrize("color, curvature, primitive", [("gray", "shared", "cvqpg"), ("rgb", "per-channel", "cvqpg"),
                                                          ("rgb", "channel-bound", "cvqpg"), ("rgb", "shared", "flat")])
 def test_finetune_rounds_through_the_codec_s_own_quantisers(bits, color, curvature, primitive):
-    config = FitConfig(width=48, height=32, color=color, ratio=0.3, curvature=curvature, primitive=primitive)
+    config = FitConfig.create(width=48, height=32, color=color, ratio=0.3, curvature=curvature, primitive=primitive)
     primitives = random_primitives(config)
     coded = coding(primitives, config, bits)
     values = {name: value.clone().requires_grad_(True) for name, value in coded.values.items()}
@@ -39,7 +39,7 @@ def test_finetune_rounds_through_the_codec_s_own_quantisers(bits, color, curvatu
 def test_finetune_leaves_its_input_alone_and_trains_on_the_file_s_own_bins():
     from cvqpg.campaign.ratedistortion import Point, finetuned_points
 
-    config = FitConfig(width=48, height=32, color="gray", num_planes=1, ratio=0.3, guard_band_px=32)
+    config = FitConfig.create(width=48, height=32, color="gray", num_planes=1, ratio=0.3, guard_band_px=32)
     primitives = random_primitives(config)
     targets = render(primitives, config)[1].clamp(0.05, 0.95).detach()
     scene = Scene(targets[0], torch.ones(targets.shape[0], 32, 48), targets)
@@ -68,7 +68,7 @@ def test_fine_tuning_s_rate_is_a_quarter_bin_for_short_tunings_and_grows_to_four
 
 
 def test_finetune_tells_its_control_each_step_and_stops_on_request():
-    config = FitConfig(width=48, height=32, color="gray", num_planes=1, ratio=0.3, guard_band_px=32)
+    config = FitConfig.create(width=48, height=32, color="gray", num_planes=1, ratio=0.3, guard_band_px=32)
     primitives = random_primitives(config)
     targets = render(primitives, config)[1].clamp(0.05, 0.95).detach()
     scene = Scene(targets[0], torch.ones(targets.shape[0], 32, 48), targets)

@@ -73,7 +73,7 @@ def quadratic_loss(tensors: dict[str, torch.Tensor], centres, curvatures) -> tor
 
 @pytest.mark.parametrize("primitive", ["cvqpg", "flat"])
 def test_make_optimizer_is_adan_with_spec_betas_and_group_rates(primitive):
-    config = FitConfig(primitive=primitive).with_recipe("paper")
+    config = FitConfig.create(primitive=primitive).with_recipe("paper")
     gaussians = toy_gaussians()
     optimizer = make_optimizer(gaussians, config)
     names = [group["name"] for group in optimizer.param_groups]
@@ -90,7 +90,7 @@ def test_make_optimizer_is_adan_with_spec_betas_and_group_rates(primitive):
 
 
 def test_adan_matches_hand_rule_on_quadratic():
-    config = FitConfig()
+    config = FitConfig.create()
     gaussians = toy_gaussians()
     for p in gaussians.tensors().values():
         p.requires_grad_(True)
@@ -100,7 +100,7 @@ def test_adan_matches_hand_rule_on_quadratic():
     curvatures = {k: 0.5 + torch.rand(v.numel(), generator=g, dtype=torch.float64) * 3
                   for k, v in gaussians.tensors().items()}
     lrs = {group["name"]: group["lr"] for group in optimizer.param_groups}
-    hand = {name: HandAdan(lrs[name], config.adan_betas) for name in GROUPS}
+    hand = {name: HandAdan(lrs[name], config.optimisation.betas) for name in GROUPS}
     theta = {name: p.detach().clone() for name, p in gaussians.tensors().items()}
     start = {name: p.clone() for name, p in theta.items()}
 
@@ -131,19 +131,19 @@ def test_hand_rule_first_step_is_sign_like():
 
 
 def test_position_learning_rate_is_torch_cosine_annealing():
-    config = FitConfig()  # 2000 steps, 0.01 → 1e-3
+    config = FitConfig.create()  # 2000 steps, 0.01 → 1e-3
     parameter = torch.nn.Parameter(torch.zeros(1))
-    optimizer = torch.optim.SGD([parameter], lr=config.lr.position)
-    scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=config.steps + 1, eta_min=1e-3)
+    optimizer = torch.optim.SGD([parameter], lr=config.optimisation.lr.position)
+    scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=config.optimisation.steps + 1, eta_min=1e-3)
     torch_lrs = []
-    for _ in range(config.steps + 1):
+    for _ in range(config.optimisation.steps + 1):
         torch_lrs.append(optimizer.param_groups[0]["lr"])
         optimizer.step()
         scheduler.step()
     for step in (0, 1, 2, 17, 400, 1000, 1500, 1999, 2000):
         assert position_learning_rate(step, config) == pytest.approx(torch_lrs[step], rel=1e-9, abs=1e-15)
     assert position_learning_rate(0, config) == pytest.approx(0.01, rel=1e-14)
-    assert position_learning_rate(config.steps, config) > 1e-3
+    assert position_learning_rate(config.optimisation.steps, config) > 1e-3
     # a shorter run: T_max = steps + 1
     short = config.replace(steps=10)
     closed = [1e-3 + (0.01 - 1e-3) * (1 + math.cos(math.pi * s / 11)) / 2 for s in range(11)]
@@ -151,8 +151,8 @@ def test_position_learning_rate_is_torch_cosine_annealing():
 
 
 def tiny_setup(curvature_warmup: int = 3):
-    config = FitConfig(width=32, height=24, steps=10, curvature_warmup=curvature_warmup, guard_band_px=16, num_gaussians=48,
-                       color="rgb", primitive="cvqpg")
+    config = FitConfig.create(width=32, height=24, steps=10, curvature_warmup=curvature_warmup, guard_band_px=16,
+                              num_gaussians=48, color="rgb", primitive="cvqpg")
     g = torch.Generator().manual_seed(5)
     image = torch.rand(3, 24, 32, generator=g) * 0.8
     depth = torch.rand(24, 32, generator=g)
@@ -170,7 +170,7 @@ def test_curvature_frozen_during_warmup_then_trained():
     config, scene, state = tiny_setup(curvature_warmup=3)
     gaussians = state.gaussians
     initial = {name: t.detach().clone() for name, t in gaussians.tensors().items()}
-    for step in range(config.curvature_warmup_steps):
+    for step in range(config.optimisation.curvature_warmup):
         loss, psnr = run_step(state, scene, config)
         assert math.isfinite(loss) and math.isfinite(psnr)
         assert not gaussians.curvature.requires_grad
@@ -193,4 +193,4 @@ def test_optimisation_step_sets_position_learning_rate():
         run_step(state, scene, config)
         rates = {group["name"]: group["lr"] for group in optimizer.param_groups}
         assert rates["position"] == pytest.approx(position_learning_rate(step, config), rel=1e-15)
-        assert rates["scale"] == config.lr.scale and rates["curvature"] == config.lr.curvature
+        assert rates["scale"] == config.optimisation.lr.scale and rates["curvature"] == config.optimisation.lr.curvature

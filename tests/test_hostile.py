@@ -1,17 +1,31 @@
-"""Hostile input, command by command: every refusal is exit code 2, one line `cvqpg <command>: error: …` naming
-the problem, and the folder it ran in left exactly as it was (every path, its bytes and its mode).
+"""Hostile input at the command line, every case of it in one table: each refusal is exit code 2, one line
+`cvqpg <command>: error: …` naming the problem (by its flag, never by a library parameter's name), and the folder it
+ran in left exactly as it was (every path, its bytes and its mode). Library functions are held to their exceptions
+in the other test modules; the command line's refusals are held here.
 
-The cases are data (`CASES`), grouped by class: degenerate or non-finite numbers, unknown choices and usage
-typos, missing or wrong inputs, and outputs that cannot be written or would destroy something. Each runs in its
-own copy of one template folder of tiny assets made once through the CLI (`template`). A second table
-(`SUCCESSES`) holds that a command given `--overwrite` replaces its own output as a whole and nothing else, and
-that a fit refused with `--overwrite` leaves the old run byte for byte.
+The table (`CASES`) is grouped by class: degenerate or non-finite numbers (`NUMBERS`), unknown choices and usage
+typos (`USAGE`), missing, wrong or damaged inputs (`INPUTS`), and outputs that cannot be written or would destroy
+something (`OUTPUTS`). A row is `(id, argv, fragment, *marks)`:
+- `id`: unique within its group, `<command>-<what is wrong>`;
+- `argv`: the command line after `cvqpg`, split as a shell would; `{name}` stands for an asset of `PLACES`
+  (`{tmp}`: the folder the commands run in, also their current folder);
+- `fragment`: text the one error line must hold (the flag, path or remedy that a user needs);
+- `marks`: none, or `PERMISSIONS` where the case relies on file permissions, which do not hold for root (skipped
+  there), and `SLOW` where the command works for seconds before it refuses (`pytest -m "not slow"` leaves it out).
+To add a case, append a row to its group; to add an asset, name it in `PLACES` and make it in `template`.
+
+Every case runs in one shared copy of a template folder of tiny assets made once through the CLI (`template`):
+a refusal must change nothing, so the folder is checked against its first state after each case, and restored
+from the template when a case changed it (that case fails). A second table (`SUCCESSES`) holds that a command
+given `--overwrite` replaces its own output as a whole and nothing else, each in a copy of its own.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import os
+import re
 import shlex
 import shutil
 import stat
@@ -20,12 +34,15 @@ from typing import NamedTuple
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
+from safetensors import safe_open
+from safetensors.torch import load_file, save_file
 
 from cvqpg.cli import main
-
-# Hundreds of commands, each in its own copy of the template: the full run (.ci/run) holds them all.
-pytestmark = pytest.mark.slow
+from cvqpg.fitting import blank_state
+from cvqpg.runs import read_run
+from cvqpg.storage import save_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 RECORDED_CELL = ROOT / "results" / "paper" / "cells" / "bento_gray-10_baseline_s100"
@@ -34,7 +51,8 @@ IS_ROOT = hasattr(os, "geteuid") and os.geteuid() == 0
 # The template's assets, named in the cases by placeholder. Folder names are distinctive, so that a fragment
 # such as "run_a" cannot match a message by chance.
 PLACES = {
-    "run": "run_a",                        # finished 32×24 RGB run, 2 planes; also model.cvq, export/, render/, ...
+    "run": "run_a",                        # the shared finished 32×24 RGB run, 2 planes (conftest); also model.cvq,
+                                           # export/, render/, ...
     "run2": "run_b",                       # finished 48×36 grayscale run, 1 plane
     "model": "run_a/model.safetensors",
     "cvq": "run_a/model.cvq",              # compressed model of run_a
@@ -48,6 +66,7 @@ PLACES = {
     "binary": "binary_depth.png",          # two levels: separates 2 planes, not 5
     "nandepth": "nan_depth.tiff",          # float ('F') depth with NaN pixels
     "text": "notes.txt",
+    "textpng": "notes.png",                # text named .png
     "folder": "folder",                    # an empty folder
     "cut": "cut.png",                      # truncated PNG
     "empty": "empty.png",                  # 0 bytes
@@ -62,6 +81,15 @@ PLACES = {
     "page": "page.html",                   # an existing page
     "readonly": "readonly",                # chmod 0o555 (the permission cases are skipped as root)
     "scenes": "scenes",                    # a --scenes folder of one scene (image.png, depth.png)
+    "gpurun": "gpu_run",                   # an unfinished run_a whose config says it was fitted on CUDA
+    "gpucheckpoint": "gpu_checkpoint",     # an unfinished run_a whose checkpoint was written on CUDA
+    "oldformat": "old_format",             # run_a with a model of format version 0
+    "lacking": "lacking",                  # run_a with a model without its curvature tensor
+    "misshapen": "misshapen",              # run_a with a model whose amplitude has one channel of three
+    "cuttarget": "cut_target",             # run_a with target_plane1.png truncated
+    "cutmetrics": "cut_metrics",           # run_a with metrics.json truncated
+    "cutexport": "cut_export",             # run_a with export/metrics.json truncated
+    "cutdisplay": "cut_display",           # run_a with export/display_plane0.png truncated
 }
 
 FIT = "--size 32 24 --steps 1 --quiet --out new_run"  # a fit that is wrongly accepted ends soon
@@ -75,11 +103,16 @@ class Case(NamedTuple):
     id: str
     argv: str
     fragment: str
-    permissions: bool = False  # relies on file permissions, which do not apply to root
+    permissions: bool  # relies on file permissions, which do not apply to root
+
+
+PERMISSIONS, SLOW = "permissions", "slow"
 
 
 def cases(group: str, *rows: tuple) -> list:
-    return [pytest.param(Case(f"{group}:{row[0]}", *row[1:]), id=f"{group}:{row[0]}") for row in rows]
+    return [pytest.param(Case(f"{group}:{name}", argv, fragment, PERMISSIONS in marks), id=f"{group}:{name}",
+                         marks=[pytest.mark.slow] if SLOW in marks else [])
+            for name, argv, fragment, *marks in rows]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -93,51 +126,60 @@ NUMBERS = cases(
     ("fit-ratio-above-pixel-count", f"fit {FIT} --ratio 3", "--ratio"),
     ("fit-pitch-inf", f"fit {FIT} --pitch inf", "--pitch"),
     ("fit-pitch-nan", f"fit {FIT} --pitch nan", "--pitch"),
-    ("fit-pitch-0", f"fit {FIT} --pitch 0", "--pitch"),
+    ("fit-pitch-0", f"fit {FIT} --pitch 0", "--pitch must lie in [1e-07, 0.001], got 0.0"),
+    ("fit-pitch-negative-joined", f"fit {FIT} --pitch=-3.74e-6", "--pitch must lie in [1e-07, 0.001]"),
+    ("fit-pitch-1e-30", f"fit {FIT} --pitch 1e-30", "--pitch must lie in [1e-07, 0.001], got 1e-30"),
     ("fit-plane-span-nan", f"fit {FIT} --plane-span nan", "--plane-span"),
     ("fit-plane-span-inf", f"fit {FIT} --plane-span inf", "--plane-span"),
-    ("fit-plane-span-negative", f"fit {FIT} --plane-span -0.004", "--plane-span"),
+    ("fit-plane-span-negative", f"fit {FIT} --plane-span -0.004", "--plane-span must lie in [0, 10], got -0.004"),
     ("fit-plane-center-negative", f"fit {FIT} --plane-center -1", "--plane-center"),
+    ("fit-plane-center-puts-a-plane-behind", f"fit {FIT} --plane-center -0.001", "plane distances"),
     ("fit-plane-center-inf", f"fit {FIT} --plane-center inf", "--plane-center"),
     ("fit-wavelength-0", f"fit {FIT} --color gray --wavelengths 0", "--wavelengths"),
     ("fit-wavelengths-inf", f"fit {FIT} --wavelengths inf 1 2", "--wavelengths"),
     ("fit-wavelengths-nan", f"fit {FIT} --wavelengths 639e-9 nan 473e-9", "--wavelengths"),
+    ("fit-wavelengths-one-0", f"fit {FIT} --wavelengths 639e-9 0 473e-9", "--wavelengths must lie in [1e-07, 2e-05]"),
+    ("fit-wavelengths-1-m", f"fit {FIT} --wavelengths 1 1 1", "--wavelengths must lie in [1e-07, 2e-05], got 1.0"),
     ("fit-wavelengths-negative", f"fit {FIT} --wavelengths 0.000000639 -0.000000532 0.000000473", "--wavelengths"),
-    ("fit-wavelengths-too-few", f"fit {FIT} --wavelengths 639e-9", "--wavelengths"),
+    ("fit-wavelengths-too-few", f"fit {FIT} --wavelengths 639e-9", "need 3 value(s)"),
     ("fit-planes-0", f"fit {FIT} --planes 0", "--planes"),
     ("fit-planes-negative", f"fit {FIT} --planes -2", "--planes"),
-    ("fit-steps-0", f"fit {FIT} --steps 0", "--steps"),
-    ("fit-steps-negative", f"fit {FIT} --steps -5", "--steps"),
-    ("fit-num-gaussians-0", f"fit {FIT} --num-gaussians 0", "--num-gaussians"),
-    ("fit-num-gaussians-huge", f"fit {FIT} --num-gaussians 10000000", "--num-gaussians"),
+    ("fit-steps-0", f"fit {FIT} --steps 0", "--steps must lie in [1, 100000000], got 0"),
+    ("fit-steps-negative", f"fit {FIT} --steps -5", "--steps must lie in [1, 100000000], got -5"),
+    ("fit-num-gaussians-0", f"fit {FIT} --num-gaussians 0", "--num-gaussians must lie in [1, 2147483648], got 0"),
+    ("fit-num-gaussians-huge", f"fit {FIT} --num-gaussians 10000000", "need between 1 and the pixel count"),
     ("fit-num-gaussians-negative", f"fit {FIT} --num-gaussians -3", "--num-gaussians"),
     ("fit-size-0", f"fit {FIT} --size 0 0", "--size"),
-    ("fit-size-8", f"fit {FIT} --size 8 8", "--size"),
+    ("fit-size-8", f"fit {FIT} --size 8 8", "--size must lie in [16, 65536], got 8"),
     ("fit-size-negative", f"fit {FIT} --size -32 24", "--size"),
-    ("fit-size-beyond-memory", f"fit {FIT} --size 100000 100000", "--size"),
+    ("fit-size-beyond-memory", f"fit {FIT} --size 60000 60000", "GiB are available"),
+    ("fit-size-beyond-its-range", f"fit {FIT} --size 100000 100000", "--size must lie in [16, 65536], got 100000"),
     ("fit-warmup-negative", f"fit {FIT} --curvature-warmup -1", "--curvature-warmup"),
-    ("fit-warmup-beyond-steps", f"fit {FIT} --curvature-warmup 99999", "--curvature-warmup"),
+    ("fit-warmup-beyond-steps", f"fit {FIT} --curvature-warmup 99999",
+     "--curvature-warmup must lie in [0, "),
+    ("fit-seed-beyond-64-bits", f"fit {FIT} --seed 100000000000000000000000", "--seed must lie in [0, "),
     ("fit-checkpoint-every-negative", f"fit {FIT} --checkpoint-every -1", "--checkpoint-every"),
     ("fit-seed-negative", f"fit {FIT} --seed -1", "--seed"),
     ("fit-time-0", "fit --size 32 24 --quiet --out new_run --time 0", "--time"),
     ("fit-time-negative", "fit --size 32 24 --quiet --out new_run --time -2", "--time"),
     ("fit-time-nan", "fit --size 32 24 --quiet --out new_run --time nan", "--time"),
     ("fit-time-and-steps", f"fit {FIT} --time 1", "--time"),
-    ("export-levels-1", "export {run} --levels 1 --out new_export", "--levels"),
+    ("export-levels-1", "export {run} --levels 1 --out new_export", "phase levels"),
     ("export-levels-0", "export {run} --levels 0 --out new_export", "--levels"),
     ("export-levels-negative", "export {run} --levels -4 --out new_export", "--levels"),
     ("export-aperture-negative", "export {run} --aperture -1 --out new_export", "--aperture"),
     ("export-aperture-nan", "export {run} --aperture nan --out new_export", "--aperture"),
     ("export-aperture-inf", "export {run} --aperture inf --out new_export", "--aperture"),
     ("export-slm-0", "export {run} --slm 0 0 --out new_export", "--slm"),
-    ("export-slm-smaller-than-hologram", "export {run} --slm 10 10 --out new_export", "--slm"),
+    ("export-slm-smaller-than-hologram", "export {run} --slm 10 10 --out new_export", "--slm 10×10 is smaller than"),
     ("export-slm-negative", "export {run} --slm -32 24 --out new_export", "--slm"),
-    ("render-distance-0", "render {run} --distance 0 --out new_render", "--distance"),
+    ("render-distance-0", "render {run} --distance 0 --out new_render", "positive distances"),
     ("render-distance-negative", "render {run} --distance -1 --out new_render", "--distance"),
     ("render-distance-inf", "render {run} --distance inf --out new_render", "--distance"),
     ("render-distance-nan", "render {run} --distance 0.001 nan --out new_render", "--distance"),
     ("render-size-0", "render {run} --size 0 0 --out new_render", "--size"),
-    ("render-size-other-aspect", "render {run} --size 33 24 --out new_render", "--size"),
+    ("render-size-other-aspect", "render {run} --size 33 24 --out new_render", "aspect ratio"),
+    ("render-size-square", "render {run} --size 80 80 --out new_render", "aspect ratio"),
     ("render-size-negative", "render {run} --size -32 -24 --out new_render", "--size"),
     ("view-distances-start-0", "view {run} --distances 0 1 5 --quiet --out new.html", "--distances"),
     ("view-distances-count-0", "view {run} --distances 0.001 0.002 0 --quiet --out new.html", "--distances"),
@@ -145,7 +187,8 @@ NUMBERS = cases(
     ("view-distances-inf", "view {run} --distances 0.001 inf 3 --quiet --out new.html", "--distances"),
     ("view-distances-negative", "view {run} --distances -0.001 0.002 3 --quiet --out new.html", "--distances"),
     ("view-distances-fractional-count", "view {run} --distances 0.001 0.002 2.5 --quiet --out new.html",
-     "--distances"),
+     "COUNT is a whole number"),
+    ("view-distances-in-mm", "view {run} --distances 0.5 6 41 --quiet --out new.html", "distances are in m"),
     ("compress-max-drop-negative", "compress {run} --max-drop -1 --out new.cvq", "--max-drop"),
     ("compress-max-drop-nan", "compress {run} --max-drop nan --out new.cvq", "--max-drop"),
     ("compress-max-drop-inf", "compress {run} --max-drop inf --out new.cvq", "--max-drop"),
@@ -201,11 +244,11 @@ USAGE = cases(
     ("fit-device-gpu", f"fit {FIT} --device gpu", "--device"),
     ("fit-backend-cuda", f"fit {FIT} --backend cuda", "--backend"),
     ("fit-bound-none", f"fit {FIT} --bound none", "--bound"),
-    ("fit-curvature-rainbow", f"fit {FIT} --curvature rainbow", "--curvature"),
+    ("fit-curvature-rainbow", f"fit {FIT} --curvature rainbow", "invalid choice: 'rainbow'"),
     ("fit-scene-nope", f"fit {FIT} --scene nope", "--scene"),
-    ("fit-device-cuda-without-gpu", f"fit {FIT} --device cuda", "cuda"),
-    ("fit-numba-on-cuda", f"fit {FIT} --device cuda --backend numba", "numba"),
-    ("fit-triton-on-cpu", f"fit {FIT} --backend triton", "triton"),
+    ("fit-device-cuda-without-gpu", f"fit {FIT} --device cuda", "no CUDA GPU"),
+    ("fit-numba-on-cuda", f"fit {FIT} --device cuda --backend numba", "--backend numba runs on the CPU, not on cuda"),
+    ("fit-triton-on-cpu", f"fit {FIT} --backend triton", "--backend triton runs on CUDA, not on cpu"),
     ("fit-recipe-unknown", f"fit {FIT} --recipe fastest", "--recipe"),
     ("fit-steps-not-whole", f"fit {FIT} --steps 2.5", "--steps"),
     ("fit-ratio-not-a-number", f"fit {FIT} --ratio abc", "--ratio"),
@@ -216,7 +259,9 @@ USAGE = cases(
     ("eval-no-target", "eval", "RUN_DIR"),
     ("eval-two-targets", "eval {run} {run2}", "run_b"),
     ("eval-device-gpu", "eval {run} --device gpu", "--device"),
-    ("eval-device-cuda-without-gpu", "eval {run} --device cuda", "cuda"),
+    ("eval-device-cuda-without-gpu", "eval {run} --device cuda", "no CUDA GPU"),
+    ("export-device-cuda-without-gpu", "export {run} --device cuda --out new_export", "--device cpu"),
+    ("render-device-cuda-without-gpu", "render {run} --device cuda --out new_render", "--device cpu"),
     ("export-encoding-dpacc", "export {run} --encoding dpacc --out new_export", "--encoding"),
     ("export-device-gpu", "export {run} --device gpu --out new_export", "--device"),
     ("export-levels-not-whole", "export {run} --levels 2.5 --out new_export", "--levels"),
@@ -262,42 +307,49 @@ USAGE = cases(
 # Missing, wrong, corrupt or mismatched inputs.
 INPUTS = cases(
     "inputs",
-    ("fit-image-missing", f"fit missing.png --planes 1 {FIT}", "missing.png"),
+    ("fit-image-missing", f"fit missing.png --planes 1 {FIT}", "no such file"),
     ("fit-image-is-a-folder", f"fit {{folder}} --planes 1 {FIT}", "folder"),
     ("fit-image-is-text", f"fit {{text}} --planes 1 {FIT}", "notes.txt"),
-    ("fit-image-corrupt-png", f"fit {{cut}} --planes 1 {FIT}", "cut.png"),
+    ("fit-image-png-of-text", f"fit {{textpng}} --planes 1 {FIT}", "not an image file"),
+    ("fit-image-corrupt-png", f"fit {{cut}} --planes 1 {FIT}", "corrupt or truncated"),
     ("fit-image-empty-file", f"fit {{empty}} --planes 1 {FIT}", "empty.png"),
     ("fit-depth-missing", f"fit {{image}} --depth nodepth.png {FIT}", "nodepth.png"),
-    ("fit-depth-is-a-folder", f"fit {{image}} --depth {{folder}} {FIT}", "folder"),
+    ("fit-depth-is-a-folder", f"fit {{image}} --depth {{folder}} {FIT}", "is a folder"),
     ("fit-depth-is-text", f"fit {{image}} --depth {{text}} {FIT}", "notes.txt"),
     ("fit-depth-corrupt", f"fit {{image}} --depth {{cut}} {FIT}", "cut.png"),
     ("fit-depth-with-nan", f"fit {{image}} --depth {{nandepth}} {FIT}", "nan_depth.tiff"),
     ("fit-depth-other-aspect", f"fit {{image}} --depth {{square}} {FIT}", "--resize-depth"),
     ("fit-depth-constant", f"fit {{image}} --depth {{flat}} {FIT}", "constant"),
-    ("fit-more-planes-than-depth-separates", f"fit {{image}} --depth {{binary}} --planes 5 {FIT}", "--planes"),
-    ("fit-depth-with-scene", f"fit --scene demo --depth {{depth}} {FIT}", "--depth"),
+    ("fit-more-planes-than-depth-separates", f"fit {{image}} --depth {{binary}} --planes 5 {FIT}", "separates only"),
+    ("fit-depth-with-scene", f"fit --scene demo --depth {{depth}} {FIT}", "--depth applies to an IMAGE"),
     ("fit-image-and-scene", f"fit {{image}} --scene star {FIT}", "--scene"),
     ("fit-two-planes-without-depth", f"fit {{image}} --planes 2 {FIT}", "--planes"),
+    ("fit-default-planes-without-depth", f"fit {{image}} {FIT}", "needs a depth map"),
     ("fit-resume-not-a-run", "fit --resume {notarun} --quiet", "notarun"),
     ("fit-resume-missing", "fit --resume missing_run --quiet", "missing_run"),
     ("fit-resume-a-file", "fit --resume {image} --quiet", "photo.png"),
+    ("fit-resume-a-cuda-run-without-a-gpu", "fit --resume {gpurun} --quiet", "no CUDA GPU"),
+    ("fit-resume-a-cuda-checkpoint", "fit --resume {gpucheckpoint} --quiet", "written on cuda"),
     ("eval-run-missing", "eval missing_run", "missing_run"),
     ("eval-not-a-run", "eval {notarun}", "notarun"),
     ("eval-run-without-model", "eval {unfinished}", "unfinished"),
     ("eval-model-outside-its-run", "eval {loose}", "loose"),
     ("eval-corrupt-cvq", "eval {badcvq}", "bad.cvq"),
     ("eval-model-of-another-run", "eval {mixed}/foreign.safetensors", "foreign.safetensors"),
-    ("eval-damaged-model", "eval {damaged}", "model.safetensors"),
+    ("eval-damaged-model", "eval {damaged}", "not a readable safetensors file"),
+    ("eval-model-of-format-0", "eval {oldformat}", "format version"),
+    ("eval-model-missing-a-tensor", "eval {lacking}", "missing tensors curvature_per_m"),
+    ("eval-model-of-another-shape", "eval {misshapen}", "has shape"),
     ("eval-text-file", "eval {text}", "notes.txt"),
     ("eval-config-as-model", "eval {run}/config.json", "config.json"),
-    ("export-run-missing", "export missing_run --out new_export", "missing_run"),
+    ("export-run-missing", "export missing_run --out new_export", "not a run folder"),
     ("export-not-a-run", "export {notarun} --out new_export", "notarun"),
     ("export-run-without-model", "export {unfinished} --out new_export", "unfinished"),
     ("export-model-outside-its-run", "export {loose} --out new_export", "loose"),
     ("export-corrupt-cvq", "export {badcvq} --out new_export", "bad.cvq"),
     ("export-damaged-model", "export {damaged} --out new_export", "model.safetensors"),
     ("export-model-of-another-run", "export {mixed}/foreign.safetensors --out new_export", "foreign.safetensors"),
-    ("info-missing", "info missing_run", "missing_run"),
+    ("info-missing", "info missing_run", "no such"),
     ("info-not-a-run", "info {notarun}", "notarun"),
     ("info-run-without-model", "info {unfinished}", "unfinished"),
     ("info-text-file", "info {text}", "notes.txt"),
@@ -313,11 +365,22 @@ INPUTS = cases(
     ("render-corrupt-cvq", "render {badcvq} --out new_render", "bad.cvq"),
     ("render-damaged-model", "render {damaged} --out new_render", "model.safetensors"),
     ("view-run-missing", "view missing_run --quiet --distances 0.001 0.002 2 --out new.html", "missing_run"),
-    ("view-not-a-run", "view {notarun} --quiet --distances 0.001 0.002 2 --out new.html", "notarun"),
+    ("view-not-a-run", "view {notarun} --quiet --distances 0.001 0.002 2 --out new.html",
+     "is not a run folder (no config.json)"),
     ("view-run-without-model", "view {unfinished} --quiet --distances 0.001 0.002 2 --out new.html", "unfinished"),
     ("view-damaged-model", "view {damaged} --quiet --distances 0.001 0.002 2 --out new.html", "model.safetensors"),
     ("view-runs-of-different-sizes", "view {run} {run2} --quiet --distances 0.001 0.002 2 --out new.html", "run_b"),
-    ("view-three-runs", "view {run} {run} {run} --quiet --distances 0.001 0.002 2 --out new.html", "one or two"),
+    ("view-three-runs", "view {run} {run} {run} --quiet --distances 0.001 0.002 2 --out new.html",
+     "3 run folders: give one or two"),
+    # the page's frames are computed before the run's records are read
+    ("view-cut-target", "view {cuttarget} --quiet --distances 0.001 0.005 2 --out new.html",
+     "delete it to view the run without the PSNR at its plane", SLOW),
+    ("view-cut-metrics", f"view {{cutmetrics}} --quiet {SWEEP} --out new.html",
+     "delete it, then `cvqpg eval` on the run writes it again", SLOW),
+    ("view-cut-export-metrics", f"view {{cutexport}} --quiet {SWEEP} --out new.html",
+     "run `cvqpg export` on the run again", SLOW),
+    ("view-cut-display", f"view {{cutdisplay}} --quiet {SWEEP} --out new.html", "run `cvqpg export` on the run again",
+     SLOW),
     ("compress-missing", "compress missing_run --out new.cvq", "missing_run"),
     ("compress-not-a-run", "compress {notarun} --out new.cvq", "notarun"),
     ("compress-run-without-model", "compress {unfinished} --out new.cvq", "unfinished"),
@@ -349,14 +412,14 @@ INPUTS = cases(
 # Outputs that cannot be written, or would write over something that existed.
 OUTPUTS = cases(
     "outputs",
-    ("fit-out-existing-run", "fit --size 32 24 --steps 2 --quiet --out {run}", "overwrite"),
+    ("fit-out-existing-run", "fit --size 32 24 --steps 2 --quiet --out {run}", "--overwrite"),
     ("fit-out-existing-file", "fit --size 32 24 --steps 2 --quiet --out {text}", "notes.txt"),
     ("fit-out-existing-folder", "fit --size 32 24 --steps 2 --quiet --out {notarun}", "notarun"),
     ("fit-out-under-a-file", "fit --size 32 24 --steps 2 --quiet --out {image}/run", "photo.png"),
     ("fit-out-under-a-model-file", "fit --size 32 24 --steps 2 --quiet --out {model}/run", "model.safetensors"),
     ("fit-out-unwritable", "fit --size 32 24 --steps 2 --quiet --out /proc/cvqpg-hostile-run",
      "/proc/cvqpg-hostile-run"),
-    ("fit-out-readonly-folder", "fit --size 32 24 --steps 2 --quiet --out {readonly}/run", "readonly", True),
+    ("fit-out-readonly-folder", "fit --size 32 24 --steps 2 --quiet --out {readonly}/run", "readonly", PERMISSIONS),
     ("fit-bad-option-with-overwrite", "fit --size 32 24 --steps 0 --quiet --out {run} --overwrite", "--steps"),
     ("fit-failure-creates-no-parents", "fit --size 32 24 --steps 0 --quiet --out new_parent/deeper/run", "--steps"),
     ("export-out-the-run-itself", "export {run} --out {run}", "run_a"),
@@ -366,14 +429,17 @@ OUTPUTS = cases(
     ("export-out-a-file", "export {run} --out {text}", "notes.txt"),
     ("export-out-under-a-file", "export {run} --out {image}/export", "photo.png"),
     ("export-out-unwritable", "export {run} --out /proc/cvqpg-hostile-export", "/proc/cvqpg-hostile-export"),
-    ("export-out-readonly-folder", "export {run} --out {readonly}/export", "readonly", True),
+    ("export-out-readonly-folder", "export {run} --out {readonly}/export", "readonly", PERMISSIONS),
     ("render-out-the-run-itself", "render {run} --out {run}", "run_a"),
     ("render-default-out-exists", "render {run}", "overwrite"),
     ("render-out-existing-folder", "render {run} --out {notarun}", "overwrite"),
     ("render-out-a-file", "render {run} --out {text}", "notes.txt"),
     ("render-out-under-a-file", "render {run} --out {image}/render", "photo.png"),
     ("render-out-unwritable", "render {run} --out /proc/cvqpg-hostile-render", "/proc/cvqpg-hostile-render"),
-    ("view-out-a-folder", f"view {{run}} --quiet {SWEEP} --out {{run}}", "run_a"),
+    ("view-out-its-own-run", f"view {{run}} --quiet {SWEEP} --out {{run}}", "is this command's own input"),
+    ("view-out-another-run", f"view {{run}} --quiet {SWEEP} --out {{run2}}",
+     "is a run folder; choose a path outside it"),
+    ("view-out-a-plain-folder", f"view {{run}} --quiet {SWEEP} --out {{folder}}", "is a folder; give a file name"),
     ("view-out-existing-page", f"view {{run}} --quiet {SWEEP} --out {{page}}", "overwrite"),
     ("view-out-run-config", f"view {{run}} --quiet {SWEEP} --out {{run}}/config.json --overwrite", "config.json"),
     ("view-out-run-metrics", f"view {{run}} --quiet {SWEEP} --out {{run}}/metrics.json --overwrite", "metrics.json"),
@@ -393,7 +459,7 @@ OUTPUTS = cases(
     ("compress-out-parent-missing", "compress {run} --bits 8 --out nodir/deeper/out.cvq", "nodir"),
     ("compress-out-under-a-file", "compress {run} --bits 8 --out {image}/out.cvq", "photo.png"),
     ("compress-out-unwritable", "compress {run} --bits 8 --out /proc/cvqpg-hostile.cvq", "/proc/cvqpg-hostile.cvq"),
-    ("compress-out-readonly-folder", "compress {run} --bits 8 --out {readonly}/out.cvq", "readonly", True),
+    ("compress-out-readonly-folder", "compress {run} --bits 8 --out {readonly}/out.cvq", "readonly", PERMISSIONS),
     ("compress-bpp-out-the-model", "compress {run} --bpp 8 --out {model} --overwrite", "model.safetensors"),
     ("encode-out-the-image", f"{ENCODE} --bpp 8 --out {{image}} --overwrite", "photo.png"),
     ("encode-out-the-depth-map", f"{ENCODE} --bpp 8 --out {{depth}} --overwrite", "depth.png"),
@@ -421,7 +487,7 @@ OUTPUTS = cases(
     ("results-out-a-folder", "results --root {records} --out {folder}", "folder"),
     ("results-out-run-config", "results --root {records} --out {run}/config.json --overwrite", "config.json"),
     ("results-out-unwritable", "results --root {records} --out /proc/cvqpg-hostile.md", "/proc/cvqpg-hostile.md"),
-    ("results-out-readonly-folder", "results --root {records} --out {readonly}/results.md", "readonly", True),
+    ("results-out-readonly-folder", "results --root {records} --out {readonly}/results.md", "readonly", PERMISSIONS),
 )
 
 CASES = NUMBERS + USAGE + INPUTS + OUTPUTS
@@ -480,20 +546,48 @@ def flip_bytes(data: bytes) -> bytes:
 # ---------------------------------------------------------------------------------------------------------------
 # The template: tiny assets, made once through the command line.
 
+def truncated(path: Path) -> None:
+    path.write_bytes(path.read_bytes()[:path.stat().st_size // 2])
+
+
+def damaged_copies(t: Path, run_a: Path) -> None:
+    """Copies of the finished run_a (model.cvq, export/ and the other extras included), each damaged in one way."""
+    def copy(name: str) -> Path:
+        return Path(shutil.copytree(run_a, t / name))
+
+    for name, damaged in (("cut_target", "target_plane1.png"), ("cut_metrics", "metrics.json"),
+                          ("cut_export", "export/metrics.json"), ("cut_display", "export/display_plane0.png")):
+        truncated(copy(name) / damaged)
+    with safe_open(str(run_a / "model.safetensors"), framework="pt") as handle:
+        metadata = handle.metadata()
+    tensors = load_file(run_a / "model.safetensors")
+    save_file(tensors, str(copy("old_format") / "model.safetensors"), metadata={**metadata, "format_version": "0"})
+    save_file({k: v for k, v in tensors.items() if k != "curvature_per_m"}, str(copy("lacking") / "model.safetensors"),
+              metadata=metadata)
+    save_file({**tensors, "amplitude": tensors["amplitude"][:, :1].contiguous()},
+              str(copy("misshapen") / "model.safetensors"), metadata=metadata)
+    # Runs to resume (no metrics.json): one recorded on CUDA, one whose checkpoint was written there.
+    gpu_run = copy("gpu_run")
+    (gpu_run / "metrics.json").unlink()
+    recorded = json.loads((run_a / "config.json").read_text())
+    (gpu_run / "config.json").write_text(json.dumps({**recorded, "run": {**recorded["run"], "device": "cuda"}}))
+    gpu_checkpoint = copy("gpu_checkpoint")
+    (gpu_checkpoint / "metrics.json").unlink()
+    payload = blank_state(read_run(run_a)[0]).to_payload()
+    payload["device"], payload["generator"] = "cuda", torch.zeros(16, dtype=torch.uint8)  # a CUDA generator's state
+    save_checkpoint(gpu_checkpoint / "checkpoint.pt", payload)
+
 class Template(NamedTuple):
     folder: Path
     fresh_run_files: frozenset[str]  # the files of run_a as `cvqpg fit` left it
 
 
-FIT_A = ["--size", "32", "24", "--num-gaussians", "20", "--steps", "2", "--quiet"]
-
-
 @pytest.fixture(scope="module")
-def template(tmp_path_factory) -> Template:
+def template(finished_run, tmp_path_factory) -> Template:
     t = tmp_path_factory.mktemp("hostile") / "template"
     t.mkdir()
     run_a, run_b = t / "run_a", t / "run_b"
-    assert main(["fit", *FIT_A, "--out", str(run_a)]) == 0
+    shutil.copytree(finished_run, run_a)
     fresh = frozenset(p.relative_to(run_a).as_posix() for p in run_a.rglob("*"))
     assert main(["fit", "--size", "48", "36", "--color", "gray", "--planes", "1", "--num-gaussians", "20",
                  "--steps", "2", "--quiet", "--out", str(run_b)]) == 0
@@ -514,6 +608,7 @@ def template(tmp_path_factory) -> Template:
     assert main(["export", str(run_a)]) == 0                                        # run_a/export/
     assert main(["render", str(run_a)]) == 0                                        # run_a/render/
     assert main(["info", str(run_a), "--half"]) == 0                                # run_a/model.f16.safetensors
+    damaged_copies(t, run_a)
     damaged = flip_bytes((run_a / "model.cvq").read_bytes())
     (run_a / "bad.cvq").write_bytes(damaged)
     (t / "broken.cvq").write_bytes(damaged)
@@ -548,6 +643,7 @@ def template(tmp_path_factory) -> Template:
     (t / "cut.png").write_bytes(png[: len(png) // 2])
     (t / "empty.png").write_bytes(b"")
     (t / "notes.txt").write_text("not an image, not a model\n")
+    (t / "notes.png").write_text("this is text")
     (t / "folder").mkdir()
     (t / "notarun").mkdir()
     (t / "notarun" / "readme.txt").write_text("a folder of someone's files\n")
@@ -560,38 +656,67 @@ def template(tmp_path_factory) -> Template:
     return Template(t, fresh)
 
 
-@pytest.fixture
-def work(template, tmp_path, monkeypatch) -> Path:
-    """A private copy of the template, the current folder; no GPU visible, no traceback requested."""
-    folder = tmp_path / "w"
-    shutil.copytree(template.folder, folder, symlinks=True)
+def hostile_environment(monkeypatch, folder: Path) -> None:
+    """The current folder `folder`; no GPU visible (nor Triton's interpreter, which runs its kernels on the CPU in
+    the tests of them), no traceback requested."""
     monkeypatch.chdir(folder)
     monkeypatch.setattr("torch.cuda.is_available", lambda: False)
+    monkeypatch.delenv("TRITON_INTERPRET", raising=False)
     monkeypatch.delenv("CVQPG_TRACEBACK", raising=False)
+
+
+class Shared(NamedTuple):
+    root: Path  # holds `folder` and nothing else: a case that writes beside it is seen too
+    folder: Path
+    state: dict  # `tree_state(root)` as the template left it
+
+
+@pytest.fixture(scope="module")
+def shared(template, tmp_path_factory) -> Shared:
+    """One copy of the template that every refusal runs in."""
+    root = tmp_path_factory.mktemp("shared")
+    folder = root / "w"
+    shutil.copytree(template.folder, folder, symlinks=True)
+    return Shared(root, folder, tree_state(root))
+
+
+@pytest.fixture
+def work(template, tmp_path, monkeypatch) -> Path:
+    """A private copy of the template (for commands that succeed), the current folder."""
+    folder = tmp_path / "w"
+    shutil.copytree(template.folder, folder, symlinks=True)
+    hostile_environment(monkeypatch, folder)
     return folder
 
 
 # ---------------------------------------------------------------------------------------------------------------
 # The tests.
 
-def test_the_table_covers_every_command_with_enough_cases():
-    commands = {case.values[0].argv.split()[0] for case in CASES}
-    assert commands == {"fit", "eval", "export", "info", "render", "view", "compress", "decompress", "encode",
-                        "bench", "results", "compile"}
-    assert len(CASES) >= 110
+def test_every_command_has_hostile_cases_and_every_case_an_id_of_its_own(capsys):
+    code, out, _err = cli(["--help"], capsys)
+    listed = set(re.search(r"\{([a-z,]+)\}", out).group(1).split(","))
+    covered = {case.values[0].argv.split()[0] for case in CASES}
+    assert code == 0 and listed - covered == set(), "commands without a hostile case"
     ids = [case.id for case in CASES]
     assert len(ids) == len(set(ids))
 
 
+# A library parameter's name in backticks (`num_planes`) where the command line should name its flag.
+PARAMETER_NAME = re.compile(r"`[a-z]+(?:_[a-z]+)+`")
+
+
 @pytest.mark.parametrize("case", CASES)
-def test_hostile_input_is_refused_in_one_line_and_changes_nothing(case: Case, work, tmp_path, capsys):
+def test_hostile_input_is_refused_in_one_line_and_changes_nothing(case: Case, shared, template, monkeypatch, capsys):
     if case.permissions and IS_ROOT:
         pytest.skip("running as root: file permissions do not apply (the /proc cases cover unwritable outputs)")
-    argv = expand(case.argv, work)
+    hostile_environment(monkeypatch, shared.folder)
+    argv = expand(case.argv, shared.folder)
     command = command_of(argv)
-    before = tree_state(tmp_path)
     code, _out, err = cli(argv, capsys)
-    changes = tree_changes(before, tree_state(tmp_path))
+    changes = tree_changes(shared.state, tree_state(shared.root))
+    if changes:  # the next case starts from the template again
+        shutil.rmtree(shared.folder)
+        shutil.copytree(template.folder, shared.folder, symlinks=True)
     lines = err.splitlines()
     problems = []
     if code != 2:
@@ -604,12 +729,15 @@ def test_hostile_input_is_refused_in_one_line_and_changes_nothing(case: Case, wo
         problems.append(f"no line starting 'cvqpg {command}: error: '")
     if case.fragment not in err:
         problems.append(f"{case.fragment!r} not named")
+    if PARAMETER_NAME.search(err):
+        problems.append(f"a parameter's name {PARAMETER_NAME.search(err).group()} where its flag belongs")
     if changes:
         problems.append("the tree changed: " + ", ".join(changes[:6]) + (" ..." if len(changes) > 6 else ""))
     assert not problems, "; ".join(problems) + f"\n  cvqpg {' '.join(argv)}\n  stderr: {err.strip()[-800:]}"
 
 
-# Nothing lost on success: a command given --overwrite replaces its own output as a whole and nothing else.
+# Nothing lost on success: a command given --overwrite replaces its own output as a whole and nothing else. Each
+# command works (fits, searches) before it writes: slow.
 
 class Success(NamedTuple):
     argv: str
@@ -623,7 +751,8 @@ SUCCESSES = {
     "compress-overwrite-replaces-only-its-file": Success("compress {run} --bits 6 --overwrite", "run_a/model.cvq"),
     "compress-bpp-overwrite-replaces-only-its-file": Success("compress {run} --bpp 8 --finetune 1 --overwrite",
                                                              "run_a/model.cvq"),
-    "encode-overwrite-replaces-only-its-file": Success(f"{ENCODE} --bpp 8 --out {{cvq}} --overwrite", "run_a/model.cvq"),
+    "encode-overwrite-replaces-only-its-file": Success(f"{ENCODE} --bpp 8 --out {{cvq}} --overwrite",
+                                                       "run_a/model.cvq"),
     "decompress-overwrite-replaces-only-its-file": Success("decompress {cvq} --overwrite",
                                                            "run_a/model.decoded.safetensors"),
     "export-overwrite-replaces-the-whole-folder": Success("export {run} --levels 16 --overwrite", "run_a/export"),
@@ -635,6 +764,7 @@ SUCCESSES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(SUCCESSES))
 def test_overwrite_replaces_the_output_as_a_whole_and_nothing_else(name, template, work, tmp_path, capsys):
     success = SUCCESSES[name]
@@ -663,6 +793,7 @@ def test_overwrite_replaces_the_output_as_a_whole_and_nothing_else(name, templat
         assert after[replaced][1] != before[replaced][1], f"{success.replaced} was not rewritten"
 
 
+@pytest.mark.slow
 def test_a_fit_refused_with_overwrite_leaves_the_old_run_byte_for_byte(work, tmp_path, capsys):
     """The failure comes after the options pass (the depth map separates 2 planes, not 5): the run that was there
     stays, with its model.cvq, export/ and every other file."""

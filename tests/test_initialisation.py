@@ -9,14 +9,14 @@ import torch
 
 from cvqpg import FitConfig, builtin_scene
 from cvqpg.errors import ConfigError
-from cvqpg.config import SHORT_RUN_STEPS
 from cvqpg.initialisation import (EDGES_UNIFORM_SHARE, edge_density, implied_slm_field, initial_gaussians,
-                                  positions_from_energy, resolved_init)
+                                  positions_from_energy)
 from cvqpg.ops.propagation.reference import propagate
 from cvqpg.primitives import init_gaussians, positions_px
 from cvqpg.targets import Scene
 
-CONFIG = FitConfig(width=48, height=36, num_gaussians=400, steps=20, guard_band_px=16, color="gray", init="targets")
+CONFIG = FitConfig.create(width=48, height=36, num_gaussians=400, steps=20, guard_band_px=16, color="gray",
+                          init="targets")
 
 
 def test_positions_follow_the_energy():
@@ -41,7 +41,7 @@ def test_a_plane_s_target_propagates_back_to_a_field_that_reproduces_it():
     target[..., 24:40, 24:40] = 1.0
     scene = Scene(target[0], torch.ones(1, 64, 64), target)
     field = implied_slm_field(scene, config)
-    back = propagate(field, [config.plane_distances[0]], config.wavelengths, config.pixel_pitch)[0].abs()
+    back = propagate(field, [config.plane_distances[0]], config.wavelengths, config.optics.pixel_pitch)[0].abs()
     assert torch.allclose(back[0, 28:36, 28:36], torch.ones(8, 8), atol=0.15)
     assert math.isclose(field.abs().square().sum().item(), target.sum().item(), rel_tol=0.2)
 
@@ -71,19 +71,13 @@ def test_edges_of_flat_black_or_damaged_targets_are_every_pixel_alike(targets):
 def test_only_positions_move_and_the_paper_s_draws_stay(init):
     config = CONFIG.replace(init=init)
     scene = builtin_scene("demo", config)
-    ours, paper = initial_gaussians(config, scene), init_gaussians(400, 1, 48, 36, config.seed)
+    ours, paper = initial_gaussians(config, scene), init_gaussians(400, 1, 48, 36, config.optimisation.seed)
     for name, tensor in paper.tensors().items():
         if name != "position":
             assert torch.equal(ours.tensors()[name], tensor), name
     assert not torch.equal(ours.position, paper.position)
     assert torch.equal(initial_gaussians(config.replace(init="uniform")).position, paper.position)
     assert torch.isfinite(positions_px(ours.position, 48, 36)).all()
-
-
-def test_auto_starts_from_the_targets_energy_in_short_runs_and_from_their_edges_in_longer_ones():
-    assert resolved_init(CONFIG.replace(init="auto", steps=SHORT_RUN_STEPS)) == "targets"
-    assert resolved_init(CONFIG.replace(init="auto", steps=SHORT_RUN_STEPS + 1)) == "edges"
-    assert FitConfig().init == "auto" and FitConfig().with_recipe("paper").init == "uniform"
 
 
 @pytest.mark.parametrize("init", ["targets", "edges"])

@@ -9,6 +9,8 @@ import torch
 from numba.core.errors import TypingError
 
 from cvqpg import ConfigError, FitConfig, builtin_pictures, fit
+from cvqpg.config import RunOptions
+from cvqpg.control import SILENT
 from cvqpg.ops.cpu import cosines_and_sines
 from cvqpg.ops.rasterize import cpu as kernels, vectors
 from cvqpg.ops.rasterize import rasterize, resolve_backend, splat_fused, wavenumbers_for
@@ -16,7 +18,7 @@ from cvqpg.ops.rasterize.reference import FOOTPRINT_SIGMAS, splat_reference, spl
 from cvqpg.primitives import COVARIANCE_REGULARISER_PX2, Gaussians, Primitives, activate, init_gaussians
 
 WIDTH, HEIGHT = 56, 40
-PITCH = FitConfig().pixel_pitch
+PITCH = FitConfig().optics.pixel_pitch
 
 
 def random_gaussians(count: int, channels: int, seed: int, per_channel: bool = False) -> Gaussians:
@@ -67,13 +69,20 @@ def assert_fused_matches_reference(prims: Primitives, wavenumbers, qpf: str = "m
         assert relative(got, want) < 1e-4, name
 
 
-@pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
-@pytest.mark.parametrize("color", ["rgb", "gray"])
-@pytest.mark.parametrize("primitive", ["flat", "cvqpg", "per-channel"])
+# Every primitive, colour and QPF is in the fast subset; the other combinations of them are slow.
+FAST_COMBINATIONS = {("cvqpg", "rgb", "mahalanobis"), ("per-channel", "gray", "standard"), ("flat", "rgb", "standard")}
+
+
+@pytest.mark.parametrize("primitive, color, qpf", [
+    pytest.param(primitive, color, qpf, id=f"{primitive}-{color}-{qpf}",
+                 marks=[] if (primitive, color, qpf) in FAST_COMBINATIONS else pytest.mark.slow)
+    for primitive in ("flat", "cvqpg", "per-channel") for color in ("rgb", "gray")
+    for qpf in ("mahalanobis", "standard")])
 def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primitive):
     per_channel = primitive == "per-channel"
-    config = FitConfig(width=WIDTH, height=HEIGHT, color=color, qpf=qpf, primitive="cvqpg" if per_channel else primitive,
-                       curvature="per-channel" if per_channel else "shared")
+    config = FitConfig.create(width=WIDTH, height=HEIGHT, color=color, qpf=qpf,
+                              primitive="cvqpg" if per_channel else primitive,
+                              curvature="per-channel" if per_channel else "shared")
     raw = random_gaussians(300, config.channels, seed=5, per_channel=per_channel)
     if primitive == "flat":
         raw.curvature = torch.zeros_like(raw.curvature)
@@ -90,7 +99,7 @@ def test_fused_kernel_matches_reference_values_and_gradients(qpf, color, primiti
 
 def test_any_number_of_channels_matches_reference():
     """Six channels: the lane tables walk the channels four at a time, in two groups."""
-    config = FitConfig(width=WIDTH, height=HEIGHT)
+    config = FitConfig.create(width=WIDTH, height=HEIGHT)
     raw = random_gaussians(120, 3, seed=6)
     raw.curvature[::4] = 0.0
     six = activate(raw, config)
@@ -99,13 +108,14 @@ def test_any_number_of_channels_matches_reference():
     assert_fused_matches_reference(six, wavenumbers_for(config.wavelengths + (600e-9, 560e-9, 500e-9)))
 
 
-@pytest.mark.parametrize("curved", [True, False], ids=["complex lanes", "real lanes"])
+@pytest.mark.parametrize("curved", [True, pytest.param(False, marks=pytest.mark.slow)],
+                         ids=["complex lanes", "real lanes"])
 def test_large_primitives_keep_the_agreement_down_hundreds_of_rows(curved):
     """Primitives of 20 to 90 px on a 240×180 image: the lanes step down up to 180 rows in float32.
     Stepping H by Q directly let float32(Q)'s rounding compound (1.3–1.7e-4 here, curved); H + H·(Q − 1)
     keeps it to 3e-5. Without curvature the lanes are real (`kernels._real_lane_tables`)."""
     width, height, count = 240, 180, 40
-    config = FitConfig(width=width, height=height)
+    config = FitConfig.create(width=width, height=height)
     g = init_gaussians(count, 3, width, height, seed=3)
     gen = torch.Generator().manual_seed(3)
     g.scale = torch.log(torch.empty(count, 2).uniform_(20.0, 90.0, generator=gen))
@@ -122,7 +132,7 @@ def test_needles_walked_from_each_rows_maximum_match_reference(qpf):
     """Primitives too elongated for the centre-column walk (aspect 10 to 60, every orientation,
     curved) start each row from exact values at its envelope maximum, unless they are aligned with
     the axes and fit the lane tables; alone, they must still agree."""
-    config = FitConfig(width=WIDTH, height=HEIGHT, qpf=qpf)
+    config = FitConfig.create(width=WIDTH, height=HEIGHT, qpf=qpf)
     raw = random_gaussians(24, 3, seed=4)
     aspect = torch.linspace(math.log(10.0), math.log(60.0), 24, dtype=torch.float64)
     raw.scale = torch.stack([torch.full_like(aspect, 2.5), 2.5 - aspect], dim=1)
@@ -136,13 +146,13 @@ def test_needles_walked_from_each_rows_maximum_match_reference(qpf):
 @pytest.mark.slow
 @pytest.mark.parametrize("curvature", ["shared", "per-channel", "channel-bound"])
 def test_parameter_gradients_through_activations_match(curvature):
-    config = FitConfig(width=WIDTH, height=HEIGHT, curvature=curvature)
+    config = FitConfig.create(width=WIDTH, height=HEIGHT, curvature=curvature)
     raw = random_gaussians(200, 3, seed=11, per_channel=curvature == "per-channel")
     results = []
     for backend in ("torch", "numba"):
         leaves = {k: v.clone().requires_grad_() for k, v in raw.tensors().items()}
         prims = activate(Gaussians.from_tensors(leaves), config)
-        hologram = rasterize(prims, WIDTH, HEIGHT, config.wavelengths, config.pixel_pitch, backend=backend)
+        hologram = rasterize(prims, WIDTH, HEIGHT, config.wavelengths, config.optics.pixel_pitch, backend=backend)
         loss = (hologram.abs() ** 2).sum()
         results.append(torch.autograd.grad(loss, list(leaves.values())))
     for name, got, want in zip(raw.tensors(), results[1], results[0]):
@@ -155,7 +165,7 @@ def test_parameter_gradients_through_activations_match(curvature):
 def test_fused_gradient_matches_finite_differences(curvature, qpf):
     """Every field of the primitives, including the curvature's gradient at zero, where the kernels take
     real lanes: what CVQPG's curvature starts from when the warm-up ends."""
-    config = FitConfig(width=WIDTH, height=HEIGHT, curvature="shared" if curvature == "zero" else curvature)
+    config = FitConfig.create(width=WIDTH, height=HEIGHT, curvature="shared" if curvature == "zero" else curvature)
     raw = random_gaussians(40, 3, seed=2, per_channel=curvature == "per-channel")
     if curvature == "zero":
         raw.curvature = torch.zeros_like(raw.curvature)
@@ -182,7 +192,7 @@ def test_fused_gradient_matches_finite_differences(curvature, qpf):
 def test_geometry_kernel_matches_the_reference_reduction():
     """`kernels.splat_geometry` against `splats` (Σ⁻¹, footprint radii, chirps), and its gradients against
     autograd's."""
-    config = FitConfig(width=WIDTH, height=HEIGHT, curvature="per-channel")
+    config = FitConfig.create(width=WIDTH, height=HEIGHT, curvature="per-channel")
     prims = activate(random_gaussians(200, 3, seed=12, per_channel=True), config)
     for qpf in ("mahalanobis", "standard"):
         leaves = {name: t.clone().requires_grad_() for name, t in prims.tensors().items()}
@@ -207,15 +217,15 @@ def test_geometry_kernel_matches_the_reference_reduction():
 
 
 def test_fused_kernel_handles_empty_and_fully_offscreen_sets():
-    config = FitConfig(width=WIDTH, height=HEIGHT)
+    config = FitConfig.create(width=WIDTH, height=HEIGHT)
     prims = activate(random_gaussians(8, 3, seed=1), config)
     prims.position_px = prims.position_px + 500.0
-    hologram = rasterize(prims, WIDTH, HEIGHT, config.wavelengths, config.pixel_pitch, backend="numba")
+    hologram = rasterize(prims, WIDTH, HEIGHT, config.wavelengths, config.optics.pixel_pitch, backend="numba")
     assert hologram.shape == (3, HEIGHT, WIDTH) and torch.count_nonzero(hologram) == 0
     for curvature in (torch.zeros(0), torch.zeros(0, 3)):  # no primitives, shared or per-channel curvature
         empty = Primitives.from_tensors({name: t[:0].clone().requires_grad_() for name, t in prims.tensors().items()})
         empty.curvature_per_m = curvature.requires_grad_()
-        hologram = rasterize(empty, WIDTH, HEIGHT, config.wavelengths, config.pixel_pitch, backend="numba")
+        hologram = rasterize(empty, WIDTH, HEIGHT, config.wavelengths, config.optics.pixel_pitch, backend="numba")
         assert hologram.shape == (3, HEIGHT, WIDTH) and torch.count_nonzero(hologram) == 0
         gradients = torch.autograd.grad(weighted_sum(hologram), list(empty.tensors().values()))
         assert [g.shape for g in gradients] == [t.shape for t in empty.tensors().values()]
@@ -231,9 +241,9 @@ def test_auto_backend_picks_fused_kernels_on_cpu():
 
 @pytest.mark.slow
 def test_fit_with_fused_kernels_matches_the_reference_fit():
-    config = FitConfig(width=48, height=36, steps=100, curvature_warmup=30, guard_band_px=32)
-    builtin = builtin_pictures("demo", config.width, config.height)
-    psnr = {backend: fit(builtin.image, builtin.depth, config.replace(backend=backend), progress=False)
+    config = FitConfig.create(width=48, height=36, steps=100, curvature_warmup=30, guard_band_px=32)
+    builtin = builtin_pictures("demo", config.targets.width, config.targets.height)
+    psnr = {backend: fit(builtin.image, builtin.depth, config, RunOptions(backend=backend), SILENT)
             .metrics.mean["psnr"] for backend in ("numba", "torch")}
     assert abs(psnr["numba"] - psnr["torch"]) < 0.01, psnr
 
@@ -263,7 +273,7 @@ def test_locality_order_is_a_permutation_by_band_then_column():
 def test_fused_kernel_gives_identical_results_on_reused_buffers():
     """The forward pass reuses its lane images between calls (cleared as they are gathered), the
     backward pass its gradient image: repeated and interleaved calls at two sizes agree bit for bit."""
-    config = FitConfig(width=WIDTH, height=HEIGHT)
+    config = FitConfig.create(width=WIDTH, height=HEIGHT)
     prims = activate(random_gaussians(120, 3, seed=6), config)
     small = activate(random_gaussians(40, 3, seed=7), config)
     k = wavenumbers_for(config.wavelengths)

@@ -1,4 +1,5 @@
-"""The training loss and the targets' noise (method.md §6): the reference by hand and against pytorch-msssim, the fused CPU kernels against the reference."""
+"""The training loss and the targets' noise (method.md §6): the reference by hand and against pytorch-msssim, the
+fused CPU kernels against the reference."""
 
 from __future__ import annotations
 

@@ -308,7 +308,7 @@ def test_gradients_match_direct_evaluation(qpf):
 
 @pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
 def test_cvqpg_with_zero_curvature_renders_exactly_as_flat(qpf):
-    base = FitConfig(width=20, height=14, num_gaussians=40, qpf=qpf)
+    base = FitConfig.create(width=20, height=14, num_gaussians=40, qpf=qpf)
     raw = init_gaussians(40, 3, 20, 14, seed=7)
     assert torch.all(raw.curvature == 0)
     cvqpg = render_hologram(raw, base.replace(primitive="cvqpg"))
@@ -344,7 +344,7 @@ def measured_frequency(scale_px: float, curvature: float, qpf: str, radius_px: f
 
 
 def isotropic_bound(scale_px: float, bound: str) -> float:
-    config = FitConfig(color="rgb", bound=bound)  # λ_min = 473 nm
+    config = FitConfig.create(color="rgb", bound=bound)  # λ_min = 473 nm
     return float(curvature_bound(torch.tensor([[scale_px, scale_px]], dtype=F64), config)[0])
 
 
@@ -365,8 +365,9 @@ def test_adaptive_bound_keeps_edge_frequency_below_nyquist(scale_px):
     np.testing.assert_allclose(mahalanobis, [0.45 * factor * 473e-9 / w for w in wavelengths], rtol=1e-6)
     assert np.all(mahalanobis <= 0.5)
     # a primitive whose raw curvature saturates tanh reaches the bound
-    config = FitConfig(color="rgb")
-    raw = Gaussians(position=torch.zeros(1, 2, dtype=F64), scale=torch.tensor([[math.log(scale_px - 0.1)] * 2], dtype=F64),
+    config = FitConfig.create(color="rgb")
+    raw = Gaussians(position=torch.zeros(1, 2, dtype=F64),
+                    scale=torch.tensor([[math.log(scale_px - 0.1)] * 2], dtype=F64),
                     rotation=torch.zeros(1, dtype=F64), amplitude=torch.ones(1, 3, dtype=F64),
                     phase=torch.zeros(1, 3, dtype=F64), opacity=torch.zeros(1, dtype=F64),
                     curvature=torch.tensor([40.0], dtype=F64))
@@ -377,7 +378,7 @@ def test_adaptive_bound_keeps_edge_frequency_below_nyquist(scale_px):
 def test_per_channel_bounds_put_every_channel_at_the_same_edge_frequency(curvature):
     """Each channel bounded by its own λ_c: every colour's 3σ fringe reaches η/2, not only blue's."""
     scale_px, wavelengths = 3.0, (639e-9, 532e-9, 473e-9)
-    config = FitConfig(color="rgb", curvature=curvature)
+    config = FitConfig.create(color="rgb", curvature=curvature)
     bound = curvature_bound(torch.tensor([[scale_px, scale_px]], dtype=F64), config)[0]
     np.testing.assert_allclose(bound.numpy(), [0.9 * w / (6 * scale_px * PITCH**2) for w in wavelengths],
                                rtol=1e-12)
@@ -396,7 +397,7 @@ def test_per_channel_bounds_put_every_channel_at_the_same_edge_frequency(curvatu
 
 def test_channel_bound_curvature_gives_every_channel_the_same_phase():
     """One raw curvature times each channel's λ_c-proportional bound: k_c γ_c is the same for all c."""
-    config = FitConfig(width=24, height=18, color="rgb", curvature="channel-bound")
+    config = FitConfig.create(width=24, height=18, color="rgb", curvature="channel-bound")
     raw = init_gaussians(30, 3, 24, 18, seed=3)
     raw.curvature = torch.linspace(-2.0, 2.0, 30)
     raw.phase = torch.zeros(30, 3)
@@ -451,7 +452,8 @@ def test_global_bound_exceeds_nyquist_only_for_large_primitives():
         f_large = measured_frequency(large, 200.0, qpf, 3 * large, (473e-9,))[0]
         assert f_small < 0.05
         assert f_large > 0.5
-        assert f_large == pytest.approx(200.0 * 3 * large * PITCH**2 / 473e-9 * (1 if qpf == "standard" else large**2 / (large**2 + 0.1)), rel=1e-5)
+        shrink = 1 if qpf == "standard" else large**2 / (large**2 + 0.1)
+        assert f_large == pytest.approx(200.0 * 3 * large * PITCH**2 / 473e-9 * shrink, rel=1e-5)
         # the adaptive bound keeps the large primitive under Nyquist
         assert measured_frequency(large, isotropic_bound(large, "adaptive"), qpf, 3 * large, (473e-9,))[0] < 0.5
 

@@ -1,5 +1,6 @@
-"""Recipes are recorded choices: the paper's stays one flag away and every grid that compares with the
-paper pins it; a budget in minutes becomes a recorded step count."""
+"""Recipes are recorded choices, resolved when a configuration is made: the paper's stays one flag away, every
+grid that compares with the paper pins it, short fits have their own recipe by name, and a budget in minutes
+becomes a recorded step count and nothing else."""
 
 import json
 from pathlib import Path
@@ -13,47 +14,54 @@ from cvqpg.app.runner import timed_config
 from cvqpg.campaign.bench import PRESETS, make_plan
 from cvqpg.campaign.results import CAMPAIGN, campaign_plan
 from cvqpg.cli import main
-from cvqpg.config import (BEYOND_RECIPE, DEFAULT_RECIPE, LONG_RUN_BETAS, PAPER_BETAS, RECIPES, SHORT_RUN_STEPS,
-                          DensityControl)
+from cvqpg.config import (BEYOND_RECIPE, BEYOND_SHORT_RECIPE, DEFAULT_RECIPE, LONG_RUN_BETAS, PAPER_BETAS,
+                          PAPER_RECIPE, RECIPES, SHORT_RUN_STEPS)
 from cvqpg.errors import ConfigError
 from cvqpg.fitting import initial_state, steps_within
 from cvqpg.scenes import builtin_scene
 
+CONFIGS = Path(__file__).parent / "data" / "configs"
+
 
 def test_the_default_configuration_is_the_default_recipe_and_each_recipe_is_recognised():
-    assert FitConfig().recipe == DEFAULT_RECIPE
-    for name in RECIPES:
-        assert FitConfig(steps=300, color="gray").with_recipe(name).recipe == name
-    assert FitConfig().replace(init="targets").recipe == "custom"
+    assert FitConfig.create().recipe == DEFAULT_RECIPE
+    for name, recipe in RECIPES.items():
+        config = FitConfig.create(name, steps=300, color="gray")
+        assert config.recipe == name and config.optimisation.betas == recipe.betas
+        assert FitConfig.create(steps=300).with_recipe(name) == config.replace(color="rgb")
+    assert FitConfig.create(init="targets").recipe == "custom"
     with pytest.raises(ConfigError, match="`recipe`.*paper"):
-        FitConfig().with_recipe("fast")
+        FitConfig.create("fast")
 
 
-def test_a_record_older_than_recipes_reads_as_the_paper_s():
-    record = FitConfig().with_recipe(BEYOND_RECIPE).to_dict()
-    for key in RECIPES[BEYOND_RECIPE]:
-        record.pop(key)
+def test_a_recipe_runs_the_same_algorithm_at_every_length():
+    short, long = (FitConfig.create(BEYOND_RECIPE, steps=steps) for steps in (30, 8000))
+    assert short.with_steps(8000) == long
+    assert short.optimisation.betas == LONG_RUN_BETAS and short.optimisation.init == "edges"
+    assert (short.loss.focus_weight, short.loss.product_weight) == (1.0, 1.0)
+
+
+def test_the_short_recipe_is_chosen_by_name():
+    config = FitConfig.create(BEYOND_SHORT_RECIPE, steps=300)
+    assert config.optimisation.betas == PAPER_BETAS and config.optimisation.init == "targets"
+    assert (config.loss.focus_weight, config.loss.product_weight) == (0.0, 0.0)
+    small = config.replace(width=32, height=24, color="gray")
+    optimizer = initial_state(small, builtin_scene("demo", small)).optimizer
+    assert {tuple(group["betas"]) for group in optimizer.param_groups} == {PAPER_BETAS}
+
+
+def test_a_flat_record_older_than_recipes_reads_as_the_paper_s():
+    record = {k: v for k, v in json.loads((CONFIGS / "vb8933bb-none-long.json").read_text()).items()
+              if k not in ("init", "density", "betas", "focus_weight", "product_weight")}
     assert FitConfig.from_dict(record).recipe == "paper"
 
 
-def test_a_record_older_than_the_loss_weights_has_the_paper_s_loss():
-    record = FitConfig().with_recipe(BEYOND_RECIPE).to_dict()
-    for key in ("focus_weight", "product_weight"):
-        record.pop(key)
+@pytest.mark.parametrize(("steps", "recipe"), [(SHORT_RUN_STEPS, BEYOND_SHORT_RECIPE),
+                                               (SHORT_RUN_STEPS + 1, BEYOND_RECIPE)])
+def test_a_flat_record_s_unset_recipe_settings_resolve_by_its_own_steps(steps, recipe):
+    record = {**json.loads((CONFIGS / "vb8933bb-none-short.json").read_text()), "steps": steps}
     config = FitConfig.from_dict(record)
-    assert (config.focus_weight, config.product_weight) == (1.0, 1.0) and config.recipe == "custom"
-
-
-def test_a_recorded_density_control_reads_back():
-    config = FitConfig(density=DensityControl(every=0.1, until=0.5, fraction=0.03), init="targets")
-    assert FitConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
-
-
-@pytest.mark.parametrize("density", [DensityControl(every=0.0), DensityControl(until=1.5),
-                                     DensityControl(fraction=1.0), DensityControl(every=float("nan"))])
-def test_density_settings_that_cannot_work_are_refused(density):
-    with pytest.raises(ConfigError, match="density"):
-        FitConfig(density=density).validate()
+    assert config.recipe == recipe and config == FitConfig.create(recipe, steps=steps, width=64, height=48)
 
 
 def test_every_grid_that_compares_with_the_paper_pins_its_recipe():
@@ -71,8 +79,8 @@ def test_the_paper_time_grid_fixes_one_step_count_per_colour():
     grid = next(g for g in CAMPAIGN if g.preset == "beyond-time")
     plan = campaign_plan(grid, Path("results"))
     for cell in plan.cells:
-        assert cell.config.steps == preset.steps_for(cell.config.color)
-        assert cell.config.curvature_warmup_steps == round(cell.config.steps / 5)
+        assert cell.config.optimisation.steps == preset.steps_for(cell.config.targets.color)
+        assert cell.config.optimisation.curvature_warmup == round(cell.config.optimisation.steps / 5)
 
 
 @pytest.mark.parametrize("seconds, each, steps", [(60.0, 0.05, 1199), (1.0, 2.0, 1), (10.0, 0.1, 99)])
@@ -82,14 +90,31 @@ def test_a_time_budget_holds_the_run_s_steps_plus_one_updates(seconds, each, ste
 
 def test_a_time_budget_is_timed_and_recorded_with_the_compile_time_it_spent(monkeypatch):
     # The fit after it only loads the kernels, so the budget's record is where the compilation shows
-    monkeypatch.setattr(runner, "prepare_kernels", lambda config, show_status=True: 7.5)
-    config = FitConfig(width=32, height=24, num_gaussians=30, steps=5, guard_band_px=8, color="gray")
+    monkeypatch.setattr(runner, "prepare_kernels", lambda config, run, show_status=True: 7.5)
+    config = FitConfig.create(width=32, height=24, num_gaussians=30, steps=5, guard_band_px=8, color="gray")
     timed, record = timed_config(builtin_scene("demo", config), config, 0.01, progress=False)
-    assert timed.steps == steps_within(0.6, record["seconds_per_step"])
+    assert timed.optimisation.steps == steps_within(0.6, record["seconds_per_step"])
     assert record["minutes"] == 0.01 and record["seconds_per_step"] > 0
     assert record["compile_seconds"] == 7.5
     with pytest.raises(ConfigError, match="`time`"):
         timed_config(builtin_scene("demo", config), config, 0.0, progress=False)
+
+
+@pytest.mark.parametrize("recipe", [BEYOND_RECIPE, PAPER_RECIPE])
+def test_the_same_time_on_a_machine_twice_as_fast_runs_the_same_algorithm_with_twice_the_steps(monkeypatch, recipe):
+    monkeypatch.setattr(runner, "prepare_kernels", lambda config, run, show_status=True: 0.0)
+    config = FitConfig.create(recipe, width=32, height=24, num_gaussians=30, color="gray")
+    scene = builtin_scene("demo", config)
+    timed = {}
+    for machine, seconds_each in (("slow", 0.2), ("fast", 0.1)):
+        monkeypatch.setattr(runner, "seconds_per_step", lambda scene, config, run, each=seconds_each: each)
+        timed[machine] = timed_config(scene, config, 5.0, progress=False)[0]
+    slow, fast = timed["slow"].optimisation, timed["fast"].optimisation
+    assert (slow.steps, fast.steps) == (steps_within(300, 0.2), steps_within(300, 0.1)) == (1499, 2999)
+    assert fast.curvature_warmup == round(fast.steps / 5) and slow.curvature_warmup == round(slow.steps / 5)
+    assert timed["fast"].replace(steps=slow.steps, curvature_warmup=slow.curvature_warmup) == timed["slow"]
+    assert timed["fast"].replace(steps=2000, curvature_warmup=400) == config
+    assert timed["fast"].recipe == timed["slow"].recipe == recipe
 
 
 def test_fit_records_the_recipe_and_the_time_budget_and_a_rerun_with_its_steps_is_exact(tmp_path):
@@ -99,8 +124,9 @@ def test_fit_records_the_recipe_and_the_time_budget_and_a_rerun_with_its_steps_i
     recorded = json.loads((out / "config.json").read_text())
     assert FitConfig.from_dict(recorded).recipe == "paper"
     assert recorded["source"]["time_budget"]["minutes"] == 0.02
-    assert json.loads((out / "metrics.json").read_text())["steps"] == recorded["steps"]
-    assert main([*small, "--steps", str(recorded["steps"]), "--out", str(rerun)]) == 0
+    steps = recorded["optimisation"]["steps"]
+    assert json.loads((out / "metrics.json").read_text())["steps"] == steps
+    assert main([*small, "--steps", str(steps), "--out", str(rerun)]) == 0
     timed, again = (load_model(folder / "model.safetensors")[0].tensors() for folder in (out, rerun))
     assert all(torch.equal(timed[name], again[name]) for name in timed)
 
@@ -110,25 +136,3 @@ def test_steps_and_time_together_are_one_line(capsys, tmp_path):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--steps or --time" in err[0]
     assert not (tmp_path / "r").exists()
-
-
-def test_the_default_recipe_drops_the_masked_and_correlation_terms_in_short_runs_only():
-    beyond = FitConfig().with_recipe(BEYOND_RECIPE)
-    assert beyond.replace(steps=SHORT_RUN_STEPS).validate().loss_weights == (0.0, 0.0)
-    assert beyond.replace(steps=SHORT_RUN_STEPS + 1).validate().loss_weights == (1.0, 1.0)
-    assert FitConfig().with_recipe("paper").replace(steps=300).loss_weights == (1.0, 1.0)
-    assert beyond.replace(focus_weight=0.5, steps=300).loss_weights == (0.5, 0.0)
-
-
-def test_the_default_recipe_raises_adan_s_beta2_in_longer_runs_only_and_the_optimiser_gets_it():
-    beyond = FitConfig().with_recipe(BEYOND_RECIPE)
-    assert beyond.replace(steps=SHORT_RUN_STEPS).validate().adan_betas == PAPER_BETAS == (0.98, 0.92, 0.99)
-    assert beyond.replace(steps=SHORT_RUN_STEPS + 1).validate().adan_betas == LONG_RUN_BETAS == (0.98, 0.99, 0.99)
-    assert FitConfig().with_recipe("paper").replace(steps=8000).adan_betas == PAPER_BETAS
-    assert beyond.replace(betas=(0.9, 0.95, 0.999), steps=300).adan_betas == (0.9, 0.95, 0.999)
-    assert FitConfig.from_dict(json.loads(json.dumps(beyond.to_dict()))) == beyond
-    small = beyond.replace(width=32, height=24, color="gray")
-    scene = builtin_scene("demo", small)
-    for steps, betas in ((SHORT_RUN_STEPS, PAPER_BETAS), (2000, LONG_RUN_BETAS)):
-        optimizer = initial_state(small.replace(steps=steps), scene).optimizer
-        assert {tuple(group["betas"]) for group in optimizer.param_groups} == {betas}

@@ -13,12 +13,13 @@ from cvqpg.primitives import Primitives, activate, init_gaussians
 from cvqpg.runs import MODEL_FILE, load_run_model, read_run, start_run
 from cvqpg.storage import save_model
 
-RUN = FitConfig(width=64, height=48, num_gaussians=30, steps=2, guard_band_px=32)
+RUN = FitConfig.create(width=64, height=48, num_gaussians=30, steps=2, guard_band_px=32)
 OTHER = RUN.replace(width=32, height=24, color="gray")
 
 
 def model_of(config: FitConfig) -> Primitives:
-    return activate(init_gaussians(config.primitive_count, config.channels, config.width, config.height, 1), config)
+    targets = config.targets
+    return activate(init_gaussians(config.primitive_count, config.channels, targets.width, targets.height, 1), config)
 
 
 def run_folder(root: Path, model_config: FitConfig = RUN) -> Path:
@@ -31,10 +32,13 @@ def run_folder(root: Path, model_config: FitConfig = RUN) -> Path:
 @pytest.mark.parametrize("change, message", [
     (lambda recorded: "{not json", "config.json is not a readable JSON file"),
     (lambda recorded: [recorded], "config.json holds a JSON list, not an object"),
-    (lambda recorded: {k: v for k, v in recorded.items() if k != "width"}, "config.json lacks width"),
+    (lambda recorded: {k: v for k, v in recorded.items() if k != "targets"}, "config.json lacks targets"),
+    (lambda recorded: {k: v for k, v in recorded.items() if k not in ("targets", "config_schema")},
+     "config.json lacks width"),
     (lambda recorded: {**recorded, "source": {"depth": "d.png"}}, "names neither a scene nor an image"),
-    (lambda recorded: {**recorded, "pixel_pitch": 0}, "`pixel_pitch` must be positive"),
-    (lambda recorded: {**recorded, "lr": {"speed": 1}}, "its settings cannot work"),
+    (lambda recorded: {**recorded, "optics": {"pixel_pitch": 0}}, "`pixel_pitch` must lie in [1e-07, 0.001]"),
+    (lambda recorded: {**recorded, "optimisation": {"lr": {"speed": 1}}}, "its settings cannot work"),
+    (lambda recorded: {**recorded, "optimisation": {"betas": [0.98, 1.5, 0.99]}}, "`betas[1]` must lie in"),
 ])
 def test_a_damaged_config_json_is_an_input_error_naming_the_file(tmp_path, change, message):
     folder = run_folder(tmp_path)
@@ -51,9 +55,9 @@ def test_a_folder_without_config_json_is_not_a_run_folder(tmp_path):
 
 
 def test_a_model_of_the_run_s_targets_is_accepted(tmp_path):
-    folder = run_folder(tmp_path, RUN.replace(num_gaussians=20, primitive="flat", device="cuda"))
+    folder = run_folder(tmp_path, RUN.replace(num_gaussians=20, primitive="flat"))
     primitives, config, source = load_run_model(folder)
-    assert primitives.count == 20 and config.primitive == "flat" and source == {"scene": "demo"}
+    assert primitives.count == 20 and config.primitives.kind == "flat" and source == {"scene": "demo"}
 
 
 def test_a_model_of_other_optics_names_them(tmp_path):

@@ -53,7 +53,7 @@ def test_the_ladder_runs_from_3_bits_coarser_to_every_attribute_s_finest_depth()
 @pytest.fixture(scope="module")
 def model():
     """A scene-free model whose reference is its own reconstruction: scored with the drop estimated for a fit."""
-    config = FitConfig(width=W, height=H, color="gray", num_planes=1, ratio=0.5, guard_band_px=32).validate()
+    config = FitConfig.create(width=W, height=H, color="gray", num_planes=1, ratio=0.5, guard_band_px=32).validate()
     primitives = stand_in(config, config.primitive_count)
     return primitives, config, reference_for(primitives, config, None)
 
@@ -127,7 +127,7 @@ def test_largest_fitting_needs_few_encodes_where_sizes_grow_about_linearly():
 
 
 def test_a_bpp_budget_is_whole_bytes_of_8_bytes_per_pixel():
-    config = FitConfig(width=W, height=H)
+    config = FitConfig.create(width=W, height=H)
     assert CompressionSettings(bpp=1.0).budget(config).max_bytes == W * H // 8
     assert CompressionSettings(bpp=0.999).budget(config).max_bytes == W * H // 8 - 1  # never rounded up
     assert CompressionSettings(max_bytes=777).budget(config).max_bytes == 777
@@ -136,7 +136,7 @@ def test_a_bpp_budget_is_whole_bytes_of_8_bytes_per_pixel():
 
 
 def test_dropping_primitives_other_than_the_range_holders_keeps_the_file_s_bins():
-    config = FitConfig(width=W, height=H, color="rgb", ratio=0.3)
+    config = FitConfig.create(width=W, height=H, color="rgb", ratio=0.3)
     raw = init_gaussians(config.primitive_count, 3, W, H, seed=5)
     raw.amplitude.uniform_(-1, 1, generator=torch.Generator().manual_seed(5))
     primitives = activate(raw, config)
@@ -147,7 +147,7 @@ def test_dropping_primitives_other_than_the_range_holders_keeps_the_file_s_bins(
 
 
 def test_pruning_removes_the_primitives_of_least_field_energy_and_the_file_round_trips():
-    config = FitConfig(width=48, height=32, color="rgb", ratio=0.3)
+    config = FitConfig.create(width=48, height=32, color="rgb", ratio=0.3)
     raw = init_gaussians(config.primitive_count, 3, 48, 32, seed=3)
     primitives = activate(raw, config)
     values = primitives.tensors()
@@ -188,7 +188,7 @@ def test_settings_name_the_first_that_cannot_work_where_they_are_made(settings, 
 
 
 def test_settings_choose_the_goal_a_drop_of_a_tenth_of_a_db_by_default():
-    config = FitConfig(width=W, height=H)
+    config = FitConfig.create(width=W, height=H)
     assert CompressionSettings().goal(config) == MaxDrop(0.1)
     assert CompressionSettings(max_drop=0.4).goal(config) == MaxDrop(0.4)
     assert CompressionSettings(bits=BitDepths()).goal(config) == FixedBits()

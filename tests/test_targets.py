@@ -114,7 +114,7 @@ def test_two_plane_targets_match_hand_computation():
     sharp = masks[0].astype(bool)
     np.testing.assert_allclose(ours[0].numpy()[:, sharp], image[:, sharp], atol=1e-6)
 
-    config = FitConfig(width=13, height=9, color="gray", num_planes=2)
+    config = FitConfig.create(width=13, height=9, color="gray", num_planes=2)
     scene = build_scene(torch.from_numpy(image), torch.from_numpy(depth), config)
     np.testing.assert_array_equal(scene.masks.numpy(), masks)
     np.testing.assert_allclose(scene.targets.numpy(), expected, rtol=0, atol=1e-6)
@@ -129,7 +129,7 @@ def test_three_plane_targets_match_hand_computation():
     masks = hand_masks(depth, 3)
     assert masks[0, 2, 2] == 1 and masks[2, 3, 3] == 1
     expected = hand_targets(image.astype(np.float64), masks)  # σ = 0, 8, 16
-    config = FitConfig(width=11, height=8, color="gray", num_planes=3)
+    config = FitConfig.create(width=11, height=8, color="gray", num_planes=3)
     scene = build_scene(torch.from_numpy(image), torch.from_numpy(depth), config)
     np.testing.assert_array_equal(scene.masks.numpy(), masks)
     np.testing.assert_allclose(scene.targets.numpy(), expected, rtol=0, atol=1e-6)
@@ -138,8 +138,8 @@ def test_three_plane_targets_match_hand_computation():
 def test_build_scene_needs_depth_for_several_planes():
     image = torch.rand(1, 4, 5)
     with pytest.raises(ValueError):
-        build_scene(image, None, FitConfig(width=5, height=4, color="gray", num_planes=2))
-    scene = build_scene(image, None, FitConfig(width=5, height=4, color="gray", num_planes=1))
+        build_scene(image, None, FitConfig.create(width=5, height=4, color="gray", num_planes=2))
+    scene = build_scene(image, None, FitConfig.create(width=5, height=4, color="gray", num_planes=1))
     assert torch.allclose(scene.targets[0], image, atol=1e-7)
 
 
@@ -163,7 +163,7 @@ def test_a_float_depth_map_with_pixels_that_are_not_finite_is_refused(tmp_path, 
     depth[3, 4:7] = bad
     path = tmp_path / "depth.tiff"
     Image.fromarray(depth, "F").save(path)
-    config = FitConfig(width=24, height=16, color="gray", num_planes=2)
+    config = FitConfig.create(width=24, height=16, color="gray", num_planes=2)
     with pytest.raises(InputError, match="has 3 of 384 pixels that are not finite") as refused:
         load_scene(torch.rand(1, 16, 24), path, config)
     assert str(path) in str(refused.value)
@@ -174,7 +174,7 @@ def test_a_float_depth_map_with_pixels_that_are_not_finite_is_refused(tmp_path, 
                                                                   ((3, 32, 24), (24, 32), "image"),
                                                                   ((3, 24, 32), (32, 24), "depth")])
 def test_load_scene_checks_tensors_against_the_configuration(image_shape, depth_shape, name):
-    config = FitConfig(width=32, height=24, color="rgb", num_planes=2)
+    config = FitConfig.create(width=32, height=24, color="rgb", num_planes=2)
     depth = torch.linspace(0, 1, math.prod(depth_shape)).reshape(depth_shape)
     if name is None:
         assert load_scene(torch.rand(image_shape), depth, config).targets.shape == (2, 3, 24, 32)

@@ -1,9 +1,8 @@
-"""`cvqpg view` without a browser: the sweep's distances, the page's structure and embedded data, `fit --view`,
-and one-line errors for input the page cannot be built from."""
+"""`cvqpg view` without a browser: the sweep's distances, the page's structure and embedded data, and `fit --view`
+(refusals at the command line: test_hostile.py)."""
 
 import json
 import re
-import shutil
 
 import pytest
 
@@ -97,39 +96,3 @@ def test_fit_with_view_writes_the_page_into_the_run(tmp_path):
     assert main(["fit", *SMALL, "--view", "--out", str(out)]) == 0
     data = page_data((out / "view.html").read_text())
     assert len(data["runs"][0]["frames"]) == 43
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("arguments, message", [
-    (["{larger}", "{cvqpg}"], "is 48×36 px, 3.74 µm pitch, 639/532/473 nm but {larger} is 64×48 px"),
-    (["{cvqpg}", "{flat}", "{larger}"], "3 run folders: give one or two"),
-    (["{cvqpg}", "--distances", "0.5", "6", "41"], "distances are in m"),
-    (["{cvqpg}", "--distances", "0.001", "0.002", "2.5"], "COUNT is a whole number"),
-    (["{cvqpg}", "--out", "{flat}"], "is a run folder; choose a path outside it"),
-    (["{cvqpg}", "--out", "{root}"], "is a folder; give a file name"),
-    (["{root}"], "is not a run folder (no config.json)"),
-])
-def test_bad_input_is_one_line_exit_2_and_nothing_written(runs, arguments, message, capsys):
-    names = {"root": runs, **{name: runs / name for name in ("cvqpg", "flat", "larger")}}
-    before = sorted(runs.rglob("*"))
-    assert main(["view", *(a.format(**names) for a in arguments), "--quiet"]) == 2
-    error = capsys.readouterr().err
-    assert message.format(**names) in error and error.count("\n") == 1
-    assert sorted(runs.rglob("*")) == before
-
-
-@pytest.mark.parametrize("damaged, remedy", [
-    ("target_plane1.png", "delete it to view the run without the PSNR at its plane"),
-    ("metrics.json", "delete it, then `cvqpg eval` on the run writes it again"),
-    ("export/metrics.json", "run `cvqpg export` on the run again"),
-    ("export/display_plane0.png", "run `cvqpg export` on the run again"),
-])
-def test_a_damaged_record_of_the_run_is_one_line_naming_it(runs, tmp_path, damaged, remedy, capsys):
-    run = shutil.copytree(runs / "cvqpg", tmp_path / "cvqpg")
-    path = run / damaged
-    path.write_bytes(path.read_bytes()[:path.stat().st_size // 2])
-    page = tmp_path / "page.html"
-    assert main(["view", str(run), *SWEEP, "--quiet", "--out", str(page)]) == 2
-    error = capsys.readouterr().err
-    assert str(path) in error and remedy in error and error.count("\n") == 1 and "Traceback" not in error
-    assert not page.exists()

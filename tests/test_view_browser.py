@@ -63,8 +63,12 @@ def shown(driver) -> tuple[str, list[bool]]:
         const index = data.distances_mm.map((d) => `${d.toFixed(3)} mm`).indexOf(
             document.getElementById("distance").textContent);
         return [document.getElementById("distance").textContent,
-                [...document.querySelectorAll("#view .frame img")].map((img, run) => img.src === data.runs[run].frames[index])];
+                [...document.querySelectorAll("#view .frame img")].map(
+                    (img, run) => img.src === data.runs[run].frames[index])];
     """)
+
+
+FRAMES = "return [...document.querySelectorAll('#view .frame img')].map((i) => i.src)"  # each panel's image
 
 
 def crops(driver) -> list[str]:
@@ -73,11 +77,11 @@ def crops(driver) -> list[str]:
 
 def test_slider_arrow_keys_and_plane_marks_refocus_both_runs(browser):
     assert shown(browser) == ["1.000 mm", [True, True]]  # it opens at the first training plane
-    first = browser.execute_script("return [...document.querySelectorAll('#view .frame img')].map((i) => i.src)")
+    first = browser.execute_script(FRAMES)
     assert "PSNR" in browser.find_element("css selector", ".psnr").text
     browser.find_element("tag name", "body").send_keys(Keys.ARROW_RIGHT)
     assert shown(browser) == ["1.600 mm", [True, True]]
-    assert browser.execute_script("return [...document.querySelectorAll('#view .frame img')].map((i) => i.src)") != first
+    assert browser.execute_script(FRAMES) != first
     assert browser.find_element("css selector", ".psnr").text == "no target at this distance"
     slider = browser.find_element("id", "slider")
     ActionChains(browser).move_to_element_with_offset(slider, slider.size["width"] // 2 - 2, 0).click().perform()

@@ -25,7 +25,7 @@ import torch
 from numba.core import event
 from PIL import Image
 
-from ..config import FitConfig
+from ..config import FitConfig, RunOptions
 from ..ops.propagation import SPECTRUM_BLOCK_ROWS
 
 if TYPE_CHECKING:
@@ -45,22 +45,15 @@ PROBE_GUARD_BAND_PX = SPECTRUM_BLOCK_ROWS // 4
 # propagation takes one array per plane; colour, primitive, curvature and QPF change values, not
 # types). One probe each covers the built-in scenes, the bench presets and every default; another
 # --planes compiles its few propagation kernels on its first run.
-PRECOMPILED_KINDS = tuple(FitConfig(num_planes=planes) for planes in (1, 2))
-
-
-def uses_cpu_kernels(config: FitConfig) -> bool:
-    """Whether a fit of `config` runs Numba kernels: with the `numba` backend, every op's."""
-    from ..ops import resolve_backend
-
-    return resolve_backend(config.backend, config.device) == "numba"
+PRECOMPILED_KINDS = tuple(FitConfig.create(num_planes=planes) for planes in (1, 2))
 
 
 def probe_config(config: FitConfig) -> FitConfig:
-    """A tiny fit with `config`'s kind (colour, planes, primitive, curvature, QPF, backend): the same
+    """A tiny fit with `config`'s kind (colour, planes, primitive, curvature, QPF): the same
     kernel specialisations, a few milliseconds per step once compiled."""
     width, height = PROBE_SIZE_PX
     return config.replace(width=width, height=height, num_gaussians=PROBE_PRIMITIVES, steps=1,
-                          curvature_warmup=0, guard_band_px=PROBE_GUARD_BAND_PX, device="cpu").validate()
+                          curvature_warmup=0, guard_band_px=PROBE_GUARD_BAND_PX).validate()
 
 
 def probe_scene(probe: FitConfig) -> Scene:
@@ -69,24 +62,22 @@ def probe_scene(probe: FitConfig) -> Scene:
     from ..scenes import builtin_pictures
     from ..targets import load_scene
 
-    demo = builtin_pictures("demo", probe.width, probe.height)
-    ramp = Image.fromarray(np.linspace(0.0, 1.0, probe.width * probe.height, dtype=np.float32)
-                           .reshape(probe.height, probe.width), "F")
-    return load_scene(demo.image, ramp if probe.num_planes > 1 else None, probe)
+    demo = builtin_pictures("demo", probe.targets.width, probe.targets.height)
+    ramp = Image.fromarray(np.linspace(0.0, 1.0, probe.targets.width * probe.targets.height, dtype=np.float32)
+                           .reshape(probe.targets.height, probe.targets.width), "F")
+    return load_scene(demo.image, ramp if probe.targets.num_planes > 1 else None, probe)
 
 
 def compile_rasterizer_kernels(probe: FitConfig, per_primitive: bool = False) -> None:
     """Compile (or load) the fused rasterizer's kernels from their types (`KERNEL_TYPES`), without
     running them: its kernels other than the two loops over the primitives, or only those loops
     (`per_primitive`, `PER_PRIMITIVE_KERNELS`: the fit's own process's share of a cold compile).
-    Nothing where `probe`'s rasterizer is not the Numba one."""
-    from ..ops import resolve_backend
+    `probe` only gives the kind of fit: the probe runs on the CPU with the Numba kernels."""
     from ..ops.rasterize import KERNEL_TYPES, PER_PRIMITIVE_KERNELS
 
-    if resolve_backend(probe.backend, probe.device) == "numba":
-        for kernel, types in KERNEL_TYPES.items():
-            if (kernel in PER_PRIMITIVE_KERNELS) == per_primitive:
-                kernel.compile(types)
+    for kernel, types in KERNEL_TYPES.items():
+        if (kernel in PER_PRIMITIVE_KERNELS) == per_primitive:
+            kernel.compile(types)
 
 
 def compile_propagation_and_loss(probe: FitConfig) -> None:
@@ -95,8 +86,9 @@ def compile_propagation_and_loss(probe: FitConfig) -> None:
     from ..fitting import hologram_loss
 
     generator = torch.Generator().manual_seed(0)
-    field = torch.randn(probe.channels, probe.height, probe.width, dtype=torch.complex64, generator=generator)
-    loss, _ = hologram_loss(field.requires_grad_(True), probe_scene(probe), probe, generator)
+    field = torch.randn(probe.channels, probe.targets.height, probe.targets.width, dtype=torch.complex64,
+                        generator=generator)
+    loss, _ = hologram_loss(field.requires_grad_(True), probe_scene(probe), probe, generator, "numba")
     loss.backward()
 
 
@@ -167,8 +159,8 @@ def compile_kernels(config: FitConfig, alongside: bool = True) -> None:
         compile_rasterizer_kernels(probe, per_primitive=True)
         scene = probe_scene(probe)
         state = initial_state(probe, scene)  # the optimiser's imports, before waiting for the other process
-    optimisation_step(state, scene, probe)
-    render(activate(state.gaussians.detached(), probe), probe)
+    optimisation_step(state, scene, probe, "numba")
+    render(activate(state.gaussians.detached(), probe), probe, backend="numba")
 
 
 class CompileStatus(event.Listener):
@@ -224,10 +216,10 @@ class CompileStatus(event.Listener):
             self.stream.flush()
 
 
-def prepare_kernels(config: FitConfig, show_status: bool = True) -> float:
-    """Compile or load the kernels a fit of `config` calls, with a status line when it compiles;
+def prepare_kernels(config: FitConfig, run: RunOptions = RunOptions(), show_status: bool = True) -> float:
+    """Compile or load the kernels a fit of `config` on `run` calls, with a status line when it compiles;
     returns the seconds it took (0 where the fit runs no Numba kernel)."""
-    if not uses_cpu_kernels(config):
+    if run.kernels != "numba":
         return 0.0
     with CompileStatus(enabled=show_status) as status:
         compile_kernels(config)

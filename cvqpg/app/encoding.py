@@ -16,7 +16,7 @@ import torch
 
 from ..bitdepths import BitDepths
 from ..codec import encode
-from ..config import FitConfig
+from ..config import FitConfig, RunOptions
 from ..control import SILENT, RunControl
 from ..defaults import ENCODE_FINETUNE_STEPS, ENCODE_STEPS
 from ..errors import InputError
@@ -37,7 +37,7 @@ BUDGET_FILE = "budget.json"  # an encode's folder: the budget and the fine-tunin
 def encode_steps(steps: int) -> tuple[int, int]:
     """`cvqpg encode`'s float and quantisation-aware steps in the place of a fit of `steps` steps: `ENCODE_STEPS`
     and `ENCODE_FINETUNE_STEPS` for a Table 1 fit's 2000, in proportion for others (one float step at least)."""
-    share = steps / FitConfig().steps
+    share = steps / FitConfig().optimisation.steps
     return max(round(share * ENCODE_STEPS), 1), round(share * ENCODE_FINETUNE_STEPS)
 
 
@@ -45,8 +45,8 @@ def stand_in(config: FitConfig, count: int, seed: int = 0) -> Primitives:
     """`count` random primitives of the fit's shape, coded about as a fitted model is: the initialisation's
     positions, scales and amplitudes, with phases and curvatures spread over their whole range (a fit
     starts them at 0, which would code in almost no bits)."""
-    raw = init_gaussians(count, config.channels, config.width, config.height, seed,
-                         per_channel_curvature=config.curvature == "per-channel")
+    raw = init_gaussians(count, config.channels, config.targets.width, config.targets.height, seed,
+                         per_channel_curvature=config.primitives.curvature == "per-channel")
     generator = torch.Generator().manual_seed(seed)
     raw.phase.uniform_(0, 2 * math.pi, generator=generator)
     raw.curvature.uniform_(-1, 1, generator=generator)
@@ -67,11 +67,12 @@ def primitives_for_budget(config: FitConfig, max_bytes: int) -> int:
     measured on `stand_in` models; 1 at least, W·H at most."""
     header = len(encode(stand_in(config, 1), config, BitDepths()))
     count = max(config.primitive_count, 2)
+    pixels = config.targets.width * config.targets.height
     # Positions cost fewer bits the denser the primitives (Morton gaps): measured again at the first estimate
     for _ in range(2):
         per_primitive = (len(encode(stand_in(config, count), config, BitDepths())) - header) / (count - 1)
-        count = min(max(round((max_bytes - header) / per_primitive), 2), config.width * config.height)
-    return min(max(round(count * ENCODE_HEADROOM), 1), config.width * config.height)
+        count = min(max(round((max_bytes - header) / per_primitive), 2), pixels)
+    return min(max(round(count * ENCODE_HEADROOM), 1), pixels)
 
 
 def encode_config(config: FitConfig, budget: Budget) -> FitConfig:
@@ -116,7 +117,7 @@ def encode_fitted(fitted: FitResult, scene: Scene, budget: Budget, finetune_step
 
 def encode_scene(scene: Scene, config: FitConfig, settings: CompressionSettings, control: RunControl = SILENT
                  ) -> Encoding:
-    """Fit `scene` with `encode_config`'s primitive count (replacing `config`'s) for `config.steps` (`cvqpg encode`
+    """Fit `scene` with `encode_config`'s primitive count (replacing `config`'s) for its steps (`cvqpg encode`
     fits for `ENCODE_STEPS`) and `encode_fitted` the model into a file within the budget of `settings`
     (`encode_budget`), fine-tuned for its `finetune_steps` (default `ENCODE_FINETUNE_STEPS`). Progress bars
     (`control.progress`) show the fit's PSNR, then the rate search's bpp and PSNR; `control.on_step` is told the
@@ -124,8 +125,7 @@ def encode_scene(scene: Scene, config: FitConfig, settings: CompressionSettings,
     (`fitting.FitInterrupted`); `encode_in_folder` runs the same with checkpoints."""
     budget = encode_budget(config, settings)
     steps = ENCODE_FINETUNE_STEPS if settings.finetune_steps is None else settings.finetune_steps
-    fitted = fit_scene(scene, encode_config(config, budget), progress=control.progress, on_step=control.on_step,
-                       stop_requested=control.stop_requested)
+    fitted = fit_scene(scene, encode_config(config, budget), control=control)
     return encode_fitted(fitted, scene, budget, steps, control)
 
 
@@ -137,10 +137,11 @@ def encoding_record(encoded: Encoding, out: str | Path, budget: Budget) -> dict[
             "fit_seconds": encoded.fit.seconds, "fit_cpu_seconds": encoded.fit.cpu_seconds}
 
 
-def start_encode(folder: Path, config: FitConfig, source: dict[str, Any], budget: Budget, finetune_steps: int) -> Path:
-    """A folder for an encode of `config` (`encode_config`'s) into `budget`: a run folder (`runs.start_run`) that
-    also records the budget and the fine-tuning steps (`BUDGET_FILE`)."""
-    start_run(folder, config, source)
+def start_encode(folder: Path, config: FitConfig, source: dict[str, Any], budget: Budget, finetune_steps: int,
+                 run: RunOptions = RunOptions()) -> Path:
+    """A folder for an encode of `config` (`encode_config`'s) into `budget` on `run`: a run folder
+    (`runs.start_run`) that also records the budget and the fine-tuning steps (`BUDGET_FILE`)."""
+    start_run(folder, config, source, run)
     write_json(Path(folder) / BUDGET_FILE, {"max_bytes": budget.max_bytes, "given": budget.given,
                                             "finetune_steps": finetune_steps})
     return Path(folder)
@@ -165,11 +166,11 @@ def read_encode(folder: Path) -> tuple[FitConfig, dict[str, Any], Budget, int]:
 
 
 def encode_in_folder(folder: Path, scene: Scene, config: FitConfig, budget: Budget, finetune_steps: int,
-                     control: RunControl = SILENT) -> Encoding:
-    """`encode_fitted` of a fit of `config` in `folder` (made by `start_encode`), from the folder's checkpoint where
-    it has one. The fit checkpoints every `runner.CHECKPOINT_SECONDS` and at its end, and a stop request
-    (`control`) raises `FitInterrupted`: within the fit after saving, within rate control with the finished fit
-    saved, which a resume then rate-controls again."""
-    fitted = fit_in_folder(folder, scene, config, resumed_state(folder, config), progress=control.progress,
-                           stop_requested=control.stop_requested, checkpoint_at_end=True)
+                     run: RunOptions = RunOptions(), control: RunControl = SILENT) -> Encoding:
+    """`encode_fitted` of a fit of `config` on `run` in `folder` (made by `start_encode`), from the folder's
+    checkpoint where it has one. The fit checkpoints every `runner.CHECKPOINT_SECONDS` and at its end, and a stop
+    request (`control`) raises `FitInterrupted`: within the fit after saving, within rate control with the finished
+    fit saved, which a resume then rate-controls again."""
+    fitted = fit_in_folder(folder, scene, config, run, control, resumed_state(folder, config, run),
+                           checkpoint_at_end=True)
     return encode_fitted(fitted, scene, budget, finetune_steps, control)

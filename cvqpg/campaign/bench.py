@@ -32,11 +32,11 @@ from ..app.allocator import keep_freed_memory
 from ..app.encoding import encode_steps
 from ..app.provenance import available_cores, machine_record
 from ..app.runner import fit_in_folder, resumed_state, write_fitted_run
-from ..config import BEYOND_RECIPE, FitConfig, default_curvature_warmup
+from ..config import BEYOND_RECIPE, FLAT_NAMES, FitConfig, RunOptions
+from ..control import SILENT, RunControl
 from ..defaults import RATE_FINETUNE_STEPS
 from ..errors import CvqpgError
 from ..fitting import FitInterrupted, FitState, estimated_peak_bytes
-from ..initialisation import resolved_init
 from ..metrics import radial_error_spectrum
 from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, HISTORY_FILE, METRICS_FILE, MODEL_FILE, read_record, read_run,
                     scene_from_source, start_run, write_atomic, write_json)
@@ -86,15 +86,16 @@ class Cell:
     scene: BenchScene
     method: str
     config: FitConfig
+    run: RunOptions = RunOptions()  # where it fits: no part of its settings
 
     @property
     def setting(self) -> str:
         """Colour and ratio, e.g. `rgb-20` (the paper's table rows)."""
-        return setting_key(self.config.color, self.config.ratio)
+        return setting_key(self.config.targets.color, self.config.primitives.ratio)
 
     @property
     def name(self) -> str:
-        return f"{self.scene.name}_{self.setting}_{self.method.replace('+', '-plus')}_s{self.config.seed}"
+        return f"{self.scene.name}_{self.setting}_{self.method.replace('+', '-plus')}_s{self.config.optimisation.seed}"
 
 
 @dataclass(frozen=True)
@@ -151,7 +152,7 @@ class BenchPlan:
     @property
     def settings(self) -> tuple[str, ...]:
         """Settings in the paper's order: RGB before grayscale, larger ratio first."""
-        keys = {(COLORS.index(c.config.color), -c.config.ratio, c.setting) for c in self.cells}
+        keys = {(COLORS.index(c.config.targets.color), -c.config.primitives.ratio, c.setting) for c in self.cells}
         return tuple(key for *_, key in sorted(keys))
 
 
@@ -255,20 +256,19 @@ def make_plan(preset: str, folder: str | Path | None = None, overrides: Override
     colors = _choose("colors", overrides.colors, spec.colors, COLORS)
     methods = _choose("methods", overrides.methods, spec.methods, tuple(METHODS))
     ratios = spec.ratios if overrides.ratios is None else tuple(dict.fromkeys(overrides.ratios))
-    seeds = (FitConfig().seed,) if overrides.seeds is None else tuple(dict.fromkeys(overrides.seeds))
+    seeds = (FitConfig().optimisation.seed,) if overrides.seeds is None else tuple(dict.fromkeys(overrides.seeds))
     if overrides.device == "cuda" and not torch.cuda.is_available():
         raise BenchError("--device cuda: no CUDA GPU is visible to PyTorch; use --device cpu")
     width, height = spec.size if overrides.size is None else tuple(overrides.size)
+    run = RunOptions(overrides.device or "cpu", overrides.backend or "auto").validate()
 
     def base(color: str) -> FitConfig:
         steps = spec.steps_for(color) if overrides.steps is None else overrides.steps
-        warmup = default_curvature_warmup(steps) if overrides.curvature_warmup is None else overrides.curvature_warmup
-        config = FitConfig(width=width, height=height, steps=steps, curvature_warmup=warmup).with_recipe(spec.recipe)
-        return config.replace(**{k: v for k, v in (("device", overrides.device), ("backend", overrides.backend))
-                                 if v is not None})
+        return FitConfig.create(spec.recipe, width=width, height=height, steps=steps,
+                                curvature_warmup=overrides.curvature_warmup)
 
     scenes = tuple(available[name] for name in names)
-    cells = tuple(Cell(scene, method, cell_config(base(color), scene, color, ratio, method, seed))
+    cells = tuple(Cell(scene, method, cell_config(base(color), scene, color, ratio, method, seed), run)
                   for scene in scenes for color in colors for ratio in ratios for method in methods
                   for seed in seeds)
     return BenchPlan(preset, default_folder(preset, folder), scenes, methods, seeds, cells)
@@ -286,8 +286,8 @@ def folder_plan(preset: str, folder: str | Path | None = None, overrides: Overri
     plan = make_plan(preset, folder, overrides)
     cells = recorded_cells(plan.folder)
     names = dict.fromkeys([*(scene.name for scene in plan.scenes), *(name for name, _ in cells)])
-    colors = dict.fromkeys([*(cell.config.color for cell in plan.cells), *(color for _, color in cells)])
-    if len(names) == len(plan.scenes) and len(colors) == len({cell.config.color for cell in plan.cells}):
+    colors = dict.fromkeys([*(cell.config.targets.color for cell in plan.cells), *(color for _, color in cells)])
+    if len(names) == len(plan.scenes) and len(colors) == len({cell.config.targets.color for cell in plan.cells}):
         return plan
     return make_plan(preset, folder, dataclasses.replace(overrides, scene_names=tuple(names), colors=tuple(colors)))
 
@@ -315,15 +315,15 @@ def recorded_overrides(preset: str, folder: Path, overrides: Overrides) -> Overr
         overrides,
         scene_names=overrides.scene_names or in_listed_order({name for name, _, _ in runs},
                                                              (scene.name for scene in preset_plan.scenes)),
-        colors=overrides.colors or in_listed_order({config.color for config in configs},
-                                                   (cell.config.color for cell in preset_plan.cells)),
-        ratios=overrides.ratios or in_listed_order({config.ratio for config in configs},
-                                                   (cell.config.ratio for cell in preset_plan.cells)),
-        seeds=overrides.seeds or sorted({config.seed for config in configs}),
-        size=overrides.size or shared((config.width, config.height) for config in configs),
-        steps=overrides.steps or shared(config.steps for config in configs),
+        colors=overrides.colors or in_listed_order({config.targets.color for config in configs},
+                                                   (cell.config.targets.color for cell in preset_plan.cells)),
+        ratios=overrides.ratios or in_listed_order({config.primitives.ratio for config in configs},
+                                                   (cell.config.primitives.ratio for cell in preset_plan.cells)),
+        seeds=overrides.seeds or sorted({config.optimisation.seed for config in configs}),
+        size=overrides.size or shared((config.targets.width, config.targets.height) for config in configs),
+        steps=overrides.steps or shared(config.optimisation.steps for config in configs),
         curvature_warmup=(overrides.curvature_warmup if overrides.curvature_warmup is not None
-                          else shared(config.curvature_warmup for config in configs)))
+                          else shared(config.optimisation.curvature_warmup for config in configs)))
 
 
 def default_folder(preset: str, folder: str | Path | None) -> Path:
@@ -344,14 +344,14 @@ def _recorded_runs(folder: Path) -> list[tuple[str, FitConfig, dict[str, Any]]]:
 def recorded_scenes(folder: Path) -> dict[str, BenchScene]:
     """The file scenes that the cells of a bench folder were fitted on, by name, read from their
     `config.json`: the tables of a recorded folder (`results/`) rebuild without the scene files."""
-    scenes = {name: BenchScene(name, source, recorded.num_planes)
+    scenes = {name: BenchScene(name, source, recorded.targets.num_planes)
               for name, recorded, source in _recorded_runs(folder) if "image" in source}
     return dict(sorted(scenes.items()))
 
 
 def recorded_cells(folder: Path) -> list[tuple[str, str]]:
     """(scene name, colour) of each cell that a bench folder records, in its cells' order."""
-    return [(name, recorded.color) for name, recorded, _ in _recorded_runs(folder)]
+    return [(name, recorded.targets.color) for name, recorded, _ in _recorded_runs(folder)]
 
 
 def cell_status(folder: Path, done_file: str = METRICS_FILE) -> str:
@@ -368,22 +368,11 @@ def cell_status(folder: Path, done_file: str = METRICS_FILE) -> str:
     return STARTED if (folder / CONFIG_FILE).is_file() else MISSING
 
 
-def _comparable(config: FitConfig) -> FitConfig:
-    """Device and backend change the last bits only; a resumed or finished cell may differ in them. A
-    default curvature warm-up is compared as the steps it resolves to, an `auto` initialisation, loss weights
-    and Adan's betas as what they resolve to."""
-    focus_weight, product_weight = config.loss_weights
-    return config.replace(device="cpu", backend="auto", curvature_warmup=config.curvature_warmup_steps,
-                          init=resolved_init(config), focus_weight=focus_weight, product_weight=product_weight,
-                          betas=config.adan_betas)
-
-
 def config_differences(folder: Path, config: FitConfig) -> list[str]:
     """Settings in which the run recorded in `folder` differs from `config`."""
     recorded, _ = read_run(folder)
-    ours, theirs = _comparable(config), _comparable(recorded)
-    return [f"{f.name}={getattr(theirs, f.name)!r} (plan: {getattr(ours, f.name)!r})" for f in fields(FitConfig)
-            if getattr(ours, f.name) != getattr(theirs, f.name)]
+    return [f"{name}={recorded.setting(name)!r} (plan: {config.setting(name)!r})" for name in FLAT_NAMES
+            if recorded.setting(name) != config.setting(name)]
 
 
 def describe_cells(plan: BenchPlan, cells: tuple[Cell, ...], reuse: Sequence[Path] = ()) -> list[str]:
@@ -392,13 +381,13 @@ def describe_cells(plan: BenchPlan, cells: tuple[Cell, ...], reuse: Sequence[Pat
         own = plan.status(plan.cell_dir(cell))
         return "reusable" if own != DONE and reusable_record(plan, cell, reuse) is not None else own
 
-    return [f"{status(c):>11}  {c.name}  N={c.config.primitive_count}  steps={c.config.steps}  "
-            f"{c.config.width}×{c.config.height}" for c in cells]
+    return [f"{status(c):>11}  {c.name}  N={c.config.primitive_count}  steps={c.config.optimisation.steps}  "
+            f"{c.config.targets.width}×{c.config.targets.height}" for c in cells]
 
 
 def peak_bytes(cells: tuple[Cell, ...], jobs: int) -> int:
     """Estimated memory (bytes) of `jobs` of the largest cells fitted at once on their device."""
-    return jobs * max((estimated_peak_bytes(c.config) for c in cells), default=0)
+    return jobs * max((estimated_peak_bytes(c.config, c.run.device) for c in cells), default=0)
 
 
 def check_inputs(plan: BenchPlan, cells: tuple[Cell, ...]) -> None:
@@ -474,34 +463,33 @@ def _resume_state(folder: Path, cell: Cell) -> FitState | None:
     (also where its config.json or checkpoint cannot be used, with a note)."""
     if (folder / CONFIG_FILE).is_file():
         try:
-            state = None if config_differences(folder, cell.config) else resumed_state(folder, cell.config,
-                                                                                         cell.scene.source)
+            state = None if config_differences(folder, cell.config) else resumed_state(
+                folder, cell.config, cell.run, cell.scene.source)
         except CvqpgError as error:
             log.warning(f"{error}; cell {cell.name} restarts from step 0")
         else:
             if state is not None:
                 return state
-    start_run(folder, cell.config, cell.scene.source)
+    start_run(folder, cell.config, cell.scene.source, cell.run)
     return None
 
 
-def run_cell(cell: Cell, folder: Path, stop_requested: Callable[[], bool] | None = None) -> str:
+def run_cell(cell: Cell, folder: Path, control: RunControl = SILENT) -> str:
     """Fit one cell into `folder` (resuming its checkpoint) unless done; returns the cell's new status.
 
     Writes `spectrum.json` from the float reconstructions, then the run folder, whose `metrics.json`
-    comes last. A stop request saves a checkpoint and returns `interrupted`.
+    comes last. A stop request (`control`) saves a checkpoint and returns `interrupted`.
     """
     if (folder / METRICS_FILE).is_file():
         return SKIPPED
-    if stop_requested is not None and stop_requested():
+    if control.should_stop():
         return NOT_STARTED
     config = cell.config
     scene = scene_from_source(cell.scene.source, config)
     state = _resume_state(folder, cell)
     (folder / ERROR_FILE).unlink(missing_ok=True)
     try:
-        result = fit_in_folder(folder, scene, config, state, progress=False, stop_requested=stop_requested,
-                               source=cell.scene.source)
+        result = fit_in_folder(folder, scene, config, cell.run, control, state, source=cell.scene.source)
     except FitInterrupted:
         return INTERRUPTED
     recon = result.reconstructions
@@ -536,7 +524,7 @@ def fitted_model(cell: Cell, fits: Sequence[Path]) -> Path | None:
 
 
 def run_rate_distortion_cell(cell: Cell, folder: Path, options: RateDistortionOptions,
-                             stop_requested: Callable[[], bool] | None = None) -> str:
+                             control: RunControl = SILENT) -> str:
     """A rate–distortion cell: take the fit from `options.fits` (its records copied) or fit it here, then
     write `rd.json` with the R-D points of its model against the scene's targets
     (`ratedistortion.cell_record`)."""
@@ -551,14 +539,14 @@ def run_rate_distortion_cell(cell: Cell, folder: Path, options: RateDistortionOp
             if (model.parent / name).is_file():
                 write_atomic(folder / name, (model.parent / name).read_bytes())
     else:
-        status = run_cell(cell, folder, stop_requested)
+        status = run_cell(cell, folder, control)
         if status not in (DONE, SKIPPED):
             return status
         model = folder / MODEL_FILE
         if not model.is_file():
             raise BenchError(f"{folder} holds a finished fit but no {MODEL_FILE}; give --fits DIR with that "
                              "cell's model, or delete the cell folder to refit it")
-    if stop_requested is not None and stop_requested():
+    if control.should_stop():
         return INTERRUPTED
     scene = scene_from_source(cell.scene.source, cell.config)
     write_json(folder / RD_FILE, cell_record(model, scene, finetune_steps=options.finetune_steps,
@@ -579,8 +567,7 @@ def untried(record: dict[str, Any], fractions: Sequence[float]) -> list[float]:
     return [f for f in fractions if not any(math.isclose(f, tried) for tried in record.get("fractions", []))]
 
 
-def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float],
-                    stop_requested: Callable[[], bool] | None = None) -> str:
+def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float], control: RunControl = SILENT) -> str:
     """An encode grid's cell: `cvqpg encode --bpp` of the cell's scene (`ratedistortion.encode_point`, the default
     recipe, `encode_steps` in the place of the cell's steps) at `fractions` of the rate its rate grid cell's
     budgets are fractions of, into `encode.json`. Each point is a whole fit; the finished ones are kept in
@@ -605,19 +592,18 @@ def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float],
     if finished_file.is_file() and not partial.is_file() and not untried(record, fractions):
         return SKIPPED
     record["fractions"] = sorted({*record["fractions"], *fractions}, reverse=True)
-    fit_steps, finetune_steps = encode_steps(cell.config.steps)
-    config = cell.config.with_recipe(BEYOND_RECIPE).replace(
-        steps=fit_steps, curvature_warmup=default_curvature_warmup(fit_steps)).validate()
+    fit_steps, finetune_steps = encode_steps(cell.config.optimisation.steps)
+    config = cell.config.with_recipe(BEYOND_RECIPE).with_steps(fit_steps).validate()
     scene = scene_from_source(cell.scene.source, config)
     for fraction in fractions:
         bpp = fraction * base
         if not lacks(fraction):
             continue
-        if stop_requested is not None and stop_requested():
+        if control.should_stop():
             return INTERRUPTED
         try:
             point = encode_point(scene, config, cell.scene.source, bpp, folder / encode_work_folder(bpp),
-                                 finetune_steps, stop_requested=stop_requested)
+                                 finetune_steps, cell.run, control)
         except FitInterrupted:
             return INTERRUPTED
         if point is None:
@@ -625,21 +611,21 @@ def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float],
         else:
             record["points"].append(dataclasses.asdict(point))
         write_json(partial, record)
-    write_json(folder / ENCODE_FILE, {**record, "run": machine_record(torch.device(config.device))})
+    write_json(folder / ENCODE_FILE, {**record, "run": machine_record(torch.device(cell.run.device))})
     partial.unlink(missing_ok=True)
     return DONE
 
 
-def _attempt(cell: Cell, folder: Path, stop_requested: Callable[[], bool] | None,
+def _attempt(cell: Cell, folder: Path, control: RunControl,
              rate_distortion: RateDistortionOptions | None = None) -> tuple[str, str | None]:
     """`run_cell`, or `run_rate_distortion_cell` where `rate_distortion` is given, with a failure turned
     into a status, its traceback kept in the cell's `error.log`."""
     try:
         if rate_distortion is not None and rate_distortion.encode_fractions:
-            return run_encode_cell(cell, folder, rate_distortion.encode_fractions, stop_requested), None
+            return run_encode_cell(cell, folder, rate_distortion.encode_fractions, control), None
         if rate_distortion is not None:
-            return run_rate_distortion_cell(cell, folder, rate_distortion, stop_requested), None
-        return run_cell(cell, folder, stop_requested), None
+            return run_rate_distortion_cell(cell, folder, rate_distortion, control), None
+        return run_cell(cell, folder, control), None
     except Exception as error:  # one broken cell must not cost the rest of the grid; it is reported
         folder.mkdir(parents=True, exist_ok=True)
         (folder / ERROR_FILE).write_text(traceback.format_exc())
@@ -680,11 +666,11 @@ def _init_worker(threads: int, stop_event: Any) -> None:
 
 def _attempt_in_worker(cell: Cell, folder: Path, rate_distortion: RateDistortionOptions | None
                        ) -> tuple[str, str | None]:
-    return _attempt(cell, folder, _worker_stop.is_set, rate_distortion)
+    return _attempt(cell, folder, RunControl(progress=False, stop_requested=_worker_stop.is_set), rate_distortion)
 
 
-def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int = 1, progress: bool = True,
-             stop_requested: Callable[[], bool] | None = None, reuse: Sequence[Path] = (),
+def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int = 1,
+             control: RunControl = RunControl(), reuse: Sequence[Path] = (),
              rate_distortion: RateDistortionOptions = RateDistortionOptions(), threads: int | None = None
              ) -> BenchOutcome:
     """Fit every cell of `cells` (default: the whole plan) that is not done, `jobs` at a time; cells
@@ -693,8 +679,8 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
     kept it.
 
     With jobs > 1 a spawn-context process pool runs the cells. Each fit runs on `threads` threads,
-    by default its share of the cores (cores // jobs, at least 1). When `stop_requested()` turns true,
-    running fits save a checkpoint and stop, and no new cell starts.
+    by default its share of the cores (cores // jobs, at least 1). `control` shows the grid's progress bar (the
+    fits show none) and asks to stop: running fits then save a checkpoint and stop, and no new cell starts.
     """
     cells = plan.cells if cells is None else cells
     if jobs < 1:
@@ -714,12 +700,12 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
             outcome.statuses[cell.name] = SKIPPED
         else:
             todo.append(cell)
-    stop = stop_requested or (lambda: False)
+    stop = control.should_stop
     preset = PRESETS[plan.preset]
     rd_options = (dataclasses.replace(rate_distortion, budget_fractions=preset.budget_fractions,
                                       encode_fractions=preset.encode_fractions)
                   if preset.rate_distortion else None)
-    with tqdm(total=len(todo), desc=f"bench {plan.preset}", unit="cell", disable=not progress,
+    with tqdm(total=len(todo), desc=f"bench {plan.preset}", unit="cell", disable=not control.progress,
               dynamic_ncols=True) as bar:
         def record(cell: Cell, status: str, error: str | None) -> None:
             outcome.statuses[cell.name] = status
@@ -731,7 +717,8 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
         if jobs == 1:
             with limited_threads(threads):
                 for cell in todo:
-                    record(cell, *_attempt(cell, plan.cell_dir(cell), stop, rd_options))
+                    record(cell, *_attempt(cell, plan.cell_dir(cell), RunControl(progress=False,
+                                                                                 stop_requested=stop), rd_options))
         else:
             _run_pool(plan, todo, jobs, threads, stop, record, rd_options)
     return outcome

@@ -110,10 +110,9 @@ def qpf_fields(canvas_px: int = QPF_CANVAS_PX) -> tuple[np.ndarray, dict[str, np
                     curvature=torch.atanh(torch.tensor([QPF_CURVATURE_SHARE])))
     phases, amplitude = {}, None
     for qpf in ("standard", "mahalanobis"):
-        config = FitConfig(width=canvas_px, height=canvas_px, color="gray", primitive="cvqpg", qpf=qpf,
-                           backend="torch")
+        config = FitConfig.create(width=canvas_px, height=canvas_px, color="gray", primitive="cvqpg", qpf=qpf)
         with torch.no_grad():
-            field = render_hologram(raw, config)[0].to(torch.complex128).numpy()
+            field = render_hologram(raw, config, "torch")[0].to(torch.complex128).numpy()
         amplitude = np.abs(field)
         inside = amplitude >= amplitude.max() * math.exp(-QPF_SHOWN_SIGMAS**2 / 2)
         phases[qpf] = np.where(inside, np.mod(np.angle(field), 2 * math.pi), np.nan)

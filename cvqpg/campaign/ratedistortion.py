@@ -21,8 +21,8 @@ import torch
 from torch import Tensor
 
 from ..codec import BitDepths, decode, encode
-from ..config import FitConfig
-from ..control import RunControl
+from ..config import FitConfig, RunOptions
+from ..control import SILENT, RunControl
 from ..defaults import ENCODE_FINETUNE_STEPS
 from ..errors import ConfigError
 from ..finetune import finetune
@@ -82,7 +82,8 @@ def _score(recon: Tensor, targets: Tensor) -> tuple[float, float]:
 
 def _point(codec: str, setting: str, size: int, config: FitConfig, recon: Tensor, targets: Tensor,
            encode_s: float, decode_s: float, primitives: int | None = None) -> Point:
-    return Point(codec, setting, size, 8 * size / (config.width * config.height), *_score(recon, targets),
+    pixels = config.targets.width * config.targets.height
+    return Point(codec, setting, size, 8 * size / pixels, *_score(recon, targets),
                  encode_s, decode_s, primitives)
 
 
@@ -170,12 +171,12 @@ def budget_points(primitives: Primitives, config: FitConfig, scene: Scene, fit_p
 
 
 def encode_point(scene: Scene, config: FitConfig, source: dict[str, Any], bpp: float, work: Path,
-                 finetune_steps: int = ENCODE_FINETUNE_STEPS, stop_requested: Callable[[], bool] | None = None
-                 ) -> Point | None:
+                 finetune_steps: int = ENCODE_FINETUNE_STEPS, run: RunOptions = RunOptions(),
+                 control: RunControl = SILENT) -> Point | None:
     """The file `cvqpg encode --bpp` writes of `scene` (its inputs `source`) with `config`'s settings: a fit at the
     budget's primitive count in the folder `work` (`app.encoding.encode_in_folder`), rate control and
     `finetune_steps` of fine-tuning; None where the budget is below the smallest file of a model of the fit's
-    shape. The fit, or its rate control, raises `fitting.FitInterrupted` once `stop_requested()` turns true, with
+    shape. The fit (on `run`), or its rate control, raises `fitting.FitInterrupted` once `control` asks to stop, with
     a checkpoint saved, from which the same call resumes; `work` is removed once the point is made. Its encode time is
     the fit's, over every segment, and the rate control's (`app.encoding.Encoding.seconds`), wall and CPU."""
     try:
@@ -184,9 +185,8 @@ def encode_point(scene: Scene, config: FitConfig, source: dict[str, Any], bpp: f
         return None
     fit_config = encode_config(config, budget)
     if not (work / CONFIG_FILE).is_file():
-        start_encode(work, fit_config, source, budget, finetune_steps)
-    encoded = encode_in_folder(work, scene, fit_config, budget, finetune_steps,
-                               RunControl(progress=False, stop_requested=stop_requested))
+        start_encode(work, fit_config, source, budget, finetune_steps, run)
+    encoded = encode_in_folder(work, scene, fit_config, budget, finetune_steps, run, control.quiet())
     chosen = encoded.rate.choice
     point = _decoded_point(ENCODER, f"--bpp {bpp:.3f}: {fit_config.primitive_count} fitted, {_describe(chosen.bits)}",
                            chosen.data, config, scene.targets, encoded.seconds)
@@ -313,7 +313,7 @@ def cell_record(model_file: Path, scene: Scene, ladder: Sequence[BitDepths] = CE
             "budget_fractions": list(budget_fractions), "budget_finetune_steps": budget_finetune_steps,
             "points": [asdict(p) for p in points],
             "seconds": time.perf_counter() - started, "cpu_seconds": time.process_time() - cpu_started,
-            "run": machine_record(torch.device(config.device))}
+            "run": machine_record(primitives.position_px.device)}
 
 
 def pareto(points: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:

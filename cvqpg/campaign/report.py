@@ -164,7 +164,7 @@ def _difference(a: Metrics, b: Metrics) -> Metrics:
 
 def paper_setup(plan: BenchPlan, setting: str) -> bool:
     """Whether every cell of the setting is fitted the way the paper's numbers were."""
-    return all(getattr(c.config, k) == v for c in plan.cells if c.setting == setting for k, v in PAPER_SETUP.items())
+    return all(c.config.setting(k) == v for c in plan.cells if c.setting == setting for k, v in PAPER_SETUP.items())
 
 
 def paper_scene_mean(scenes: list[str], setting: str, method: str) -> Metrics | None:
@@ -354,7 +354,7 @@ def seed_tables(plan: BenchPlan, results: list[CellResult]) -> list[Table]:
     header = ["Setting", "Method", *(f"seed {seed}" for seed in plan.seeds), "sd"]
     table = Table("Seed spread: PSNR mean over scenes per seed", header)
     for setting in plan.settings:
-        per_seed = {seed: [r for r in results if r.cell.config.seed == seed] for seed in plan.seeds}
+        per_seed = {seed: [r for r in results if r.cell.config.optimisation.seed == seed] for seed in plan.seeds}
         rows = {METHODS[m].label: [over_scenes(v, list(v)) for v in
                                    (scene_values(per_seed[seed], setting, m) for seed in plan.seeds)]
                 for m in plan.methods}
@@ -379,8 +379,8 @@ def cells_table(plan: BenchPlan, results: list[CellResult]) -> tuple[Table, list
     for r in results:
         m = r.metrics or {}
         row = {"cell": r.cell.name, "scene": r.cell.scene.name, "setting": r.cell.setting, "method": r.cell.method,
-               "seed": r.cell.config.seed, "status": r.status, "n": r.cell.config.primitive_count,
-               "steps": m.get("steps", r.cell.config.steps), "updates": m.get("updates", ""),
+               "seed": r.cell.config.optimisation.seed, "status": r.status, "n": r.cell.config.primitive_count,
+               "steps": m.get("steps", r.cell.config.optimisation.steps), "updates": m.get("updates", ""),
                "seconds": "" if "seconds" not in m else round(m["seconds"], 1), "device": fitted_on(r),
                **{k: "" if not m else NA if m["mean"][k] is None else m["mean"][k] for k in TABLE_METRICS}}
         rows.append(row)
@@ -651,7 +651,7 @@ def frequency_curves(plan: BenchPlan, results: list[CellResult], reference: str 
     `spectrum.json` (one colour channel's spectrum when `channel` is given)."""
     curves = []
     for setting in plan.settings:
-        spectra = {(r.cell.scene.name, r.cell.config.seed, r.cell.method): r.spectrum for r in results
+        spectra = {(r.cell.scene.name, r.cell.config.optimisation.seed, r.cell.method): r.spectrum for r in results
                    if r.spectrum is not None and r.cell.setting == setting}
         if channel is not None:
             spectra = {key: {**record, "power": record["channel_power"][channel]} for key, record in spectra.items()
@@ -732,7 +732,7 @@ def draw_figures(plan: BenchPlan, results: list[CellResult], curves: list[Freque
     folder.mkdir(parents=True, exist_ok=True)
     figures.frequency_figure(_plotted(curves), plan.folder / "frequency.png")
     figures.qpf_figure(folder / "qpf.png")
-    done = {(r.cell.scene.name, r.cell.setting, r.cell.method, r.cell.config.seed): r for r in results
+    done = {(r.cell.scene.name, r.cell.setting, r.cell.method, r.cell.config.optimisation.seed): r for r in results
             if r.status == DONE}
     drawn = [Path("frequency.png"), Path("figures/qpf.png")]
     if channel_curves:
@@ -751,7 +751,8 @@ def draw_figures(plan: BenchPlan, results: list[CellResult], curves: list[Freque
             name = Path("figures") / f"compare_{scene.name}_{setting}.png"
             figures.comparison_figure({label: plan.cell_dir(r.cell) for label, r in runs.items()},
                                       config.plane_distances, f"{scene.name}, {setting_label(setting)}, "
-                                      f"N = {config.primitive_count:,}, {config.steps} steps", plan.folder / name)
+                                      f"N = {config.primitive_count:,}, {config.optimisation.steps} steps",
+                                      plan.folder / name)
             drawn.append(name)
     return drawn
 
@@ -783,8 +784,8 @@ def overview_lines(plan: BenchPlan, results: list[CellResult]) -> list[str]:
     return [f"cells: {counts.get(DONE, 0)} of {len(results)} done"
             + "".join(f", {n} {status}" for status, n in sorted(counts.items()) if status != DONE),
             f"scenes: {', '.join(s.name for s in plan.scenes)}; seeds: {', '.join(map(str, plan.seeds))}",
-            (f"fits: {config.width}×{config.height} px, {config.steps} steps (warm-up {config.curvature_warmup_steps}), "
-             f"device {config.device}"),
+            (f"fits: {config.targets.width}×{config.targets.height} px, {config.optimisation.steps} steps "
+             f"(warm-up {config.optimisation.curvature_warmup}), device {plan.cells[0].run.device}"),
             devices_line(results),
             ("metrics that this machine cannot compute read n/a; the means of a setting cover the scenes every "
              "method has finished (see the scenes column, the notes and the cell list)")]

@@ -110,13 +110,14 @@ class GridResults:
 def campaign_plan(grid: Grid, root: Path) -> BenchPlan:
     """The grid's cells at its preset's recipe and steps (seed 100), in `root/<preset>`."""
     preset = PRESETS[grid.preset]
-    base = FitConfig().with_recipe(preset.recipe)
+    base = FitConfig.create(preset.recipe)
+    seed = base.optimisation.seed
     scenes = tuple(BenchScene(name, {"scene": name}, FOLDER_SCENE_PLANES) for name in grid.scenes)
-    cells = tuple(Cell(scene, method, cell_config(base.replace(steps=preset.steps_for(block.color)), scene,
-                                                  block.color, ratio, method, base.seed))
+    cells = tuple(Cell(scene, method, cell_config(base.with_steps(preset.steps_for(block.color)), scene,
+                                                  block.color, ratio, method, seed))
                   for scene in scenes for block in grid.blocks for ratio in block.ratios for method in block.methods)
     methods = tuple(dict.fromkeys(m for block in grid.blocks for m in block.methods))
-    return BenchPlan(grid.preset, root / grid.preset, scenes, methods, (base.seed,), cells)
+    return BenchPlan(grid.preset, root / grid.preset, scenes, methods, (seed,), cells)
 
 
 def load_grid(grid: Grid, root: Path) -> GridResults:
@@ -573,7 +574,7 @@ def timed_table(timed: GridResults, setting: str) -> Table:
             continue
         ours, theirs = r.metrics["mean"]["psnr"], supplement[r.cell.scene.name][setting]["cvqpg"]["psnr"]
         minutes = (r.metrics.get("run") or {}).get("loop_seconds")
-        table.rows.append([r.cell.scene.name, str(r.cell.config.steps),
+        table.rows.append([r.cell.scene.name, str(r.cell.config.optimisation.steps),
                            "–" if minutes is None else f"{minutes / 60:.1f}",
                            f"{ours:.3f}", f"{theirs:.3f}", f"{ours - theirs:+.3f}"])
     return table
@@ -598,7 +599,7 @@ def seconds_curves(paper: GridResults, timed: GridResults, setting: str) -> dict
         path = None if cell is None else grid.plan.cell_dir(cell) / HISTORY_FILE
         if path is not None and path.is_file():
             history = read_history(path)
-            curves[label.format(steps=f"{cell.config.steps:,}")] = (history["seconds"], history["psnr"])
+            curves[label.format(steps=f"{cell.config.optimisation.steps:,}")] = (history["seconds"], history["psnr"])
     return curves
 
 

@@ -24,9 +24,9 @@ class Grid:
 
     @classmethod
     def for_config(cls, config: FitConfig) -> "Grid":
-        return cls(config.height, config.width,
-                   padded_size(config.height, config.guard_band_px, config.pad_multiple_px),
-                   padded_size(config.width, config.guard_band_px, config.pad_multiple_px))
+        return cls(config.targets.height, config.targets.width,
+                   padded_size(config.targets.height, config.optics.guard_band_px, config.optics.pad_multiple_px),
+                   padded_size(config.targets.width, config.optics.guard_band_px, config.optics.pad_multiple_px))
 
     @property
     def top(self) -> int:
