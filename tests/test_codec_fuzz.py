@@ -21,14 +21,15 @@ from cvqpg.config import FitConfig
 from cvqpg.errors import ModelFileError
 from cvqpg.primitives import activate, init_gaussians
 
-CONFIGS = (FitConfig(width=32, height=24, num_gaussians=12, color="gray", primitive="flat", num_planes=1),
-           FitConfig(width=32, height=24, num_gaussians=16),
-           FitConfig(width=32, height=24, num_gaussians=10, curvature="per-channel"),
-           FitConfig(width=64, height=48, num_gaussians=300))  # enough primitives for every coding of the coder
+CONFIGS = (FitConfig.create(width=32, height=24, num_gaussians=12, color="gray", primitive="flat", num_planes=1),
+           FitConfig.create(width=32, height=24, num_gaussians=16),
+           FitConfig.create(width=32, height=24, num_gaussians=10, curvature="per-channel"),
+           FitConfig.create(width=64, height=48, num_gaussians=300))  # enough primitives for every coding of the coder
 
 
 def small_file(config: FitConfig, seed: int) -> bytes:
-    raw = init_gaussians(config.primitive_count, config.channels, config.width, config.height, seed)
+    raw = init_gaussians(config.primitive_count, config.channels, config.targets.width, config.targets.height,
+                         seed)
     generator = torch.Generator().manual_seed(seed)
     raw.amplitude.uniform_(-1, 1, generator=generator)
     raw.curvature.uniform_(-2, 2, generator=generator)
