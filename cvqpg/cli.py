@@ -35,6 +35,7 @@ if TYPE_CHECKING:
     from PIL import Image
 
     from .fitting import FitState
+    from .search import CompressionSettings
     from .targets import Scene
     from .view import ViewRecord
 
@@ -571,38 +572,43 @@ class FitPlan:
     scene: Scene
     state: FitState | None = None
     depth: Image.Image | None = None  # an estimated depth map, saved in the run once `work` exists
+    role: str = "`out`"  # how messages name `final`
 
 
-def check_fit_destination(final: Path, overwrite: bool) -> None:
-    """`--out` may be a new or empty folder, or a run that `--overwrite` replaces; never a file or a folder
-    of other files."""
-    from .app.outputs import check_new_folder, is_run_folder
-    check_new_folder(final)
-    if is_run_folder(final):
-        if not overwrite:
-            raise UsageError(f"{final} already holds a run; choose another --out, pass --overwrite to replace it "
-                             f"once the new fit succeeds, or --resume {final}")
-    elif final.is_dir() and any(final.iterdir()):
-        raise UsageError(f"--out {final} holds other files; give a new or empty folder")
+def check_fit_destination(final: Path, overwrite: bool, role: str = "`out`") -> Path:
+    """`--out` may be a new or empty folder, or a run that `--overwrite` replaces; never a file, a link or a
+    folder of other files (`app.outputs`' rule). `role` names the place in messages."""
+    from .app.outputs import RUN, check_output, is_run_folder
+    if is_run_folder(final) and not final.is_symlink() and not overwrite:
+        raise UsageError(f"{final} already holds a run; choose another --out, pass --overwrite to replace it "
+                         f"once the new fit succeeds, or --resume {final}")
+    return check_output(final, RUN, overwrite=overwrite, role=role, make_parents=True)
 
 
 def _resume_plan(args: argparse.Namespace) -> FitPlan:
+    from .app.encoding import BUDGET_FILE
+    from .app.outputs import is_run_folder
     from .app.runner import resumed_state
     from .runs import CONFIG_FILE, read_run, read_run_options, scene_from_source
     work = Path(args.resume)
     if not (work / CONFIG_FILE).is_file():
         raise UsageError(f"--resume {work}: not a run folder (no {CONFIG_FILE})")
+    if (work / BUDGET_FILE).is_file():
+        raise UsageError(f"--resume {work} is an encode's folder; continue it with cvqpg encode --resume {work}")
     config, source = read_run(work)
     run = read_run_options(work)
     check_device(run.device)
     final = work.with_name(work.name[:-len(PARTIAL_SUFFIX)]) if work.name.endswith(PARTIAL_SUFFIX) else work
-    if final != work and (final / CONFIG_FILE).exists() and not args.overwrite:
-        raise UsageError(f"{final} holds a run that this fit replaces when it finishes; pass --overwrite to "
-                         "confirm")
+    role = f"--resume {work}: its run's folder"
+    if final != work:
+        if is_run_folder(final) and not args.overwrite:
+            raise UsageError(f"{final} holds a run that this fit replaces when it finishes; pass --overwrite to "
+                             "confirm")
+        check_fit_destination(final, args.overwrite, role)
     check_memory(config, run.device, remedy=f"the run's {CONFIG_FILE} asks for it: resume it where more memory is "
                  "free")
     scene = scene_from_source(source, config)
-    return FitPlan(work, final, config, run, source, scene, resumed_state(work, config, run))
+    return FitPlan(work, final, config, run, source, scene, resumed_state(work, config, run), role=role)
 
 
 def _new_plan(args: argparse.Namespace) -> FitPlan:
@@ -617,8 +623,7 @@ def _new_plan(args: argparse.Namespace) -> FitPlan:
     config, source = _config_and_source(args)
     run = _run_options(args)
     check_device(run.device)
-    final = Path(args.out) if args.out else _default_out(source, config)
-    check_fit_destination(final, args.overwrite)
+    final = check_fit_destination(Path(args.out) if args.out else _default_out(source, config), args.overwrite)
     work = final.with_name(final.name + PARTIAL_SUFFIX)
     if work.exists():
         raise UsageError(f"{work} holds an interrupted fit; continue it with cvqpg fit --resume {work}, or delete it")
@@ -673,6 +678,7 @@ def _resumable(work: Path, command: str, body: Callable[[Callable[[], bool]], No
 
 def _fit(plan: FitPlan, args: argparse.Namespace) -> int:
     """Fit in `plan.work` (`_resumable`) and put the run at `plan.final`."""
+    from .app.outputs import claimed
     from .app.runner import fit_in_folder, write_fitted_run
     from .files import replace_folder
     from .runs import start_run
@@ -689,9 +695,16 @@ def _fit(plan: FitPlan, args: argparse.Namespace) -> int:
                                checkpoint_every_seconds=None if every == 0 else CHECKPOINT_SECONDS)
         write_fitted_run(plan.work, result, plan.scene, plan.source)
 
-    code = _resumable(plan.work, "fit", body)
-    if not code and plan.final != plan.work:
-        replace_folder(plan.work, plan.final)
+    with claimed(plan.final, plan.role):
+        if plan.final != plan.work:
+            check_fit_destination(plan.final, args.overwrite, plan.role)
+        code = _resumable(plan.work, "fit", body)
+        if not code and plan.final != plan.work:
+            try:  # the place is checked again: anything of the user's that appeared there meanwhile stays
+                check_fit_destination(plan.final, args.overwrite, plan.role)
+                replace_folder(plan.work, plan.final)
+            except CvqpgError as error:
+                raise UsageError(f"{error}; the finished run is kept in {plan.work}") from None
     return code
 
 
@@ -744,18 +757,16 @@ def run_and_model(target: Path) -> tuple[Path, Path | None]:
 
 
 def run_export(args: argparse.Namespace) -> int:
-    from .app.outputs import check_output_folder
-    from .files import staged_folder
+    from .app.outputs import EXPORT, staged_output
     from .runs import EXPORT_FOLDER, MODEL_FILE, export_run, read_run
     check_device(args.device)
     folder, model = run_and_model(Path(args.run_dir))
     if args.aperture < 0:
         raise UsageError(f"--aperture {args.aperture}: give a radius ≥ 0 (a fraction of Nyquist; 0: no filter)")
     out = Path(args.out) if args.out else folder / (EXPORT_FOLDER if model is None else f"{EXPORT_FOLDER}-{model.stem}")
-    check_output_folder(out, [folder, model or folder / MODEL_FILE], args.overwrite)
     check_memory(read_run(folder)[0], args.device, "export", "give a smaller --slm",
                  size=tuple(args.slm) if args.slm else None)
-    with staged_folder(out, args.overwrite) as staged:
+    with staged_output(out, EXPORT, [folder, model or folder / MODEL_FILE], args.overwrite) as staged:
         record = export_run(folder, args.encoding, args.levels, tuple(args.slm) if args.slm else None,
                             args.aperture or None, staged, model, args.device)
     print(f"{out}: {len(record['files'])} files; mean PSNR against the targets:")
@@ -766,7 +777,7 @@ def run_export(args: argparse.Namespace) -> int:
 
 
 def run_info(args: argparse.Namespace) -> int:
-    from .app.outputs import check_output_file
+    from .app.outputs import MODEL, output
     from .codec import IMPORTANCE_VERSION, ROTATION_DEPTH_VERSION
     from .runs import HALF_MODEL_FILE, MODEL_FILE, half_precision_model
     from .storage import model_info
@@ -775,8 +786,8 @@ def run_info(args: argparse.Namespace) -> int:
         if target.is_file():
             raise UsageError(f"--half stores a float16 copy beside a run's model: give the run folder, not {target}")
         folder = finished_run(target)
-        check_output_file(folder / HALF_MODEL_FILE, [folder / MODEL_FILE], args.overwrite)
-        info = half_precision_model(folder)
+        with output(folder / HALF_MODEL_FILE, MODEL, [folder / MODEL_FILE], args.overwrite):
+            info = half_precision_model(folder)
     else:
         info = model_info(finished_run(target) / MODEL_FILE if target.is_dir() else target)
     if args.json:
@@ -806,8 +817,7 @@ def run_info(args: argparse.Namespace) -> int:
 
 
 def run_render(args: argparse.Namespace) -> int:
-    from .app.outputs import check_output_folder
-    from .files import staged_folder
+    from .app.outputs import RENDER, staged_output
     from .runs import RENDER_FOLDER, read_run, render_model
     from .storage import load_model
     check_device(args.device)
@@ -820,12 +830,11 @@ def run_render(args: argparse.Namespace) -> int:
                                            else target.with_name(target.stem + "-render"))
     if args.distance is not None:
         check_distances(args.distance, "`distance`", " (e.g. 0.001 for 1 mm)")
-    check_output_folder(out, [target], args.overwrite)
     config = read_run(target)[0] if target.is_dir() else load_model(target)[1]
     check_memory(config, args.device, "render", "give a smaller --size or fewer --distance values",
                  size=tuple(args.size) if args.size else None,
                  planes=None if args.distance is None else len(args.distance))
-    with staged_folder(out, args.overwrite) as staged:
+    with staged_output(out, RENDER, [target], args.overwrite) as staged:
         record = render_model(target, staged, tuple(args.size) if args.size else None, args.distance, args.device)
     width, height = record["hologram_px"]
     print(f"{out}: {width}×{height} px at {record['pixel_pitch_m'] * 1e6:.3f} µm, planes at "
@@ -839,7 +848,7 @@ def _print_view(record: ViewRecord) -> None:
 
 
 def run_view(args: argparse.Namespace) -> int:
-    from .app.outputs import check_output_file
+    from .app.outputs import PAGE, output
     from .runs import read_run
     from .view import SWEEP_BATCH, check_sweep, default_page, write_view
     if len(args.run_dirs) > 2:
@@ -852,8 +861,8 @@ def run_view(args: argparse.Namespace) -> int:
     for folder in folders:
         check_memory(read_run(folder)[0], "cpu", "view", "give a smaller COUNT to --distances",
                      planes=min(SWEEP_BATCH, int(count)))
-    out = check_output_file(args.out or default_page(folders), folders, args.overwrite)
-    _print_view(write_view(folders, out, (start, stop, int(count)), progress=not args.quiet))
+    with output(args.out or default_page(folders), PAGE, folders, args.overwrite) as out:
+        _print_view(write_view(folders, out, (start, stop, int(count)), progress=not args.quiet))
     return 0
 
 
@@ -878,19 +887,25 @@ def run_compile(_args: argparse.Namespace) -> int:
 
 
 def run_compress(args: argparse.Namespace) -> int:
-    from .app.compression import compress_model
-    from .app.outputs import check_output_file
-    from .control import RunControl
+    from .app.outputs import CVQ, output
     from .runs import model_path
-    from .search import ASSUMED_FIT_PSNR_DB, CompressionSettings
+    from .search import CompressionSettings
     from .storage import is_compressed
     settings = CompressionSettings(bits=BitDepths.parse(args.bits) if args.bits else None, max_drop=args.max_drop,
                                    bpp=args.bpp, max_bytes=args.max_bytes, finetune_steps=args.finetune,
                                    prune_fraction=args.prune)
     model = model_path(args.target)
-    out = args.out
-    if model.is_file() and not is_compressed(model):  # otherwise compress_model says what the target is
-        out = check_output_file(args.out or model.with_suffix(SUFFIX), [model], args.overwrite)
+    if not model.is_file() or is_compressed(model):  # compress_model says what the target is
+        return _compress(args, settings, args.out)
+    with output(args.out or model.with_suffix(SUFFIX), CVQ, [model], args.overwrite) as out:
+        return _compress(args, settings, out)
+
+
+def _compress(args: argparse.Namespace, settings: CompressionSettings, out: Path | None) -> int:
+    """`cvqpg compress` once its output is claimed."""
+    from .app.compression import compress_model
+    from .control import RunControl
+    from .search import ASSUMED_FIT_PSNR_DB
     r = compress_model(Path(args.target), settings, out, RunControl())
     if settings.budgeted:
         print(f"{r['file']}: {_rate_summary(r)}")
@@ -928,12 +943,12 @@ def _source_files(source: dict) -> list[Path]:
 
 def run_encode(args: argparse.Namespace) -> int:
     from .app.allocator import keep_freed_memory
-    from .app.outputs import check_output_file
     from .app.encoding import encode_budget, encode_config, encode_in_folder, encoding_record, read_encode, start_encode
+    from .app.outputs import CVQ, check_output, output
     from .control import RunControl
     from .runs import read_run_options, scene_from_source, write_atomic
     from .search import CompressionSettings
-    depth = None
+    depth, role = None, "`out`"
     if args.resume:
         work = Path(args.resume)
         config, source, budget, finetune_steps = read_encode(work)
@@ -941,8 +956,9 @@ def run_encode(args: argparse.Namespace) -> int:
             raise UsageError(f"--resume {work}: an encode's folder is named after its file, FILE{PARTIAL_SUFFIX}")
         run = read_run_options(work)
         check_device(run.device)
-        out = check_output_file(work.with_name(work.name[:-len(PARTIAL_SUFFIX)]), _source_files(source),
-                                args.overwrite)
+        role = f"--resume {work}: its file"
+        out = check_output(work.with_name(work.name[:-len(PARTIAL_SUFFIX)]), CVQ, _source_files(source),
+                           args.overwrite, role)
         scene = scene_from_source(source, config)
     else:
         if args.bpp is None and args.max_bytes is None:
@@ -954,7 +970,7 @@ def run_encode(args: argparse.Namespace) -> int:
         check_device(run.device)
         settings = CompressionSettings(bpp=args.bpp, max_bytes=args.max_bytes, finetune_steps=args.finetune)
         budget, finetune_steps = encode_budget(config, settings), settings.finetune_steps
-        out = check_output_file(args.out, _source_files(source), args.overwrite)
+        out = check_output(args.out, CVQ, _source_files(source), args.overwrite)
         work = out.with_name(out.name + PARTIAL_SUFFIX)
         if work.exists():
             raise UsageError(f"{work} holds an interrupted encode; continue it with cvqpg encode --resume {work}, "
@@ -978,24 +994,26 @@ def run_encode(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"{out}: {_rate_summary(encoding_record(encoded, out, budget))}")
 
-    code = _resumable(work, "encode", body)
+    with output(out, CVQ, _source_files(source), args.overwrite, role):
+        code = _resumable(work, "encode", body)
     if not code:
         shutil.rmtree(work)
     return code
 
 
 def run_decompress(args: argparse.Namespace) -> int:
-    from .app.outputs import check_output_file
     from .app.compression import decompress_file
+    from .app.outputs import MODEL, output
     source = Path(args.file)
     out = Path(args.out) if args.out else source.with_name(f"{source.stem}.decoded.safetensors")
-    print(f"{decompress_file(source, check_output_file(out, [source], args.overwrite))}")
+    with output(out, MODEL, [source], args.overwrite) as out:
+        print(f"{decompress_file(source, out)}")
     return 0
 
 
 def run_bench(args: argparse.Namespace) -> int:
     from .app.allocator import keep_freed_memory
-    from .app.outputs import check_new_folder, is_run_folder
+    from .app.outputs import BENCH, check_continued
     from .campaign.bench import (CELLS_DIR, Overrides, RateDistortionOptions, describe_cells, folder_plan, make_plan,
                                  parse_shard, peak_bytes, run_plan)
     from .campaign.report import write_summary
@@ -1014,12 +1032,10 @@ def run_bench(args: argparse.Namespace) -> int:
         for folder in folders:
             if not (Path(folder) / CELLS_DIR).is_dir():
                 raise UsageError(f"{option} {folder}: not a bench folder (no {CELLS_DIR}/ in it)")
-    if is_run_folder(plan.folder):
-        raise UsageError(f"--out {plan.folder} is a run folder; give a bench folder")
     if args.summary_only and not (plan.folder / CELLS_DIR).is_dir():
         raise UsageError(f"--summary-only: {plan.folder} holds no {CELLS_DIR}/ to summarise; fit the grid first, "
                          "or give its --out")
-    check_new_folder(plan.folder)
+    check_continued(plan.folder, BENCH)
     cells = plan.shard(*parse_shard(args.shard)) if args.shard else plan.cells
     if args.dry_run:
         listing = describe_cells(plan, cells, [Path(d) for d in args.reuse])
@@ -1048,15 +1064,15 @@ def run_bench(args: argparse.Namespace) -> int:
 
 
 def run_results(args: argparse.Namespace) -> int:
-    from .app.outputs import check_output_file
+    from .app.outputs import DOCUMENT, output
     from .campaign.results import check_recorded, document, write_figures
     from .runs import write_atomic
     if not Path(args.root).is_dir():
         raise UsageError(f"--root {args.root} is not a folder of recorded bench folders (e.g. results)")
     check_recorded(Path(args.root))
-    out = check_output_file(args.out, [], args.overwrite)
-    figures = write_figures(Path(args.root), out.parent, args.overwrite)
-    write_atomic(out, document(Path(args.root)))
+    with output(args.out, DOCUMENT, [], args.overwrite) as out:
+        figures = write_figures(Path(args.root), out.parent, args.overwrite)
+        write_atomic(out, document(Path(args.root)))
     print(f"cvqpg results: {', '.join(map(str, [out, *figures]))}")
     return 0
 

@@ -61,6 +61,12 @@ RAW, LAPLACE, GAUSSIAN, CATEGORICAL, BIT_LENGTH = "raw", "laplace", "gaussian", 
 # Streams at a width per symbol that the decoder derives (`_stream_at_widths`): `widths`, raw bits; `grouped`
 # (format 4 on), the symbols of each width as a stream of their own.
 WIDTHS, GROUPED = "widths", "grouped"
+CODINGS = (RAW, LAPLACE, GAUSSIAN, CATEGORICAL, BIT_LENGTH, WIDTHS, GROUPED)
+# The largest symbol the encoder gives the entropy coder's models (parametric, categorical): beyond, the coder
+# cannot give every symbol a probability, and a decoder given more would make it abort.
+MAX_ANS_TOP, MAX_CATEGORICAL_TOP = 2**20, 2**12
+MAX_SYMBOL_BITS = 63  # symbols are int64
+MAX_HEADER_BYTES = 2**24  # a header decompresses to far less; more is not a file cvqpg wrote
 
 
 @dataclass(frozen=True)
@@ -528,7 +534,11 @@ def _leading_ones(lengths: np.ndarray) -> np.ndarray:
 
 def _from_bit_length_coded(descriptor: dict[str, Any], data: bytes, count: int) -> np.ndarray:
     lengths_descriptor = descriptor["lengths"]
+    if lengths_descriptor.get("shape") != [count]:
+        raise ValueError(f"its bit lengths are of shape {lengths_descriptor.get('shape')}, not [{count}]")
     lengths = decode_stream(lengths_descriptor, data[:lengths_descriptor["bytes"]]).ravel()
+    if lengths.size and not 0 <= lengths.min() <= lengths.max() <= MAX_SYMBOL_BITS:
+        raise ValueError(f"bit lengths of {lengths.min()}..{lengths.max()}, beyond 0..{MAX_SYMBOL_BITS}")
     below = _from_grouped_raw_bits(data[lengths_descriptor["bytes"]:], np.maximum(lengths - 1, 0))
     return _leading_ones(lengths) + below
 
@@ -556,8 +566,72 @@ def _from_varints(data: bytes, count: int) -> list[int]:
     return values
 
 
+def _histogram(data: bytes, count: int) -> list[int]:
+    """A categorical stream's `count` symbol counts (zlib-compressed varints), refused (`ValueError`) where they
+    are no distribution the entropy coder takes: none positive, or beyond float64's exact integers."""
+    inflater = zlib.decompressobj()
+    varints = inflater.decompress(data, 10 * count)  # a varint of a count below 2^53 takes at most 8 bytes
+    if inflater.unconsumed_tail:
+        raise ValueError("its histogram is longer than its symbols need")
+    counts = _from_varints(varints, count)
+    if not sum(counts) or max(counts) >= 2**53:
+        raise ValueError("its histogram is no distribution (no positive count, or counts beyond 2^53)")
+    return counts
+
+
+def _integer(value: Any, low: int, high: int) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and low <= value <= high
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def check_descriptor(descriptor: Any, in_group: bool = False) -> None:
+    """Raise `ValueError` unless `descriptor` is a stream descriptor `encode_stream` could have written (a group's
+    `in_group`, whose shape the decoder counts): every field of its type and range, so that no decoder step, and no
+    entropy-coder model, is given what it cannot take."""
+    if not isinstance(descriptor, dict):
+        raise ValueError("a stream descriptor is not an object")
+    coding = descriptor.get("coding")
+    if coding not in CODINGS:
+        raise ValueError(f"unknown coding {coding!r}")
+    if coding == BIT_LENGTH:
+        check_descriptor(descriptor.get("lengths"))
+    low, high = descriptor.get("min"), descriptor.get("max")
+    if not (_integer(low, -2**MAX_SYMBOL_BITS, 2**MAX_SYMBOL_BITS - 1) and _integer(high, low, 2**MAX_SYMBOL_BITS - 1)
+            and high - low < 2**MAX_SYMBOL_BITS):
+        raise ValueError(f"its symbol range {low!r}..{high!r} is not one of int64 integers")
+    if not _integer(descriptor.get("bytes"), 0, 2**MAX_SYMBOL_BITS):
+        raise ValueError(f"its byte count {descriptor.get('bytes')!r} is not a whole number ≥ 0")
+    shape = descriptor.get("shape")
+    if not in_group and not (isinstance(shape, list) and all(_integer(n, 0, 2**31) for n in shape)):
+        raise ValueError(f"its shape {shape!r} is not a list of sizes")
+    top, params = high - low, descriptor.get("params")
+    if coding == RAW and not _integer(descriptor.get("width"), 1, MAX_SYMBOL_BITS):
+        raise ValueError(f"its raw width {descriptor.get('width')!r} is not 1..{MAX_SYMBOL_BITS} bits")
+    if coding in (LAPLACE, GAUSSIAN) and not (1 <= top < MAX_ANS_TOP and isinstance(params, list) and len(params) == 2
+                                            and all(map(_number, params)) and params[1] > 0):
+        raise ValueError(f"its {coding} model (symbols 0..{top}, parameters {params!r}) is not one the encoder "
+                         f"writes: 1..{MAX_ANS_TOP - 1} symbols, a finite mean and a positive finite scale")
+    if coding == CATEGORICAL and not (1 <= top < MAX_CATEGORICAL_TOP
+                                      and _integer(descriptor.get("histogram_bytes"), 0, descriptor["bytes"])):
+        raise ValueError(f"its categorical model (symbols 0..{top}, histogram of "
+                         f"{descriptor.get('histogram_bytes')!r} bytes) is not one the encoder writes")
+    if coding == GROUPED:
+        groups = descriptor.get("groups")
+        if not isinstance(groups, list) or not all(isinstance(group, dict) for group in groups):
+            raise ValueError("its groups are not a list of descriptors")
+        for group in groups:
+            if not _integer(group.get("bits"), 1, MAX_SYMBOL_BITS):
+                raise ValueError(f"a group's width {group.get('bits')!r} is not 1..{MAX_SYMBOL_BITS} bits")
+            check_descriptor(group, in_group=True)
+
+
 def decode_stream(descriptor: dict[str, Any], data: bytes, widths: np.ndarray | None = None) -> np.ndarray:
-    """Inverse of `encode_stream`; a `widths` stream needs the same `widths`."""
+    """Inverse of `encode_stream`; a `widths` stream needs the same `widths`. `ValueError` where the descriptor
+    is not one `encode_stream` writes (`check_descriptor`) or the data do not decode."""
+    check_descriptor(descriptor)
     shape, low, top = descriptor["shape"], descriptor["min"], descriptor["max"] - descriptor["min"]
     count = int(np.prod(shape))
     coding = descriptor["coding"]
@@ -574,7 +648,7 @@ def decode_stream(descriptor: dict[str, Any], data: bytes, widths: np.ndarray | 
     else:
         if coding == CATEGORICAL:
             split = descriptor["histogram_bytes"]
-            params = _from_varints(zlib.decompress(data[:split]), top + 1)
+            params = _histogram(data[:split], top + 1)
             data = data[split:]
         else:
             params = descriptor["params"]
@@ -592,6 +666,8 @@ def _from_groups(groups: list[dict[str, Any]], data: bytes, widths: np.ndarray |
     if sorted(group["bits"] for group in groups) != np.unique(widths[widths > 0]).tolist():
         raise ValueError("its groups are not the widths the decoder derives")
     symbols, offset = np.zeros(count, np.int64), 0
+    if sum(group["bytes"] for group in groups) > len(data):
+        raise ValueError(f"its groups announce more than its {len(data)} bytes")
     for group in groups:
         chosen = widths == group["bits"]
         symbols[chosen] = decode_stream({**group, "shape": [int(chosen.sum())]}, data[offset:offset + group["bytes"]])
@@ -626,9 +702,20 @@ def optics(config: FitConfig) -> dict[str, Any]:
 
 
 def config_from_optics(values: dict[str, Any]) -> FitConfig:
-    """A configuration that renders like the encoded one; settings that only fitting uses are the paper's."""
-    return FitConfig().replace(**{name: values[name] for name in RENDER_SETTINGS},
-                               wavelengths_m=tuple(values["wavelengths"]))
+    """A configuration that renders like the encoded one; settings that only fitting uses are the paper's.
+    `ValueError` where a value is not of the type of its setting (a whole number below 2^31, a finite number,
+    a name)."""
+    values, defaults = dict(values), FitConfig()
+    for name in RENDER_SETTINGS:
+        value, default = values[name], defaults.setting(name)
+        valid = (isinstance(value, str) if isinstance(default, str) else _integer(value, 0, 2**31 - 1)
+                 if isinstance(default, int) else _number(value))
+        if not valid:
+            raise ValueError(f"{name} {value!r} is not a {type(default).__name__}")
+    if not (isinstance(values["wavelengths"], list) and all(map(_number, values["wavelengths"]))):
+        raise ValueError(f"wavelengths {values['wavelengths']!r} are not a list of numbers")
+    return defaults.replace(**{name: values[name] for name in RENDER_SETTINGS},
+                            wavelengths_m=tuple(values["wavelengths"]))
 
 
 @dataclass
@@ -662,12 +749,23 @@ def _checked_header(header: Any, name: str, version: int) -> tuple[FitConfig, Bi
     try:
         config, count = config_from_optics(header["optics"]), header["num_primitives"]
         bits = BitDepths(**header["bits"])
+        if not all(isinstance(value, int) and not isinstance(value, bool) for value in asdict(bits).values()):
+            raise ValueError(f"bit depths {header['bits']} are not whole numbers")
+        for descriptor in header["streams"]:
+            if not isinstance(descriptor.get("name"), str):
+                raise ValueError(f"a stream's name {descriptor.get('name')!r} is not a name")
+            check_descriptor(descriptor)
         shapes = {descriptor["name"]: tuple(descriptor["shape"]) for descriptor in header["streams"]}
-        ranges = [float(value) for key in ("scale", "amplitude") for value in header["ranges"][key]]
+        if len(shapes) != len(header["streams"]):
+            raise ValueError("two streams have the same name")
+        pairs = [header["ranges"][key] for key in ("scale", "amplitude")]
+        if not all(isinstance(pair, list) and len(pair) == 2 for pair in pairs):
+            raise ValueError(f"ranges {header['ranges']} are not pairs")
+        ranges = [value for pair in pairs for value in pair]
     except (KeyError, TypeError, AttributeError, ValueError) as error:
         raise ModelFileError(f"{name}: its header is malformed ({type(error).__name__}: {error}); "
                              f"{REWRITE_MODEL}") from None
-    if not all(math.isfinite(value) for value in ranges):
+    if not all(map(_number, ranges)):
         # every depth of format 4 derives from the decoded scale and amplitude
         raise ModelFileError(f"{name}: its ranges of log scale and amplitude {header['ranges']} are not finite; "
                              f"{REWRITE_MODEL}")
@@ -696,9 +794,11 @@ def decode(data: bytes, name: str = "file") -> Compressed:
         raise ModelFileError(f"{name}: truncated ({len(data)} bytes)")
     body, (stored,) = data[:-CHECKSUM.size], CHECKSUM.unpack(data[-CHECKSUM.size:])
     try:
-        header = json.loads(zlib.decompress(body[PREFIX.size:PREFIX.size + header_length]))
-        payload_bytes = sum(int(s["bytes"]) for s in header["streams"])
-    except (zlib.error, ValueError, KeyError, TypeError):
+        inflater = zlib.decompressobj()
+        text = inflater.decompress(body[PREFIX.size:PREFIX.size + header_length], MAX_HEADER_BYTES)
+        header = None if inflater.unconsumed_tail else json.loads(text)
+        payload_bytes = sum(s["bytes"] for s in header["streams"] if _integer(s["bytes"], 0, len(data)))
+    except (zlib.error, ValueError, KeyError, TypeError, AttributeError, RecursionError):
         header, payload_bytes = None, 0
     if header is not None and len(body) < PREFIX.size + header_length + payload_bytes:
         raise ModelFileError(f"{name}: truncated ({len(data)} bytes, the header announces "
@@ -722,7 +822,9 @@ def decode(data: bytes, name: str = "file") -> Compressed:
 
     try:
         primitives = read_primitives(symbols, header["num_primitives"], header["ranges"], config, bits, version)
-    except (KeyError, TypeError, IndexError) as error:
+    except ModelFileError:
+        raise
+    except (KeyError, TypeError, IndexError, ValueError, OverflowError) as error:
         raise ModelFileError(f"{name}: its ranges are malformed ({type(error).__name__}: {error}); "
                              f"{REWRITE_MODEL}") from None
     check_tensors(primitives, config, name)

@@ -14,6 +14,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import BinaryIO, Iterator
 
+from .errors import InputError
+
 
 @contextmanager
 def atomic_file(path: str | Path) -> Iterator[BinaryIO]:
@@ -46,9 +48,15 @@ def write_atomic(path: str | Path, data: bytes | str) -> None:
 
 
 def replace_folder(staged: Path, final: Path) -> None:
-    """Put the finished folder `staged` at `final` (a sibling), replacing what was there as a whole: the
-    old folder is renamed aside first and deleted only once `staged` is in its place."""
+    """Put the finished folder `staged` at `final` (a sibling), replacing a folder there as a whole: the old
+    folder is renamed aside first and deleted only once `staged` is in its place. A file or a symbolic link at
+    `final` is never replaced (`InputError`, `staged` left as it is): what a command may replace is checked
+    before (`app.outputs`), and anything else that appeared there meanwhile is the user's."""
     staged, final = Path(staged), Path(final)
+    if final.is_symlink() or (final.exists() and not final.is_dir()):
+        what = "a symbolic link" if final.is_symlink() else "a file"
+        raise InputError(f"{final} ({what}) appeared while the command ran; it is left as it is: move it away and "
+                         "run the command again")
     if not final.exists():
         os.replace(staged, final)
         return
@@ -65,7 +73,7 @@ def replace_folder(staged: Path, final: Path) -> None:
 @contextmanager
 def staged_folder(final: str | Path, overwrite: bool = False) -> Iterator[Path]:
     """A fresh temporary folder beside `final` to write a command's outputs into; when the block ends
-    without an error it becomes `final` (replacing an existing one only with `overwrite`), and on an
+    without an error it becomes `final` (replacing an existing folder only with `overwrite`), and on an
     error it is deleted, so `final` is never half-written and nothing is left behind."""
     final = Path(final)
     staged = final.with_name(f".{final.name}.partial-{os.getpid()}")
@@ -74,7 +82,8 @@ def staged_folder(final: str | Path, overwrite: bool = False) -> Iterator[Path]:
     try:
         yield staged
         if not overwrite and (final.is_file() or (final.is_dir() and any(final.iterdir()))):
-            raise FileExistsError(f"{final} appeared while the command ran")
+            raise InputError(f"{final} appeared while the command ran; it is left as it is: choose another place, "
+                             "or move it away and run the command again")
         replace_folder(staged, final)
     finally:
         shutil.rmtree(staged, ignore_errors=True)

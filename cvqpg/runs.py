@@ -377,13 +377,14 @@ def model_path(target: str | Path) -> Path:
 
 
 def half_precision_model(folder: str | Path) -> dict[str, Any]:
-    """Store a run's model in float16 next to it and measure what that costs in PSNR (dB)."""
+    """Store a run's model in float16 next to it and measure what that costs in PSNR (dB). The run's inputs are
+    read first, so that a run whose targets cannot be rebuilt gets no copy."""
     folder = Path(folder)
     primitives, config, source = load_run_model(folder)
-    save_model(folder / HALF_MODEL_FILE, primitives, config, dtype="float16", run=model_run(folder / MODEL_FILE))
-    half, _ = load_model(folder / HALF_MODEL_FILE)
     scene = scene_from_source(source, config)
     psnr_full = mean_psnr(render(primitives, config)[1], scene.targets)
+    save_model(folder / HALF_MODEL_FILE, primitives, config, dtype="float16", run=model_run(folder / MODEL_FILE))
+    half, _ = load_model(folder / HALF_MODEL_FILE)
     psnr_half = mean_psnr(render(half, config)[1], scene.targets)
     return {**model_info(folder / HALF_MODEL_FILE), "psnr_float32": psnr_full, "psnr_float16": psnr_half,
             "psnr_change": psnr_half - psnr_full}

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from PIL import Image, UnidentifiedImageError
+from PIL import Image, ImageOps, UnidentifiedImageError
 from PIL.Image import DecompressionBombError, DecompressionBombWarning
 from torch import Tensor
 
@@ -40,6 +40,7 @@ log = logging.getLogger("cvqpg")
 ALPHA_MODES = ("RGBA", "LA", "PA", "RGBa", "La")
 HIGH_DEPTH_MODES = ("I;16", "I;16B", "I;16L", "I;16N", "I", "F")
 ASPECT_TOLERANCE = 0.01
+EXIF_ORIENTATION = 0x0112  # the EXIF tag of how a camera's picture is turned; 1 is upright
 
 
 def to_tensor(picture: Image.Image) -> Tensor:
@@ -51,9 +52,13 @@ def to_tensor(picture: Image.Image) -> Tensor:
 
 
 def prepare_image(picture: Image.Image, width: int, height: int, color: str) -> Tensor:
-    """RGB (or L for grayscale), Lanczos-resized to W×H px, /255 → [C, H, W]. Alpha is dropped."""
+    """RGB (or L for grayscale), Lanczos-resized to W×H px, /255 → [C, H, W]. Alpha is dropped. A 16-bit or
+    float picture (one channel) is scaled from its range as `unit_values` says, with a note, and resized in float."""
     if picture.mode in ALPHA_MODES or "transparency" in picture.info:
         log.warning("the image has an alpha channel; it is ignored (only colour is fitted)")
+    if picture.mode in HIGH_DEPTH_MODES:
+        gray = unit_values(picture, "image", width, height)[None]
+        return gray.expand(3 if color == "rgb" else 1, -1, -1).contiguous()
     mode = "RGB" if color == "rgb" else "L"
     return to_tensor(picture.convert(mode).resize((width, height), Image.LANCZOS))
 
@@ -61,26 +66,50 @@ def prepare_image(picture: Image.Image, width: int, height: int, color: str) -> 
 def prepare_depth(picture: Image.Image, width: int, height: int) -> Tensor:
     """Depth map → [H, W] in [0, 1], 0 near, Lanczos-resized to W×H px.
 
-    8-bit maps follow method.md §5 (L, /255). 16-bit maps are divided by 65535 and float maps
-    normalised to [0, 1] from their own range, both resized in float so no precision is lost.
+    8-bit maps follow method.md §5 (L, /255); 16-bit and float maps are scaled as `unit_values` says.
     """
     if picture.mode not in HIGH_DEPTH_MODES:
         return to_tensor(picture.convert("L").resize((width, height), Image.LANCZOS))[0]
+    return unit_values(picture, "depth map", width, height)
+
+
+def unit_values(picture: Image.Image, role: str, width: int, height: int) -> Tensor:
+    """A one-channel 16-bit or float picture → [H, W] in [0, 1], Lanczos-resized to W×H px in float so that no
+    precision is lost, with a note of the scaling (but for a 16-bit depth map): 16-bit values (0..65535) divided
+    by 65535; float values in [0, 1] as they are; others normalised from their own range. `InputError` where a
+    value is not finite."""
     values = np.asarray(picture, dtype=np.float64)
+    name = f"{role} {picture.filename}" if getattr(picture, "filename", "") else f"the {role}"
     unknown = int(np.count_nonzero(~np.isfinite(values)))
     if unknown:
         # a NaN would spread through the normalisation and the resize to every target
-        name = f"depth map {picture.filename}" if getattr(picture, "filename", "") else "the depth map"
         raise InputError(f"{name} has {unknown} of {values.size} pixels that are not finite (NaN or ±inf); give "
-                         "every pixel a depth (e.g. the farthest) and save it again")
-    if picture.mode.startswith("I;16") or (picture.mode == "I" and 0 <= values.min() and values.max() <= 65535):
+                         "every pixel a value and save it again")
+    low, high = float(values.min()), float(values.max())
+    if picture.mode.startswith("I;16") or (picture.mode == "I" and 0 <= low and high <= 65535):
+        if role != "depth map":  # as depth maps always were: `--depth auto` saves one, read by every command
+            log.warning(f"{name} has 16-bit values ({low:g}..{high:g}); scaled from 0..65535 to 0..1")
         values = values / 65535.0
-    elif values.min() < 0 or values.max() > 1:
-        low, high = float(values.min()), float(values.max())
-        log.warning(f"depth values span {low:g}..{high:g}; normalised to 0..1 (0 = near)")
+    elif low < 0 or high > 1:
+        log.warning(f"{name} has values spanning {low:g}..{high:g}; normalised to 0..1")
         values = (values - low) / max(high - low, 1e-12)
+    else:
+        log.warning(f"{name} has float values ({low:g}..{high:g}); used as they are, in 0..1")
     resized = Image.fromarray(values.astype(np.float32), "F").resize((width, height), Image.LANCZOS)
     return torch.from_numpy(np.clip(np.asarray(resized, dtype=np.float32), 0.0, 1.0).copy())
+
+
+def upright(picture: Image.Image, role: str, path: Path) -> Image.Image:
+    """`picture` turned as its EXIF orientation says a viewer shows it (a camera's portrait photo), with a note;
+    as it is where it has none."""
+    orientation = picture.getexif().get(EXIF_ORIENTATION, 1)
+    if orientation == 1 or not isinstance(orientation, int) or not 1 <= orientation <= 8:
+        return picture
+    turned = ImageOps.exif_transpose(picture)
+    turned.filename = picture.filename  # messages name the file
+    log.warning(f"{role} {path} is stored turned (EXIF orientation {orientation}); it is used as it is shown, "
+                f"{turned.size[0]}×{turned.size[1]} px")
+    return turned
 
 
 def check_file(path: str | Path, role: str = "image") -> Path:
@@ -103,7 +132,7 @@ def load_picture(path: str | Path, role: str = "image", remedy: str = "re-export
             warnings.simplefilter("error", DecompressionBombWarning)
             with Image.open(path) as picture:
                 picture.load()
-                return picture
+                return upright(picture, role, path)
     except (DecompressionBombError, DecompressionBombWarning) as error:
         size = str(error).partition(", could be")[0]  # Pillow's "Image size (N pixels) exceeds limit of L pixels"
         raise InputError(f"{role} {path} is too large to decode safely ({size}); resize it first to a few "

@@ -826,7 +826,7 @@ def test_overwrite_replaces_the_output_as_a_whole_and_nothing_else(name, templat
     if output.is_dir():
         (output / "stray.txt").write_text("left by an earlier run\n")  # must be gone: the folder is replaced
     else:
-        output.write_bytes(b"an older output\n")  # must be rewritten
+        output.write_bytes(output.read_bytes() + b"an older output\n")  # of its kind still; must be rewritten
     before = tree_state(tmp_path)
     code, _out, err = cli(expand(success.argv, work), capsys)
     assert code == 0, err

@@ -1,40 +1,115 @@
-"""Where a command may write: checked before any work, so that a refused command changes nothing.
+"""Where a command may write: one rule for every command's output, checked before any work (so that a refused
+command changes nothing) and again, under a lock, before anything is written.
 
-No command writes over a file or folder that existed before unless the caller says `overwrite`, and
-none, even then, over its own input, a run folder, or a run's own record and model (the files that
-make a folder a run). Messages name the parameter `out`, which the command line calls `--out`.
+The rule:
+- A new path, or an empty folder, is always a command's to write.
+- Something that exists is replaced only with `overwrite`, and only where it is of the command's own kind
+  (`Kind`): a run folder for `fit`, a render folder for `render`, a `.cvq` file for `compress`, an HTML page for
+  `view`, ... (an empty file counts as any kind); never a folder or file of another kind, which is the user's.
+- Never, even with `overwrite`: the command's own input, a folder that holds it, a run's own files (those `fit`
+  writes), the current folder or one that holds it, or a symbolic link (which would send the output where the
+  user did not name).
+- One writer at a time: `claimed` holds an exclusive lock beside the output while the command works, so that a
+  second command writing the same output stops with a one-line error instead of both succeeding.
+
+Messages name the parameter `out`, which the command line calls `--out`, unless the caller names another.
 """
 
 from __future__ import annotations
 
+import errno
+import fcntl
+import os
+import stat
 import tempfile
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable
+from typing import Callable, Iterable, Iterator
 
 from ..errors import InputError
-from ..runs import CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE, MODEL_FILE
+from ..files import staged_folder
+from ..runs import CHECKPOINT_FILE, CONFIG_FILE, HISTORY_FILE, METRICS_FILE, MODEL_FILE, PLANE_IMAGES
 
-RUN_RECORD_FILES = (CONFIG_FILE, METRICS_FILE, MODEL_FILE, CHECKPOINT_FILE)
+# What `fit` writes in a run folder (and an estimated depth map): no other command writes over them.
+RUN_FILES = (CONFIG_FILE, METRICS_FILE, MODEL_FILE, CHECKPOINT_FILE, HISTORY_FILE, "depth.png", "curve.png",
+             "amplitude.png", "phase.png", *PLANE_IMAGES)
+LOCK_SUFFIX = ".cvqpg-lock"
+HEAD_BYTES = 64  # enough of a file's start to recognise its kind
 
 
 def is_run_folder(path: Path) -> bool:
-    return (path / CONFIG_FILE).is_file()
+    return (Path(path) / CONFIG_FILE).is_file()
 
 
-def _refuse_inputs_and_records(path: Path, inputs: Iterable[Path]) -> None:
-    resolved = path.resolve()
-    for given in inputs:
-        if Path(given).resolve() == resolved:
-            raise InputError(f"`out` {path} is this command's own input; choose another path")
-    if is_run_folder(path):
-        raise InputError(f"`out` {path} is a run folder; choose a path outside it, or a new folder")
-    if path.name in RUN_RECORD_FILES and is_run_folder(path.parent):
-        raise InputError(f"`out` {path} is the run's own {path.name}; choose another file name")
+def _head(path: Path) -> bytes:
+    try:
+        with open(path, "rb") as handle:
+            return handle.read(HEAD_BYTES)
+    except OSError:
+        return b""
+
+
+def _is_cvq(path: Path) -> bool:
+    from ..codec import MAGIC  # the codec imports the entropy coder, which only this check needs here
+
+    return _head(path).startswith(MAGIC)
+
+
+def _is_safetensors(path: Path) -> bool:
+    """A safetensors file: an 8-byte little-endian header length, then a JSON header."""
+    head = _head(path)
+    return len(head) > 8 and 0 < int.from_bytes(head[:8], "little") <= path.stat().st_size - 8 \
+        and head[8:9] == b"{"
+
+
+def _is_page(path: Path) -> bool:
+    return _head(path).lstrip().lower().startswith((b"<!doctype html", b"<html"))
+
+
+def _is_markdown(path: Path) -> bool:
+    if path.suffix.lower() != ".md":
+        return False
+    try:
+        path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        return False
+    return True
+
+
+def _is_png(path: Path) -> bool:
+    return _head(path).startswith(b"\x89PNG\r\n\x1a\n")
+
+
+def _holds(*names: str) -> Callable[[Path], bool]:
+    return lambda path: all((path / name).exists() for name in names)
+
+
+@dataclass(frozen=True)
+class Kind:
+    """What a command writes at its output: a folder or a file, and how an existing one is recognised as one that
+    `overwrite` may replace (`recognised(path)`)."""
+
+    name: str  # with its article, as messages say it
+    folder: bool
+    recognised: Callable[[Path], bool]
+
+
+RUN = Kind("a run folder", True, is_run_folder)
+RENDER = Kind("a render folder (amplitude.png, phase.png, recon_*.png)", True, _holds("amplitude.png", "phase.png"))
+EXPORT = Kind("an export folder (metrics.json, display_plane*.png, ...)", True,
+              _holds(METRICS_FILE, "display_plane0.png"))
+BENCH = Kind("a bench folder (cells/, summary.md, ...)", True, _holds("cells"))
+CVQ = Kind("a compressed model (.cvq) file", False, _is_cvq)
+MODEL = Kind("a safetensors model file", False, _is_safetensors)
+PAGE = Kind("an HTML page", False, _is_page)
+DOCUMENT = Kind("a Markdown (.md) document", False, _is_markdown)
+FIGURE = Kind("a PNG image", False, _is_png)
 
 
 def writable(folder: Path) -> bool:
     """Whether files can be created in `folder`, tried with a probe file that is removed at once (for
-    root, `os.access` says yes even where the file system refuses, as in /proc)."""
+    root, `os.access` says yes even where the file system refuses, as in /proc, or the folder is immutable)."""
     try:
         with tempfile.NamedTemporaryFile(dir=folder, prefix=".cvqpg-probe-"):
             return True
@@ -42,55 +117,178 @@ def writable(folder: Path) -> bool:
         return False
 
 
-def _check_parent(path: Path) -> None:
-    parent = path.parent
-    if not parent.is_dir():
-        what = "is a file" if parent.exists() else "does not exist"
-        raise InputError(f"`out` {path}: the folder {parent} {what}; give a path in an existing folder")
-    if not writable(parent):
-        raise InputError(f"`out` {path}: the folder {parent} is not writable; choose another place")
+def _place(path: Path, role: str) -> Path:
+    """`path` without `.` and `..` components (lexically), refused where it names the current folder or one
+    that holds it (which a command cannot replace: `--out .`)."""
+    absolute = Path(os.path.abspath(path))
+    if Path.cwd().is_relative_to(absolute):
+        raise InputError(f"{role} {path} is the current folder, or holds it; choose another place")
+    return Path(os.path.normpath(path))
 
 
-def check_output_file(path: str | Path, inputs: Iterable[Path] = (), overwrite: bool = False) -> Path:
-    """A file a command may write (atomically) at `path`; `InputError` naming what is in the way."""
-    path = Path(path)
-    _refuse_inputs_and_records(path, inputs)
-    _check_parent(path)
-    if path.is_dir():
-        raise InputError(f"`out` {path} is a folder; give a file name")
-    if path.exists() and not overwrite:
-        raise InputError(f"`out` {path} exists; choose another path, or pass `overwrite` to replace it")
-    return path
+def _refuse_fixed(path: Path, given: Path, inputs: Iterable[Path], role: str) -> None:
+    """What no command writes over, even with `overwrite`: links, its inputs and the folders that hold them, and
+    a run's own files."""
+    if path.is_symlink():
+        raise InputError(f"{role} {given} is a symbolic link (to {os.readlink(path)}); give the place itself, or "
+                         "a new path")
+    resolved = path.resolve()
+    for source in inputs:
+        source_resolved = Path(source).resolve()
+        if source_resolved == resolved:
+            raise InputError(f"{role} {given} is this command's own input; choose another path")
+        if source_resolved.is_relative_to(resolved):
+            raise InputError(f"{role} {given} holds this command's input {source}; choose another place")
+    if is_run_folder(path.parent) and any(path.match(pattern) for pattern in RUN_FILES):
+        raise InputError(f"{role} {given} is the run's own {path.name}; choose another file name")
 
 
-def check_new_folder(path: str | Path) -> Path:
-    """A folder a command creates, with its missing parents, on success: nothing in the way, and its
-    nearest existing ancestor writable."""
-    path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise InputError(f"`out` {path} is a file; give a folder")
+def _check_parent(path: Path, given: Path, role: str, make_parents: bool) -> None:
+    """The folder the output goes in exists and is writable; with `make_parents`, its nearest existing
+    ancestor (the command creates the rest)."""
     for ancestor in path.parents:
-        if ancestor.exists():
+        if ancestor.exists() or not make_parents:
             if not ancestor.is_dir():
-                raise InputError(f"`out` {path}: {ancestor} is a file, not a folder")
+                what = "is a file" if ancestor.exists() else "does not exist"
+                raise InputError(f"{role} {given}: the folder {ancestor} {what}; give a path in an existing folder")
             if not writable(ancestor):
-                raise InputError(f"`out` {path}: the folder {ancestor} is not writable; choose another place")
-            break
+                raise InputError(f"{role} {given}: the folder {ancestor} is not writable; choose another place")
+            return
+
+
+def _check_existing(path: Path, given: Path, kind: Kind, overwrite: bool, role: str) -> None:
+    """Something at `path`: replaced only with `overwrite` and where it is of `kind`."""
+    if kind.folder and not path.is_dir():
+        raise InputError(f"{role} {given} is a file; give a folder")
+    if not kind.folder and path.is_dir():
+        raise InputError(f"{role} {given} is a folder; give a file name")
+    if path.is_dir() and not any(path.iterdir()):
+        return  # an empty folder counts as new
+    if kind.folder and not kind.recognised(path):
+        raise InputError(f"{role} {given} is not {kind.name}: it holds other files, which `overwrite` does not "
+                         "replace; choose another place, or move them away")
+    if not kind.folder and path.stat().st_size and not kind.recognised(path):
+        raise InputError(f"{role} {given} is not {kind.name}, which is all `overwrite` replaces; choose another "
+                         "path")
+    if not overwrite:
+        raise InputError(f"{role} {given} exists; choose another path, or pass `overwrite` to replace it")
+    if kind.folder:
+        inner = next((p for p in path.iterdir() if p.is_dir() and not p.is_symlink()), None)
+        if inner is not None and kind is not RUN:
+            raise InputError(f"{role} {given} holds a folder ({inner.name}) that {kind.name} does not; "
+                             "`overwrite` does not replace it; give a new or empty folder")
+        if not writable(path):
+            raise InputError(f"{role} {given} cannot be replaced (the folder is not writable); choose another place")
+
+
+def check_output(path: str | Path, kind: Kind, inputs: Iterable[Path] = (), overwrite: bool = False,
+                 role: str = "`out`", make_parents: bool = False) -> Path:
+    """The path a command may write its output of `kind` at, by the module's rule, or an `InputError` naming what
+    is in the way. `make_parents`: the command creates missing folders above it."""
+    given = Path(path)
+    path = _place(given, role)
+    _refuse_fixed(path, given, inputs, role)
+    _check_parent(path, given, role, make_parents)
+    if path.exists():
+        if kind is not RUN and is_run_folder(path):
+            raise InputError(f"{role} {given} is a run folder; choose a path outside it, or a new folder")
+        _check_existing(path, given, kind, overwrite, role)
     return path
 
 
-def check_output_folder(path: str | Path, inputs: Iterable[Path] = (), overwrite: bool = False) -> Path:
-    """A folder a command may fill (through `files.staged_folder`) at `path`; `InputError` naming what is
-    in the way. An empty existing folder counts as new."""
+def check_continued(path: str | Path, kind: Kind, role: str = "`out`") -> Path:
+    """A folder of `kind` that a command adds to (a bench folder): new, empty or already of that kind."""
+    given = Path(path)
+    path = _place(given, role)
+    _refuse_fixed(path, given, (), role)
+    _check_parent(path, given, role, make_parents=True)
+    if path.exists() and not (path.is_dir() and (not any(path.iterdir()) or kind.recognised(path))):
+        what = "a run folder" if is_run_folder(path) else "a file" if not path.is_dir() else "a folder of other files"
+        raise InputError(f"{role} {given} is {what}, not {kind.name}; give a new folder or {kind.name}")
+    return path
+
+
+def _missing_folders(path: Path) -> list[Path]:
+    return [folder for folder in path.parents if not folder.exists()][::-1]
+
+
+@contextmanager
+def claimed(path: str | Path, role: str = "`out`") -> Iterator[None]:
+    """An exclusive lock on the output `path` for the block: a hidden lock file beside it, held with `flock` (so
+    that a killed command holds none). A second command claiming the same path gets an `InputError`. Missing
+    folders above `path` are created, and removed again where the block fails and leaves them empty."""
     path = Path(path)
-    _refuse_inputs_and_records(path, inputs)
-    for given in inputs:
-        if Path(given).resolve().is_relative_to(path.resolve()):
-            raise InputError(f"`out` {path} holds this command's input {given}; choose another folder")
-    _check_parent(path)
-    if path.exists() and not path.is_dir():
-        raise InputError(f"`out` {path} is a file; give a folder")
-    if path.is_dir() and any(path.iterdir()) and not overwrite:
-        raise InputError(f"`out` {path} exists and is not empty; choose another folder, or pass `overwrite` "
-                         "to replace it")
-    return path
+    lock = path.with_name(f".{path.name}{LOCK_SUFFIX}")
+    created = _missing_folders(path)
+    try:
+        for folder in created:
+            folder.mkdir()
+        handle = _locked(lock, path, role)
+    except BaseException:
+        _remove_empty(created)
+        raise
+    try:
+        yield
+    except BaseException:
+        _release(lock, handle)
+        _remove_empty(created)
+        raise
+    _release(lock, handle)
+
+
+def _locked(lock: Path, path: Path, role: str) -> int:
+    """A descriptor of `lock` holding its `flock`; retried where another command removed the file meanwhile."""
+    while True:
+        try:
+            handle = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o666)
+        except OSError as error:
+            raise InputError(f"{role} {path}: cannot write beside it ({error.strerror}); choose another place") \
+                from None
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            os.close(handle)
+            if error.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+                raise InputError(f"{role} {path}: cannot lock it ({error.strerror}); choose another place") from None
+            raise InputError(f"{role} {path} is being written by another cvqpg command; wait until it ends, or "
+                             "choose another path") from None
+        try:
+            if stat.S_ISREG(os.fstat(handle).st_mode) and os.fstat(handle).st_ino == os.stat(lock).st_ino:
+                return handle
+        except FileNotFoundError:
+            pass
+        os.close(handle)
+
+
+def _release(lock: Path, handle: int) -> None:
+    lock.unlink(missing_ok=True)  # while still holding it, so that no one locks a file about to vanish
+    os.close(handle)
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    for folder in reversed(folders):
+        try:
+            folder.rmdir()
+        except OSError:
+            return
+
+
+@contextmanager
+def output(path: str | Path, kind: Kind, inputs: Iterable[Path] = (), overwrite: bool = False,
+           role: str = "`out`") -> Iterator[Path]:
+    """`check_output`'s path, claimed (`claimed`) for the block and checked again once claimed: a file output
+    is written in the block (atomically, `files.write_atomic`)."""
+    inputs = list(inputs)
+    path = check_output(path, kind, inputs, overwrite, role)
+    with claimed(path, role):
+        yield check_output(path, kind, inputs, overwrite, role)
+
+
+@contextmanager
+def staged_output(path: str | Path, kind: Kind, inputs: Iterable[Path] = (), overwrite: bool = False,
+                  role: str = "`out`") -> Iterator[Path]:
+    """A fresh folder to fill (`files.staged_folder`) that becomes the folder output `path` (`output`'s rule)
+    once the block succeeds: the path is claimed, and checked again before it is replaced."""
+    with output(path, kind, inputs, overwrite, role) as final, staged_folder(final, overwrite) as staged:
+        yield staged
+        check_output(final, kind, inputs, overwrite, role)

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from ..app.outputs import check_output_file
+from ..app.outputs import FIGURE, check_output
 from ..runs import HISTORY_FILE, read_history
 from .bench import (DONE, FOLDER_SCENE_PLANES, METHODS, PRESETS, BenchPlan, BenchScene, Cell, cell_config,
                     config_differences, setting_label)
@@ -633,7 +633,7 @@ def write_figures(root: Path, folder: Path, overwrite: bool = False) -> list[Pat
     grids = {p: load_grid(next(g for g in CAMPAIGN if g.preset == p), root) for p in SECONDS_GRIDS}
     drawn = {folder / seconds_figure_name(s): (s, curves) for s, curves in drawable_seconds_curves(grids).items()}
     for path in drawn:
-        check_output_file(path, [], overwrite)
+        check_output(path, FIGURE, [], overwrite)
     for path, (setting, curves) in drawn.items():
         psnr_seconds_figure(curves, f"{SECONDS_SCENE}, CVQPG, {setting_label(setting)}, one thread each", path)
     return list(drawn)
