@@ -39,6 +39,7 @@ RUN_KEYS = ("source", "width", "height", "color", "primitive", "pixel_pitch", "n
             "plane_span")
 SCHEMA_RUN_KEYS = ("source", *SECTIONS)
 RESTORE_RUN = "restore the file or fit the run again"
+REEVALUATE_RUN = "delete it, then `cvqpg eval` on the run writes it again"
 # The schema of a fit's fingerprint (`fit_fingerprint`) in checkpoints and models.
 FINGERPRINT_SCHEMA = 2
 
@@ -286,7 +287,7 @@ def _fitted_count(folder: Path) -> int | None:
     path = folder / METRICS_FILE
     if not path.is_file():
         return None
-    count = read_record(path, "delete it and evaluate the run again").get("num_gaussians")
+    count = read_record(path, REEVALUATE_RUN).get("num_gaussians")
     return count if isinstance(count, int) and not isinstance(count, bool) else None
 
 

@@ -28,8 +28,8 @@ from .fitting import hologram
 from .metrics import METRIC_NAMES, psnr
 from .ops.propagation import release_transfer_functions
 from .optics import reconstruct
-from .runs import (EXPORT_FOLDER, METRICS_FILE, hologram_images, load_run_model, optics_label, read_record, read_run,
-                   read_run_options, to_8bit, write_atomic)
+from .runs import (EXPORT_FOLDER, METRICS_FILE, REEVALUATE_RUN, hologram_images, load_run_model, optics_label,
+                   read_record, read_run, read_run_options, to_8bit, write_atomic)
 from .targets import load_picture
 
 MAX_DISTANCE_M = 0.1  # farther, a few-mm hologram's band limit leaves almost nothing: a mm/m mix-up
@@ -119,7 +119,7 @@ def load_run(folder: Path) -> Run:
     """Read a finished run folder and render its hologram; its model must belong to it (`load_run_model`)."""
     primitives, config, source = load_run_model(folder, device=run_device(folder))
     metrics_file = folder / METRICS_FILE
-    metrics = (read_record(metrics_file, "delete it, then `cvqpg eval` on the run writes it again")
+    metrics = (read_record(metrics_file, REEVALUATE_RUN)
                if metrics_file.is_file() else None)
     with torch.no_grad():
         field = hologram(primitives, config)

@@ -5,7 +5,8 @@ in the other test modules; the command line's refusals are held here.
 
 The table (`CASES`) is grouped by class: degenerate or non-finite numbers (`NUMBERS`), unknown choices and usage
 typos (`USAGE`), missing, wrong or damaged inputs (`INPUTS`), and outputs that cannot be written or would destroy
-something (`OUTPUTS`). A row is `(id, argv, fragment, *marks)`:
+something (`OUTPUTS`: a foreign file or folder under `--overwrite`, a symbolic link, the current folder, a resume
+whose place is taken). A row is `(id, argv, fragment, *marks)`:
 - `id`: unique within its group, `<command>-<what is wrong>`;
 - `argv`: the command line after `cvqpg`, split as a shell would; `{name}` stands for an asset of `PLACES`
   (`{tmp}`: the folder the commands run in, also their current folder);
@@ -17,7 +18,8 @@ To add a case, append a row to its group; to add an asset, name it in `PLACES` a
 Every case runs in one shared copy of a template folder of tiny assets made once through the CLI (`template`):
 a refusal must change nothing, so the folder is checked against its first state after each case, and restored
 from the template when a case changed it (that case fails). A second table (`SUCCESSES`) holds that a command
-given `--overwrite` replaces its own output as a whole and nothing else, each in a copy of its own.
+given `--overwrite` replaces its own output as a whole and nothing else, each in a copy of its own; beside it, a
+second writer of one output is refused, and refused resumes keep their interrupted folders.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from PIL import Image
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
+from cvqpg.app.outputs import claimed
 from cvqpg.cli import main
 from cvqpg.fitting import blank_state
 from cvqpg.runs import read_run
@@ -94,6 +97,18 @@ PLACES = {
                                            # (another seed), also as foreign.safetensors
     "guarded": "guarded",                  # an unfinished run_a whose config.json asks for a 16384 px guard band
     "guardedrun": "guarded_run",           # run_a whose config.json asks for a 16384 px guard band
+    "held": "held",                        # a user's folder; held.partial an interrupted run that would finish there
+    "filed": "filed",                      # a user's file; filed.partial an interrupted run that would finish there
+    "linked": "linked",                    # -> notarun; linked.partial an interrupted run that would finish there
+    "encoded": "enc.cvq.partial",          # an interrupted encode's folder
+    "foreigncvq": "foreign.cvq",           # a user's text file named .cvq; foreign.cvq.partial an interrupted encode
+    "lost": "lost",                        # a finished run whose image is gone
+    "linkdir": "linkdir",                  # -> notarun
+    "linkrender": "linkrender",            # -> run_a/render
+    "linkrun": "linkrun",                  # -> run_b
+    "linkcvq": "linkcvq.cvq",              # -> run_a/model.cvq
+    "linkpage": "linkpage.html",           # -> page.html
+    "dangling": "dangling.safetensors",    # -> nowhere
 }
 
 FIT = "--size 32 24 --steps 1 --quiet --out new_run"  # a fit that is wrongly accepted ends soon
@@ -530,6 +545,52 @@ OUTPUTS = cases(
     ("results-out-run-config", "results --root {records} --out {run}/config.json --overwrite", "config.json"),
     ("results-out-unwritable", "results --root {records} --out /proc/cvqpg-hostile.md", "/proc/cvqpg-hostile.md"),
     ("results-out-readonly-folder", "results --root {records} --out {readonly}/results.md", "readonly", PERMISSIONS),
+    # --overwrite replaces only the command's own kind of output.
+    ("render-overwrite-a-users-folder", "render {run} --out {notarun} --overwrite", "notarun"),
+    ("render-overwrite-another-run", "render {run} --out {run2} --overwrite", "run_b"),
+    ("render-overwrite-an-export-folder", "render {run} --out {run}/export --overwrite", "export"),
+    ("export-overwrite-a-users-folder", "export {run} --out {notarun} --overwrite", "notarun"),
+    ("export-overwrite-another-run", "export {run} --out {run2} --overwrite", "run_b"),
+    ("export-overwrite-a-render-folder", "export {run} --out {run}/render --overwrite", "render"),
+    ("fit-overwrite-a-users-folder", "fit --size 32 24 --steps 2 --quiet --out {notarun} --overwrite", "notarun"),
+    ("view-overwrite-a-runs-target", f"view {{run}} --quiet {SWEEP} --out {{run2}}/target_plane0.png --overwrite",
+     "target_plane0.png"),
+    ("view-overwrite-a-runs-curve", f"view {{run}} --quiet {SWEEP} --out {{run}}/curve.png --overwrite", "curve.png"),
+    ("view-overwrite-a-users-file", f"view {{run}} --quiet {SWEEP} --out {{text}} --overwrite", "notes.txt"),
+    ("compress-overwrite-a-runs-target", "compress {run} --bits 8 --out {run}/target_plane0.png --overwrite",
+     "target_plane0.png"),
+    ("compress-overwrite-a-users-file", "compress {run} --bits 8 --out {text} --overwrite", "notes.txt"),
+    ("compress-overwrite-an-image", "compress {run} --bits 8 --out {image} --overwrite", "photo.png"),
+    ("compress-overwrite-a-page", "compress {run} --bits 8 --out {page} --overwrite", "page.html"),
+    ("decompress-overwrite-a-users-file", "decompress {cvq} --out {text} --overwrite", "notes.txt"),
+    ("decompress-overwrite-a-runs-recon", "decompress {cvq} --out {run2}/recon_plane0.png --overwrite",
+     "recon_plane0.png"),
+    ("encode-overwrite-a-users-file", f"{ENCODE} --bpp 8 --out {{text}} --overwrite", "notes.txt"),
+    ("results-overwrite-a-users-file", "results --root {records} --out {text} --overwrite", "notes.txt"),
+    ("results-overwrite-a-page", "results --root {records} --out {page} --overwrite", "page.html"),
+    ("bench-out-a-users-folder", f"bench {BENCH} --out {{notarun}}", "notarun"),
+    # A symbolic link is never followed to a place the user did not name.
+    ("render-out-a-link-to-a-users-folder", "render {run} --out {linkdir} --overwrite", "linkdir"),
+    ("render-out-a-link-to-a-render-folder", "render {run} --out {linkrender} --overwrite", "linkrender"),
+    ("export-out-a-link-to-a-users-folder", "export {run} --out {linkdir} --overwrite", "linkdir"),
+    ("fit-out-a-link-to-a-run", "fit --size 32 24 --steps 2 --quiet --out {linkrun} --overwrite", "linkrun"),
+    ("compress-out-a-link-to-a-cvq", "compress {run} --bits 8 --out {linkcvq} --overwrite", "linkcvq.cvq"),
+    ("view-out-a-link-to-a-page", f"view {{run}} --quiet {SWEEP} --out {{linkpage}} --overwrite", "linkpage.html"),
+    ("decompress-out-a-dangling-link", "decompress {cvq} --out {dangling}", "dangling.safetensors"),
+    ("bench-out-a-link", f"bench {BENCH} --out {{linkdir}}", "linkdir"),
+    # The current folder, or one that holds it, is no output.
+    ("render-out-the-current-folder", "render {run} --out . --overwrite", "current folder"),
+    ("export-out-a-folder-holding-the-current-one", "export {run} --out {run}/.. --overwrite", "current folder"),
+    ("fit-out-the-current-folder", "fit --size 32 24 --steps 2 --quiet --out . --overwrite", "current folder"),
+    # A resume whose place is taken stops, naming it, and keeps the interrupted folder.
+    ("fit-resume-into-a-users-folder", "fit --resume {held}.partial --quiet", "held"),
+    ("fit-resume-into-a-users-folder-with-overwrite", "fit --resume {held}.partial --quiet --overwrite", "held"),
+    ("fit-resume-into-a-file", "fit --resume {filed}.partial --quiet --overwrite", "filed"),
+    ("fit-resume-into-a-link", "fit --resume {linked}.partial --quiet --overwrite", "linked"),
+    ("fit-resume-an-encode", "fit --resume {encoded} --quiet", "encode"),
+    ("encode-resume-into-a-users-file", "encode --resume {foreigncvq}.partial --quiet --overwrite", "foreign.cvq"),
+    # A failure writes nothing.
+    ("info-half-of-a-run-whose-image-is-gone", "info {lost} --half", "lost_photo.png"),
 )
 
 CASES = NUMBERS + USAGE + INPUTS + OUTPUTS
@@ -619,6 +680,32 @@ def damaged_copies(t: Path, run_a: Path) -> None:
     payload["device"], payload["generator"] = "cuda", torch.zeros(16, dtype=torch.uint8)  # a CUDA generator's state
     save_checkpoint(gpu_checkpoint / "checkpoint.pt", payload)
 
+def output_traps(t: Path) -> None:
+    """What an output or a resume must not destroy: a user's folder and file where an interrupted run would
+    finish, interrupted encodes, a run whose image is gone, and symbolic links to places the user did not name."""
+    (t / "held").mkdir()
+    (t / "held" / "thesis.tex").write_text("years of work\n")
+    (t / "filed").write_text("a user's file\n")
+    for name in ("held", "filed", "linked"):
+        (t / f"{name}.partial").mkdir()
+        shutil.copy(t / "unfinished" / "config.json", t / f"{name}.partial" / "config.json")
+    (t / "linked").symlink_to("notarun")
+    for name in ("enc.cvq.partial", "foreign.cvq.partial"):
+        (t / name).mkdir()
+        shutil.copy(t / "unfinished" / "config.json", t / name / "config.json")
+        (t / name / "budget.json").write_text(json.dumps({"max_bytes": 900, "given": "--bpp 8",
+                                                           "finetune_steps": 1}))
+    (t / "foreign.cvq").write_text("a user's notes, named .cvq\n")
+    lost_image = shutil.copy(t / "photo.png", t / "lost_photo.png")
+    assert main(["fit", str(lost_image), "--depth", str(t / "depth.png"), "--size", "32", "24", "--num-gaussians", "20",
+                 "--steps", "1", "--quiet", "--out", str(t / "lost")]) == 0
+    Path(lost_image).unlink()
+    for link, target in (("linkdir", "notarun"), ("linkrender", "run_a/render"), ("linkrun", "run_b"),
+                         ("linkcvq.cvq", "run_a/model.cvq"), ("linkpage.html", "page.html"),
+                         ("dangling.safetensors", "nowhere/model.safetensors")):
+        (t / link).symlink_to(target)
+
+
 class Template(NamedTuple):
     folder: Path
     fresh_run_files: frozenset[str]  # the files of run_a as `cvqpg fit` left it
@@ -707,6 +794,7 @@ def template(finished_run, tmp_path_factory) -> Template:
     shutil.copy(t / "depth.png", t / "scenes" / "tiny" / "depth.png")
     (t / "readonly").mkdir()
     (t / "readonly").chmod(0o555)
+    output_traps(t)
     return Template(t, fresh)
 
 
@@ -759,18 +847,10 @@ def test_every_command_has_hostile_cases_and_every_case_an_id_of_its_own(capsys)
 PARAMETER_NAME = re.compile(r"`[a-z]+(?:_[a-z]+)+`")
 
 
-@pytest.mark.parametrize("case", CASES)
-def test_hostile_input_is_refused_in_one_line_and_changes_nothing(case: Case, shared, template, monkeypatch, capsys):
-    if case.permissions and IS_ROOT:
-        pytest.skip("running as root: file permissions do not apply (the /proc cases cover unwritable outputs)")
-    hostile_environment(monkeypatch, shared.folder)
-    argv = expand(case.argv, shared.folder)
+def refusal_problems(argv: list[str], code: int, err: str, fragment: str, changes: list[str]) -> list[str]:
+    """What keeps a command's outcome from being a refusal: exit code 2, one line `cvqpg <command>: error: …` that
+    names `fragment` (by flag, not by parameter name), no traceback, and no change to the tree (`changes`)."""
     command = command_of(argv)
-    code, _out, err = cli(argv, capsys)
-    changes = tree_changes(shared.state, tree_state(shared.root))
-    if changes:  # the next case starts from the template again
-        shutil.rmtree(shared.folder)
-        shutil.copytree(template.folder, shared.folder, symlinks=True)
     lines = err.splitlines()
     problems = []
     if code != 2:
@@ -781,13 +861,80 @@ def test_hostile_input_is_refused_in_one_line_and_changes_nothing(case: Case, sh
         problems.append("a traceback")
     if not (lines and lines[-1].startswith(f"cvqpg {command}: error: ")):
         problems.append(f"no line starting 'cvqpg {command}: error: '")
-    if case.fragment not in err:
-        problems.append(f"{case.fragment!r} not named")
+    if fragment not in err:
+        problems.append(f"{fragment!r} not named")
     if PARAMETER_NAME.search(err):
         problems.append(f"a parameter's name {PARAMETER_NAME.search(err).group()} where its flag belongs")
     if changes:
         problems.append("the tree changed: " + ", ".join(changes[:6]) + (" ..." if len(changes) > 6 else ""))
+    return problems
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_hostile_input_is_refused_in_one_line_and_changes_nothing(case: Case, shared, template, monkeypatch, capsys):
+    if case.permissions and IS_ROOT:
+        pytest.skip("running as root: file permissions do not apply (the /proc cases cover unwritable outputs)")
+    hostile_environment(monkeypatch, shared.folder)
+    argv = expand(case.argv, shared.folder)
+    code, _out, err = cli(argv, capsys)
+    changes = tree_changes(shared.state, tree_state(shared.root))
+    if changes:  # the next case starts from the template again
+        shutil.rmtree(shared.folder)
+        shutil.copytree(template.folder, shared.folder, symlinks=True)
+    problems = refusal_problems(argv, code, err, case.fragment, changes)
     assert not problems, "; ".join(problems) + f"\n  cvqpg {' '.join(argv)}\n  stderr: {err.strip()[-800:]}"
+
+
+def test_every_command_that_writes_has_cases_of_outputs_it_must_not_write(capsys):
+    """A command with `--overwrite` writes an output: each has rows in the outputs group."""
+    _code, out, _err = cli(["--help"], capsys)
+    writers = set()
+    for command in re.search(r"\{([a-z,]+)\}", out).group(1).split(","):
+        _code, help_text, _err = cli([command, "--help"], capsys)
+        if "--overwrite" in help_text:
+            writers.add(command)
+    covered = {case.values[0].argv.split()[0] for case in OUTPUTS}
+    assert writers and writers - covered == set()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("argv, output", [
+    ("compress {run} --bits 6 --overwrite", "run_a/model.cvq"),
+    ("render {run} --overwrite", "run_a/render"),
+    ("decompress {cvq} --overwrite", "run_a/model.decoded.safetensors"),
+    ("fit --size 32 24 --steps 2 --quiet --out {run} --overwrite", "run_a"),
+    (f"view {{run}} --quiet {SWEEP} --out {{page}} --overwrite", "page.html"),
+])
+def test_a_second_writer_of_one_output_is_refused_in_one_line(argv, output, work, tmp_path, capsys):
+    """Another command holds the output (its lock, as `claimed` takes it): this one stops, and changes nothing."""
+    argv = expand(argv, work)
+    with claimed(work / output):
+        before = tree_state(tmp_path)
+        code, _out, err = cli(argv, capsys)
+        changes = tree_changes(before, tree_state(tmp_path))
+    problems = refusal_problems(argv, code, err, "being written by another cvqpg command", changes)
+    assert not problems, "; ".join(problems) + f"\n  stderr: {err.strip()[-800:]}"
+    assert not list(work.rglob("*.cvqpg-lock"))
+
+
+@pytest.mark.slow
+def test_the_resumes_refused_keep_their_interrupted_folders(work, capsys):
+    for name in ("held", "filed"):
+        code, _out, err = cli(["fit", "--resume", f"{name}.partial", "--quiet", "--overwrite"], capsys)
+        assert code == 2 and name in err
+        assert (work / f"{name}.partial" / "config.json").is_file()
+    assert (work / "held" / "thesis.tex").read_text() == "years of work\n"
+    assert (work / "filed").read_text() == "a user's file\n"
+    assert not [p for p in os.listdir(work) if ".replaced-" in p]
+
+
+@pytest.mark.slow
+def test_a_command_writes_into_an_empty_folder_it_is_given(work, tmp_path, capsys):
+    before = tree_state(tmp_path)
+    code, _out, err = cli(expand("render {run} --out {folder}", work), capsys)
+    assert code == 0, err
+    changes = tree_changes(before, tree_state(tmp_path))
+    assert changes and all(change.split()[1].startswith("w/folder/") for change in changes), changes
 
 
 # Nothing lost on success: a command given --overwrite replaces its own output as a whole and nothing else. Each
@@ -815,6 +962,8 @@ SUCCESSES = {
     "info-half-overwrite-replaces-only-its-file": Success("info {run} --half --overwrite",
                                                           "run_a/model.f16.safetensors"),
     "results-overwrite-replaces-only-its-file": Success("results --root {records} --overwrite", "docs/results.md"),
+    "view-overwrite-replaces-only-its-page": Success(f"view {{run}} --quiet {SWEEP} --out {{page}} --overwrite",
+                                                     "page.html"),
 }
 
 
