@@ -225,11 +225,12 @@ def test_jobs_run_cells_in_worker_processes(tmp_path):
 
 @pytest.mark.slow
 def test_threads_set_each_fit_s_thread_count_whatever_the_jobs(tmp_path):
-    """Three threads each, two fits at once: not the cores/jobs share of any machine with under 6 cores."""
+    """As many threads each as the machine has cores, two fits at once: not the cores/jobs share."""
     plan = make_plan("quick", tmp_path / "bench", Overrides(size=(48, 36), steps=2, methods=["cvqpg"]))
-    assert run_plan(plan, jobs=2, control=SILENT, threads=3).count(DONE) == 2
+    cores = os.cpu_count()
+    assert run_plan(plan, jobs=2, control=SILENT, threads=cores).count(DONE) == 2
     runs = [json.loads((plan.cell_dir(c) / "metrics.json").read_text())["run"] for c in plan.cells]
-    assert [run["torch_threads"] for run in runs] == [3, 3]
+    assert [run["torch_threads"] for run in runs] == [cores, cores]
 
 
 def test_one_job_fits_with_its_threads_and_gives_the_caller_its_own_back(tmp_path, monkeypatch):
