@@ -9,12 +9,13 @@ import pytest
 import torch
 
 from cvqpg import FitConfig
-from cvqpg.app.runner import FINGERPRINT_KEY, FINGERPRINT_SCHEMA, fit_in_folder, resumed_state, run_fingerprint
+from cvqpg.app.runner import FINGERPRINT_KEY, fit_in_folder, resumed_state
 from cvqpg.cli import main
 from cvqpg.errors import ModelFileError
 from cvqpg.fitting import blank_state
 from cvqpg.control import SILENT
-from cvqpg.runs import CHECKPOINT_FILE, CONFIG_FILE, read_run, read_run_options, scene_from_source, start_run
+from cvqpg.runs import (CHECKPOINT_FILE, CONFIG_FILE, FINGERPRINT_SCHEMA, fit_fingerprint, read_run, read_run_options,
+                        scene_from_source, start_run)
 from cvqpg.storage import load_checkpoint, save_checkpoint
 
 CONFIG = FitConfig.create(width=32, height=24, num_gaussians=20, steps=2, curvature_warmup=1, guard_band_px=16)
@@ -39,7 +40,7 @@ def checkpoint_of(config: FitConfig, fingerprint: object = None) -> dict:
 def test_checkpoints_record_the_fingerprint_of_the_run(run):
     fit_in_folder(run, scene_from_source(SOURCE, CONFIG), CONFIG, control=SILENT, checkpoint_every_steps=1)
     payload = load_checkpoint(run / CHECKPOINT_FILE)
-    assert payload[FINGERPRINT_KEY] == run_fingerprint(CONFIG, SOURCE)
+    assert payload[FINGERPRINT_KEY] == fit_fingerprint(CONFIG, SOURCE)
     assert resumed_state(run, CONFIG).step == payload["step"] > 0
 
 
@@ -78,7 +79,7 @@ def test_a_checkpoint_of_an_earlier_schema_resumes_and_finishes(tmp_path):
 @pytest.mark.parametrize("recorded", [100.0, None])
 def test_a_resumed_fit_adds_its_cpu_seconds_to_the_checkpoints_and_an_unmeasured_segment_leaves_none(run, recorded):
     """A checkpoint of a version that did not measure CPU time (no `cpu_seconds`) leaves the fit's unknown."""
-    payload = checkpoint_of(CONFIG, run_fingerprint(CONFIG, SOURCE))
+    payload = checkpoint_of(CONFIG, fit_fingerprint(CONFIG, SOURCE))
     payload = {**payload, "seconds": 50.0, "cpu_seconds": recorded}
     if recorded is None:
         del payload["cpu_seconds"]
@@ -99,22 +100,22 @@ def test_a_fit_measures_its_cpu_seconds_beside_its_wall_seconds(run):
 
 
 def test_the_fingerprint_records_the_settings_and_inputs_with_its_schema(run):
-    fingerprint = run_fingerprint(CONFIG, SOURCE)
+    fingerprint = fit_fingerprint(CONFIG, SOURCE)
     assert fingerprint["schema"] == FINGERPRINT_SCHEMA and FitConfig.from_dict(fingerprint["config"]) == CONFIG
-    assert run_fingerprint(CONFIG.replace(seed=101), SOURCE) != fingerprint
-    assert run_fingerprint(CONFIG, {"scene": "star"}) != fingerprint
+    assert fit_fingerprint(CONFIG.replace(seed=101), SOURCE) != fingerprint
+    assert fit_fingerprint(CONFIG, {"scene": "star"}) != fingerprint
 
 
 def test_a_checkpoint_survives_a_setting_added_after_it_was_written(run):
-    fingerprint = run_fingerprint(CONFIG, SOURCE)
+    fingerprint = fit_fingerprint(CONFIG, SOURCE)
     fingerprint["config"]["loss"].pop("target_noise")
     fingerprint["config"]["optics"]["a_setting_this_version_lacks"] = 1
     save_checkpoint(run / CHECKPOINT_FILE, checkpoint_of(CONFIG, fingerprint))
     assert resumed_state(run, CONFIG, source=SOURCE).step == 1
 
 
-@pytest.mark.parametrize("fingerprint", [run_fingerprint(CONFIG.replace(seed=101), SOURCE),
-                                         run_fingerprint(CONFIG, {"scene": "star"})])
+@pytest.mark.parametrize("fingerprint", [fit_fingerprint(CONFIG.replace(seed=101), SOURCE),
+                                         fit_fingerprint(CONFIG, {"scene": "star"})])
 def test_a_checkpoint_of_another_run_is_refused(run, fingerprint):
     save_checkpoint(run / CHECKPOINT_FILE, checkpoint_of(CONFIG, fingerprint))
     with pytest.raises(ModelFileError, match="belongs to another run .*: delete it to restart from step 0"):
@@ -143,7 +144,7 @@ def test_a_payload_of_other_content_is_refused(run, payload):
 
 
 def test_resuming_with_another_run_s_checkpoint_is_one_line_and_keeps_it(run, capsys):
-    save_checkpoint(run / CHECKPOINT_FILE, checkpoint_of(CONFIG, run_fingerprint(CONFIG, {"scene": "star"})))
+    save_checkpoint(run / CHECKPOINT_FILE, checkpoint_of(CONFIG, fit_fingerprint(CONFIG, {"scene": "star"})))
     before = (run / CHECKPOINT_FILE).read_bytes()
     assert main(["fit", "--resume", str(run), "--quiet"]) == 2
     error = capsys.readouterr().err

@@ -17,8 +17,7 @@ from ..defaults import CHECKPOINT_SECONDS
 from ..errors import CvqpgError, ModelFileError
 from ..fitting import (CheckpointPolicy, FitResult, FitState, fit_scene, initial_state, seconds_per_step,
                        state_from_payload, steps_within)
-from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, FINGERPRINT_SCHEMA, RESTORE_RUN, fit_fingerprint as run_fingerprint,
-                    read_record, same_fit, write_run)
+from ..runs import CHECKPOINT_FILE, CONFIG_FILE, RESTORE_RUN, fit_fingerprint, read_record, same_fit, write_run
 from ..storage import load_checkpoint, save_checkpoint
 from ..targets import Scene
 from .compilation import prepare_kernels
@@ -45,7 +44,7 @@ def belongs_to_run(recorded: object, folder: Path, config: FitConfig, source: di
     the settings it recorded read as `config` and the same inputs, or for a checkpoint of an earlier version,
     the hash of the folder's `config.json` (which must hold `config`)."""
     if isinstance(recorded, dict):
-        return same_fit(recorded, run_fingerprint(config, source))
+        return same_fit(recorded, fit_fingerprint(config, source))
     record = read_record(Path(folder) / CONFIG_FILE, RESTORE_RUN)
     return (isinstance(recorded, str) and recorded == legacy_fingerprint(record) and record.get("source") == source
             and FitConfig.from_dict(record) == config)
@@ -89,11 +88,11 @@ def fit_in_folder(folder: Path, scene: Scene, config: FitConfig, run: RunOptions
     """`fit_scene` on `run` under `control` with the folder's checkpoint policy, after compiling the CPU kernels
     (a status line when `control.progress`); the state records the compile time and the peak memory of every
     segment, so a resumed fit reports the whole run's, and checkpoints record the run's fingerprint
-    (`run_fingerprint` of `config` and `source`, default: as the folder's `config.json` records it). Raises
+    (`fit_fingerprint` of `config` and `source`, default: as the folder's `config.json` records it). Raises
     `FitInterrupted` after saving on a stop request. `checkpoint_at_end` saves the finished loop too, for work
     that follows the fit in the same folder: resumed from it, the fit returns at once with the same result."""
     folder = Path(folder)
-    fingerprint = run_fingerprint(config, recorded_source(folder, source))
+    fingerprint = fit_fingerprint(config, recorded_source(folder, source))
     device = torch.device(run.device)
     # The kernels first: a cold compile starts its second process before this one imports the optimiser.
     compile_seconds = prepare_kernels(config, run, show_status=control.progress)
