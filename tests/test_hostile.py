@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import re
 import shlex
@@ -41,9 +42,13 @@ from PIL import Image
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
+from cvqpg import FitConfig, fit
+from cvqpg.app.compilation import probe_planes
 from cvqpg.app.outputs import claimed
 from cvqpg.cli import main
+from cvqpg.config import RunOptions
 from cvqpg.fitting import blank_state
+from cvqpg.ops.propagation import FUSED_PLANES_AT_ONCE, plane_groups
 from cvqpg.runs import read_run
 from cvqpg.storage import save_checkpoint
 
@@ -1006,3 +1011,35 @@ def test_a_fit_refused_with_overwrite_leaves_the_old_run_byte_for_byte(work, tmp
     code, _out, err = cli(argv, capsys)
     assert code == 2 and len(err.splitlines()) == 1, err
     assert tree_changes(before, tree_state(tmp_path)) == []
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Many planes: the propagation's kernels take them in groups, so that a fit of any plane count compiles a few
+# short kernels and starts at once.
+
+def test_the_compile_probe_has_the_group_lengths_of_any_plane_count_with_few_planes():
+    for planes in range(1, 257):
+        probe = probe_planes(planes)
+        assert group_lengths(probe) == group_lengths(planes) and probe < 2 * FUSED_PLANES_AT_ONCE
+
+
+def group_lengths(planes: int) -> set[int]:
+    return {group.stop - group.start for group in plane_groups(planes)}
+
+
+@pytest.mark.slow
+def test_a_fit_of_more_planes_than_the_kernels_once_took_finishes():
+    config = FitConfig.create(width=32, height=24, color="gray", num_planes=101, num_gaussians=24, steps=1,
+                              curvature_warmup=0, guard_band_px=8)
+    depth = torch.linspace(0, 1, 32 * 24).reshape(24, 32)  # some pixels on every plane
+    image = torch.rand(1, 24, 32, generator=torch.Generator().manual_seed(3))
+    result = fit(image, depth, config, RunOptions(backend="numba"))
+    assert len(result.metrics.per_plane["psnr"]) == 101 and math.isfinite(result.metrics.mean["psnr"])
+
+
+@pytest.mark.slow
+def test_a_render_at_more_distances_than_the_kernels_once_took_finishes(work, capsys):
+    distances = [f"{0.001 + 0.00004 * k:.5f}" for k in range(101)]
+    code, _out, err = cli(expand("render {run} --out many --distance", work) + distances, capsys)
+    assert code == 0, err
+    assert len(list((work / "many").glob("recon_*.png"))) == 101
