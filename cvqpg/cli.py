@@ -710,6 +710,7 @@ def _fit(plan: FitPlan, args: argparse.Namespace) -> int:
 
 def run_fit(args: argparse.Namespace) -> int:
     from .app.allocator import keep_freed_memory
+    from .app.outputs import PAGE, output
     from .runs import METRICS_FILE
     from .view import write_view
     if args.resume and (Path(args.resume) / METRICS_FILE).is_file():
@@ -727,7 +728,8 @@ def run_fit(args: argparse.Namespace) -> int:
         record = json.loads((folder / METRICS_FILE).read_text())
         print(f"{folder}: {_summary(record)}")
     if args.view:
-        view = write_view([folder], folder / VIEW_FILE, progress=not args.quiet)
+        with output(folder / VIEW_FILE, PAGE, [folder], overwrite=True) as page:
+            view = write_view([folder], page, progress=not args.quiet)
         if not args.quiet:
             _print_view(view)
     return 0
@@ -867,12 +869,14 @@ def run_view(args: argparse.Namespace) -> int:
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    from .runs import CONFIG_FILE, evaluate_run, read_run
+    from .app.outputs import claimed_in_run
+    from .runs import CONFIG_FILE, evaluate_run, evaluation_file, read_run
     check_device(args.device)
     folder, model = run_and_model(Path(args.run_dir))
     check_memory(read_run(folder)[0], args.device, "evaluation", f"the run's {CONFIG_FILE} asks for it: evaluate it "
                  "where more memory is free")
-    record = evaluate_run(folder, model, args.device)
+    with claimed_in_run(evaluation_file(folder, model), "the metrics record"):
+        record = evaluate_run(folder, model, args.device)
     print(f"{folder}: {_summary(record)}")
     for name, reason in record["unavailable"].items():
         print(f"  {name}: n/a ({reason})")

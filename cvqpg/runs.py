@@ -291,6 +291,11 @@ def _fitted_count(folder: Path) -> int | None:
     return count if isinstance(count, int) and not isinstance(count, bool) else None
 
 
+def evaluation_file(folder: str | Path, model: str | Path | None = None) -> Path:
+    """Where `evaluate_run` writes: the run's `metrics.json`, or `<model stem>.metrics.json` for `model`."""
+    return Path(folder) / (METRICS_FILE if model is None else f"{Path(model).stem}.{METRICS_FILE}")
+
+
 def evaluate_run(folder: str | Path, model: str | Path | None = None, device: str = "cpu") -> dict[str, Any]:
     """Recompute a saved run's metrics from its model (or `model`, e.g. a compressed file in the
     run folder) and inputs, rendered on `device` with the run's kernels where they run there
@@ -299,7 +304,7 @@ def evaluate_run(folder: str | Path, model: str | Path | None = None, device: st
     primitives, config, source = load_run_model(folder, model, device)
     scene = scene_from_source(source, config)
     _, recon = render(primitives, config, backend=read_run_options(folder).on_device(device).backend)
-    metrics_file = folder / METRICS_FILE if model is None else folder / f"{Path(model).stem}.{METRICS_FILE}"
+    metrics_file = evaluation_file(folder, model)
     previous = {}
     if (folder / METRICS_FILE).is_file():
         previous = read_record(folder / METRICS_FILE, "delete it and evaluate again (the fit's time and run "

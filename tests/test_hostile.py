@@ -903,17 +903,27 @@ def test_every_command_that_writes_has_cases_of_outputs_it_must_not_write(capsys
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("argv, output", [
-    ("compress {run} --bits 6 --overwrite", "run_a/model.cvq"),
-    ("render {run} --overwrite", "run_a/render"),
-    ("decompress {cvq} --overwrite", "run_a/model.decoded.safetensors"),
-    ("fit --size 32 24 --steps 2 --quiet --out {run} --overwrite", "run_a"),
-    (f"view {{run}} --quiet {SWEEP} --out {{page}} --overwrite", "page.html"),
+@pytest.mark.parametrize("argv, output, shared", [
+    ("compress {run} --bits 6 --overwrite", "run_a/model.cvq", False),
+    ("render {run} --overwrite", "run_a/render", False),
+    ("decompress {cvq} --overwrite", "run_a/model.decoded.safetensors", False),
+    ("fit --size 32 24 --steps 2 --quiet --out {run} --overwrite", "run_a", False),
+    (f"view {{run}} --quiet {SWEEP} --out {{page}} --overwrite", "page.html", False),
+    # A fit resuming or replacing the run holds it: nothing is written into it meanwhile.
+    ("eval {run}", "run_a", False),
+    ("eval {cvq}", "run_a", False),
+    ("export {run} --overwrite", "run_a", False),
+    ("info {run} --half --overwrite", "run_a", False),
+    ("compress {run} --bits 6 --overwrite", "run_a", False),
+    # Another eval rewrites the run's metrics; another command writes into the run (a shared hold).
+    ("eval {run}", "run_a/metrics.json", False),
+    ("fit --size 32 24 --steps 2 --quiet --out {run} --overwrite", "run_a", True),
+    ("fit --resume {unfinished} --quiet", "unfinished", True),
 ])
-def test_a_second_writer_of_one_output_is_refused_in_one_line(argv, output, work, tmp_path, capsys):
+def test_a_second_writer_of_one_output_is_refused_in_one_line(argv, output, shared, work, tmp_path, capsys):
     """Another command holds the output (its lock, as `claimed` takes it): this one stops, and changes nothing."""
     argv = expand(argv, work)
-    with claimed(work / output):
+    with claimed(work / output, shared=shared):
         before = tree_state(tmp_path)
         code, _out, err = cli(argv, capsys)
         changes = tree_changes(before, tree_state(tmp_path))

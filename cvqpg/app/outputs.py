@@ -10,7 +10,10 @@ The rule:
   writes), the current folder or one that holds it, or a symbolic link (which would send the output where the
   user did not name).
 - One writer at a time: `claimed` holds an exclusive lock beside the output while the command works, so that a
-  second command writing the same output stops with a one-line error instead of both succeeding.
+  second command writing the same output stops with a one-line error instead of both succeeding. An output
+  inside a run folder (a `.cvq` file, `export/`, `metrics.json` that `eval` rewrites, ...) also holds the run
+  folder with a shared lock (`claimed_in_run`): several such commands may write into one run at once, but none
+  while a fit resumes or replaces that run (a fit holds its run folder exclusively), nor a fit while they do.
 
 Messages name the parameter `out`, which the command line calls `--out`, unless the caller names another.
 """
@@ -213,17 +216,18 @@ def _missing_folders(path: Path) -> list[Path]:
 
 
 @contextmanager
-def claimed(path: str | Path, role: str = "`out`") -> Iterator[None]:
+def claimed(path: str | Path, role: str = "`out`", shared: bool = False) -> Iterator[None]:
     """An exclusive lock on the output `path` for the block: a hidden lock file beside it, held with `flock` (so
-    that a killed command holds none). A second command claiming the same path gets an `InputError`. Missing
-    folders above `path` are created, and removed again where the block fails and leaves them empty."""
+    that a killed command holds none). A second command claiming the same path gets an `InputError`. With
+    `shared`, a lock that other shared claims may hold at once, but no exclusive one. Missing folders above
+    `path` are created, and removed again where the block fails and leaves them empty."""
     path = Path(path)
     lock = path.with_name(f".{path.name}{LOCK_SUFFIX}")
     created = _missing_folders(path)
     try:
         for folder in created:
             folder.mkdir()
-        handle = _locked(lock, path, role)
+        handle = _locked(lock, path, role, shared)
     except BaseException:
         _remove_empty(created)
         raise
@@ -236,7 +240,7 @@ def claimed(path: str | Path, role: str = "`out`") -> Iterator[None]:
     _release(lock, handle)
 
 
-def _locked(lock: Path, path: Path, role: str) -> int:
+def _locked(lock: Path, path: Path, role: str, shared: bool) -> int:
     """A descriptor of `lock` holding its `flock`; retried where another command removed the file meanwhile."""
     while True:
         try:
@@ -245,7 +249,7 @@ def _locked(lock: Path, path: Path, role: str) -> int:
             raise InputError(f"{role} {path}: cannot write beside it ({error.strerror}); choose another place") \
                 from None
         try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(handle, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
         except OSError as error:
             os.close(handle)
             if error.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
@@ -261,8 +265,34 @@ def _locked(lock: Path, path: Path, role: str) -> int:
 
 
 def _release(lock: Path, handle: int) -> None:
-    lock.unlink(missing_ok=True)  # while still holding it, so that no one locks a file about to vanish
+    """Remove the lock file while holding it exclusively, so that no one locks a file about to vanish; a shared
+    holder that cannot take it exclusively leaves the file to the last holder (a failed conversion drops the
+    shared lock, so of several holders leaving at once one always succeeds)."""
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(handle)
+        return
+    lock.unlink(missing_ok=True)
     os.close(handle)
+
+
+def enclosing_run(path: Path) -> Path | None:
+    """The run folder that `path` lies in (at any depth), or None."""
+    return next((folder for folder in Path(os.path.abspath(path)).parents if is_run_folder(folder)), None)
+
+
+@contextmanager
+def claimed_in_run(path: str | Path, role: str = "`out`") -> Iterator[None]:
+    """`claimed(path)`, and where `path` lies in a run folder, that folder claimed shared first (`claimed`): a
+    fit that would resume or replace the run waits for no one, it stops; and this command stops while one runs."""
+    run = enclosing_run(Path(path))
+    if run is None:
+        with claimed(path, role):
+            yield
+        return
+    with claimed(run, f"{role} {path}: its run folder", shared=True), claimed(path, role):
+        yield
 
 
 def _remove_empty(folders: list[Path]) -> None:
@@ -276,11 +306,11 @@ def _remove_empty(folders: list[Path]) -> None:
 @contextmanager
 def output(path: str | Path, kind: Kind, inputs: Iterable[Path] = (), overwrite: bool = False,
            role: str = "`out`") -> Iterator[Path]:
-    """`check_output`'s path, claimed (`claimed`) for the block and checked again once claimed: a file output
+    """`check_output`'s path, claimed (`claimed_in_run`) for the block and checked again once claimed: a file output
     is written in the block (atomically, `files.write_atomic`)."""
     inputs = list(inputs)
     path = check_output(path, kind, inputs, overwrite, role)
-    with claimed(path, role):
+    with claimed_in_run(path, role):
         yield check_output(path, kind, inputs, overwrite, role)
 
 
