@@ -590,7 +590,7 @@ def _resume_plan(args: argparse.Namespace) -> FitPlan:
     from .app.outputs import is_run_folder
     from .app.runner import resumed_state
     from .runs import CONFIG_FILE, read_run, read_run_options, scene_from_source
-    work = Path(args.resume)
+    work = Path(os.path.abspath(args.resume))  # `--resume .` names the folder too
     if not (work / CONFIG_FILE).is_file():
         raise UsageError(f"--resume {work}: not a run folder (no {CONFIG_FILE})")
     if (work / BUDGET_FILE).is_file():
@@ -763,8 +763,9 @@ def run_export(args: argparse.Namespace) -> int:
     from .runs import EXPORT_FOLDER, MODEL_FILE, export_run, read_run
     check_device(args.device)
     folder, model = run_and_model(Path(args.run_dir))
-    if args.aperture < 0:
-        raise UsageError(f"--aperture {args.aperture}: give a radius ≥ 0 (a fraction of Nyquist; 0: no filter)")
+    if not 0 <= args.aperture <= math.sqrt(2):
+        raise UsageError(f"--aperture {args.aperture:g}: give a radius in [0, √2] (a fraction of Nyquist; from √2 "
+                         "on it passes every frequency, as 0 does: no filter)")
     out = Path(args.out) if args.out else folder / (EXPORT_FOLDER if model is None else f"{EXPORT_FOLDER}-{model.stem}")
     check_memory(read_run(folder)[0], args.device, "export", "give a smaller --slm",
                  size=tuple(args.slm) if args.slm else None)
@@ -820,7 +821,7 @@ def run_info(args: argparse.Namespace) -> int:
 
 def run_render(args: argparse.Namespace) -> int:
     from .app.outputs import RENDER, staged_output
-    from .runs import RENDER_FOLDER, read_run, render_model
+    from .runs import RENDER_FOLDER, check_distinct_files, read_run, render_model
     from .storage import load_model
     check_device(args.device)
     target = Path(args.target)
@@ -832,6 +833,7 @@ def run_render(args: argparse.Namespace) -> int:
                                            else target.with_name(target.stem + "-render"))
     if args.distance is not None:
         check_distances(args.distance, "`distance`", " (e.g. 0.001 for 1 mm)")
+        check_distinct_files(args.distance)
     config = read_run(target)[0] if target.is_dir() else load_model(target)[1]
     check_memory(config, args.device, "render", "give a smaller --size or fewer --distance values",
                  size=tuple(args.size) if args.size else None,
@@ -954,7 +956,7 @@ def run_encode(args: argparse.Namespace) -> int:
     from .search import CompressionSettings
     depth, role = None, "`out`"
     if args.resume:
-        work = Path(args.resume)
+        work = Path(os.path.abspath(args.resume))  # `--resume .` names the folder too
         config, source, budget, finetune_steps = read_encode(work)
         if not work.name.endswith(PARTIAL_SUFFIX):
             raise UsageError(f"--resume {work}: an encode's folder is named after its file, FILE{PARTIAL_SUFFIX}")
@@ -1009,7 +1011,7 @@ def run_decompress(args: argparse.Namespace) -> int:
     from .app.compression import decompress_file
     from .app.outputs import MODEL, output
     source = Path(args.file)
-    out = Path(args.out) if args.out else source.with_name(f"{source.stem}.decoded.safetensors")
+    out = args.out or source.with_name(f"{source.stem}.decoded.safetensors")
     with output(out, MODEL, [source], args.overwrite) as out:
         print(f"{decompress_file(source, out)}")
     return 0
@@ -1109,12 +1111,29 @@ def _machine_or_bug(command: str, error: Exception) -> int:
     return EXIT_BUG
 
 
+POSITIONALS = {"image": "IMAGE", "run_dir": "RUN_DIR", "run_dirs": "RUN_DIR", "target": "RUN_DIR|MODEL",
+               "file": "FILE"}
+
+
+def _empty_argument(args: argparse.Namespace) -> str | None:
+    """The first argument given as an empty string (`--out ""` would otherwise mean the default place, or the
+    current folder), by its flag; None where there is none."""
+    for name, value in vars(args).items():
+        if value == "" or (isinstance(value, list) and "" in value):
+            return POSITIONALS.get(name, f"--{name.replace('_', '-')}")
+    return None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
     except SystemExit as stop:  # --help, --version, or a usage error already printed in one line
         return stop.code if isinstance(stop.code, int) else 2
     _show_notes()
+    if (empty := _empty_argument(args)) is not None:
+        print(f"cvqpg {args.command}: error: {empty} is empty; give a value (see cvqpg {args.command} --help)",
+              file=sys.stderr)
+        return EXIT_USAGE
     if args.command in FORMER_COMMANDS:
         _warn_former(f"cvqpg {args.command}", f"cvqpg {FORMER_COMMANDS[args.command]}")
         args.command = FORMER_COMMANDS[args.command]

@@ -237,6 +237,18 @@ NUMBERS = cases(
     ("render-size-other-aspect", "render {run} --size 33 24 --out new_render", "aspect ratio"),
     ("render-size-square", "render {run} --size 80 80 --out new_render", "aspect ratio"),
     ("render-size-negative", "render {run} --size -32 -24 --out new_render", "--size"),
+    ("render-size-16-12", "render {run} --size 16 12 --out new_render", "--size 16×12: each side needs at least 16 px"),
+    ("render-size-finer-than-the-wavelengths", "render {run} --size 320 240 --out new_render",
+     "--size 320×240: a wavelength of 6.39e-07 m needs a pixel pitch above"),
+    ("fit-wavelength-beyond-the-pitch", f"fit {FIT} --wavelengths 639e-9 532e-9 6e-6",
+     "which takes wavelengths below 5.28916e-06 m; keep every --wavelengths below it, or give a larger --pitch"),
+    ("fit-pitch-below-the-wavelengths", f"fit {FIT} --pitch 4e-7", "a wavelength of 6.39e-07 m needs a pixel pitch"),
+    ("export-aperture-1e300", "export {run} --aperture 1e300 --out new_export", "give a radius in [0, √2]"),
+    ("export-aperture-2", "export {run} --aperture 2 --out new_export", "--aperture 2"),
+    ("render-distance-twice", "render {run} --distance 0.001 0.001 --out new_render",
+     "--distance 0.001 and 0.001 m would both be written to recon_1mm.png"),
+    ("render-distance-alike-to-6-digits", "render {run} --distance 0.002 0.0010000001 0.001 --out new_render",
+     "give distinct distances"),
     ("view-distances-start-0", "view {run} --distances 0 1 5 --quiet --out new.html", "--distances"),
     ("view-distances-count-0", "view {run} --distances 0.001 0.002 0 --quiet --out new.html", "--distances"),
     ("view-distances-nan", "view {run} --distances 0.001 nan 3 --quiet --out new.html", "--distances"),
@@ -357,6 +369,21 @@ USAGE = cases(
     ("compile-unknown-flag", "compile --bogus-flag", "--bogus-flag"),
     ("compile-extra-argument", "compile extra_argument", "extra_argument"),
     ("compile-device", "compile --device gpu", "--device"),
+    # An empty argument is no path: it would mean the default place, or the current folder.
+    ("fit-out-empty", f"fit {FIT} --out ''", "--out is empty"),
+    ("fit-resume-empty", "fit --resume '' --quiet", "--resume is empty"),
+    ("fit-image-empty", f"fit '' {FIT}", "IMAGE is empty"),
+    ("fit-depth-empty", f"fit {{image}} --depth '' {FIT}", "--depth is empty"),
+    ("compress-out-empty", "compress {run} --bits 8 --out ''", "--out is empty"),
+    ("render-target-empty", "render '' --out new_render", "RUN_DIR|MODEL is empty"),
+    ("eval-target-empty", "eval ''", "RUN_DIR is empty"),
+    ("view-out-empty", f"view {{run}} --quiet {SWEEP} --out ''", "--out is empty"),
+    ("export-out-empty", "export {run} --out ''", "--out is empty"),
+    ("decompress-file-empty", "decompress '' --out new.safetensors", "FILE is empty"),
+    ("encode-resume-empty", "encode --resume '' --quiet", "--resume is empty"),
+    ("results-root-empty-string", "results --root '' --out new.md", "--root is empty"),
+    ("bench-out-empty", f"bench {BENCH} --out ''", "--out is empty"),
+    ("compress-bits-empty", "compress {run} --bits '' --out new.cvq", "--bits is empty"),
 )
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -596,6 +623,24 @@ OUTPUTS = cases(
     ("encode-resume-into-a-users-file", "encode --resume {foreigncvq}.partial --quiet --overwrite", "foreign.cvq"),
     # A failure writes nothing.
     ("info-half-of-a-run-whose-image-is-gone", "info {lost} --half", "lost_photo.png"),
+    # Names and paths longer than the file system takes, with what cvqpg keeps beside an output.
+    ("fit-out-name-of-250-bytes", f"fit {FIT} --out {'n' * 250}", "a name longer than the file system takes"),
+    ("fit-out-name-of-300-bytes", f"fit {FIT} --out {'n' * 300}", "a name longer than the file system takes"),
+    ("fit-out-folder-name-of-300-bytes", f"fit {FIT} --out {'n' * 300}/run", "a name longer than"),
+    ("fit-out-path-of-5000-bytes", f"fit {FIT} --out {'/'.join(['n' * 200] * 25)}", "a path longer than"),
+    ("render-out-name-of-250-bytes", f"render {{run}} --out {'n' * 250}", "a name longer than"),
+    ("export-out-name-of-300-bytes", f"export {{run}} --out {'n' * 300}", "a name longer than"),
+    ("compress-out-name-of-246-bytes", f"compress {{run}} --bits 8 --out {'n' * 246}.cvq", "a name longer than"),
+    ("decompress-out-name-of-300-bytes", f"decompress {{cvq}} --out {'n' * 300}", "a name longer than"),
+    ("view-out-name-of-250-bytes", f"view {{run}} --quiet {SWEEP} --out {'n' * 245}.html", "a name longer than"),
+    ("encode-out-name-of-250-bytes", f"{ENCODE} --bpp 8 --out {'n' * 246}.cvq", "a name longer than"),
+    ("results-out-name-of-250-bytes", f"results --root {{records}} --out {'n' * 247}.md", "a name longer than"),
+    ("bench-out-name-of-300-bytes", f"bench {BENCH} --out {'n' * 300}", "a name longer than"),
+    # A file's name that ends in a slash names a folder.
+    ("view-out-ending-in-a-slash", f"view {{run}} --quiet {SWEEP} --out page/", "names a folder"),
+    ("compress-out-ending-in-a-slash", "compress {run} --bits 8 --out new.cvq/", "names a folder"),
+    ("decompress-out-ending-in-a-slash", "decompress {cvq} --out new.safetensors/", "names a folder"),
+    ("results-out-ending-in-a-slash", "results --root {records} --out new.md/", "names a folder"),
 )
 
 CASES = NUMBERS + USAGE + INPUTS + OUTPUTS
@@ -930,6 +975,26 @@ def test_a_second_writer_of_one_output_is_refused_in_one_line(argv, output, shar
     problems = refusal_problems(argv, code, err, "being written by another cvqpg command", changes)
     assert not problems, "; ".join(problems) + f"\n  stderr: {err.strip()[-800:]}"
     assert not list(work.rglob("*.cvqpg-lock"))
+
+
+@pytest.mark.parametrize("argv", [
+    f"view {{run}} --quiet {SWEEP} --out {{pipe}} --overwrite",
+    "compress {run} --bits 8 --out {pipe} --overwrite",
+    "decompress {cvq} --out {pipe} --overwrite",
+    "results --root {records} --out {pipe} --overwrite",
+    "render {run} --out {pipe} --overwrite",
+    f"fit {FIT} --out {{pipe}} --overwrite",
+])
+def test_a_pipe_or_a_device_is_never_an_output(argv, shared, template, tmp_path, monkeypatch, capsys):
+    """A named pipe (as a device node, /dev/null, would be, which root could otherwise replace): refused, left."""
+    pipe = tmp_path / "pipe.md"
+    os.mkfifo(pipe)
+    hostile_environment(monkeypatch, shared.folder)
+    argv = [token.format(tmp=shared.folder, pipe=pipe, **PLACES) for token in shlex.split(argv)]
+    code, _out, err = cli(argv, capsys)
+    problems = refusal_problems(argv, code, err, "is neither a file nor a folder",
+                                tree_changes(shared.state, tree_state(shared.root)))
+    assert not problems and stat.S_ISFIFO(os.lstat(pipe).st_mode), problems
 
 
 @pytest.mark.slow

@@ -39,6 +39,10 @@ RUN_FILES = (CONFIG_FILE, METRICS_FILE, MODEL_FILE, CHECKPOINT_FILE, HISTORY_FIL
              "amplitude.png", "phase.png", *PLANE_IMAGES)
 LOCK_SUFFIX = ".cvqpg-lock"
 HEAD_BYTES = 64  # enough of a file's start to recognise its kind
+# The most bytes that cvqpg adds to an output's name for what it keeps beside it: a staged folder or a replaced one
+# (".NAME.partial-PID", ".NAME.replaced-PID", a PID of up to 7 digits), the lock, an atomic write, a fit's
+# "NAME.partial".
+ADDED_NAME_BYTES = 18
 
 
 def is_run_folder(path: Path) -> bool:
@@ -129,12 +133,37 @@ def _place(path: Path, role: str) -> Path:
     return Path(os.path.normpath(path))
 
 
+def _check_length(path: Path, given: Path, role: str) -> None:
+    """Every name of `path`, and its own with what cvqpg adds beside it (`ADDED_NAME_BYTES`), within the file
+    system's limits (where they cannot be asked, the usual 255 bytes a name and 4096 a path)."""
+    ancestor = next(folder for folder in Path(os.path.abspath(path)).parents if folder.exists())
+    name_max, path_max = (_limit(ancestor, key, usual) for key, usual in (("PC_NAME_MAX", 255),
+                                                                          ("PC_PATH_MAX", 4096)))
+    longest = max(path.parts, key=lambda part: len(os.fsencode(part)))
+    if len(os.fsencode(path.name)) + ADDED_NAME_BYTES > name_max or len(os.fsencode(longest)) > name_max:
+        raise InputError(f"{role} {given}: a name longer than the file system takes ({name_max} bytes, less "
+                         f"{ADDED_NAME_BYTES} for what cvqpg keeps beside the output); choose a shorter name")
+    if len(os.fsencode(os.path.abspath(path))) + ADDED_NAME_BYTES > path_max:
+        raise InputError(f"{role} {given}: a path longer than the file system takes ({path_max} bytes); choose a "
+                         "shorter one")
+
+
+def _limit(folder: Path, key: str, usual: int) -> int:
+    try:
+        return os.pathconf(folder, key)
+    except (OSError, ValueError):
+        return usual
+
+
 def _refuse_fixed(path: Path, given: Path, inputs: Iterable[Path], role: str) -> None:
-    """What no command writes over, even with `overwrite`: links, its inputs and the folders that hold them, and
-    a run's own files."""
+    """What no command writes over, even with `overwrite`: links, what is neither a file nor a folder (a device,
+    a pipe), its inputs and the folders that hold them, and a run's own files."""
     if path.is_symlink():
         raise InputError(f"{role} {given} is a symbolic link (to {os.readlink(path)}); give the place itself, or "
                          "a new path")
+    if path.exists() and not (path.is_file() or path.is_dir()):
+        raise InputError(f"{role} {given} is neither a file nor a folder (a device, a pipe or a socket); give a "
+                         "new path")
     resolved = path.resolve()
     for source in inputs:
         source_resolved = Path(source).resolve()
@@ -188,8 +217,11 @@ def check_output(path: str | Path, kind: Kind, inputs: Iterable[Path] = (), over
                  role: str = "`out`", make_parents: bool = False) -> Path:
     """The path a command may write its output of `kind` at, by the module's rule, or an `InputError` naming what
     is in the way. `make_parents`: the command creates missing folders above it."""
+    if not kind.folder and str(path).endswith(os.sep):
+        raise InputError(f"{role} {path} names a folder (it ends in {os.sep}); give a file name")
     given = Path(path)
     path = _place(given, role)
+    _check_length(path, given, role)
     _refuse_fixed(path, given, inputs, role)
     _check_parent(path, given, role, make_parents)
     if path.exists():
@@ -203,6 +235,7 @@ def check_continued(path: str | Path, kind: Kind, role: str = "`out`") -> Path:
     """A folder of `kind` that a command adds to (a bench folder): new, empty or already of that kind."""
     given = Path(path)
     path = _place(given, role)
+    _check_length(path, given, role)
     _refuse_fixed(path, given, (), role)
     _check_parent(path, given, role, make_parents=True)
     if path.exists() and not (path.is_dir() and (not any(path.iterdir()) or kind.recognised(path))):
