@@ -1124,6 +1124,24 @@ def _empty_argument(args: argparse.Namespace) -> str | None:
     return None
 
 
+# The thread counts that Numba, OpenMP (PyTorch) and MKL read from the environment as they load: 0 or garbage makes
+# Numba fail, or warn in several lines, before cvqpg could say anything. OpenMP also takes a list per nesting level.
+THREAD_VARIABLES = {"NUMBA_NUM_THREADS": False, "OMP_NUM_THREADS": True, "MKL_NUM_THREADS": False}
+
+
+def _bad_thread_variable() -> str | None:
+    """The first thread-count variable of the environment (`THREAD_VARIABLES`) set to something other than a
+    whole number ≥ 1 (or a list of them, where a list is taken); None where all are fine or unset."""
+    for name, listed in THREAD_VARIABLES.items():
+        value = os.environ.get(name)
+        if value is None:
+            continue
+        counts = value.split(",") if listed else [value]
+        if not all(count.strip().isdigit() and int(count) >= 1 for count in counts):
+            return name
+    return None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
@@ -1134,14 +1152,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"cvqpg {args.command}: error: {empty} is empty; give a value (see cvqpg {args.command} --help)",
               file=sys.stderr)
         return EXIT_USAGE
+    if (variable := _bad_thread_variable()) is not None:
+        print(f"cvqpg {args.command}: error: the environment variable {variable}={os.environ[variable]!r} is not a "
+              f"thread count (a whole number ≥ 1); unset it, or set it to one", file=sys.stderr)
+        return EXIT_USAGE
     if args.command in FORMER_COMMANDS:
         _warn_former(f"cvqpg {args.command}", f"cvqpg {FORMER_COMMANDS[args.command]}")
         args.command = FORMER_COMMANDS[args.command]
+    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         return {"fit": run_fit, "eval": run_eval, "export": run_export, "info": run_info,
                 "render": run_render, "bench": run_bench, "results": run_results,
                 "compile": run_compile, "view": run_view, "compress": run_compress,
                 "decompress": run_decompress, "encode": run_encode}[args.command](args)
+    except Terminated:
+        print(f"cvqpg {args.command}: terminated", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except CvqpgError as error:
         print(f"cvqpg {args.command}: error: {flag_message(str(error))}", file=sys.stderr)
         return EXIT_USAGE
@@ -1152,6 +1178,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"cvqpg {args.command}: interrupted", file=sys.stderr)
         return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+class Terminated(BaseException):
+    """SIGTERM outside a fit's steps (which `StopRequest` ends cleanly): raised where the command is, so that it
+    removes what it half wrote, as after Ctrl-C, instead of dying with its staged folder and lock left behind."""
+
+
+def _terminate(_signum: int, _frame: object) -> None:
+    raise Terminated
 
 
 if __name__ == "__main__":

@@ -31,7 +31,11 @@ import os
 import re
 import shlex
 import shutil
+import signal
 import stat
+import subprocess
+import sys
+import time
 from pathlib import Path
 from typing import NamedTuple
 
@@ -269,6 +273,8 @@ NUMBERS = cases(
     ("compress-bits-position-negative", "compress {run} --bits position=-1 --out new.cvq", "--bits"),
     ("compress-bits-unknown-attribute", "compress {run} --bits nonsense=3 --out new.cvq", "--bits"),
     ("compress-bits-not-a-number", "compress {run} --bits phase=x --out new.cvq", "--bits"),
+    ("compress-bits-an-attribute-twice", "compress {run} --bits phase=3 phase=5 --out new.cvq",
+     "--bits phase=3 and phase=5: give each attribute once"),
     ("bench-jobs-0", f"bench {BENCH} --jobs 0", "--jobs"),
     ("bench-jobs-negative", f"bench {BENCH} --jobs -1", "--jobs"),
     ("bench-threads-0", f"bench {BENCH} --threads 0", "--threads"),
@@ -995,6 +1001,40 @@ def test_a_pipe_or_a_device_is_never_an_output(argv, shared, template, tmp_path,
     problems = refusal_problems(argv, code, err, "is neither a file nor a folder",
                                 tree_changes(shared.state, tree_state(shared.root)))
     assert not problems and stat.S_ISFIFO(os.lstat(pipe).st_mode), problems
+
+
+@pytest.mark.parametrize("variable, value", [("NUMBA_NUM_THREADS", "0"), ("NUMBA_NUM_THREADS", "abc"),
+                                             ("OMP_NUM_THREADS", "0"), ("OMP_NUM_THREADS", "-3"),
+                                             ("OMP_NUM_THREADS", "4,x"), ("MKL_NUM_THREADS", "1.5")])
+def test_a_thread_count_in_the_environment_that_is_none_is_refused(variable, value, shared, monkeypatch, capsys):
+    """Numba reads its count as it loads, and fails (0) or warns in several lines (garbage): refused first."""
+    hostile_environment(monkeypatch, shared.folder)
+    monkeypatch.setenv(variable, value)
+    argv = expand(f"fit {FIT}", shared.folder)
+    code, _out, err = cli(argv, capsys)
+    problems = refusal_problems(argv, code, err, f"{variable}={value!r} is not a thread count",
+                                tree_changes(shared.state, tree_state(shared.root)))
+    assert not problems, problems
+
+
+@pytest.mark.slow
+def test_sigterm_midway_leaves_nothing_half_written(work):
+    """SIGTERM while `render` fills its staged folder: exit 143, one line, and neither the folder nor the lock
+    stays (the default SIGTERM would kill the command where it stands)."""
+    distances = [f"{0.001 + 0.00001 * k:.5f}" for k in range(400)]
+    process = subprocess.Popen([sys.executable, "-m", "cvqpg.cli", "render", "run_a", "--out", "late", "--distance",
+                                *distances], cwd=work, stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "PYTHONPATH": str(ROOT)})
+    try:
+        deadline = time.monotonic() + 300
+        while not list(work.glob(".late.partial-*")) and process.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        process.send_signal(signal.SIGTERM)
+        _out, err = process.communicate(timeout=300)
+    finally:
+        process.kill()
+    assert process.returncode == 128 + signal.SIGTERM and err.strip() == "cvqpg render: terminated", err
+    assert not [path.name for path in work.iterdir() if "late" in path.name]
 
 
 @pytest.mark.slow
