@@ -1142,6 +1142,17 @@ def _bad_thread_variable() -> str | None:
     return None
 
 
+def _cap_thread_variables() -> None:
+    """Lower a thread count of the environment (`THREAD_VARIABLES`, one number) above the cores this process may
+    use to their number, with a note: Numba starts as many threads as it is told (9999 took minutes for one step)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    for name in THREAD_VARIABLES:
+        value = os.environ.get(name, "")
+        if value.isdigit() and int(value) > cores:
+            os.environ[name] = str(cores)
+            print(f"cvqpg: note: {name}={value} lowered to {cores}, the cores this process may use", file=sys.stderr)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
@@ -1156,6 +1167,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"cvqpg {args.command}: error: the environment variable {variable}={os.environ[variable]!r} is not a "
               f"thread count (a whole number ≥ 1); unset it, or set it to one", file=sys.stderr)
         return EXIT_USAGE
+    _cap_thread_variables()
     if args.command in FORMER_COMMANDS:
         _warn_former(f"cvqpg {args.command}", f"cvqpg {FORMER_COMMANDS[args.command]}")
         args.command = FORMER_COMMANDS[args.command]

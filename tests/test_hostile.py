@@ -1017,6 +1017,14 @@ def test_a_thread_count_in_the_environment_that_is_none_is_refused(variable, val
     assert not problems, problems
 
 
+def test_a_thread_count_in_the_environment_beyond_the_cores_is_lowered_with_a_note(monkeypatch, capsys):
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "9999")
+    code, _out, err = cli(["fit", "--size", "32", "24", "--steps", "0"], capsys)  # refused after the environment
+    cores = len(os.sched_getaffinity(0))
+    assert code == 2 and os.environ["NUMBA_NUM_THREADS"] == str(cores)
+    assert f"cvqpg: note: NUMBA_NUM_THREADS=9999 lowered to {cores}" in err
+
+
 @pytest.mark.slow
 def test_sigterm_midway_leaves_nothing_half_written(work):
     """SIGTERM while `render` fills its staged folder: exit 143, one line, and neither the folder nor the lock
