@@ -224,7 +224,7 @@ def read_manifest(path: Path) -> tuple[BatchInput, ...]:
     if unknown:
         raise InputError(f"manifest {path}: unknown column {unknown[0]!r}; the columns are {', '.join(known)}")
     if "image" not in columns:
-        raise InputError(f"manifest {path} has no `image` column (a header line naming its columns comes first: "
+        raise InputError(f"manifest {path} has no image column (a header line naming its columns comes first: "
                          f"{', '.join(known)})")
     items, rows = [], {}
     for line, raw in enumerate(reader, start=2):
@@ -259,7 +259,7 @@ def row_options(item: BatchInput) -> dict[str, Any]:
         try:
             options[name] = ROW_OPTIONS[name](text)
         except ValueError as error:
-            raise InputError(f"{item.origin}: `{name}` {text!r} {error}") from None
+            raise InputError(f"{item.origin}: column {name}: {text!r} {error}") from None
     return options
 
 
@@ -281,17 +281,15 @@ def plan_item(item: BatchInput, folder: Path, settings: BatchSettings, checkpoin
     elif planes > 1 and item.depth is None:
         raise InputError(f"{item.origin}: {planes} planes (`num_planes`) need a depth map; give one (a scene "
                          f"folder's {DEPTH_NAME}, a manifest's `depth` column), or set `num_planes` to 1")
-    budget = None
-    if "bpp" in options or "max_bytes" in options:
-        budget = CompressionSettings(bpp=options.get("bpp"), max_bytes=options.get("max_bytes"),
-                                     finetune_steps=settings.finetune_steps)
-    elif settings.bpp is not None or settings.max_bytes is not None:
-        budget = CompressionSettings(bpp=settings.bpp, max_bytes=settings.max_bytes,
-                                     finetune_steps=settings.finetune_steps)
+    own_budget = "bpp" in options or "max_bytes" in options
+    bpp, max_bytes = ((options.get("bpp"), options.get("max_bytes")) if own_budget
+                      else (settings.bpp, settings.max_bytes))
     if flat.get("steps") is None:
-        flat["steps"] = ENCODE_STEPS if budget is not None else FitConfig().optimisation.steps
+        flat["steps"] = FitConfig().optimisation.steps if bpp is None and max_bytes is None else ENCODE_STEPS
     flat["color"] = flat.get("color") or "rgb"
     try:
+        budget = None if bpp is None and max_bytes is None else CompressionSettings(
+            bpp=bpp, max_bytes=max_bytes, finetune_steps=settings.finetune_steps)
         config = FitConfig.create(options.get("recipe", settings.recipe), num_planes=planes, **flat).validate()
     except CvqpgError as error:
         raise InputError(f"{item.origin}: {error}") from None
