@@ -441,10 +441,10 @@ def _batch_parser(sub: argparse._SubParsersAction) -> None:
                        "rewritten as items finish.")
     p.add_argument("inputs", metavar="INPUTS", help="a folder of scene folders, NAME/image.* with an optional "
                    f"NAME/{DEPTH_FILE} (0 = near; without one the item is fitted at one plane), or a CSV manifest: a "
-                   "header line, then one row per item with the columns image (required), depth and name (default: "
-                   "the image's stem, or its folder's name for image.*), and optional columns that override the "
-                   "options below for the row: color, primitive, recipe, ratio, num_gaussians, steps, seed, planes, "
-                   "bpp, max_bytes; paths relative to the manifest's folder")
+                   "header line, then one row per item with the columns image (required), depth and name (by "
+                   "default the image's stem, or its folder's name for image.*), and optional columns that override "
+                   "the options below for the row: color, primitive, recipe, ratio, num_gaussians, steps, seed, "
+                   "planes, bpp, max_bytes; paths relative to the manifest's folder")
     p.add_argument("--out", metavar="DIR", required=True, help="the batch folder: new, empty, or a batch folder to "
                    "continue")
     _fit_options(p, defaults={"color": "rgb", "steps": f"{DEFAULTS.optimisation.steps}; {ENCODE_STEPS} for a "

@@ -130,7 +130,8 @@ def test_a_manifest_names_its_items_and_reads_its_paths_beside_it(tmp_path):
     assert items[0].image == tmp_path / "frames" / "one.png" and items[0].depth == tmp_path / "frames/one_depth.png"
     assert items[1].depth is None and items[1].options == {"steps": "7", "color": "gray"}
     sushi = plan_item(items[1], tmp_path / "out", BatchSettings(settings={"width": W, "height": H, "steps": 3}))
-    assert (sushi.config.optimisation.steps, sushi.config.targets.color, sushi.config.targets.num_planes) == (7, "gray", 1)
+    targets = sushi.config.targets
+    assert (sushi.config.optimisation.steps, targets.color, targets.num_planes) == (7, "gray", 1)
     assert sushi.note == batch.NO_DEPTH_NOTE and sushi.budget is None and sushi.output == tmp_path / "out" / "sushi"
 
 

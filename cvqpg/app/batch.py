@@ -461,8 +461,8 @@ def summary_rows(folder: Path) -> list[dict[str, Any]]:
         if record is None:
             output, work = folder / item["output"], folder / (item["output"] + PARTIAL_SUFFIX)
             status = DONE if output.exists() else INTERRUPTED if work.exists() else NOT_STARTED
-            record = {"name": item["name"], "status": status, "output": (work if status == INTERRUPTED else output).name,
-                      "note": item["note"]}
+            record = {"name": item["name"], "status": status, "note": item["note"],
+                      "output": (work if status == INTERRUPTED else output).name}
         rows.append({column: record.get(column) for column in SUMMARY_COLUMNS})
     return rows
 
