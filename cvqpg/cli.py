@@ -1123,19 +1123,19 @@ def run_bench(args: argparse.Namespace) -> int:
 
 def run_batch(args: argparse.Namespace) -> int:
     from .app.allocator import keep_freed_memory
-    from .app.batch import BUG, FILESYSTEM, INPUT, MEMORY, BatchSettings, read_inputs, run_batch as batch
+    from .app.batch import BUG, FILESYSTEM, INPUT, MEMORY, SUMMARY_MD, BatchSettings, plan_batch, read_inputs
+    from .app.batch import run_batch as run
     from .app.executors import ExecutorOptions
     from .app.outputs import BATCH, check_continued, claimed
     settings = BatchSettings(args.recipe, _fit_settings(args), _run_options(args), args.bpp, args.max_bytes,
                              args.finetune, args.resize_depth, args.overwrite)
     check_device(settings.run.device)
-    inputs = read_inputs(args.inputs)
     folder = check_continued(args.out, BATCH)
+    plan = plan_batch(read_inputs(args.inputs), folder, settings)
     keep_freed_memory()
     with claimed(folder), StopRequest() as stop_requested:
-        outcome = batch(inputs, folder, settings, ExecutorOptions(),
-                        RunControl(progress=not args.quiet, stop_requested=stop_requested))
-    print(f"cvqpg batch: {outcome.describe()}; summary in {folder / 'summary.md'}")
+        outcome = run(plan, ExecutorOptions(), RunControl(progress=not args.quiet, stop_requested=stop_requested))
+    print(f"cvqpg batch: {outcome.describe()}; summary in {folder / SUMMARY_MD}")
     for name, error in outcome.failures.items():
         print(f"  {name}: {flag_message(error)}", file=sys.stderr)
     if stop_requested.signals:

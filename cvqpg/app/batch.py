@@ -22,7 +22,7 @@ import json
 import math
 import shutil
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -263,8 +263,7 @@ def row_options(item: BatchInput) -> dict[str, Any]:
     return options
 
 
-def plan_item(item: BatchInput, folder: Path, settings: BatchSettings, checkpoint_every: int | None = None
-              ) -> BatchItem:
+def plan_item(item: BatchInput, folder: Path, settings: BatchSettings) -> BatchItem:
     """The work of `item`: the command's `settings` with the item's own options (a row's `ratio` replaces the
     command's `num_gaussians`, a row's budget the command's). Without `num_planes`, an item fits 2 planes, or 1
     without a depth map (with a note); more than one plane without a depth map is an `InputError`, as are options
@@ -298,8 +297,7 @@ def plan_item(item: BatchInput, folder: Path, settings: BatchSettings, checkpoin
         source["depth"] = str(item.depth.resolve())
     if settings.resize_depth:
         source["resize_depth"] = True
-    return BatchItem(item.name, Path(folder), config, source, settings.run, budget, note, settings.redo,
-                     checkpoint_every)
+    return BatchItem(item.name, Path(folder), config, source, settings.run, budget, note, settings.redo)
 
 
 # One item's work.
@@ -515,33 +513,51 @@ def start_batch(folder: Path, inputs: Sequence[BatchInput], outputs: dict[str, s
                                       for item in inputs])
 
 
-def run_batch(inputs: Sequence[BatchInput], folder: Path, settings: BatchSettings = BatchSettings(),
-              options: ExecutorOptions = ExecutorOptions(), control: RunControl = RunControl()) -> BatchOutcome:
-    """Do every item of `inputs` in the batch `folder` (`run_item`, one task each, run by `options`'
-    executor), but for those finished already: `BatchOutcome`. An item whose options cannot work fails at once.
-    The summaries are written before the first task, as each finishes, and at the end."""
-    folder = Path(folder)
-    outcome, items, outputs, notes = BatchOutcome(), [], {}, {}
+@dataclass(frozen=True)
+class BatchPlan:
+    """A batch in `folder`: its `inputs` in order, the work of those whose settings work (`items`), and the error
+    line of each of the others (`refused`, by name)."""
+
+    folder: Path
+    inputs: tuple[BatchInput, ...]
+    items: tuple[BatchItem, ...]
+    refused: dict[str, str]
+
+    def output(self, name: str) -> str:
+        """The name of the item's output in the folder (a refused item's: its name)."""
+        return next((item.output.name for item in self.items if item.name == name), name)
+
+
+def plan_batch(inputs: Sequence[BatchInput], folder: Path, settings: BatchSettings = BatchSettings()) -> BatchPlan:
+    """The work of every item of `inputs` in the batch `folder` (`plan_item`), and the errors of those whose
+    settings cannot work."""
+    items, refused = [], {}
     for given in inputs:
         try:
-            item = plan_item(given, folder, settings, options.checkpoint_every)
+            items.append(plan_item(given, folder, settings))
         except CvqpgError as error:
-            outcome.statuses[given.name], outcome.failures[given.name] = FAILED, str(error)
-            outcome.kinds[given.name] = INPUT
-            outputs[given.name] = given.name
-            continue
-        items.append(item)
-        outputs[item.name], notes[item.name] = item.output.name, item.note
-    start_batch(folder, inputs, outputs, notes)
+            refused[given.name] = str(error)
+    return BatchPlan(Path(folder), tuple(inputs), tuple(items), refused)
+
+
+def run_batch(plan: BatchPlan, options: ExecutorOptions = ExecutorOptions(), control: RunControl = RunControl()
+              ) -> BatchOutcome:
+    """Do the work of every item of `plan` that is not finished (`run_item`, one task each, run by `options`'
+    executor, with its fits' checkpoints every `options.checkpoint_every` steps): `BatchOutcome`. A refused item
+    fails at once. The summaries are written before the first task, as each finishes, and at the end."""
+    folder, outcome = plan.folder, BatchOutcome()
+    start_batch(folder, plan.inputs, {given.name: plan.output(given.name) for given in plan.inputs},
+                {item.name: item.note for item in plan.items})
+    for name, error in plan.refused.items():
+        outcome.statuses[name], outcome.failures[name], outcome.kinds[name] = FAILED, error, INPUT
+        write_record(folder, {"name": name, "status": FAILED, "output": name, "error": error, "kind": INPUT})
     todo = []
-    for item in items:
+    for item in plan.items:
         if item.finished() and not item.redo:
             outcome.statuses[item.name] = SKIPPED
         else:
             _record_path(folder, item.name).unlink(missing_ok=True)
-            todo.append(item)
-    for name, error in outcome.failures.items():
-        write_record(folder, {"name": name, "status": FAILED, "output": outputs[name], "error": error, "kind": INPUT})
+            todo.append(replace(item, checkpoint_every=options.checkpoint_every))
     update_summary(folder)
     tasks = [Task(item.name, partial(run_item, item), item.config.optimisation.steps) for item in todo]
     for name, (status, error) in run_tasks(tasks, options, control, "batch", folder).items():
@@ -551,7 +567,7 @@ def run_batch(inputs: Sequence[BatchInput], folder: Path, settings: BatchSetting
             outcome.failures[name] = record.get("error") or error or "failed"
             outcome.kinds[name] = record.get("kind", BUG)
             if record.get("status") != FAILED:  # the task's process died before it could say so
-                write_record(folder, {"name": name, "status": FAILED, "output": outputs[name],
+                write_record(folder, {"name": name, "status": FAILED, "output": plan.output(name),
                                       "error": outcome.failures[name], "kind": BUG})
     update_summary(folder)
     return outcome
