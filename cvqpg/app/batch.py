@@ -240,7 +240,7 @@ def read_manifest(path: Path) -> tuple[BatchInput, ...]:
         name = row.get("name") or (image.parent.name if image.stem == IMAGE_STEM else image.stem)
         if name in rows:
             raise InputError(f"{origin}: the name {name!r} is line {rows[name]}'s too; names are unique (give a "
-                             "`name` column)")
+                             "name column)")
         rows[name] = line
         depth = path.parent / row["depth"] if row.get("depth") else None
         options = {key: value for key, value in row.items() if key in ROW_OPTIONS and value}
@@ -279,7 +279,7 @@ def plan_item(item: BatchInput, folder: Path, settings: BatchSettings) -> BatchI
         planes, note = (2, None) if item.depth is not None else (1, NO_DEPTH_NOTE)
     elif planes > 1 and item.depth is None:
         raise InputError(f"{item.origin}: {planes} planes (`num_planes`) need a depth map; give one (a scene "
-                         f"folder's {DEPTH_NAME}, a manifest's `depth` column), or set `num_planes` to 1")
+                         f"folder's {DEPTH_NAME}, a manifest's depth column), or set `num_planes` to 1")
     own_budget = "bpp" in options or "max_bytes" in options
     bpp, max_bytes = ((options.get("bpp"), options.get("max_bytes")) if own_budget
                       else (settings.bpp, settings.max_bytes))
