@@ -20,6 +20,7 @@ import fcntl
 import io
 import json
 import math
+import os
 import shutil
 import traceback
 from dataclasses import dataclass, field, replace
@@ -530,14 +531,14 @@ class BatchPlan:
 
 def plan_batch(inputs: Sequence[BatchInput], folder: Path, settings: BatchSettings = BatchSettings()) -> BatchPlan:
     """The work of every item of `inputs` in the batch `folder` (`plan_item`), and the errors of those whose
-    settings cannot work."""
-    items, refused = [], {}
+    settings cannot work. The folder is made absolute: a task may run in another working folder (on Ray)."""
+    folder, items, refused = Path(os.path.abspath(folder)), [], {}
     for given in inputs:
         try:
             items.append(plan_item(given, folder, settings))
         except CvqpgError as error:
             refused[given.name] = str(error)
-    return BatchPlan(Path(folder), tuple(inputs), tuple(items), refused)
+    return BatchPlan(folder, tuple(inputs), tuple(items), refused)
 
 
 def run_batch(plan: BatchPlan, options: ExecutorOptions = ExecutorOptions(), control: RunControl = RunControl()
