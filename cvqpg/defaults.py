@@ -33,6 +33,9 @@ PARTIAL_SUFFIX = ".partial"
 # `cvqpg batch` (`app.batch`): the folder of a batch folder's records, which marks it as one.
 BATCH_RECORDS = ".batch"
 
+# Where the tasks of `bench` and `batch` run (`app.executors`): this machine, or a Ray cluster.
+EXECUTORS = ("local", "ray")
+
 # Fine-tuning steps at the chosen rung where the caller gives none (the rate–distortion benchmark's).
 RATE_FINETUNE_STEPS = 100
 # `cvqpg encode`'s optimisation: float steps, then quantisation-aware ones at the bit depths rate control chose.

@@ -32,8 +32,7 @@ import torch
 
 from ..config import DEFAULT_RECIPE, FitConfig, RunOptions
 from ..control import RunControl
-from ..defaults import (BATCH_RECORDS, CHECKPOINT_SECONDS, ENCODE_FINETUNE_STEPS, ENCODE_STEPS, PARTIAL_SUFFIX,
-                        SUFFIX)
+from ..defaults import BATCH_RECORDS, ENCODE_FINETUNE_STEPS, ENCODE_STEPS, PARTIAL_SUFFIX, SUFFIX
 from ..errors import CvqpgError, InputError, allocation_failure, filesystem_refusal
 from ..files import replace_folder, write_atomic
 from ..fitting import FitInterrupted
@@ -42,7 +41,7 @@ from ..search import CompressionSettings
 from .encoding import encode_budget, encode_config, encode_in_folder, encoding_record, read_encode, start_encode
 from .executors import DONE, FAILED, INTERRUPTED, NOT_STARTED, SKIPPED, ExecutorOptions, Task, run_tasks
 from .provenance import device_name
-from .runner import fit_in_folder, resumed_state, write_fitted_run
+from .runner import checkpoint_policy, fit_in_folder, resumed_state, write_fitted_run
 
 ITEMS_FILE = "items.json"
 SUMMARY_CSV, SUMMARY_MD = "summary.csv", "summary.md"
@@ -303,12 +302,6 @@ def plan_item(item: BatchInput, folder: Path, settings: BatchSettings) -> BatchI
 
 # One item's work.
 
-def _checkpoints(every: int | None) -> dict[str, Any]:
-    """`fit_in_folder`'s checkpoint periods for `checkpoint_every` (as `cvqpg fit --checkpoint-every`)."""
-    return {"checkpoint_every_steps": every or None, "checkpoint_every_seconds": None if every == 0
-            else CHECKPOINT_SECONDS}
-
-
 def _check_place(item: BatchItem) -> None:
     """What lies at the item's output is the batch's own: a run folder, or a file (a `.cvq` item's)."""
     output = item.output
@@ -342,7 +335,7 @@ def _fit_item(item: BatchItem, control: RunControl) -> str:
             start_run(work, item.config, item.source, item.run)
         try:
             result = fit_in_folder(work, scene, item.config, item.run, control, state,
-                                   **_checkpoints(item.checkpoint_every))
+                                   **checkpoint_policy(item.checkpoint_every))
         except FitInterrupted:
             return INTERRUPTED
         write_fitted_run(work, result, scene, item.source)
@@ -377,7 +370,7 @@ def _encode_item(item: BatchItem, control: RunControl) -> str:
         start_encode(work, config, item.source, budget, finetune_steps, item.run)
     try:
         encoded = encode_in_folder(work, scene, config, budget, finetune_steps, item.run, control,
-                                   **_checkpoints(item.checkpoint_every))
+                                   **checkpoint_policy(item.checkpoint_every))
     except FitInterrupted:
         return INTERRUPTED
     record = encoding_record(encoded, item.output, budget)
@@ -561,7 +554,7 @@ def run_batch(plan: BatchPlan, options: ExecutorOptions = ExecutorOptions(), con
             todo.append(replace(item, checkpoint_every=options.checkpoint_every))
     update_summary(folder)
     tasks = [Task(item.name, partial(run_item, item), item.config.optimisation.steps) for item in todo]
-    for name, (status, error) in run_tasks(tasks, options, control, "batch", folder).items():
+    for name, (status, error) in run_tasks(tasks, options, control, "batch", folder, "item").items():
         outcome.statuses[name] = status
         if status == FAILED:
             record = read_item_record(folder, name) or {}
