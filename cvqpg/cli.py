@@ -1171,7 +1171,8 @@ def run_bench(args: argparse.Namespace) -> int:
 
 def run_batch(args: argparse.Namespace) -> int:
     from .app.allocator import keep_freed_memory
-    from .app.batch import BUG, FILESYSTEM, INPUT, MEMORY, SUMMARY_MD, BatchSettings, plan_batch, read_inputs
+    from .app.batch import (BUG, FILESYSTEM, INPUT, MEMORY, SUMMARY_MD, BatchSettings, check_settings, plan_batch,
+                            read_inputs)
     from .app.batch import run_batch as run
     from .app.outputs import BATCH, check_continued, claimed
     from .fitting import estimated_peak_bytes
@@ -1179,6 +1180,7 @@ def run_batch(args: argparse.Namespace) -> int:
                              args.finetune, args.resize_depth, args.overwrite)
     device = settings.run.device
     check_device(device)
+    check_settings(settings)
     executor = executor_options(args)
     folder = check_continued(args.out, BATCH)
     plan = plan_batch(read_inputs(args.inputs), folder, settings)

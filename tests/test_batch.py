@@ -152,16 +152,17 @@ def test_a_manifest_that_cannot_be_read_is_one_line_before_any_fit(tmp_path, row
 
 def test_an_items_own_options_replace_the_commands_and_those_that_cannot_work_fail_that_item(tmp_path):
     settings = BatchSettings(settings={"width": W, "height": H, "num_gaussians": 50, "num_planes": None},
-                             bpp=2.0)
-    item = BatchInput("a", tmp_path / "a.png", tmp_path / "a_depth.png", {"ratio": "0.1", "max_bytes": "300"}, "row 2")
+                             bpp=8.0)
+    item = BatchInput("a", tmp_path / "a.png", tmp_path / "a_depth.png", {"ratio": "0.1", "max_bytes": "600"}, "row 2")
     planned = plan_item(item, tmp_path, settings)
     assert planned.config.primitive_count == round(0.1 * W * H / 2) and planned.config.targets.num_planes == 2
-    assert (planned.budget.bpp, planned.budget.max_bytes) == (None, 300) and planned.output == tmp_path / "a.cvq"
+    assert (planned.budget.bpp, planned.budget.max_bytes) == (None, 600) and planned.output == tmp_path / "a.cvq"
     assert planned.config.optimisation.steps == batch.ENCODE_STEPS  # a .cvq item's default, as encode's
-    assert plan_item(BatchInput("b", tmp_path / "b.png"), tmp_path, settings).budget.bpp == 2.0
+    assert plan_item(BatchInput("b", tmp_path / "b.png"), tmp_path, settings).budget.bpp == 8.0
     for options, message in (({"steps": "many"}, "row 2: column steps: 'many' is not a whole number"),
                              ({"color": "sepia"}, "row 2: `color` 'sepia' is not one of"),
                              ({"planes": "3"}, "row 2: 3 planes (`num_planes`) need a depth map"),
+                             ({"max_bytes": "100"}, "row 2: .*smallest file"),
                              ({"bpp": "1", "max_bytes": "300"}, "give one goal")):
         with pytest.raises(InputError, match=message.replace("(", r"\(").replace(")", r"\)")):
             plan_item(BatchInput("b", tmp_path / "b.png", None, options, "row 2"), tmp_path, settings)
@@ -216,11 +217,11 @@ class CountedStop(cli.StopRequest):
 @pytest.mark.slow
 def test_an_interrupted_batch_resumes_to_the_parameters_of_an_uninterrupted_one(tmp_path, monkeypatch, capsys):
     scenes = scene_folders(tmp_path / "scenes", names=("a", "b"))
-    steps = ["--steps", "8"]
+    steps = ["--steps", "8", "--checkpoint-every", "2"]
     assert main(["batch", str(scenes), "--out", str(tmp_path / "whole"), *TINY, *steps]) == 0
     monkeypatch.setattr(cli, "StopRequest", CountedStop)
     monkeypatch.setattr(CountedStop, "asked", [])
-    monkeypatch.setattr(CountedStop, "after", 4)
+    monkeypatch.setattr(CountedStop, "after", 5)  # after the checkpoint of step 2, before step 5
     out = tmp_path / "out"
     assert main(["batch", str(scenes), "--out", str(out), *TINY, *steps]) == 128 + signal.SIGINT
     rows = summary(out)
@@ -244,3 +245,23 @@ def test_overwrite_fits_finished_items_again_and_replaces_each(tmp_path, fits):
     assert main(["batch", str(scenes), "--out", str(out), *TINY, "--overwrite", "--steps", "4"]) == 0
     assert fits == ["a.partial", "a.partial"]
     assert json.loads((out / "a" / "metrics.json").read_text())["steps"] == 4 and summary(out)["a"]["steps"] == "4"
+
+
+def models(folder, names):
+    return {name: load_model(folder / name / "model.safetensors")[0].tensors() for name in names}
+
+
+@pytest.mark.slow
+def test_a_batch_on_ray_gives_the_local_executors_results_bit_for_bit(tmp_path):
+    scenes = scene_folders(tmp_path / "scenes", corrupt=("c",))
+    arguments = ["batch", str(scenes), *TINY, "--threads", "1"]
+    assert main([*arguments, "--out", str(tmp_path / "local")]) == cli.EXIT_USAGE
+    assert main([*arguments, "--out", str(tmp_path / "ray"), "--executor", "ray"]) == cli.EXIT_USAGE  # Ray on 2 CPUs
+    local, on_ray = summary(tmp_path / "local"), summary(tmp_path / "ray")
+    assert [row["status"] for row in on_ray.values()] == [row["status"] for row in local.values()]
+    assert on_ray["c"]["error"] == local["c"]["error"] and "not an image file" in local["c"]["error"]
+    names = [name for name, row in local.items() if row["status"] == "done"]
+    assert names == ["a", "b", "d", "e"]
+    ray_models, local_models = models(tmp_path / "ray", names), models(tmp_path / "local", names)
+    assert all(torch.equal(ray_models[name][key], local_models[name][key])
+               for name in names for key in local_models[name])

@@ -259,16 +259,16 @@ def row_options(item: BatchInput) -> dict[str, Any]:
         try:
             options[name] = ROW_OPTIONS[name](text)
         except ValueError as error:
-            raise InputError(f"{item.origin}: column {name}: {text!r} {error}") from None
+            raise InputError(f"column {name}: {text!r} {error}") from None
     return options
 
 
-def plan_item(item: BatchInput, folder: Path, settings: BatchSettings) -> BatchItem:
-    """The work of `item`: the command's `settings` with the item's own options (a row's `ratio` replaces the
-    command's `num_gaussians`, a row's budget the command's). Without `num_planes`, an item fits 2 planes, or 1
-    without a depth map (with a note); more than one plane without a depth map is an `InputError`, as are options
-    that cannot work."""
-    options = row_options(item)
+def item_settings(settings: BatchSettings, options: dict[str, Any], has_depth: bool
+                  ) -> tuple[FitConfig, CompressionSettings | None, str | None]:
+    """The fit, the budget (None: a run folder) and the summary's note of an item with the command's `settings`
+    and its own `options` (`row_options`): a row's `ratio` replaces the command's `num_gaussians`, a row's budget
+    the command's. Without `num_planes`, an item fits 2 planes, or 1 without a depth map (with a note); more than
+    one plane without a depth map is an `InputError`, as are settings that cannot work (a `ConfigError`)."""
     flat = {**settings.settings, **{k: v for k, v in options.items() if k not in ("recipe", "planes", "bpp",
                                                                                    "max_bytes")}}
     if "ratio" in options and "num_gaussians" not in options:
@@ -276,20 +276,34 @@ def plan_item(item: BatchInput, folder: Path, settings: BatchSettings) -> BatchI
     planes = options.get("planes", flat.pop("num_planes", None))
     note = None
     if planes is None:
-        planes, note = (2, None) if item.depth is not None else (1, NO_DEPTH_NOTE)
-    elif planes > 1 and item.depth is None:
-        raise InputError(f"{item.origin}: {planes} planes (`num_planes`) need a depth map; give one (a scene "
-                         f"folder's {DEPTH_NAME}, a manifest's depth column), or set `num_planes` to 1")
+        planes, note = (2, None) if has_depth else (1, NO_DEPTH_NOTE)
+    elif planes > 1 and not has_depth:
+        raise InputError(f"{planes} planes (`num_planes`) need a depth map; give one (a scene folder's "
+                         f"{DEPTH_NAME}, a manifest's depth column), or set `num_planes` to 1")
     own_budget = "bpp" in options or "max_bytes" in options
     bpp, max_bytes = ((options.get("bpp"), options.get("max_bytes")) if own_budget
                       else (settings.bpp, settings.max_bytes))
+    budget = CompressionSettings(bpp=bpp, max_bytes=max_bytes, finetune_steps=settings.finetune_steps)
     if flat.get("steps") is None:
-        flat["steps"] = FitConfig().optimisation.steps if bpp is None and max_bytes is None else ENCODE_STEPS
+        flat["steps"] = ENCODE_STEPS if budget.budgeted else FitConfig().optimisation.steps
     flat["color"] = flat.get("color") or "rgb"
+    config = FitConfig.create(options.get("recipe", settings.recipe), num_planes=planes, **flat).validate()
+    if budget.budgeted:
+        encode_budget(config, budget)
+    return config, budget if budget.budgeted else None, note
+
+
+def check_settings(settings: BatchSettings) -> None:
+    """The command's `settings` work for an item with a depth map and no options of its own (else a
+    `CvqpgError`), so that settings that cannot work stop the batch before anything is written."""
+    item_settings(settings, {}, has_depth=True)
+
+
+def plan_item(item: BatchInput, folder: Path, settings: BatchSettings) -> BatchItem:
+    """The work of `item` in the batch `folder` (`item_settings`); an `InputError` naming the item where its
+    options cannot work."""
     try:
-        budget = None if bpp is None and max_bytes is None else CompressionSettings(
-            bpp=bpp, max_bytes=max_bytes, finetune_steps=settings.finetune_steps)
-        config = FitConfig.create(options.get("recipe", settings.recipe), num_planes=planes, **flat).validate()
+        config, budget, note = item_settings(settings, row_options(item), item.depth is not None)
     except CvqpgError as error:
         raise InputError(f"{item.origin}: {error}") from None
     source = {"image": str(item.image.resolve())}
@@ -356,7 +370,7 @@ def _run_record(item: BatchItem, folder: Path) -> dict[str, Any]:
 
 def _encode_item(item: BatchItem, control: RunControl) -> str:
     """Encode `item` into its `.cvq` file (`app.encoding`'s workflow), resuming the checkpoint in `item.work`."""
-    budget = encode_budget(item.config, item.budget)
+    budget = encode_budget(item.config, item.budget)  # checked when planned; the budget in bytes
     config = encode_config(item.config, budget)
     finetune_steps = item.budget.finetune_steps
     scene = scene_from_source(item.source, config)
