@@ -14,6 +14,7 @@ from PIL import Image
 from cvqpg import cli
 from cvqpg.app import batch
 from cvqpg.app.batch import BatchInput, BatchSettings, plan_item, read_inputs
+from cvqpg.app.encoding import start_encode
 from cvqpg.cli import main
 from cvqpg.errors import InputError
 from cvqpg.storage import load_model, read_compressed
@@ -265,3 +266,24 @@ def test_a_batch_on_ray_gives_the_local_executors_results_bit_for_bit(tmp_path):
     ray_models, local_models = models(tmp_path / "ray", names), models(tmp_path / "local", names)
     assert all(torch.equal(ray_models[name][key], local_models[name][key])
                for name in names for key in local_models[name])
+
+
+@pytest.mark.slow
+def test_an_interrupted_cvq_item_resumes_from_its_checkpoint_to_the_same_file(tmp_path, monkeypatch):
+    scenes = scene_folders(tmp_path / "scenes", names=("a",))
+    arguments = ["batch", str(scenes), *TINY, "--steps", "8", "--finetune", "2", "--bpp", "8", "--checkpoint-every",
+                 "2"]
+    assert main([*arguments, "--out", str(tmp_path / "whole")]) == 0
+    started = []
+    monkeypatch.setattr(batch, "start_encode", lambda *args: started.append(args) or start_encode(*args))
+    monkeypatch.setattr(cli, "StopRequest", CountedStop)
+    monkeypatch.setattr(CountedStop, "asked", [])
+    monkeypatch.setattr(CountedStop, "after", 5)
+    out = tmp_path / "out"
+    assert main([*arguments, "--out", str(out)]) == 128 + signal.SIGINT
+    assert summary(out)["a"]["status"] == "interrupted" and (out / "a.cvq.partial" / "checkpoint.pt").is_file()
+    monkeypatch.setattr(CountedStop, "after", None)
+    assert main([*arguments, "--out", str(out)]) == 0
+    assert len(started) == 1  # the rerun resumed the encode's folder instead of starting it again
+    assert (out / "a.cvq").read_bytes() == (tmp_path / "whole" / "a.cvq").read_bytes()
+    assert not (out / "a.cvq.partial").exists() and summary(out)["a"]["status"] == "done"
