@@ -1136,6 +1136,8 @@ def run_bench(args: argparse.Namespace) -> int:
     overrides = Overrides(scenes_dir=args.scenes, scene_names=args.scene_names, colors=args.colors,
                           ratios=args.ratios, methods=args.methods, seeds=seeds, size=args.size, steps=args.steps,
                           curvature_warmup=args.curvature_warmup, device=args.device, backend=args.backend)
+    if args.out is not None:
+        check_continued(args.out, BENCH)  # before the plan reads the records there
     plan = make_plan(args.preset, args.out, overrides)
     for option, given in (("--fits", bool(args.fits)), ("--finetune", args.finetune != 0)):
         if given and (not PRESETS[args.preset].rate_distortion or PRESETS[args.preset].encode_fractions):

@@ -47,7 +47,10 @@ ADDED_NAME_BYTES = 18
 
 
 def is_run_folder(path: Path) -> bool:
-    return (Path(path) / CONFIG_FILE).is_file()
+    try:
+        return (Path(path) / CONFIG_FILE).is_file()
+    except OSError:  # a name too long to look up, which `check_output` names
+        return False
 
 
 def _head(path: Path) -> bytes:
@@ -138,7 +141,7 @@ def _place(path: Path, role: str) -> Path:
 def _check_length(path: Path, given: Path, role: str) -> None:
     """Every name of `path`, and its own with what cvqpg adds beside it (`ADDED_NAME_BYTES`), within the file
     system's limits (where they cannot be asked, the usual 255 bytes a name and 4096 a path)."""
-    ancestor = next(folder for folder in Path(os.path.abspath(path)).parents if folder.exists())
+    ancestor = next(folder for folder in Path(os.path.abspath(path)).parents if os.path.exists(folder))
     name_max, path_max = (_limit(ancestor, key, usual) for key, usual in (("PC_NAME_MAX", 255),
                                                                           ("PC_PATH_MAX", 4096)))
     longest = max(path.parts, key=lambda part: len(os.fsencode(part)))
