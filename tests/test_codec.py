@@ -13,6 +13,7 @@ import torch
 from cvqpg import FitConfig, load_model
 from cvqpg.cli import main
 from cvqpg.codec import (CHECKSUM, MAGIC, PREFIX, BitDepths, coding, decode, decode_stream, derived_depths, encode,
+                         header_start,
                          encode_stream, file_order, importance_offsets, rotation_depths)
 from cvqpg.errors import ModelFileError
 from cvqpg.fitting import render
@@ -155,10 +156,12 @@ def test_long_tailed_streams_take_the_bit_length_coding():
 def tampered(data: bytes, change) -> bytes:
     """A `.cvq` file whose header `change` (a function of the header's dict) altered, checksum recomputed."""
     _, version, length = PREFIX.unpack_from(data)
-    header = json.loads(zlib.decompress(data[PREFIX.size:PREFIX.size + length]))
+    start = header_start(version)
+    header = json.loads(zlib.decompress(data[start:start + length]))
     change(header)
     packed = zlib.compress(json.dumps(header).encode())
-    body = PREFIX.pack(MAGIC, version, len(packed)) + packed + data[PREFIX.size + length:-CHECKSUM.size]
+    body = PREFIX.pack(MAGIC, version, len(packed)) + data[PREFIX.size:start] + packed \
+        + data[start + length:-CHECKSUM.size]
     return body + CHECKSUM.pack(zlib.crc32(body))
 
 
