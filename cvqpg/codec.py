@@ -416,8 +416,12 @@ def quantise(primitives: Primitives, config: FitConfig, bits: BitDepths, tools: 
     values = folded(coded.values)
     codes = {name: coded.quantisers[name].codes(values[name]) for name in ATTRIBUTES if name in values}
     if AXES in tools:
-        axes = ordered_axes(codes.pop("scale"), codes["rotation"], coded.depths["rotation"])
-        codes = {**codes, **axes}
+        axes, ordered = ordered_axes(codes["scale"], codes["rotation"], coded.depths["rotation"]), {}
+        for name, symbols in codes.items():  # elongation right after scale
+            ordered[name] = axes.get(name, symbols)
+            if name == "scale":
+                ordered["elongation"] = axes["elongation"]
+        codes = ordered
     order = file_order(coded)
     depths = {name: depth[order].numpy() for name, depth in coded.depths.items()}
     whole, fraction = whole_pixels(codes.pop("position")[order], coded.depths["position"][order])

@@ -10,6 +10,7 @@ import copy
 import json
 import math
 import zlib
+from pathlib import Path
 
 import pytest
 import torch
@@ -37,7 +38,11 @@ def small_file(config: FitConfig, seed: int) -> bytes:
                                                            curvature=6))
 
 
-FILES = [small_file(config, seed) for seed, config in enumerate(CONFIGS)]
+# the current encoder's files, format 5's golden grayscale file (turned phases), and the golden files of format 4
+# (whose header follows the prefix directly)
+FILES = [small_file(config, seed) for seed, config in enumerate(CONFIGS)] + \
+    [(Path(__file__).parent / "data" / name).read_bytes()
+     for name in ("format_v5_gray.cvq", "format_v4.cvq", "format_v4_gray.cvq")]
 
 
 def parts(data: bytes) -> tuple[int, dict, bytes]:
@@ -95,12 +100,14 @@ def altered_files(draw) -> bytes:
         payload[draw(st.integers(min_value=0, max_value=len(payload) - 1))] = draw(st.integers(0, 255))
     if draw(st.integers(0, 9)) == 0:
         payload = payload[:draw(st.integers(min_value=0, max_value=len(payload)))]
-    return packed(version if draw(st.integers(0, 9)) else draw(st.sampled_from([1, 2, 3])), header, bytes(payload))
+    return packed(version if draw(st.integers(0, 9)) else draw(st.sampled_from([1, 2, 3, 4, 5])), header,
+                  bytes(payload))
 
 
 def test_the_unaltered_files_decode():
     for data, config in zip(FILES, CONFIGS):
         assert decode(data).primitives.count == config.primitive_count
+    assert any(turned for data in FILES for turned in ["turn" in json.dumps(parts(data)[1])])
 
 
 @pytest.mark.slow
