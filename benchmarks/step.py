@@ -130,7 +130,7 @@ def load_raw_parameters(gaussians: Gaussians, primitives: Primitives, config: Fi
         gaussians.position.copy_(torch.atanh((2 * primitives.position_px / extent - 1).clamp(-inside, inside)))
         gaussians.scale.copy_(torch.log((primitives.scale_px - MIN_SCALE_PX).clamp(min=OPEN_INTERVAL_MARGIN)))
         gaussians.rotation.copy_(primitives.rotation_rad)
-        gaussians.color.copy_(primitives.amplitude)
+        gaussians.amplitude.copy_(primitives.amplitude)
         gaussians.phase.copy_(primitives.phase_rad)
         gaussians.opacity.copy_(torch.logit(primitives.opacity, eps=OPEN_INTERVAL_MARGIN))
         gaussians.curvature.copy_(torch.atanh(share.clamp(-inside, inside)).view_as(gaussians.curvature))

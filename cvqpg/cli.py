@@ -26,14 +26,15 @@ from .config import (BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITI
                      RunOptions, check_distances, check_time_budget, default_curvature_warmup)
 from .control import RunControl
 from .defaults import (CHECKPOINT_SECONDS, DEFAULT_APERTURE, DEFAULT_LEVELS, DEFAULT_SWEEP, DEPTH_FILE, DEPTH_MODEL,
-                       ENCODE_FINETUNE_STEPS, ENCODE_STEPS, ENCODINGS, RATE_FINETUNE_STEPS, SCENE_NAMES, SUFFIX,
-                       VIEW_FILE)
+                       ENCODE_FINETUNE_STEPS, ENCODE_STEPS, ENCODINGS, EXECUTORS, RATE_FINETUNE_STEPS, SCENE_NAMES,
+                       SUFFIX, VIEW_FILE)
 from .deprecations import REMOVED_IN
 from .errors import CvqpgError, allocation_failure, filesystem_refusal
 
 if TYPE_CHECKING:
     from PIL import Image
 
+    from .app.executors import ExecutorOptions
     from .fitting import FitState
     from .search import CompressionSettings
     from .targets import Scene
@@ -385,9 +386,7 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--backend", choices=BACKENDS, help="kernels [default: auto]")
     p.add_argument("--shard", metavar="I/N", help="fit only cells I, I+N, I+2N, ... of the grid (1 ≤ I ≤ N), "
                    "e.g. ${SLURM_ARRAY_TASK_ID}/${SLURM_ARRAY_TASK_COUNT} in a job array")
-    p.add_argument("--jobs", type=whole, default=1, metavar="K", help="cells fitted at once")
-    p.add_argument("--threads", type=whole, metavar="T", help="threads of each fit (PyTorch and Numba) [default: "
-                   "cores/K, at least 1; cores are those this process may use, at most OMP_NUM_THREADS]")
+    _executor_arguments(p, "cells")
     p.add_argument("--reuse", nargs="+", default=[], metavar="DIR", help="other bench folders whose finished "
                    "cells with the same settings are copied instead of fitted (e.g. the chromatic grid reuses "
                    "results/paper's baseline and CVQPG cells)")
@@ -402,6 +401,44 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
                    "and report from the finished cells")
     p.add_argument("--dry-run", action="store_true", help="list the cells (of the shard) and their status")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _executor_arguments(p: argparse.ArgumentParser, tasks: str) -> None:
+    """Where the `tasks` (cells, items) of `bench` and `batch` run: this machine or a Ray cluster
+    (`executor_options` reads them)."""
+    p.add_argument("--executor", choices=EXECUTORS, default="local", help=f"local: the {tasks} run on this "
+                   f"machine (--jobs at once); ray: each of the {tasks} is a task of a Ray cluster (--ray-address), "
+                   'retried where its worker or node dies (the extra: pip install "cvqpg[ray]"; docs/scale.md)')
+    p.add_argument("--jobs", type=whole, metavar="K", help=f"--executor local: {tasks} fitted at once, in "
+                   "worker processes above 1 [default: 1]")
+    p.add_argument("--threads", type=whole, metavar="T", help="threads of each fit (PyTorch and Numba), and its "
+                   "CPUs on Ray [default: local: cores/K, at least 1, cores being those this process may use, at "
+                   "most OMP_NUM_THREADS; ray: 1]")
+    p.add_argument("--ray-address", metavar="ADDRESS", help="--executor ray: the cluster to run on: auto (the one "
+                   "`ray start` made this machine part of), HOST:PORT or ray://HOST:PORT [default: a Ray instance "
+                   "on this machine, started and stopped by the command]")
+    p.add_argument("--gpus-per-fit", type=finite, metavar="F", help="--executor ray: GPUs reserved for each fit "
+                   "(0.25: four fits share a GPU) [default: 1 with --device cuda, else 0]")
+    p.add_argument("--checkpoint-every", type=whole, metavar="K", help="save each fit's checkpoint every K steps "
+                   "(0: only when interrupted), from which a rerun or a Ray retry resumes [default: every "
+                   f"{CHECKPOINT_SECONDS / 60:g} minutes of work]")
+
+
+def executor_options(args: argparse.Namespace) -> "ExecutorOptions":
+    """The executor that `_executor_arguments`' flags ask for, validated: a one-line usage error for a flag that
+    is not its executor's."""
+    from .app.executors import ExecutorOptions
+    ray = args.executor == "ray"
+    if ray and args.jobs is not None:
+        raise UsageError(f"--jobs is for --executor local; on Ray, the {args.command} runs as many fits at once as "
+                         "the cluster's CPUs (--threads each) and GPUs (--gpus-per-fit each) allow")
+    for flag, given in (("--ray-address", args.ray_address is not None), ("--gpus-per-fit",
+                                                                          args.gpus_per_fit is not None)):
+        if given and not ray:
+            raise UsageError(f"{flag} is for --executor ray")
+    gpus = args.gpus_per_fit if args.gpus_per_fit is not None else float(ray and args.device == "cuda")
+    return ExecutorOptions(args.executor, 1 if args.jobs is None else args.jobs, args.threads, args.ray_address, gpus,
+                           args.checkpoint_every).validate()
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -524,6 +561,21 @@ def check_memory(config: FitConfig, device: str, work: str = "fit", remedy: str 
                  if config.optics.guard_band_px != DEFAULTS.optics.guard_band_px else "")
         raise UsageError(f"a {width}×{height} {work} with {count} plane(s){guard} needs about "
                          f"{needed / 2**30:.1f} GiB but {available / 2**30:.1f} GiB are {where}; {remedy}")
+
+
+def check_fits_at_once(peak: int, executor: "ExecutorOptions", device: str) -> None:
+    """Refuse to run as many fits at once on this machine as `executor` would (`fits_at_once`), each of `peak`
+    bytes, where their memory exceeds what `device` offers (unknown: accepted)."""
+    count = executor.fits_at_once(device)
+    needed, available = count * peak, device_memory_bytes(device) if count else None
+    if available is None or needed <= available:
+        return
+    given = (f"--jobs {executor.jobs}" if executor.kind == "local" else
+             f"{count} fits at once on this machine's Ray instance")
+    remedy = ("lower --jobs or --size" if executor.kind == "local" else
+              "raise --gpus-per-fit or --threads, or lower --size")
+    raise UsageError(f"{given} needs about {needed / 2**30:.1f} GiB but {available / 2**30:.1f} GiB are available "
+                     f"on {device}; {remedy}")
 
 
 class StopRequest:
@@ -679,10 +731,9 @@ def _resumable(work: Path, command: str, body: Callable[[Callable[[], bool]], No
 def _fit(plan: FitPlan, args: argparse.Namespace) -> int:
     """Fit in `plan.work` (`_resumable`) and put the run at `plan.final`."""
     from .app.outputs import claimed
-    from .app.runner import fit_in_folder, write_fitted_run
+    from .app.runner import checkpoint_policy, fit_in_folder, write_fitted_run
     from .files import replace_folder
     from .runs import start_run
-    every = args.checkpoint_every
 
     def body(stop_requested: Callable[[], bool]) -> None:
         if plan.state is None:
@@ -691,8 +742,7 @@ def _fit(plan: FitPlan, args: argparse.Namespace) -> int:
             plan.depth.save(plan.work / DEPTH_FILE)
         result = fit_in_folder(plan.work, plan.scene, plan.config, plan.run,
                                RunControl(progress=not args.quiet, stop_requested=stop_requested), plan.state,
-                               checkpoint_every_steps=every if every else None,
-                               checkpoint_every_seconds=None if every == 0 else CHECKPOINT_SECONDS)
+                               **checkpoint_policy(args.checkpoint_every))
         write_fitted_run(plan.work, result, plan.scene, plan.source)
 
     with claimed(plan.final, plan.role):
@@ -1036,6 +1086,7 @@ def run_bench(args: argparse.Namespace) -> int:
         raise UsageError(f"--summary-only: {plan.folder} holds no {CELLS_DIR}/ to summarise; fit the grid first, "
                          "or give its --out")
     check_continued(plan.folder, BENCH)
+    executor = executor_options(args)
     cells = plan.shard(*parse_shard(args.shard)) if args.shard else plan.cells
     if args.dry_run:
         listing = describe_cells(plan, cells, [Path(d) for d in args.reuse])
@@ -1045,16 +1096,12 @@ def run_bench(args: argparse.Namespace) -> int:
     if not args.summary_only:
         keep_freed_memory()
         device = plan.cells[0].run.device
-        needed, available = peak_bytes(cells, args.jobs), device_memory_bytes(device)
-        if available is not None and needed > available:
-            raise UsageError(f"--jobs {args.jobs} needs about {needed / 2**30:.1f} GiB but {available / 2**30:.1f} "
-                             f"GiB are available on {device}; lower --jobs or --size")
+        check_fits_at_once(peak_bytes(cells, 1), executor, device)
         with StopRequest() as stop_requested:
             control = RunControl(progress=not args.quiet, stop_requested=stop_requested)
-            outcome = run_plan(plan, cells, args.jobs, control,
-                               reuse=[Path(d) for d in args.reuse],
+            outcome = run_plan(plan, cells, control=control, reuse=[Path(d) for d in args.reuse],
                                rate_distortion=RateDistortionOptions(tuple(Path(d) for d in args.fits), args.finetune),
-                               threads=args.threads)
+                               executor=executor)
         print(f"cvqpg bench: {outcome.describe()}")
         for name, error in outcome.failures.items():
             print(f"  {name}: {error}", file=sys.stderr)

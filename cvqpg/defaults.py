@@ -29,6 +29,9 @@ DEFAULT_APERTURE = 0.5
 # A fit's checkpoint period in seconds of work (`app.runner`).
 CHECKPOINT_SECONDS = 180.0
 
+# Where the tasks of `bench` and `batch` run (`app.executors`): this machine, or a Ray cluster.
+EXECUTORS = ("local", "ray")
+
 # Fine-tuning steps at the chosen rung where the caller gives none (the rate–distortion benchmark's).
 RATE_FINETUNE_STEPS = 100
 # `cvqpg encode`'s optimisation: float steps, then quantisation-aware ones at the bit depths rate control chose.

@@ -70,14 +70,16 @@ def test_the_rasterizer_kernels_are_compiled_from_the_types_a_fit_calls_them_wit
     assert {(kernel, signature) for kernel in KERNEL_TYPES for signature in kernel.signatures} == from_types
 
 
-def test_the_probe_serves_more_planes_than_the_demo_depth_separates():
+def test_the_probe_serves_more_planes_than_the_demo_depth_separates(caplog):
     config = FitConfig.create(num_planes=5, color="gray")
     probe = compilation.probe_config(config)
     demo = builtin_pictures("demo", probe.targets.width, probe.targets.height)
     with pytest.raises(ValueError, match="separates only 3"):  # the demo's own depth at the probe's size
         load_scene(demo.image, demo.depth, probe)
-    scene = compilation.probe_scene(probe)
+    with caplog.at_level("INFO", logger="cvqpg"):
+        scene = compilation.probe_scene(probe)
     assert scene.masks.shape[0] == 5 and all(mask.any() for mask in scene.masks)
+    assert not caplog.records  # the probe's own depth ramp is no user input to note
     compile_kernels(config)
     # The propagation takes a tuple of one array per plane: the probe compiled the five-plane kernels.
     mirrored = (propagation_kernels.mirrored_products, propagation_kernels.mirrored_sum)

@@ -20,10 +20,8 @@ import threading
 import time
 from typing import TYPE_CHECKING, Sequence, TextIO
 
-import numpy as np
 import torch
 from numba.core import event
-from PIL import Image
 
 from ..config import FitConfig, RunOptions
 from ..ops.propagation import SPECTRUM_BLOCK_ROWS
@@ -63,8 +61,9 @@ def probe_scene(probe: FitConfig) -> Scene:
     from ..targets import load_scene
 
     demo = builtin_pictures("demo", probe.targets.width, probe.targets.height)
-    ramp = Image.fromarray(np.linspace(0.0, 1.0, probe.targets.width * probe.targets.height, dtype=np.float32)
-                           .reshape(probe.targets.height, probe.targets.width), "F")
+    # a tensor, not a float picture: a picture would print the note meant for a user's float depth map
+    ramp = torch.linspace(0.0, 1.0, probe.targets.width * probe.targets.height).reshape(probe.targets.height,
+                                                                                        probe.targets.width)
     return load_scene(demo.image, ramp if probe.targets.num_planes > 1 else None, probe)
 
 

@@ -80,6 +80,13 @@ def resumed_state(folder: Path, config: FitConfig, run: RunOptions = RunOptions(
                              f"{error}): delete it to restart from step 0") from None
 
 
+def checkpoint_policy(every: int | None) -> dict[str, Any]:
+    """`fit_in_folder`'s checkpoint arguments for a `--checkpoint-every` of `every` steps: 0 saves only when the
+    fit is stopped, None every `CHECKPOINT_SECONDS` of work."""
+    return {"checkpoint_every_steps": every if every else None,
+            "checkpoint_every_seconds": None if every == 0 else CHECKPOINT_SECONDS}
+
+
 def fit_in_folder(folder: Path, scene: Scene, config: FitConfig, run: RunOptions = RunOptions(),
                   control: RunControl = RunControl(), state: FitState | None = None,
                   checkpoint_every_steps: int | None = None,

@@ -11,28 +11,22 @@ every node of a job array computes the same split. The tables, figures and repor
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import math
-import multiprocessing
-import os
-import signal
 import traceback
-from collections.abc import Callable, Iterable, Iterator, Sequence
-from contextlib import contextmanager
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-import numba
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
-from ..app.allocator import keep_freed_memory
 from ..app.encoding import encode_steps
-from ..app.provenance import available_cores, machine_record
-from ..app.runner import fit_in_folder, resumed_state, write_fitted_run
+from ..app.executors import DONE, FAILED, INTERRUPTED, NOT_STARTED, SKIPPED, ExecutorOptions, Task, run_tasks
+from ..app.provenance import machine_record
+from ..app.runner import checkpoint_policy, fit_in_folder, resumed_state, write_fitted_run
 from ..config import BEYOND_RECIPE, FLAT_NAMES, FitConfig, RunOptions
 from ..control import SILENT, RunControl
 from ..defaults import RATE_FINETUNE_STEPS
@@ -55,9 +49,7 @@ ENCODE_PARTIAL_FILE = "encode.partial.json"  # its points so far, each a whole f
 ERROR_FILE = "error.log"
 SPECTRUM_BINS = 32
 FOLDER_SCENE_PLANES = 2
-POLL_SECONDS = 0.5
 
-DONE, SKIPPED, INTERRUPTED, NOT_STARTED, FAILED = "done", "skipped", "interrupted", "not started", "failed"
 FITTED = "fitted"  # a rate–distortion cell whose fit is done and whose R-D points are not
 REUSED = "reused"
 # What a finished cell keeps in git (results/): enough to rebuild every table and figure; metrics.json last (the done
@@ -475,11 +467,12 @@ def _resume_state(folder: Path, cell: Cell) -> FitState | None:
     return None
 
 
-def run_cell(cell: Cell, folder: Path, control: RunControl = SILENT) -> str:
+def run_cell(cell: Cell, folder: Path, control: RunControl = SILENT, checkpoint_every: int | None = None) -> str:
     """Fit one cell into `folder` (resuming its checkpoint) unless done; returns the cell's new status.
 
     Writes `spectrum.json` from the float reconstructions, then the run folder, whose `metrics.json`
-    comes last. A stop request (`control`) saves a checkpoint and returns `interrupted`.
+    comes last. A stop request (`control`) saves a checkpoint and returns `interrupted`; the fit saves one every
+    `checkpoint_every` steps too (`runner.checkpoint_policy`).
     """
     if (folder / METRICS_FILE).is_file():
         return SKIPPED
@@ -490,7 +483,8 @@ def run_cell(cell: Cell, folder: Path, control: RunControl = SILENT) -> str:
     state = _resume_state(folder, cell)
     (folder / ERROR_FILE).unlink(missing_ok=True)
     try:
-        result = fit_in_folder(folder, scene, config, cell.run, control, state, source=cell.scene.source)
+        result = fit_in_folder(folder, scene, config, cell.run, control, state, source=cell.scene.source,
+                               **checkpoint_policy(checkpoint_every))
     except FitInterrupted:
         return INTERRUPTED
     recon = result.reconstructions
@@ -525,7 +519,7 @@ def fitted_model(cell: Cell, fits: Sequence[Path]) -> Path | None:
 
 
 def run_rate_distortion_cell(cell: Cell, folder: Path, options: RateDistortionOptions,
-                             control: RunControl = SILENT) -> str:
+                             control: RunControl = SILENT, checkpoint_every: int | None = None) -> str:
     """A rate–distortion cell: take the fit from `options.fits` (its records copied) or fit it here, then
     write `rd.json` with the R-D points of its model against the scene's targets
     (`ratedistortion.cell_record`)."""
@@ -540,7 +534,7 @@ def run_rate_distortion_cell(cell: Cell, folder: Path, options: RateDistortionOp
             if (model.parent / name).is_file():
                 write_atomic(folder / name, (model.parent / name).read_bytes())
     else:
-        status = run_cell(cell, folder, control)
+        status = run_cell(cell, folder, control, checkpoint_every)
         if status not in (DONE, SKIPPED):
             return status
         model = folder / MODEL_FILE
@@ -617,82 +611,38 @@ def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float], contro
     return DONE
 
 
-def _attempt(cell: Cell, folder: Path, control: RunControl,
-             rate_distortion: RateDistortionOptions | None = None) -> tuple[str, str | None]:
-    """`run_cell`, or `run_rate_distortion_cell` where `rate_distortion` is given, with a failure turned
-    into a status, its traceback kept in the cell's `error.log`."""
+def _attempt(cell: Cell, folder: Path, rate_distortion: RateDistortionOptions | None, checkpoint_every: int | None,
+             control: RunControl) -> tuple[str, str | None]:
+    """A cell's task (`executors.Task.work`): `run_cell`, or `run_rate_distortion_cell` where `rate_distortion` is
+    given, with a failure turned into a status, its traceback kept in the cell's `error.log`."""
     try:
         if rate_distortion is not None and rate_distortion.encode_fractions:
             return run_encode_cell(cell, folder, rate_distortion.encode_fractions, control), None
         if rate_distortion is not None:
-            return run_rate_distortion_cell(cell, folder, rate_distortion, control), None
-        return run_cell(cell, folder, control), None
+            return run_rate_distortion_cell(cell, folder, rate_distortion, control, checkpoint_every), None
+        return run_cell(cell, folder, control, checkpoint_every), None
     except Exception as error:  # one broken cell must not cost the rest of the grid; it is reported
         folder.mkdir(parents=True, exist_ok=True)
         (folder / ERROR_FILE).write_text(traceback.format_exc())
         return FAILED, f"{type(error).__name__}: {error} (traceback in {folder / ERROR_FILE})"
 
 
-_worker_stop: Any = None
-
-
-def limit_threads(threads: int) -> None:
-    """Torch and Numba threads of this process; Numba would otherwise use every core of a shared node."""
-    torch.set_num_threads(threads)
-    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
-
-
-@contextmanager
-def limited_threads(threads: int) -> Iterator[None]:
-    """`limit_threads` for the block; the caller's thread counts after it."""
-    before = torch.get_num_threads(), numba.get_num_threads()
-    limit_threads(threads)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before[0])
-        numba.set_num_threads(before[1])
-
-
-def _init_worker(threads: int, stop_event: Any) -> None:
-    """Pool worker set-up: its share of the cores, the allocator setting of the command line (a
-    spawned process does not inherit it), and signals left to the parent, which relays a stop."""
-    global _worker_stop
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    limit_threads(threads)
-    keep_freed_memory()
-    _worker_stop = stop_event
-
-
-def _attempt_in_worker(cell: Cell, folder: Path, rate_distortion: RateDistortionOptions | None
-                       ) -> tuple[str, str | None]:
-    return _attempt(cell, folder, RunControl(progress=False, stop_requested=_worker_stop.is_set), rate_distortion)
-
-
 def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int = 1,
              control: RunControl = RunControl(), reuse: Sequence[Path] = (),
-             rate_distortion: RateDistortionOptions = RateDistortionOptions(), threads: int | None = None
-             ) -> BenchOutcome:
+             rate_distortion: RateDistortionOptions = RateDistortionOptions(), threads: int | None = None,
+             executor: ExecutorOptions | None = None) -> BenchOutcome:
     """Fit every cell of `cells` (default: the whole plan) that is not done, `jobs` at a time; cells
     that a bench folder in `reuse` has finished with the same settings are copied, not fitted. In a
     rate–distortion grid a cell takes its model from the first folder of `rate_distortion.fits` that
     kept it.
 
-    With jobs > 1 a spawn-context process pool runs the cells. Each fit runs on `threads` threads,
-    by default its share of the cores (cores // jobs, at least 1). `control` shows the grid's progress bar (the
-    fits show none) and asks to stop: running fits then save a checkpoint and stop, and no new cell starts.
+    The cells run on `executor` (`executors.run_tasks`), by default the local one with `jobs` and `threads`: a
+    spawn-context process pool for jobs > 1, each fit on `threads` threads, by default its share of the cores
+    (cores // jobs, at least 1). `control` shows the grid's progress bar (the fits show none) and asks to stop:
+    running fits then save a checkpoint and stop, and no new cell starts.
     """
     cells = plan.cells if cells is None else cells
-    if jobs < 1:
-        raise BenchError(f"--jobs {jobs}: need at least 1")
-    if threads is not None and threads < 1:
-        raise BenchError(f"--threads {threads}: need at least 1")
-    machine = os.cpu_count() or 1
-    if threads is not None and threads > machine:  # PyTorch crashes on a thread pool far beyond the machine's
-        log.warning(f"--threads {threads}: this machine offers {machine} cores; each fit runs on {machine} threads")
-        threads = machine
-    threads = threads or max(1, available_cores() // jobs)
+    executor = (ExecutorOptions(jobs=jobs, threads=threads) if executor is None else executor).validate()
     outcome = BenchOutcome()
     for cell in adopt_finished(plan, cells, reuse):
         outcome.statuses[cell.name] = REUSED
@@ -705,49 +655,16 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
             outcome.statuses[cell.name] = SKIPPED
         else:
             todo.append(cell)
-    stop = control.should_stop
     preset = PRESETS[plan.preset]
     rd_options = (dataclasses.replace(rate_distortion, budget_fractions=preset.budget_fractions,
                                       encode_fractions=preset.encode_fractions)
                   if preset.rate_distortion else None)
-    with tqdm(total=len(todo), desc=f"bench {plan.preset}", unit="cell", disable=not control.progress,
-              dynamic_ncols=True) as bar:
-        def record(cell: Cell, status: str, error: str | None) -> None:
-            outcome.statuses[cell.name] = status
-            if error is not None:
-                outcome.failures[cell.name] = error
-            bar.set_postfix_str(f"{cell.name}: {status}", refresh=False)
-            bar.update()
-
-        if jobs == 1:
-            with limited_threads(threads):
-                for cell in todo:
-                    record(cell, *_attempt(cell, plan.cell_dir(cell), RunControl(progress=False,
-                                                                                 stop_requested=stop), rd_options))
-        else:
-            _run_pool(plan, todo, jobs, threads, stop, record, rd_options)
+    tasks = [Task(cell.name, functools.partial(_attempt, cell, plan.cell_dir(cell), rd_options,
+                                               executor.checkpoint_every), cell.config.optimisation.steps)
+             for cell in todo]
+    for name, (status, error) in run_tasks(tasks, executor, control, f"bench {plan.preset}", plan.folder,
+                                           unit="cell").items():
+        outcome.statuses[name] = status
+        if error is not None:
+            outcome.failures[name] = error
     return outcome
-
-
-def _run_pool(plan: BenchPlan, todo: list[Cell], jobs: int, threads: int, stop: Callable[[], bool],
-              record: Callable[[Cell, str, str | None], None], rate_distortion: RateDistortionOptions | None
-              ) -> None:
-    context = multiprocessing.get_context("spawn")
-    stop_event = context.Event()
-    with ProcessPoolExecutor(jobs, mp_context=context, initializer=_init_worker,
-                             initargs=(threads, stop_event)) as pool:
-        futures = {pool.submit(_attempt_in_worker, cell, plan.cell_dir(cell), rate_distortion): cell for cell in todo}
-        pending = set(futures)
-        try:
-            while pending:
-                finished, pending = wait(pending, timeout=POLL_SECONDS, return_when=FIRST_COMPLETED)
-                for future in finished:
-                    try:
-                        record(futures[future], *future.result())
-                    except Exception as error:  # a worker that died (out of memory, killed)
-                        record(futures[future], FAILED, f"{type(error).__name__}: {error}")
-                if stop():
-                    stop_event.set()
-        finally:
-            # also on a second Ctrl-C: running fits checkpoint and queued cells return at once
-            stop_event.set()

@@ -1,0 +1,464 @@
+"""Where the tasks of a grid or a batch run: in this process, in a pool of processes on this machine (`local`),
+or as the tasks of a Ray cluster (`ray`), one progress bar and one stop request for all of them.
+
+A task is any picklable `work(control) -> (status, error)`; `bench` and `batch` make one per cell or item. Its
+`control` relays the command's stop request (a fit then saves its checkpoint) and reports its steps to the bar.
+Ray is imported only by the Ray executor, and it is an optional extra: `pip install "cvqpg[ray]"`.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+import math
+import multiprocessing
+import os
+import queue
+import signal
+import socket
+import time
+import uuid
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numba
+import torch
+from tqdm.auto import tqdm
+
+from ..control import RunControl
+from ..defaults import EXECUTORS
+from ..errors import CvqpgError
+from .allocator import keep_freed_memory
+from .provenance import available_cores
+
+log = logging.getLogger("cvqpg")
+
+# What became of a task: its work finished, or found its result there already, or stopped on request (keeping its
+# checkpoint), or never started because of a stop request, or failed (with a one-line error).
+DONE, SKIPPED, INTERRUPTED, NOT_STARTED, FAILED = "done", "skipped", "interrupted", "not started", "failed"
+POLL_SECONDS = 0.5  # how often a task reports its step and hears of a stop, and the driver looks at its tasks
+RAY_RETRIES = 3  # reruns of a Ray task whose worker process or node died (not of one whose work raised)
+STOP_GRACE_SECONDS = 120.0  # how long an aborted command waits for its Ray tasks to save their checkpoints
+RAY_EXTRA = 'pip install "cvqpg[ray]"'
+PROBE_PREFIX = ".cvqpg-probe-"
+
+
+class ExecutorError(CvqpgError):
+    """An executor that cannot run as asked: a bad option, Ray missing, or a cluster that cannot run the tasks."""
+
+
+StepReport = Callable[[str, "int | None"], bool]  # (task name, last step or None) → whether to stop
+
+
+@dataclass(frozen=True)
+class ExecutorOptions:
+    """How the tasks run. `kind`: `local` (this machine) or `ray`. `jobs` (local): tasks at once, in this process
+    for 1, in a spawn process pool above. `threads`: PyTorch and Numba threads of each task, and its CPUs on Ray
+    (default: cores // jobs locally, 1 on Ray). `ray_address`: the cluster to connect to (`auto`, `HOST:PORT`,
+    `ray://HOST:PORT`); None starts a Ray instance on this machine for the command. `gpus_per_fit` (Ray): GPUs
+    reserved per task (0.25: four tasks share a GPU). `checkpoint_every`: steps between the checkpoints of each
+    fit (0: only when stopped; None: every few minutes of work; `runner.checkpoint_policy`)."""
+
+    kind: str = "local"
+    jobs: int = 1
+    threads: int | None = None
+    ray_address: str | None = None
+    gpus_per_fit: float = 0.0
+    checkpoint_every: int | None = None
+
+    def validate(self) -> "ExecutorOptions":
+        """These options, or a one-line `ExecutorError` naming the flag at fault (and the extra, where Ray is
+        missing)."""
+        if self.kind not in EXECUTORS:
+            raise ExecutorError(f"--executor {self.kind}: choose one of {', '.join(EXECUTORS)}")
+        if self.jobs < 1:
+            raise ExecutorError(f"--jobs {self.jobs}: need at least 1")
+        if self.threads is not None and self.threads < 1:
+            raise ExecutorError(f"--threads {self.threads}: need at least 1")
+        if not (math.isfinite(self.gpus_per_fit) and self.gpus_per_fit >= 0):
+            raise ExecutorError(f"--gpus-per-fit {self.gpus_per_fit:g}: give a number ≥ 0 (e.g. 0.25: four fits "
+                                "share a GPU)")
+        if self.gpus_per_fit > 1 and not self.gpus_per_fit.is_integer():
+            raise ExecutorError(f"--gpus-per-fit {self.gpus_per_fit:g}: above 1, give a whole number of GPUs")
+        if self.checkpoint_every is not None and self.checkpoint_every < 0:
+            raise ExecutorError(f"--checkpoint-every {self.checkpoint_every}: give a number of steps ≥ 1, or 0 "
+                                "for checkpoints only when interrupted")
+        if self.kind == "local" and (self.ray_address is not None or self.gpus_per_fit):
+            flag = "--ray-address" if self.ray_address is not None else "--gpus-per-fit"
+            raise ExecutorError(f"{flag} is for --executor ray")
+        if self.kind == "ray" and self.jobs != 1:
+            raise ExecutorError(f"--jobs {self.jobs} is for --executor local; on Ray, tasks run as the cluster's "
+                                "CPUs (--threads per task) and GPUs (--gpus-per-fit) allow")
+        if self.kind == "ray" and importlib.util.find_spec("ray") is None:
+            raise ExecutorError(f"--executor ray needs Ray, which is not installed: {RAY_EXTRA}")
+        return self
+
+    def task_threads(self) -> int:
+        """Threads of each task: `threads` (capped, with a note, at this machine's cores when they run here), else
+        cores // jobs locally and 1 on Ray."""
+        machine = os.cpu_count() or 1
+        here = self.kind == "local" or self.ray_address is None
+        if self.threads is not None and self.threads > machine and here:
+            # PyTorch crashes on a thread pool far beyond the machine's
+            log.warning(f"--threads {self.threads}: this machine offers {machine} cores; each fit runs on "
+                        f"{machine} threads")
+            return machine
+        if self.threads is not None:
+            return self.threads
+        return max(1, available_cores() // self.jobs) if self.kind == "local" else 1
+
+    def fits_at_once(self, device: str) -> int:
+        """How many tasks may fit at once on one device of this machine: `jobs` locally; on a Ray instance of this
+        machine 1 / `gpus_per_fit` per GPU (CUDA) or its cores over `threads` (CPU); 0 on a cluster given by its
+        address, whose machines this one does not know."""
+        if self.kind == "local":
+            return self.jobs
+        if self.ray_address is not None:
+            return 0
+        if torch.device(device).type == "cuda":
+            return max(1, math.floor(1 / self.gpus_per_fit)) if self.gpus_per_fit else 1
+        return max(1, available_cores() // self.task_threads())
+
+
+@dataclass(frozen=True)
+class Task:
+    """One unit of work: `name` (unique; the key of its outcome, shown on the bar), `work(control)` (picklable: a
+    module-level function or a `functools.partial` of one) returning (status, error or None), and its `steps` for
+    the bar (0: unknown)."""
+
+    name: str
+    work: Callable[[RunControl], tuple[str, str | None]]
+    steps: int = 0
+
+
+def limit_threads(threads: int) -> None:
+    """Torch and Numba threads of this process; Numba would otherwise use every core of a shared node."""
+    torch.set_num_threads(threads)
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+
+
+@contextmanager
+def limited_threads(threads: int) -> Iterator[None]:
+    """`limit_threads` for the block; the caller's thread counts after it."""
+    before = torch.get_num_threads(), numba.get_num_threads()
+    limit_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before[0])
+        numba.set_num_threads(before[1])
+
+
+def one_line(error: BaseException) -> str:
+    """An error as one line: its type and the first line of its message."""
+    text = str(error).strip().splitlines()
+    return f"{type(error).__name__}: {text[0]}" if text else type(error).__name__
+
+
+class _Relay:
+    """A task's side of the bar and the stop request: its last step and the stop flag travel through `report` at
+    most every `POLL_SECONDS`, never once per step."""
+
+    def __init__(self, name: str, report: StepReport) -> None:
+        self.name, self.report = name, report
+        self.step: int | None = None
+        self.stopped = False
+        self.last = -math.inf
+
+    def on_step(self, step: int, _loss: float, _psnr: float) -> None:
+        self.step = step + 1
+        self._exchange()
+
+    def should_stop(self) -> bool:
+        self._exchange()
+        return self.stopped
+
+    def _exchange(self) -> None:
+        now = time.monotonic()
+        if now - self.last >= POLL_SECONDS:
+            self.last = now
+            self.stopped = self.report(self.name, self.step) or self.stopped
+
+    def control(self) -> RunControl:
+        return RunControl(progress=False, stop_requested=self.should_stop, on_step=self.on_step)
+
+
+class _Board:
+    """The driver's bar: a tick per finished task, the running tasks' steps in its postfix."""
+
+    def __init__(self, bar: tqdm, tasks: Sequence[Task]) -> None:
+        self.bar = bar
+        self.totals = {task.name: task.steps for task in tasks}
+        self.steps: dict[str, int] = {}
+        self.outcomes: dict[str, tuple[str, str | None]] = {}
+        self.shown = ""
+
+    def show_steps(self, steps: dict[str, int]) -> None:
+        self.steps = {name: step for name, step in steps.items() if name not in self.outcomes}
+        self._show()
+
+    def finish(self, name: str, status: str, error: str | None) -> None:
+        self.outcomes[name] = (status, error)
+        self.steps.pop(name, None)
+        self.bar.update()
+        self._show(f"{name}: {status}")
+
+    def _show(self, last: str = "") -> None:
+        running = " · ".join(f"{name} {step}/{self.totals[name]}" if self.totals[name] else f"{name} {step}"
+                             for name, step in self.steps.items())
+        if (running or last) != self.shown:
+            self.shown = running or last
+            self.bar.set_postfix_str(self.shown, refresh=True)
+
+
+def run_tasks(tasks: Sequence[Task], options: ExecutorOptions, control: RunControl, description: str,
+              shared_folder: Path, unit: str = "task") -> dict[str, tuple[str, str | None]]:
+    """Run every task on the executor of `options`; returns {name: (status, error or None)}.
+
+    One bar (`control.progress`) counts the tasks, `unit` each, and shows the running ones' steps. A stop request
+    (`control.should_stop()`) reaches every task: running fits save a checkpoint and stop, those not started
+    return `not started`. A task whose worker dies is `failed`, with a one-line error; on Ray it is first rerun
+    (`RAY_RETRIES` times), the rerun resuming from what the task's folder holds. `shared_folder` is where the
+    tasks write: on Ray every node must see it (`ray_probe`)."""
+    options = options.validate()
+    threads = options.task_threads()
+    if not tasks:
+        return {}
+    with tqdm(total=len(tasks), desc=description, unit=unit, disable=not control.progress,
+              dynamic_ncols=True) as bar:
+        board = _Board(bar, tasks)
+        if options.kind == "ray":
+            _run_ray(tasks, options, threads, control, board, Path(shared_folder))
+        elif options.jobs == 1:
+            _run_here(tasks, threads, control, board)
+        else:
+            _run_pool(tasks, options.jobs, threads, control, board)
+    return board.outcomes
+
+
+def _run_here(tasks: Sequence[Task], threads: int, control: RunControl, board: _Board) -> None:
+    steps: dict[str, int] = {}
+
+    def report(name: str, step: int | None) -> bool:
+        if step is not None:
+            steps[name] = step
+            board.show_steps(steps)
+        return control.should_stop()
+
+    with limited_threads(threads):
+        for task in tasks:
+            try:
+                status, error = task.work(_Relay(task.name, report).control())
+            except Exception as failure:  # one broken task must not cost the others; it is reported
+                status, error = FAILED, one_line(failure)
+            steps.pop(task.name, None)
+            board.finish(task.name, status, error)
+
+
+_worker_stop: Any = None
+_worker_steps: Any = None
+
+
+def _init_worker(threads: int, stop_event: Any, steps: Any) -> None:
+    """Pool worker set-up: its share of the cores, the allocator setting of the command line (a spawned process
+    does not inherit it), and signals left to the parent, which relays a stop."""
+    global _worker_stop, _worker_steps
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    limit_threads(threads)
+    keep_freed_memory()
+    _worker_stop, _worker_steps = stop_event, steps
+
+
+def _report_from_worker(name: str, step: int | None) -> bool:
+    if step is not None:
+        _worker_steps.put((name, step))
+    return _worker_stop.is_set()
+
+
+def _work_in_worker(task: Task) -> tuple[str, str | None]:
+    return task.work(_Relay(task.name, _report_from_worker).control())
+
+
+def _run_pool(tasks: Sequence[Task], jobs: int, threads: int, control: RunControl, board: _Board) -> None:
+    context = multiprocessing.get_context("spawn")
+    stop_event, reports = context.Event(), context.Queue()
+    steps: dict[str, int] = {}
+    with ProcessPoolExecutor(jobs, mp_context=context, initializer=_init_worker,
+                             initargs=(threads, stop_event, reports)) as pool:
+        futures = {pool.submit(_work_in_worker, task): task.name for task in tasks}
+        pending = set(futures)
+        try:
+            while pending:
+                finished, pending = wait(pending, timeout=POLL_SECONDS, return_when=FIRST_COMPLETED)
+                while True:
+                    try:
+                        name, step = reports.get_nowait()
+                    except queue.Empty:
+                        break
+                    steps[name] = step
+                board.show_steps(steps)
+                for future in finished:
+                    try:
+                        status, error = future.result()
+                    except Exception as error:  # a worker that died (out of memory, killed)
+                        status, error = FAILED, one_line(error)
+                    board.finish(futures[future], status, error)
+                if control.should_stop():
+                    stop_event.set()
+        finally:
+            # also on a second Ctrl-C: running fits checkpoint and queued tasks return at once
+            stop_event.set()
+
+
+def _import_ray() -> Any:
+    try:
+        import ray
+    except ImportError:
+        raise ExecutorError(f"--executor ray needs Ray, which is not installed: {RAY_EXTRA}") from None
+    return ray
+
+
+class _Monitor:
+    """The Ray actor between the driver and its tasks: the stop flag, and each task's last step."""
+
+    def __init__(self) -> None:
+        self.stopped = False
+        self.steps: dict[str, int] = {}
+
+    def stop(self) -> None:
+        self.stopped = True
+
+    def report(self, name: str, step: int | None) -> bool:
+        if step is not None:
+            self.steps[name] = step
+        return self.stopped
+
+    def progress(self) -> dict[str, int]:
+        return dict(self.steps)
+
+
+def _work_on_ray(task: Task, threads: int, monitor: Any) -> tuple[str, str | None]:
+    """A Ray task: `task.work` on `threads` threads, its steps and the stop flag through the `monitor` actor."""
+    import ray
+
+    def report(name: str, step: int | None) -> bool:
+        try:
+            return ray.get(monitor.report.remote(name, step))
+        except ray.exceptions.RayError:  # the driver is gone: the work finishes, and a rerun would skip it
+            return False
+
+    limit_threads(threads)
+    keep_freed_memory()
+    return task.work(_Relay(task.name, report).control())
+
+
+def _run_ray(tasks: Sequence[Task], options: ExecutorOptions, threads: int, control: RunControl, board: _Board,
+             shared_folder: Path) -> None:
+    ray = _import_ray()
+    connected_here = not ray.is_initialized()
+    if connected_here:
+        # Ray's own start-up lines and notes would break the one bar; its errors and the tasks' notes still show
+        settings: dict[str, Any] = {"logging_level": logging.ERROR, "include_dashboard": False}
+        if options.ray_address is None:
+            settings["num_cpus"] = available_cores()
+        try:
+            ray.init(address=options.ray_address, **settings)
+        except (ConnectionError, RuntimeError, ValueError) as error:
+            where = f"--ray-address {options.ray_address}" if options.ray_address else "a local Ray instance"
+            raise ExecutorError(f"{where}: Ray did not start or connect ({one_line(error)})") from None
+    try:
+        check_cluster(ray, threads, options.gpus_per_fit)
+        ray_probe(ray, shared_folder)
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+        here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
+        monitor = ray.remote(_Monitor).options(num_cpus=0, scheduling_strategy=here).remote()
+        remote = ray.remote(_work_on_ray)
+        references = {remote.options(num_cpus=threads, num_gpus=options.gpus_per_fit, max_retries=RAY_RETRIES,
+                                     retry_exceptions=False, name=task.name).remote(task, threads, monitor): task.name
+                      for task in tasks}
+        pending = list(references)
+        try:
+            while pending:
+                ready, pending = ray.wait(pending, num_returns=1, timeout=POLL_SECONDS)
+                if ready and pending:
+                    more, pending = ray.wait(pending, num_returns=len(pending), timeout=0)
+                    ready += more
+                for reference in ready:
+                    board.finish(references[reference], *_ray_outcome(ray, reference))
+                if control.should_stop():
+                    monitor.stop.remote()
+                board.show_steps(ray.get(monitor.progress.remote()))
+        finally:
+            if pending:  # also on a second Ctrl-C: running fits save their checkpoints before Ray goes
+                monitor.stop.remote()
+                ray.wait(pending, num_returns=len(pending), timeout=STOP_GRACE_SECONDS)
+    finally:
+        if connected_here:
+            ray.shutdown()
+
+
+def _ray_outcome(ray: Any, reference: Any) -> tuple[str, str | None]:
+    try:
+        return ray.get(reference)
+    except ray.exceptions.RayTaskError as error:  # the work raised: once, not retried
+        cause = error.cause if isinstance(error.cause, BaseException) else error
+        return FAILED, one_line(cause)
+    except ray.exceptions.RayError as error:  # its worker or node died more often than Ray retries
+        return FAILED, one_line(error)
+
+
+def check_cluster(ray: Any, threads: int, gpus: float) -> None:
+    """A one-line `ExecutorError` unless some live node of the cluster offers a task's `threads` CPUs and `gpus`
+    GPUs (else Ray would wait for such a node for ever)."""
+    nodes = [node["Resources"] for node in ray.nodes() if node["Alive"]]
+    if any(node.get("CPU", 0) >= threads and node.get("GPU", 0) >= gpus for node in nodes):
+        return
+    offered = "; ".join(f"{node.get('CPU', 0):g} CPUs, {node.get('GPU', 0):g} GPUs" for node in nodes)
+    raise ExecutorError(f"no node of the Ray cluster offers a task's {threads} CPUs (--threads) and {gpus:g} GPUs "
+                        f"(--gpus-per-fit); its nodes offer: {offered or 'none'}")
+
+
+def _probe_write(folder: str, name: str, token: str) -> str:
+    Path(folder, name).write_text(token)
+    return socket.gethostname()
+
+
+def _probe_remove(folder: str, name: str) -> None:
+    Path(folder, name).unlink(missing_ok=True)
+
+
+def ray_probe(ray: Any, folder: Path) -> None:
+    """Check that the driver sees a file that a task on each live node writes into `folder` (the tasks' results go
+    there); a one-line `ExecutorError` otherwise. The probe files are removed either way."""
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy as strategy
+
+    folder.mkdir(parents=True, exist_ok=True)
+    token = uuid.uuid4().hex
+    write, remove = ray.remote(_probe_write), ray.remote(_probe_remove)
+    nodes = [node["NodeID"] for node in ray.nodes() if node["Alive"]]
+    names = {node: f"{PROBE_PREFIX}{token}-{index}" for index, node in enumerate(nodes)}
+    def on(node: str) -> dict[str, Any]:
+        return {"num_cpus": 0, "max_retries": 0, "scheduling_strategy": strategy(node, soft=False)}
+
+    written = {node: write.options(**on(node)).remote(str(folder), name, token) for node, name in names.items()}
+    unseen = []
+    for node, reference in written.items():
+        try:
+            host = ray.get(reference)
+        except ray.exceptions.RayError as error:
+            unseen.append(f"the node {node[:8]} could not write there ({one_line(getattr(error, 'cause', error))})")
+            continue
+        path = folder / names[node]
+        seen = path.is_file() and path.read_text() == token
+        path.unlink(missing_ok=True)
+        if not seen:
+            ray.get(remove.options(**on(node)).remote(str(folder), names[node]))
+            unseen.append(f"a file that a task on {host} wrote is not visible here")
+    if unseen:
+        raise ExecutorError(f"the output folder must be on a filesystem that every Ray node sees, and {folder} is "
+                            f"not: {'; '.join(unseen)}; give a folder on a shared filesystem (NFS, Lustre, ...)")
