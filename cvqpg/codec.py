@@ -77,6 +77,25 @@ CODINGS = (RAW, LAPLACE, GAUSSIAN, CATEGORICAL, BIT_LENGTH, WIDTHS, GROUPED)
 MAX_ANS_TOP, MAX_CATEGORICAL_TOP = 2**20, 2**12
 MAX_SYMBOL_BITS = 63  # symbols are int64
 MAX_HEADER_BYTES = 2**24  # a header decompresses to far less; more is not a file cvqpg wrote
+# Format 5 on, the header is deflated with this preset dictionary (RFC 1950's FDICT): the keys, codings and optics
+# every header repeats, so that they cost a few bytes each rather than their letters. Part of the format: never
+# change it within a version.
+HEADER_DICTIONARY = (
+    '{"optics":{"width":640,"height":480,"color":"gray","primitive":"flat","curvature":"per-channel",'
+    '"qpf":"standard","bound":"global","color":"rgb","primitive":"cvqpg","curvature":"channel-bound",'
+    '"curvature":"shared","qpf":"mahalanobis","bound":"adaptive","eta":0.9,"global_bound":200.0,'
+    '"pixel_pitch":3.74e-06,"num_planes":2,"plane_center":0.003,"plane_span":0.004,"guard_band_px":144,'
+    '"pad_multiple_px":64,"wavelengths":[6.39e-07,5.32e-07,4.73e-07]},"num_primitives":'
+    '"bits":{"position":3,"scale":8,"rotation":7,"amplitude":8,"phase":7,"curvature":8},'
+    '"ranges":{"scale":[,"amplitude":[0.0,"tools":["axes","turn"],"streams":['
+    '{"name":"position","coding":"bitlength","lengths":{"coding":"categorical","histogram_bytes":'
+    '{"name":"fraction","coding":"widths","min":0,"max":15,"shape":[,2],"bytes":'
+    '{"name":"scale","coding":"laplace","params":[{"name":"elongation","coding":"gaussian","params":['
+    '{"name":"amplitude","coding":"grouped","groups":[{"coding":"raw","width":'
+    '{"coding":"gaussian","params":[,"bits":7},{"coding":"laplace","params":[,"turn":'
+    '{"name":"rotation","coding":"widths",{"name":"phase","coding":"grouped","groups":['
+    '{"coding":"categorical","histogram_bytes":{"name":"curvature","coding":"grouped","groups":['
+    '"bits":9},"bits":8},"bits":6},,"shape":[,1],"bytes":,"min":0,"max":').encode()
 
 
 @dataclass(frozen=True)
@@ -584,7 +603,7 @@ def _stream_at_widths(values: np.ndarray, widths: np.ndarray, periodic: bool = F
     if bool(((flat >= 0) & (flat < 2**widths)).all()):  # not curvature's signed codes
         raw = _grouped_raw_bits(flat, widths)
         candidates.append(({"coding": WIDTHS, **common, "bytes": len(raw)}, raw))
-    return min(candidates, key=lambda c: len(c[1]) + len(zlib.compress(json.dumps(c[0]).encode(), 9)))
+    return min(candidates, key=lambda c: len(c[1]) + len(deflated(c[0])))
 
 
 def centring_turn(symbols: np.ndarray, width: int) -> int:
@@ -782,12 +801,28 @@ def encode(primitives: Primitives, config: FitConfig, bits: BitDepths, fingerpri
         descriptor, data = encode_stream(values, encoded.widths.get(name), TURN in tools and name in PERIODIC)
         descriptors.append({"name": name, **descriptor})
         payload.append(data)
-    header = zlib.compress(json.dumps({"optics": optics(config), "num_primitives": primitives.count,
-                                       "bits": asdict(bits), "ranges": encoded.ranges, "tools": sorted(tools),
-                                       "streams": descriptors}, separators=(",", ":")).encode(), 9)
+    header = deflated({"optics": optics(config), "num_primitives": primitives.count, "bits": asdict(bits),
+                       "ranges": encoded.ranges, "tools": sorted(tools), "streams": descriptors})
     body = PREFIX.pack(MAGIC, FORMAT_VERSION, len(header)) + FINGERPRINT.pack(fingerprint) + header \
         + b"".join(payload)
     return body + CHECKSUM.pack(zlib.crc32(body))
+
+
+def deflated(header: Any, version: int = FORMAT_VERSION) -> bytes:
+    """A header (JSON-able) as a file of `version` stores it: compact JSON, deflated by zlib at level 9, from
+    format 5 on with `HEADER_DICTIONARY`."""
+    deflater = zlib.compressobj(9, **({"zdict": HEADER_DICTIONARY} if version >= TOOLS_VERSION else {}))
+    return deflater.compress(json.dumps(header, separators=(",", ":")).encode()) + deflater.flush()
+
+
+def inflated(data: bytes, version: int) -> bytes:
+    """A file of `version`'s header bytes inflated (JSON text); `zlib.error` where they do not inflate, `ValueError`
+    where they inflate to more than `MAX_HEADER_BYTES`."""
+    inflater = zlib.decompressobj(**({"zdict": HEADER_DICTIONARY} if version >= TOOLS_VERSION else {}))
+    text = inflater.decompress(data, MAX_HEADER_BYTES)
+    if inflater.unconsumed_tail:
+        raise ValueError(f"its header inflates to more than {MAX_HEADER_BYTES} bytes")
+    return text
 
 
 def header_start(version: int) -> int:
@@ -944,9 +979,7 @@ def decode(data: bytes, name: str = "file") -> Compressed:
         raise ModelFileError(f"{name}: truncated ({len(data)} bytes)")
     body, (stored,) = data[:-CHECKSUM.size], CHECKSUM.unpack(data[-CHECKSUM.size:])
     try:
-        inflater = zlib.decompressobj()
-        text = inflater.decompress(body[start:start + header_length], MAX_HEADER_BYTES)
-        header = None if inflater.unconsumed_tail else json.loads(text)
+        header = json.loads(inflated(body[start:start + header_length], version))
         payload_bytes = sum(s["bytes"] for s in header["streams"] if _integer(s["bytes"], 0, len(data)))
     except (zlib.error, ValueError, KeyError, TypeError, AttributeError, RecursionError):
         header, payload_bytes = None, 0

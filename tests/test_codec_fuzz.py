@@ -17,7 +17,7 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from cvqpg.codec import CHECKSUM, MAGIC, PREFIX, BitDepths, decode, encode, header_start
+from cvqpg.codec import CHECKSUM, MAGIC, PREFIX, BitDepths, decode, deflated, encode, header_start, inflated
 from cvqpg.config import FitConfig
 from cvqpg.errors import ModelFileError
 from cvqpg.primitives import activate, init_gaussians
@@ -48,12 +48,12 @@ FILES = [small_file(config, seed) for seed, config in enumerate(CONFIGS)] + \
 def parts(data: bytes) -> tuple[int, dict, bytes]:
     _, version, length = PREFIX.unpack_from(data)
     start = header_start(version)
-    return version, json.loads(zlib.decompress(data[start:start + length])), data[start + length:-CHECKSUM.size]
+    return version, json.loads(inflated(data[start:start + length], version)), data[start + length:-CHECKSUM.size]
 
 
 def packed(version: int, header: object, payload: bytes, fingerprint: bytes = bytes(range(16))) -> bytes:
     """A file of `version` (with `fingerprint` from format 5 on) of `header` and `payload`, checksum valid."""
-    text = zlib.compress(json.dumps(header).encode())
+    text = deflated(header, version)
     body = PREFIX.pack(MAGIC, version, len(text)) + fingerprint[:header_start(version) - PREFIX.size] + text + payload
     return body + CHECKSUM.pack(zlib.crc32(body))
 
