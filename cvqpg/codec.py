@@ -46,10 +46,12 @@ TOOLS_VERSION = 5  # files from this version on carry a fit fingerprint and name
 # Format 5's tools, each named in the header where a file uses it. `axes`: the larger scale code first, the
 # ellipse turned by a quarter where its axes swap, and the smaller coded as its difference from the larger
 # (`elongation`); `turn`: a periodic stream's symbols of each depth turned so that their circular mean lies
-# mid-range, which parametric models centred there then fit.
-AXES, TURN = "axes", "turn"
-TOOLS = frozenset({AXES, TURN})
-PERIODIC = ("rotation", "phase")  # the streams whose symbols are angles, `turn`'s
+# mid-range, which parametric models centred there then fit; `channels` (more than one channel): each channel's
+# amplitude and phase after the first coded as its change from the channel before (`channel_changes`).
+AXES, TURN, CHANNELS = "axes", "turn", "channels"
+TOOLS = frozenset({AXES, TURN, CHANNELS})
+PERIODIC = ("rotation", "phase", "phase_change")  # the streams whose symbols are angles, `turn`'s
+CHANGED = ("amplitude", "phase")  # the attributes `channels` codes as changes
 # The order the decoder reads attributes in: each depth derives from attributes read before it.
 ATTRIBUTES = ("scale", "amplitude", "position", "rotation", "phase", "curvature")
 PREFIX = struct.Struct("<8sHI")  # magic, format version, header length (bytes)
@@ -342,7 +344,7 @@ def coding(primitives: Primitives, config: FitConfig, bits: BitDepths, tools: fr
         bound = curvature_bound(decoded_scale(scale.values(scale.codes(values["scale"]))), config).double()
         values["curvature"] = p["curvature_per_m"] / torch.where(bound > 0, bound, 1.0)
     coded = folded(values)
-    chosen, depths = chained_quantisers(ranges, bits, stream_shapes(primitives.count, config),
+    chosen, depths = chained_quantisers(ranges, bits, attribute_shapes(primitives.count, config),
                                         lambda name, chosen, _: chosen.values(chosen.codes(coded[name])),
                                         tools=tools)
     return Coding(values, ranges, chosen, depths)
@@ -441,14 +443,59 @@ def quantise(primitives: Primitives, config: FitConfig, bits: BitDepths, tools: 
             if name == "scale":
                 ordered["elongation"] = axes["elongation"]
         codes = ordered
+    depths = dict(coded.depths)
+    if CHANNELS in tools and config.channels > 1:
+        ordered = {}
+        for name, symbols in codes.items():
+            changes = channel_changes(name, symbols, depths[name]) if name in CHANGED else {name: symbols}
+            ordered.update(changes)
+            depths.update({stream: depths[name][:, :1] if stream == name else depths[name][:, 1:]
+                           for stream in changes if name in CHANGED})
+        codes = ordered
     order = file_order(coded)
-    depths = {name: depth[order].numpy() for name, depth in coded.depths.items()}
+    depths = {name: depth[order].numpy() for name, depth in depths.items()}
     whole, fraction = whole_pixels(codes.pop("position")[order], coded.depths["position"][order])
     grid = whole.numpy().astype(np.uint64)
     gaps = np.diff(_interleave(grid[:, 0], grid[:, 1]), prepend=np.uint64(0)).astype(np.int64)
     return Encoded({"position": gaps, "fraction": fraction.numpy(),
                     **{name: symbols[order].numpy() for name, symbols in codes.items()}}, coded.ranges,
                    {"fraction": depths.pop("position"), **depths})
+
+
+def rescaled(codes: Tensor, depths: Tensor, target: Tensor) -> Tensor:
+    """Codes of angles at `depths` bits as codes at `target` bits (int64, elementwise): shifted left, or right with
+    halves rounded up, modulo 2^target."""
+    up, down = (target - depths).clamp(min=0), (depths - target).clamp(min=0)
+    return (((codes << up) + ((1 << down) >> 1)) >> down) % (1 << target)
+
+
+def channel_changes(name: str, codes: Tensor, depths: Tensor) -> dict[str, Tensor]:
+    """`channels`' symbols of attribute `name` (amplitude or phase, codes [N, C] at `depths` bits): `name`, the first
+    channel's codes [N, 1]; `<name>_change` [N, C − 1], each later channel's code less the channel before's: an
+    amplitude's as it is (every channel of a primitive has one depth), a phase's `rescaled` to the channel's
+    depth and the difference taken modulo its levels."""
+    if name == "amplitude":
+        change = codes[:, 1:] - codes[:, :-1]
+    else:
+        change = (codes[:, 1:] - rescaled(codes[:, :-1], depths[:, :-1], depths[:, 1:])) % (1 << depths[:, 1:])
+    return {name: codes[:, :1], f"{name}_change": change}
+
+
+def changed_channels(name: str, first: Tensor, change: Tensor, depths: Tensor) -> Tensor:
+    """Inverse of `channel_changes`: the codes [N, C] of attribute `name` at `depths` bits from the first channel's
+    [N, 1] and the changes [N, C − 1], channel by channel. `ValueError` where an amplitude code falls outside its
+    levels."""
+    codes = [first[:, 0]]
+    for channel in range(change.shape[1]):
+        if name == "amplitude":
+            codes.append(codes[-1] + change[:, channel])
+        else:
+            target = depths[:, channel + 1]
+            codes.append((change[:, channel] + rescaled(codes[-1], depths[:, channel], target)) % (1 << target))
+    codes = torch.stack(codes, dim=1)
+    if name == "amplitude" and not bool(((codes >= 0) & (codes < 1 << depths)).all()):
+        raise ValueError("a channel's amplitude code beyond its levels")
+    return codes
 
 
 def ordered_axes(scale: Tensor, rotation: Tensor, depths: Tensor) -> dict[str, Tensor]:
@@ -483,6 +530,10 @@ def read_primitives(symbols: Callable[[str, np.ndarray | None], np.ndarray], cou
             if not ((elongation >= 0) & (elongation <= larger)).all():
                 raise ValueError("an elongation beyond its scale code")
             codes = torch.from_numpy(np.stack([larger, larger - elongation], axis=1))
+        elif name in CHANGED and uses(CHANNELS, version, tools) and config.channels > 1:
+            first, change = (torch.from_numpy(symbols(stream, part.numpy())) for stream, part in
+                             ((name, depths[:, :1]), (f"{name}_change", depths[:, 1:])))
+            codes = changed_channels(name, first, change, depths)
         elif name == "position":
             x, y = _deinterleave(np.cumsum(symbols(name, None).astype(np.uint64), dtype=np.uint64))
             codes = torch.from_numpy(np.stack([x, y], axis=1).astype(np.int64))
@@ -493,7 +544,7 @@ def read_primitives(symbols: Callable[[str, np.ndarray | None], np.ndarray], cou
         values[name] = chosen.values(codes)
         return values[name]
 
-    chained_quantisers(ranges, bits, stream_shapes(count, config, version, tools), read, version, tools)
+    chained_quantisers(ranges, bits, attribute_shapes(count, config, version), read, version, tools)
     return primitives_from(values, decoded_scale(values["scale"], version), config)
 
 
@@ -795,6 +846,7 @@ def encode(primitives: Primitives, config: FitConfig, bits: BitDepths, fingerpri
     """The whole `.cvq` file (docs/format.md) of `primitives` at `bits`, with the fit's `fingerprint` (16 bytes,
     `runs.fingerprint_digest`; zeros: not known), using `tools` (a subset of `TOOLS`; all by default, fewer to
     measure each)."""
+    tools = tools if config.channels > 1 else tools - {CHANNELS}  # the tools the file uses
     encoded = quantise(primitives, config, bits, tools)
     descriptors, payload = [], []
     for name, values in encoded.streams.items():
@@ -906,7 +958,16 @@ def stream_shapes(count: int, config: FitConfig, version: int = FORMAT_VERSION, 
         streams["fraction"] = (count, 2)
     if uses(AXES, version, tools):
         streams.update(scale=(count,), elongation=(count,))
+    if uses(CHANNELS, version, tools) and config.channels > 1:
+        for name in CHANGED:
+            streams.update({name: (count, 1), f"{name}_change": (count, config.channels - 1)})
     return {**streams, "curvature": shapes["curvature_per_m"]} if config.primitives.kind == "cvqpg" else streams
+
+
+def attribute_shapes(count: int, config: FitConfig, version: int = FORMAT_VERSION) -> dict[str, tuple[int, ...]]:
+    """The shape of each attribute's codes (`chained_quantisers`' `shapes`): the streams of a file of `version` that
+    uses no tool."""
+    return stream_shapes(count, config, version, frozenset())
 
 
 def _tools(header: dict[str, Any], version: int) -> frozenset[str]:
@@ -949,6 +1010,8 @@ def _checked_header(header: Any, name: str, version: int) -> tuple[FitConfig, Bi
         raise ModelFileError(f"{name}: its ranges of log scale and amplitude {header['ranges']} are not finite; "
                              f"{REWRITE_MODEL}")
     check_settings(config, count, name)
+    if CHANNELS in tools and config.channels == 1:
+        raise ModelFileError(f"{name}: it names the tool `{CHANNELS}` for one channel; {REWRITE_MODEL}")
     try:
         bits.validate()
     except ConfigError as error:

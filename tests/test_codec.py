@@ -12,7 +12,7 @@ import torch
 
 from cvqpg import FitConfig, load_model
 from cvqpg.cli import main
-from cvqpg.codec import (AXES, CHECKSUM, MAGIC, PREFIX, TOOLS, TURN, BitDepths, coding, decode, decode_stream, deflated,
+from cvqpg.codec import (AXES, CHANNELS, CHECKSUM, MAGIC, PREFIX, TOOLS, TURN, BitDepths, coding, decode, decode_stream, deflated,
                          derived_depths, encode, encode_stream, exact_exp, file_fingerprint, file_order, header_start,
                          importance_offsets, inflated, rotation_depths, with_fingerprint)
 from cvqpg.errors import ModelFileError
@@ -237,11 +237,12 @@ def ellipses(primitives) -> torch.Tensor:
     return turn @ torch.diag_embed(scale**2) @ turn.transpose(1, 2)
 
 
-@pytest.mark.parametrize("tools", [frozenset(), frozenset({AXES}), frozenset({TURN}), TOOLS],
-                         ids=["none", "axes", "turn", "all"])
+@pytest.mark.parametrize("tools", [frozenset(), frozenset({AXES}), frozenset({TURN}), frozenset({CHANNELS}), TOOLS],
+                         ids=["none", "axes", "turn", "channels", "all"])
 def test_every_set_of_format_5_tools_decodes_to_the_same_model(tools):
     """The tools change how symbols are coded, not what they decode to: with `axes` an ellipse's axes come larger
-    first (turned by a quarter where they swap), and ellipses whose rotation took no bit get one."""
+    first (turned by a quarter where they swap), and ellipses whose rotation took no bit get one. Phases of
+    channels at other depths go through `channels`' rescaling both ways."""
     config = FitConfig.create(width=64, height=48, ratio=0.3, curvature="per-channel")
     primitives = random_primitives(config)
     bits = BitDepths()
@@ -333,6 +334,7 @@ def test_the_fit_fingerprint_travels_in_place_and_costs_no_byte_of_the_budget():
 @pytest.mark.parametrize("change, message", [
     (lambda h: h.update(tools=["axes", "contexts"]), "its tools ['axes', 'contexts'] are not distinct names"),
     (lambda h: h.update(tools=["turn", "turn"]), "are not distinct names"),
+    (lambda h: h.update(tools=["axes", "turn", "channels"]), "names the tool `channels` for one channel"),
     (lambda h: h.pop("tools"), "its header is malformed (KeyError: 'tools')"),
     (lambda h: h.update(tools=["axes"]), "a group's turn"),  # turned groups in a file that names no `turn`
     (lambda h: [group.update(turn=1) for s in h["streams"] if s["name"] == "curvature" for group in s["groups"]],
