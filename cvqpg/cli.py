@@ -26,8 +26,8 @@ from .config import (BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITI
                      RunOptions, check_distances, check_time_budget, default_curvature_warmup)
 from .control import RunControl
 from .defaults import (CHECKPOINT_SECONDS, DEFAULT_APERTURE, DEFAULT_LEVELS, DEFAULT_SWEEP, DEPTH_FILE, DEPTH_MODEL,
-                       ENCODE_FINETUNE_STEPS, ENCODE_STEPS, ENCODINGS, EXECUTORS, RATE_FINETUNE_STEPS, SCENE_NAMES,
-                       SUFFIX, VIEW_FILE)
+                       ENCODE_FINETUNE_STEPS, ENCODE_STEPS, ENCODINGS, EXECUTORS, PARTIAL_SUFFIX, RATE_FINETUNE_STEPS,
+                       SCENE_NAMES, SUFFIX, VIEW_FILE)
 from .deprecations import REMOVED_IN
 from .errors import CvqpgError, allocation_failure, filesystem_refusal
 
@@ -169,14 +169,12 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("fit", help="fit a hologram of Gaussian primitives to an image and its depth",
                        description="Fit N complex-valued 2D Gaussians so that the hologram they sum to "
                        "reproduces defocus-aware targets at every depth plane (method.md §2–§7).")
+    _fit_inputs(p)
     _fit_options(p)
     p.add_argument("--time", type=finite, metavar="MINUTES", help="instead of --steps: fit for about this long; "
                    "a few steps are timed on this machine and fix the step count, which the run records (a --resume "
                    "or a rerun with that --steps is exact)")
-    count = p.add_mutually_exclusive_group()
-    count.add_argument("--ratio", type=finite, default=DEFAULTS.primitives.ratio,
-                       help="primitive count as a fraction of W·H/2 (RGB) or W·H/4 (grayscale)")
-    count.add_argument("--num-gaussians", type=whole, metavar="N", help="explicit primitive count N")
+    _count_options(p)
     p.add_argument("--out", metavar="DIR", help="run folder [default: runs/<time>-<input>-<color>-"
                    "<primitive>]")
     p.add_argument("--overwrite", action="store_true", help="replace a run already in --out, as a whole, once the "
@@ -190,9 +188,8 @@ def _fit_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
 
-def _fit_options(p: argparse.ArgumentParser, steps: int = DEFAULTS.optimisation.steps) -> None:
-    """What to fit and how (`_config_and_source` reads them): shared by `fit` and `encode` (whose fit takes
-    `steps` by default)."""
+def _fit_inputs(p: argparse.ArgumentParser) -> None:
+    """What `fit` and `encode` fit: an image and its depth map, or a built-in scene."""
     p.add_argument("image", nargs="?", help="input image file (any format Pillow reads); "
                    "without it the built-in --scene is used")
     p.add_argument("--depth", metavar="PATH|auto", help="depth map (0 = near); needed for --planes > 1. 'auto' "
@@ -201,21 +198,29 @@ def _fit_options(p: argparse.ArgumentParser, steps: int = DEFAULTS.optimisation.
     p.add_argument("--scene", choices=SCENE_NAMES, help="built-in scene, generated at --size: "
                    "'demo' (RGB, 2 planes; the default without IMAGE) or 'star' (grayscale Siemens "
                    "star, single plane)")
+
+
+def _fit_options(p: argparse.ArgumentParser, steps: int = DEFAULTS.optimisation.steps,
+                 defaults: dict[str, str] | None = None) -> None:
+    """How to fit (`_fit_settings` reads them): shared by `fit`, `encode` (whose fit takes `steps` by default) and
+    `batch`; `defaults` replaces the help's default of `--color`, `--steps`, `--curvature-warmup` or `--planes`."""
+    shown = {"color": "rgb; gray for --scene star", "steps": str(steps), "curvature-warmup": f"steps/5, "
+             f"{default_curvature_warmup(steps)} of {steps}", "planes": "2; 1 for --scene star", **(defaults or {})}
     p.add_argument("--color", choices=COLORS, help="colour mode: RGB at 639/532/473 nm or "
-                   "grayscale at 639 nm [default: rgb; gray for --scene star]")
+                   f"grayscale at 639 nm [default: {shown['color']}]")
     p.add_argument("--primitive", choices=PRIMITIVES, default=DEFAULTS.primitives.kind,
                    help="flat-phase baseline or CVQPG with learnable curvature")
     p.add_argument("--recipe", choices=tuple(RECIPES), default=DEFAULTS.recipe,
                    help="how to fit: " + "; ".join(f"'{r.name}': {r.summary}" for r in RECIPES.values()))
     p.add_argument("--steps", type=whole, help="optimisation steps (the loop runs indices 0..steps, as the "
-                   f"reference) [default: {steps}]")
+                   f"reference) [default: {shown['steps']}]")
     p.add_argument("--curvature-warmup", type=whole, metavar="W", help="steps with curvature frozen at 0 (CVQPG "
-                   f"only) [default: steps/5, {default_curvature_warmup(steps)} of {steps}]")
+                   f"only) [default: {shown['curvature-warmup']}]")
     _former_name(p, "--warmup", "--curvature-warmup", type=whole)
     p.add_argument("--size", type=whole, nargs=2, metavar=("W", "H"),
                    default=(DEFAULTS.targets.width, DEFAULTS.targets.height), help="hologram size in px")
     p.add_argument("--planes", type=whole, metavar="M", help="depth planes at linspace(1 mm, 5 mm, M) "
-                   "[default: 2; 1 for --scene star]")
+                   f"[default: {shown['planes']}]")
     p.add_argument("--seed", type=int, default=DEFAULTS.optimisation.seed, help="random seed")
     p.add_argument("--device", default=RUN_DEFAULTS.device, choices=DEVICE_TYPES, help="torch device")
     p.add_argument("--backend", default=RUN_DEFAULTS.backend, choices=BACKENDS,
@@ -240,6 +245,14 @@ def _fit_options(p: argparse.ArgumentParser, steps: int = DEFAULTS.optimisation.
                    help="plane range V in m")
     p.add_argument("--resize-depth", action="store_true",
                    help="accept a depth map whose aspect ratio differs from the image's (it is stretched)")
+
+
+def _count_options(p: argparse.ArgumentParser) -> None:
+    """The primitive count of `fit` and `batch` (`encode` takes it from the budget)."""
+    count = p.add_mutually_exclusive_group()
+    count.add_argument("--ratio", type=finite, default=DEFAULTS.primitives.ratio,
+                       help="primitive count as a fraction of W·H/2 (RGB) or W·H/4 (grayscale)")
+    count.add_argument("--num-gaussians", type=whole, metavar="N", help="explicit primitive count N")
 
 
 def _device_argument(p: argparse.ArgumentParser) -> None:
@@ -328,11 +341,10 @@ def _compression_parsers(sub: argparse._SubParsersAction) -> None:
                        "`cvqpg compress --bpp` does. The fit keeps a checkpoint in the folder FILE.partial (every "
                        f"{CHECKPOINT_SECONDS / 60:g} minutes of work, and when Ctrl-C stops it), from which --resume "
                        "continues it; once FILE is written that folder is removed.")
+    _fit_inputs(e)
     _fit_options(e, steps=ENCODE_STEPS)
     _rate_arguments(e.add_mutually_exclusive_group())
-    e.add_argument("--finetune", type=whole, default=ENCODE_FINETUNE_STEPS, metavar="STEPS",
-                   help="quantisation-aware fine-tuning steps after the fit's --steps, at the chosen bit depths; "
-                   "kept only if it pays")
+    _encode_finetune_argument(e)
     e.add_argument("--out", metavar="FILE", help=f"the {SUFFIX} file (required, but with --resume)")
     e.add_argument("--resume", metavar=f"FILE{PARTIAL_SUFFIX}", help="continue an interrupted encode from the "
                    "checkpoint in its folder, with its own settings and budget (other options are ignored)")
@@ -345,6 +357,12 @@ def _compression_parsers(sub: argparse._SubParsersAction) -> None:
     d.add_argument("file", metavar="FILE", help=f"{SUFFIX} file")
     d.add_argument("--out", metavar="MODEL", help="[default: FILE's stem + .decoded.safetensors]")
     _overwrite_argument(d, "the output file")
+
+
+def _encode_finetune_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--finetune", type=whole, default=ENCODE_FINETUNE_STEPS, metavar="STEPS",
+                   help="quantisation-aware fine-tuning steps after the fit's --steps, at the chosen bit depths; "
+                   "kept only if it pays")
 
 
 def _rate_arguments(group: argparse._MutuallyExclusiveGroup) -> None:
@@ -441,12 +459,50 @@ def executor_options(args: argparse.Namespace) -> "ExecutorOptions":
                            args.checkpoint_every).validate()
 
 
+BATCH_EXIT_CODES = ("Exit code: 0 when every item is finished; else 130 (128 + N for signal N) when a stop "
+                    "request ended the batch (interrupted items keep their checkpoints), else 1 when an item hit a "
+                    "bug, 3 when the file system refused an item's write, 4 when an item ran out of memory, and 2 "
+                    "when items failed on their input only (a bad file or row option); 2 also for bad INPUTS or "
+                    "options, before anything is fitted.")
+
+
+def _batch_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("batch", help=f"fit every image of a folder of scenes or a CSV manifest into run folders or "
+                       f"{SUFFIX} files", epilog=BATCH_EXIT_CODES,
+                       description="Fit every item of INPUTS into the batch folder DIR: a run folder DIR/NAME, as "
+                       f"`cvqpg fit` makes, or with --bpp or --max-bytes a file DIR/NAME{SUFFIX}, as `cvqpg encode` "
+                       "makes. A rerun into DIR skips finished items, resumes interrupted ones from their checkpoints "
+                       "and tries failed ones again. One item's failure is recorded in one line and the others go "
+                       f"on (a bug's traceback goes to DIR/NAME.error.log). DIR/summary.csv and DIR/summary.md "
+                       "list every item: status, PSNR, size, steps, seconds, device and the error line; they are "
+                       "rewritten as items finish.")
+    p.add_argument("inputs", metavar="INPUTS", help="a folder of scene folders, NAME/image.* with an optional "
+                   f"NAME/{DEPTH_FILE} (0 = near; without one the item is fitted at one plane), or a CSV manifest: a "
+                   "header line, then one row per item with the columns image (required), depth and name (by "
+                   "default the image's stem, or its folder's name for image.*), and optional columns that override "
+                   "the options below for the row: color, primitive, recipe, ratio, num_gaussians, steps, seed, "
+                   "planes, bpp, max_bytes; paths relative to the manifest's folder")
+    p.add_argument("--out", metavar="DIR", required=True, help="the batch folder: new, empty, or a batch folder to "
+                   "continue")
+    _fit_options(p, defaults={"color": "rgb", "steps": f"{DEFAULTS.optimisation.steps}; {ENCODE_STEPS} for a "
+                              f"{SUFFIX} file", "curvature-warmup": "steps/5", "planes": "2; 1 for an item "
+                              "without a depth map"})
+    _count_options(p)
+    _rate_arguments(p.add_mutually_exclusive_group())
+    _encode_finetune_argument(p)
+    _executor_arguments(p, "items")
+    p.add_argument("--overwrite", action="store_true", help="fit finished items again, each replaced once its new "
+                   "output is finished (never anything in DIR that is not one of the batch's)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(prog="cvqpg", description="Holograms as complex-valued "
                                      "quadratic-phase Gaussian primitives (CVQPG).")
     parser.add_argument("--version", action="version", version=f"cvqpg {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     _fit_parser(sub)
+    _batch_parser(sub)
     _bench_parser(sub)
     p = sub.add_parser("results", help="write docs/results.md (and its figures) from the cell records in results/",
                        description="Tabulate the recorded cells of results/ (Table 1, per scene, ablation, "
@@ -476,7 +532,6 @@ def build_parser() -> argparse.ArgumentParser:
 def _config_and_source(args: argparse.Namespace) -> tuple[FitConfig, dict]:
     from .scenes import SCENES
     from .targets import check_file
-    width, height = args.size
     if args.image is not None and args.scene is not None:
         raise UsageError("give either an IMAGE or --scene, not both")
     if args.image is None:
@@ -500,14 +555,21 @@ def _config_and_source(args: argparse.Namespace) -> tuple[FitConfig, dict]:
                          "or use --planes 1")
     if args.resize_depth:
         source["resize_depth"] = True
-    config = FitConfig.create(args.recipe, width=width, height=height, color=color, primitive=args.primitive,
-                              ratio=args.ratio, num_gaussians=args.num_gaussians,
-                              steps=DEFAULTS.optimisation.steps if args.steps is None else args.steps,
-                              curvature_warmup=args.curvature_warmup, seed=args.seed, num_planes=planes,
-                              bound=args.bound, qpf=args.qpf, curvature=args.curvature, pixel_pitch=args.pitch,
-                              plane_center=args.plane_center, plane_span=args.plane_span,
-                              wavelengths_m=tuple(args.wavelengths) if args.wavelengths else None)
+    config = FitConfig.create(args.recipe, **{**_fit_settings(args), "color": color, "num_planes": planes,
+                                              "steps": DEFAULTS.optimisation.steps if args.steps is None
+                                              else args.steps})
     return config.validate(), source
+
+
+def _fit_settings(args: argparse.Namespace) -> dict:
+    """`FitConfig.create`'s settings that `_fit_options` and `_count_options` give; `color`, `num_planes` and
+    `steps` None where not given (the input decides them)."""
+    width, height = args.size
+    return dict(width=width, height=height, color=args.color, primitive=args.primitive, ratio=args.ratio,
+                num_gaussians=args.num_gaussians, steps=args.steps, curvature_warmup=args.curvature_warmup,
+                seed=args.seed, num_planes=args.planes, bound=args.bound, qpf=args.qpf, curvature=args.curvature,
+                pixel_pitch=args.pitch, plane_center=args.plane_center, plane_span=args.plane_span,
+                wavelengths_m=tuple(args.wavelengths) if args.wavelengths else None)
 
 
 def _run_options(args: argparse.Namespace) -> RunOptions:
@@ -606,9 +668,6 @@ def check_device(device: str) -> None:
     import torch
     if torch.device(device).type == "cuda" and not torch.cuda.is_available():
         raise UsageError(f"device {device}: no CUDA GPU is visible to PyTorch; use --device cpu")
-
-
-PARTIAL_SUFFIX = ".partial"
 
 
 @dataclass
@@ -1110,6 +1169,39 @@ def run_bench(args: argparse.Namespace) -> int:
     return code
 
 
+def run_batch(args: argparse.Namespace) -> int:
+    from .app.allocator import keep_freed_memory
+    from .app.batch import (BUG, FILESYSTEM, INPUT, MEMORY, SUMMARY_MD, BatchSettings, check_settings, plan_batch,
+                            read_inputs)
+    from .app.batch import run_batch as run
+    from .app.outputs import BATCH, check_continued, claimed
+    from .fitting import estimated_peak_bytes
+    settings = BatchSettings(args.recipe, _fit_settings(args), _run_options(args), args.bpp, args.max_bytes,
+                             args.finetune, args.resize_depth, args.overwrite)
+    device = settings.run.device
+    check_device(device)
+    check_settings(settings)
+    executor = executor_options(args)
+    folder = check_continued(args.out, BATCH)
+    plan = plan_batch(read_inputs(args.inputs), folder, settings)
+    peaks = {item.name: estimated_peak_bytes(item.config, device) for item in plan.items}
+    if peaks:
+        largest = max(plan.items, key=lambda item: peaks[item.name])
+        check_memory(largest.config, device, remedy=f"reduce --size or --planes (item {largest.name})")
+        check_fits_at_once(peaks[largest.name], executor, device)
+    keep_freed_memory()
+    with claimed(folder), StopRequest() as stop_requested:
+        outcome = run(plan, executor, RunControl(progress=not args.quiet, stop_requested=stop_requested))
+    print(f"cvqpg batch: {outcome.describe()}; summary in {folder / SUMMARY_MD}")
+    for name, error in outcome.failures.items():
+        print(f"  {name}: {flag_message(error)}", file=sys.stderr)
+    if stop_requested.signals:
+        return 128 + stop_requested.signals[0]
+    kinds = set(outcome.kinds.values())
+    return next((code for kind, code in ((BUG, EXIT_BUG), (FILESYSTEM, EXIT_FILESYSTEM), (MEMORY, EXIT_MEMORY),
+                                         (INPUT, EXIT_USAGE)) if kind in kinds), 0)
+
+
 def run_results(args: argparse.Namespace) -> int:
     from .app.outputs import DOCUMENT, output
     from .campaign.results import check_recorded, document, write_figures
@@ -1162,7 +1254,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         _warn_former(f"cvqpg {args.command}", f"cvqpg {FORMER_COMMANDS[args.command]}")
         args.command = FORMER_COMMANDS[args.command]
     try:
-        return {"fit": run_fit, "eval": run_eval, "export": run_export, "info": run_info,
+        return {"fit": run_fit, "batch": run_batch, "eval": run_eval, "export": run_export, "info": run_info,
                 "render": run_render, "bench": run_bench, "results": run_results,
                 "compile": run_compile, "view": run_view, "compress": run_compress,
                 "decompress": run_decompress, "encode": run_encode}[args.command](args)

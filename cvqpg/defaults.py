@@ -28,6 +28,10 @@ DEFAULT_APERTURE = 0.5
 
 # A fit's checkpoint period in seconds of work (`app.runner`).
 CHECKPOINT_SECONDS = 180.0
+# The folder of an unfinished fit or encode, beside the output it becomes: `OUT.partial`.
+PARTIAL_SUFFIX = ".partial"
+# `cvqpg batch` (`app.batch`): the folder of a batch folder's records, which marks it as one.
+BATCH_RECORDS = ".batch"
 
 # Where the tasks of `bench` and `batch` run (`app.executors`): this machine, or a Ray cluster.
 EXECUTORS = ("local", "ray")

@@ -116,6 +116,7 @@ SWEEP = "--distances 0.001 0.002 2"  # the same for a page
 BENCH = "--preset star --size 32 24 --steps 2 --scene-names star --quiet --out new_bench"
 RD_BENCH = "--preset compression --scenes {scenes} --fits bench --size 32 24 --steps 2 --quiet --out new_bench"
 ENCODE = "encode {image} --depth {depth} --size 32 24 --steps 1 --finetune 1 --quiet"  # as FIT, into a file
+BATCH = "batch {scenes} --size 32 24 --steps 1 --quiet"  # a batch that is wrongly accepted ends soon
 
 
 class Case(NamedTuple):
@@ -283,6 +284,15 @@ NUMBERS = cases(
     ("encode-max-bytes-negative", f"{ENCODE} --max-bytes -5 --out new.cvq", "--max-bytes"),
     ("encode-finetune-negative", f"{ENCODE} --finetune -1 --bpp 8 --out new.cvq", "--finetune"),
     ("encode-steps-0", f"{ENCODE} --steps 0 --bpp 8 --out new.cvq", "--steps"),
+    ("batch-steps-0", f"{BATCH} --steps 0 --out new_batch", "--steps"),
+    ("batch-size-8", f"{BATCH} --size 8 8 --out new_batch", "--size"),
+    ("batch-planes-0", f"{BATCH} --planes 0 --out new_batch", "--planes"),
+    ("batch-ratio-nan", f"{BATCH} --ratio nan --out new_batch", "--ratio"),
+    ("batch-bpp-0", f"{BATCH} --bpp 0 --out new_batch", "--bpp"),
+    ("batch-bpp-below-the-smallest-file", f"{BATCH} --bpp 1 --out new_batch", "smallest file"),
+    ("batch-finetune-negative", f"{BATCH} --finetune -1 --out new_batch", "--finetune"),
+    ("batch-jobs-0", f"{BATCH} --jobs 0 --out new_batch", "--jobs"),
+    ("batch-checkpoint-every-negative", f"{BATCH} --checkpoint-every -1 --out new_batch", "--checkpoint-every"),
 )
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -352,6 +362,9 @@ USAGE = cases(
     ("compile-unknown-flag", "compile --bogus-flag", "--bogus-flag"),
     ("compile-extra-argument", "compile extra_argument", "extra_argument"),
     ("compile-device", "compile --device gpu", "--device"),
+    ("batch-no-out", "batch {scenes} --size 32 24 --steps 1 --quiet", "--out"),
+    ("batch-depth", f"{BATCH} --depth {{depth}} --out new_batch", "--depth"),
+    ("batch-gpus-per-fit-local", f"{BATCH} --gpus-per-fit 0.5 --out new_batch", "--gpus-per-fit"),
 )
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -463,6 +476,10 @@ INPUTS = cases(
     ("results-cell-of-other-settings", "results --root {badrecords} --out new.md", "badrecords"),
     ("results-root-empty", "results --root {folder} --out new.md", "nothing to summarise"),
     ("results-root-of-other-files", "results --root {notarun} --out new.md", "nothing to summarise"),
+    ("batch-inputs-missing", "batch missing_scenes --size 32 24 --steps 1 --quiet --out new_batch",
+     "missing_scenes"),
+    ("batch-inputs-empty-folder", "batch {folder} --size 32 24 --steps 1 --quiet --out new_batch", "folder"),
+    ("batch-manifest-of-text", "batch {text} --size 32 24 --steps 1 --quiet --out new_batch", "unknown column"),
 )
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -547,6 +564,12 @@ OUTPUTS = cases(
     ("results-out-readonly-folder", "results --root {records} --out {readonly}/results.md", "readonly", PERMISSIONS),
     # --overwrite replaces only the command's own kind of output.
     ("render-overwrite-a-users-folder", "render {run} --out {notarun} --overwrite", "notarun"),
+    ("batch-out-a-users-folder", f"{BATCH} --out {{notarun}} --overwrite", "notarun"),
+    ("batch-out-a-bench-folder", f"{BATCH} --out {{bench}} --overwrite", "not a batch folder"),
+    ("batch-out-a-run-folder", f"{BATCH} --out {{run}}", "run_a"),
+    ("batch-out-a-file", f"{BATCH} --out {{text}}", "notes.txt"),
+    ("batch-out-the-inputs", f"{BATCH} --out {{scenes}}", "scenes"),
+    ("batch-out-unwritable", f"{BATCH} --out /proc/cvqpg-hostile-batch", "/proc/cvqpg-hostile-batch"),
     ("render-overwrite-another-run", "render {run} --out {run2} --overwrite", "run_b"),
     ("render-overwrite-an-export-folder", "render {run} --out {run}/export --overwrite", "export"),
     ("export-overwrite-a-users-folder", "export {run} --out {notarun} --overwrite", "notarun"),

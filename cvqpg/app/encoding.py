@@ -18,7 +18,7 @@ from ..bitdepths import BitDepths
 from ..codec import encode
 from ..config import FitConfig, RunOptions
 from ..control import SILENT, RunControl
-from ..defaults import ENCODE_FINETUNE_STEPS, ENCODE_STEPS
+from ..defaults import CHECKPOINT_SECONDS, ENCODE_FINETUNE_STEPS, ENCODE_STEPS
 from ..errors import InputError
 from ..fitting import FitResult, fit_scene
 from ..primitives import Primitives, activate, init_gaussians
@@ -166,11 +166,13 @@ def read_encode(folder: Path) -> tuple[FitConfig, dict[str, Any], Budget, int]:
 
 
 def encode_in_folder(folder: Path, scene: Scene, config: FitConfig, budget: Budget, finetune_steps: int,
-                     run: RunOptions = RunOptions(), control: RunControl = SILENT) -> Encoding:
+                     run: RunOptions = RunOptions(), control: RunControl = SILENT,
+                     checkpoint_every_steps: int | None = None,
+                     checkpoint_every_seconds: float | None = CHECKPOINT_SECONDS) -> Encoding:
     """`encode_fitted` of a fit of `config` on `run` in `folder` (made by `start_encode`), from the folder's
-    checkpoint where it has one. The fit checkpoints every `runner.CHECKPOINT_SECONDS` and at its end, and a stop
-    request (`control`) raises `FitInterrupted`: within the fit after saving, within rate control with the finished
-    fit saved, which a resume then rate-controls again."""
+    checkpoint where it has one. The fit checkpoints as `runner.fit_in_folder` (by default every
+    `CHECKPOINT_SECONDS`) and at its end, and a stop request (`control`) raises `FitInterrupted`: within the fit
+    after saving, within rate control with the finished fit saved, which a resume then rate-controls again."""
     fitted = fit_in_folder(folder, scene, config, run, control, resumed_state(folder, config, run),
-                           checkpoint_at_end=True)
+                           checkpoint_every_steps, checkpoint_every_seconds, checkpoint_at_end=True)
     return encode_fitted(fitted, scene, budget, finetune_steps, control)

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
+from ..defaults import BATCH_RECORDS
 from ..errors import InputError
 from ..files import staged_folder
 from ..runs import CHECKPOINT_FILE, CONFIG_FILE, HISTORY_FILE, METRICS_FILE, MODEL_FILE, PLANE_IMAGES
@@ -100,6 +101,7 @@ RENDER = Kind("a render folder (amplitude.png, phase.png, recon_*.png)", True, _
 EXPORT = Kind("an export folder (metrics.json, display_plane*.png, ...)", True,
               _holds(METRICS_FILE, "display_plane0.png"))
 BENCH = Kind("a bench folder (cells/, summary.md, ...)", True, _holds("cells"))
+BATCH = Kind(f"a batch folder (summary.csv, {BATCH_RECORDS}/, ...)", True, _holds(BATCH_RECORDS))
 CVQ = Kind("a compressed model (.cvq) file", False, _is_cvq)
 MODEL = Kind("a safetensors model file", False, _is_safetensors)
 PAGE = Kind("an HTML page", False, _is_page)
