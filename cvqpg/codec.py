@@ -600,7 +600,7 @@ def encode_stream(values: np.ndarray, widths: np.ndarray | None = None, periodic
     Symbols are offset by their minimum. `raw` packs fixed-width bits; the parametric models carry
     two short parameters; `categorical` carries the histogram, which pays only for skewed streams. With
     `widths` (bits per symbol, which the decoder derives), see `_stream_at_widths`; `periodic`, symbols of
-    width w being angles in 2^w levels, lets each width's symbols be turned (`turned`).
+    width w being angles in 2^w levels, lets each width's symbols be turned (`centring_turn`).
     """
     if widths is not None:
         return _stream_at_widths(values, np.broadcast_to(widths, values.shape), periodic)

@@ -12,9 +12,9 @@ import torch
 
 from cvqpg import FitConfig, load_model
 from cvqpg.cli import main
-from cvqpg.codec import (AXES, CHANNELS, CHECKSUM, MAGIC, PREFIX, TOOLS, TURN, BitDepths, coding, decode, decode_stream, deflated,
-                         derived_depths, encode, encode_stream, exact_exp, file_fingerprint, file_order, header_start,
-                         importance_offsets, inflated, rotation_depths, with_fingerprint)
+from cvqpg.codec import (AXES, CHANNELS, CHECKSUM, MAGIC, PREFIX, TOOLS, TURN, BitDepths, coding, decode, decode_stream,
+                         deflated, derived_depths, encode, encode_stream, exact_exp, file_fingerprint, file_order,
+                         header_start, importance_offsets, inflated, rotation_depths, with_fingerprint)
 from cvqpg.errors import ModelFileError
 from cvqpg.fitting import render
 from cvqpg.primitives import activate, init_gaussians
