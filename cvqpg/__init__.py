@@ -11,7 +11,7 @@ from typing import Any
 
 from .deprecations import install_moved_modules
 
-__version__ = "0.2.0"
+__version__ = "0.3.0"
 
 _API_MODULES = {
     "config": ("FitConfig", "LearningRates", "RunOptions"),

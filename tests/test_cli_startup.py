@@ -1,4 +1,4 @@
-"""`cvqpg --version` and every `--help` answer from the parser alone: no PyTorch, Numba or Pillow imported."""
+"""`cvqpg --version` and every `--help` answer from the parser alone: no PyTorch, Numba, Pillow or Ray imported."""
 
 import json
 import subprocess
@@ -6,7 +6,8 @@ import sys
 
 from cvqpg.cli import build_parser
 
-HEAVY = ("torch", "numba", "PIL", "cvqpg.fitting", "cvqpg.campaign.bench", "cvqpg.app.compilation")
+HEAVY = ("torch", "numba", "PIL", "ray", "cvqpg.fitting", "cvqpg.campaign.bench", "cvqpg.app.compilation",
+         "cvqpg.app.executors")
 # In a fresh interpreter: run the command line's --version and each subcommand's --help, then list what they imported.
 PROBE = """
 import contextlib, io, json, sys

@@ -82,7 +82,7 @@ class ExecutorOptions:
         if not (math.isfinite(self.gpus_per_fit) and self.gpus_per_fit >= 0):
             raise ExecutorError(f"--gpus-per-fit {self.gpus_per_fit:g}: give a number ≥ 0 (e.g. 0.25: four fits "
                                 "share a GPU)")
-        if self.gpus_per_fit > 1 and not self.gpus_per_fit.is_integer():
+        if self.gpus_per_fit > 1 and not float(self.gpus_per_fit).is_integer():
             raise ExecutorError(f"--gpus-per-fit {self.gpus_per_fit:g}: above 1, give a whole number of GPUs")
         if self.checkpoint_every is not None and self.checkpoint_every < 0:
             raise ExecutorError(f"--checkpoint-every {self.checkpoint_every}: give a number of steps ≥ 1, or 0 "
@@ -113,14 +113,14 @@ class ExecutorOptions:
 
     def fits_at_once(self, device: str) -> int:
         """How many tasks may fit at once on one device of this machine: `jobs` locally; on a Ray instance of this
-        machine 1 / `gpus_per_fit` per GPU (CUDA) or its cores over `threads` (CPU); 0 on a cluster given by its
+        machine 1 / `gpus_per_fit` per GPU (CUDA), else its cores over `threads`; 0 on a cluster given by its
         address, whose machines this one does not know."""
         if self.kind == "local":
             return self.jobs
         if self.ray_address is not None:
             return 0
-        if torch.device(device).type == "cuda":
-            return max(1, math.floor(1 / self.gpus_per_fit)) if self.gpus_per_fit else 1
+        if torch.device(device).type == "cuda" and self.gpus_per_fit:
+            return max(1, math.floor(1 / self.gpus_per_fit))
         return max(1, available_cores() // self.task_threads())
 
 
@@ -223,7 +223,8 @@ def run_tasks(tasks: Sequence[Task], options: ExecutorOptions, control: RunContr
     (`control.should_stop()`) reaches every task: running fits save a checkpoint and stop, those not started
     return `not started`. A task whose worker dies is `failed`, with a one-line error; on Ray it is first rerun
     (`RAY_RETRIES` times), the rerun resuming from what the task's folder holds. `shared_folder` is where the
-    tasks write: on Ray every node must see it (`ray_probe`)."""
+    tasks write: on Ray every node must see it (`ray_probe`). A process already connected to Ray (`ray.init`)
+    runs the tasks there and stays connected; otherwise the command's own connection ends with it."""
     options = options.validate()
     threads = options.task_threads()
     if not tasks:
@@ -368,9 +369,11 @@ def _run_ray(tasks: Sequence[Task], options: ExecutorOptions, threads: int, cont
             settings["num_cpus"] = available_cores()
         try:
             ray.init(address=options.ray_address, **settings)
-        except (ConnectionError, RuntimeError, ValueError) as error:
-            where = f"--ray-address {options.ray_address}" if options.ray_address else "a local Ray instance"
-            raise ExecutorError(f"{where}: Ray did not start or connect ({one_line(error)})") from None
+        # Ray exits (SystemExit) where no cluster answers at the address
+        except (ConnectionError, RuntimeError, ValueError, SystemExit) as error:
+            where = f"--ray-address {options.ray_address}" if options.ray_address else "a Ray instance of this machine"
+            reason = "no Ray cluster answered there" if isinstance(error, SystemExit) else one_line(error)
+            raise ExecutorError(f"{where}: Ray did not start or connect ({reason})") from None
     try:
         check_cluster(ray, threads, options.gpus_per_fit)
         ray_probe(ray, shared_folder)
@@ -432,6 +435,14 @@ def _probe_remove(folder: str, name: str) -> None:
     Path(folder, name).unlink(missing_ok=True)
 
 
+def _sees(path: Path, token: str) -> bool:
+    """Whether this process sees the probe file at `path` as a task wrote it."""
+    try:
+        return path.read_text() == token
+    except OSError:
+        return False
+
+
 def ray_probe(ray: Any, folder: Path) -> None:
     """Check that the driver sees a file that a task on each live node writes into `folder` (the tasks' results go
     there); a one-line `ExecutorError` otherwise. The probe files are removed either way."""
@@ -453,9 +464,8 @@ def ray_probe(ray: Any, folder: Path) -> None:
         except ray.exceptions.RayError as error:
             unseen.append(f"the node {node[:8]} could not write there ({one_line(getattr(error, 'cause', error))})")
             continue
-        path = folder / names[node]
-        seen = path.is_file() and path.read_text() == token
-        path.unlink(missing_ok=True)
+        seen = _sees(folder / names[node], token)
+        (folder / names[node]).unlink(missing_ok=True)
         if not seen:
             ray.get(remove.options(**on(node)).remote(str(folder), names[node]))
             unseen.append(f"a file that a task on {host} wrote is not visible here")
