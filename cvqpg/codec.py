@@ -845,8 +845,18 @@ def encode(primitives: Primitives, config: FitConfig, bits: BitDepths, fingerpri
            tools: frozenset[str] = TOOLS) -> bytes:
     """The whole `.cvq` file (docs/format.md) of `primitives` at `bits`, with the fit's `fingerprint` (16 bytes,
     `runs.fingerprint_digest`; zeros: not known), using `tools` (a subset of `TOOLS`; all by default, fewer to
-    measure each)."""
-    tools = tools if config.channels > 1 else tools - {CHANNELS}  # the tools the file uses
+    measure each). `channels` pays where a primitive's channels follow each other and costs where they do not
+    (measured: 2.8% smaller on one RGB fit, 0.1% larger on another), so with more than one channel the file is
+    written both with and without it, and the smaller kept."""
+    if CHANNELS in tools and config.channels > 1:
+        return min((_file(primitives, config, bits, fingerprint, chosen) for chosen in (tools, tools - {CHANNELS})),
+                   key=len)
+    return _file(primitives, config, bits, fingerprint, tools - {CHANNELS})
+
+
+def _file(primitives: Primitives, config: FitConfig, bits: BitDepths, fingerprint: bytes, tools: frozenset[str]
+          ) -> bytes:
+    """The `.cvq` file of `primitives` at `bits`, with `fingerprint`, using exactly `tools` (`encode`)."""
     encoded = quantise(primitives, config, bits, tools)
     descriptors, payload = [], []
     for name, values in encoded.streams.items():

@@ -15,6 +15,7 @@ from cvqpg.cli import main
 from cvqpg.codec import (AXES, CHANNELS, CHECKSUM, MAGIC, PREFIX, TOOLS, TURN, BitDepths, coding, decode, decode_stream,
                          deflated, derived_depths, encode, encode_stream, exact_exp, file_fingerprint, file_order,
                          header_start, importance_offsets, inflated, rotation_depths, with_fingerprint)
+from cvqpg.codec import NO_FINGERPRINT, _file
 from cvqpg.errors import ModelFileError
 from cvqpg.fitting import render
 from cvqpg.primitives import activate, init_gaussians
@@ -247,7 +248,7 @@ def test_every_set_of_format_5_tools_decodes_to_the_same_model(tools):
     primitives = random_primitives(config)
     bits = BitDepths()
     reference = decode(encode(primitives, config, bits, tools=frozenset())).primitives
-    decoded = decode(encode(primitives, config, bits, tools=tools))
+    decoded = decode(_file(primitives, config, bits, NO_FINGERPRINT, tools))
     assert decoded.tools == tools
     for name in ("position_px", "amplitude", "phase_rad", "curvature_per_m", "opacity"):
         assert torch.equal(getattr(decoded.primitives, name), getattr(reference, name)), name
@@ -285,6 +286,18 @@ def test_the_tools_save_bytes_where_their_symbols_gather():
     sizes = {tools: len(encode(primitives, config, BitDepths(), tools=frozenset(tools)))
              for tools in ((), (AXES,), (TURN,))}
     assert sizes[(AXES,)] < sizes[()] and sizes[(TURN,)] < sizes[()]
+
+
+def test_channels_is_used_where_it_makes_the_file_smaller():
+    """Amplitudes and phases that follow the channel before take `channels`; independent ones do not."""
+    config = FitConfig.create(width=96, height=64, ratio=0.3)
+    primitives = gathered_primitives(config)
+    values = primitives.tensors()
+    assert CHANNELS not in decode(encode(primitives, config, BitDepths())).tools
+    values["amplitude"] = values["amplitude"][:, :1].expand(-1, 3) * torch.tensor([1.0, 0.9, 0.8])
+    values["phase_rad"] = values["phase_rad"][:, :1].expand(-1, 3).contiguous()
+    followed = type(primitives).from_tensors(values)
+    assert CHANNELS in decode(encode(followed, config, BitDepths())).tools
 
 
 def test_exact_exp_is_within_an_ulp_and_gives_the_same_bits_everywhere():

@@ -19,7 +19,8 @@ primitives). Between them the files use every stream coding (raw, laplace, gauss
 grouped). The commits that wrote them: version 1 337a462 (a285f63's parent), 2 b61bea5 (26e6382's parent), 3
 4c01f38 (f53969e's parent), 4 34cc80f; the RGB files of versions 2 and 3 came with 26e6382 and f53969e, and the
 same recipe at those commits remakes them byte for byte. Version 5's RGB file follows the same recipe (through
-`FitConfig.create`, 3,243 bytes); its grayscale file is of more primitives whose symbols gather, so that `turn` is
+`FitConfig.create`), written with every tool (`codec._file(..., TOOLS)`, 3,243 bytes) so that `channels` is
+covered, where `encode` keeps the smaller file without it (3,161 bytes); its grayscale file is of more primitives whose symbols gather, so that `turn` is
 used: 160×120 px grayscale, 2 planes, shared curvature, ratio 0.3 (1,440 primitives), `random_primitives(config)`
 of tests/test_codec.py (seed 3) with amplitude |amplitude|, phase 0.2·N(0, 1) mod 2π and scale exp(1 + 0.8·N(0, 1))
 px drawn in that order from `torch.Generator().manual_seed(1)` (`gathered_primitives`). Version 5 decodes the scale
