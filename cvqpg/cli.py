@@ -475,7 +475,7 @@ def _batch_parser(sub: argparse._SubParsersAction) -> None:
                        "and tries failed ones again. One item's failure is recorded in one line and the others go "
                        f"on (a bug's traceback goes to DIR/NAME.error.log). DIR/summary.csv and DIR/summary.md "
                        "list every item: status, PSNR, size, steps, seconds, device and the error line; they are "
-                       "rewritten as items finish.")
+                       "rewritten as items finish (at most every 10 s) and at the end.")
     p.add_argument("inputs", metavar="INPUTS", help="a folder of scene folders, NAME/image.* with an optional "
                    f"NAME/{DEPTH_FILE} (0 = near; without one the item is fitted at one plane), or a CSV manifest: a "
                    "header line, then one row per item with the columns image (required), depth and name (by "

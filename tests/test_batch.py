@@ -203,6 +203,28 @@ def test_an_item_that_hits_a_bug_leaves_its_traceback_beside_it_and_the_batch_ex
     assert "Traceback" in (out / "a.error.log").read_text() and summary(out)["a"]["status"] == "failed"
 
 
+def test_the_summaries_list_every_item_and_are_rewritten_at_most_every_few_seconds_while_items_run(tmp_path,
+                                                                                                   monkeypatch):
+    inputs = [BatchInput(name, tmp_path / f"{name}.png") for name in ("a", "b", "c")]
+    batch.start_batch(tmp_path, inputs, {"a": "a", "b": "b.cvq", "c": "c"}, {"c": batch.NO_DEPTH_NOTE})
+    (tmp_path / "b.cvq.partial").mkdir()
+    batch.update_summary(tmp_path)
+    rows = summary(tmp_path)
+    assert [(row["status"], row["output"], row["note"]) for row in rows.values()] == [
+        ("not started", "a", ""), ("interrupted", "b.cvq.partial", ""), ("not started", "c", batch.NO_DEPTH_NOTE)]
+    batch.write_record(tmp_path, {"name": "a", "status": "done", "output": "a", "psnr_db": 31.25, "bytes": 10,
+                                  "bpp": 0.1, "steps": 3, "seconds": 2.0, "device": "cpu: x"})
+    batch.update_summary(tmp_path)  # a moment after the last: left for the next, or the batch's end
+    assert summary(tmp_path)["a"]["status"] == "not started"
+    batch.update_summary(tmp_path, now=True)
+    assert summary(tmp_path)["a"]["psnr_db"] == "31.2500" and "| a | done | a | 31.2500 |" in (
+        tmp_path / "summary.md").read_text()
+    monkeypatch.setattr(batch, "SUMMARY_SECONDS", 0.0)
+    batch.write_record(tmp_path, {"name": "c", "status": "failed", "output": "c", "error": "bad", "kind": "input"})
+    batch.update_summary(tmp_path)
+    assert summary(tmp_path)["c"]["error"] == "bad"
+
+
 class CountedStop(cli.StopRequest):
     """A stop request that asks to stop from its `after`-th question on."""
 

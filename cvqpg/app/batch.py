@@ -22,6 +22,7 @@ import json
 import math
 import os
 import shutil
+import time
 import traceback
 from dataclasses import dataclass, field, replace
 from functools import partial
@@ -47,6 +48,7 @@ ITEMS_FILE = "items.json"
 SUMMARY_CSV, SUMMARY_MD = "summary.csv", "summary.md"
 ERROR_SUFFIX = ".error.log"
 SUMMARY_LOCK = "summary.lock"
+SUMMARY_SECONDS = 10.0  # the summaries are rewritten at most this often while the items run
 IMAGE_STEM = "image"  # a scene folder's image: the item takes the folder's name
 DEPTH_NAME = "depth.png"
 # What a failure is owed to: the input (bad file, bad option), the file system, the memory, or a bug.
@@ -503,11 +505,19 @@ def write_summary(folder: Path) -> tuple[Path, Path]:
     return folder / SUMMARY_CSV, folder / SUMMARY_MD
 
 
-def update_summary(folder: Path) -> None:
-    """`write_summary`, one task at a time (a lock file in the records), so that the last to finish writes last."""
-    with open(Path(folder) / BATCH_RECORDS / SUMMARY_LOCK, "a") as lock:
+def update_summary(folder: Path, now: bool = False) -> None:
+    """`write_summary`, one task at a time (a lock file in the records), so that the last to finish writes last;
+    unless `now`, only where the summary is older than `SUMMARY_SECONDS` (a summary of N items reads N records,
+    and thousands of items finishing one after another would otherwise wait on each other)."""
+    folder = Path(folder)
+    with open(folder / BATCH_RECORDS / SUMMARY_LOCK, "a") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        write_summary(folder)
+        try:
+            fresh = time.time() - (folder / SUMMARY_CSV).stat().st_mtime < SUMMARY_SECONDS
+        except FileNotFoundError:
+            fresh = False
+        if now or not fresh:
+            write_summary(folder)
 
 
 # The batch.
@@ -566,7 +576,7 @@ def run_batch(plan: BatchPlan, options: ExecutorOptions = ExecutorOptions(), con
         else:
             _record_path(folder, item.name).unlink(missing_ok=True)
             todo.append(replace(item, checkpoint_every=options.checkpoint_every))
-    update_summary(folder)
+    update_summary(folder, now=True)
     tasks = [Task(item.name, partial(run_item, item), item.config.optimisation.steps) for item in todo]
     for name, (status, error) in run_tasks(tasks, options, control, "batch", folder, "item").items():
         outcome.statuses[name] = status
@@ -577,5 +587,5 @@ def run_batch(plan: BatchPlan, options: ExecutorOptions = ExecutorOptions(), con
             if record.get("status") != FAILED:  # the task's process died before it could say so
                 write_record(folder, {"name": name, "status": FAILED, "output": plan.output(name),
                                       "error": outcome.failures[name], "kind": BUG})
-    update_summary(folder)
+    update_summary(folder, now=True)
     return outcome
