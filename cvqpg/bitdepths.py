@@ -68,5 +68,7 @@ class BitDepths:
             if name not in known or not value.isdigit():
                 raise ConfigError(f"`bits` {item}: give ATTRIBUTE=BITS with ATTRIBUTE one of "
                                   f"{', '.join(sorted(known))}, or one number for all but position")
+            if name in values:
+                raise ConfigError(f"`bits` {name}={values[name]} and {item}: give each attribute once")
             values[name] = int(value)
         return cls(**values).validate()

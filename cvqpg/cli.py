@@ -701,7 +701,7 @@ def _resume_plan(args: argparse.Namespace) -> FitPlan:
     from .app.outputs import is_run_folder
     from .app.runner import resumed_state
     from .runs import CONFIG_FILE, read_run, read_run_options, scene_from_source
-    work = Path(args.resume)
+    work = Path(os.path.abspath(args.resume))  # `--resume .` names the folder too
     if not (work / CONFIG_FILE).is_file():
         raise UsageError(f"--resume {work}: not a run folder (no {CONFIG_FILE})")
     if (work / BUDGET_FILE).is_file():
@@ -819,6 +819,7 @@ def _fit(plan: FitPlan, args: argparse.Namespace) -> int:
 
 def run_fit(args: argparse.Namespace) -> int:
     from .app.allocator import keep_freed_memory
+    from .app.outputs import PAGE, output
     from .runs import METRICS_FILE
     from .view import write_view
     if args.resume and (Path(args.resume) / METRICS_FILE).is_file():
@@ -836,7 +837,8 @@ def run_fit(args: argparse.Namespace) -> int:
         record = json.loads((folder / METRICS_FILE).read_text())
         print(f"{folder}: {_summary(record)}")
     if args.view:
-        view = write_view([folder], folder / VIEW_FILE, progress=not args.quiet)
+        with output(folder / VIEW_FILE, PAGE, [folder], overwrite=True) as page:
+            view = write_view([folder], page, progress=not args.quiet)
         if not args.quiet:
             _print_view(view)
     return 0
@@ -870,8 +872,9 @@ def run_export(args: argparse.Namespace) -> int:
     from .runs import EXPORT_FOLDER, MODEL_FILE, export_run, read_run
     check_device(args.device)
     folder, model = run_and_model(Path(args.run_dir))
-    if args.aperture < 0:
-        raise UsageError(f"--aperture {args.aperture}: give a radius ≥ 0 (a fraction of Nyquist; 0: no filter)")
+    if not 0 <= args.aperture <= math.sqrt(2):
+        raise UsageError(f"--aperture {args.aperture:g}: give a radius in [0, √2] (a fraction of Nyquist; from √2 "
+                         "on it passes every frequency, as 0 does: no filter)")
     out = Path(args.out) if args.out else folder / (EXPORT_FOLDER if model is None else f"{EXPORT_FOLDER}-{model.stem}")
     check_memory(read_run(folder)[0], args.device, "export", "give a smaller --slm",
                  size=tuple(args.slm) if args.slm else None)
@@ -927,7 +930,7 @@ def run_info(args: argparse.Namespace) -> int:
 
 def run_render(args: argparse.Namespace) -> int:
     from .app.outputs import RENDER, staged_output
-    from .runs import RENDER_FOLDER, read_run, render_model
+    from .runs import RENDER_FOLDER, check_distinct_files, read_run, render_model
     from .storage import load_model
     check_device(args.device)
     target = Path(args.target)
@@ -939,6 +942,7 @@ def run_render(args: argparse.Namespace) -> int:
                                            else target.with_name(target.stem + "-render"))
     if args.distance is not None:
         check_distances(args.distance, "`distance`", " (e.g. 0.001 for 1 mm)")
+        check_distinct_files(args.distance)
     config = read_run(target)[0] if target.is_dir() else load_model(target)[1]
     check_memory(config, args.device, "render", "give a smaller --size or fewer --distance values",
                  size=tuple(args.size) if args.size else None,
@@ -976,12 +980,14 @@ def run_view(args: argparse.Namespace) -> int:
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    from .runs import CONFIG_FILE, evaluate_run, read_run
+    from .app.outputs import claimed_in_run
+    from .runs import CONFIG_FILE, evaluate_run, evaluation_file, read_run
     check_device(args.device)
     folder, model = run_and_model(Path(args.run_dir))
     check_memory(read_run(folder)[0], args.device, "evaluation", f"the run's {CONFIG_FILE} asks for it: evaluate it "
                  "where more memory is free")
-    record = evaluate_run(folder, model, args.device)
+    with claimed_in_run(evaluation_file(folder, model), "the metrics record"):
+        record = evaluate_run(folder, model, args.device)
     print(f"{folder}: {_summary(record)}")
     for name, reason in record["unavailable"].items():
         print(f"  {name}: n/a ({reason})")
@@ -1059,7 +1065,7 @@ def run_encode(args: argparse.Namespace) -> int:
     from .search import CompressionSettings
     depth, role = None, "`out`"
     if args.resume:
-        work = Path(args.resume)
+        work = Path(os.path.abspath(args.resume))  # `--resume .` names the folder too
         config, source, budget, finetune_steps = read_encode(work)
         if not work.name.endswith(PARTIAL_SUFFIX):
             raise UsageError(f"--resume {work}: an encode's folder is named after its file, FILE{PARTIAL_SUFFIX}")
@@ -1114,7 +1120,7 @@ def run_decompress(args: argparse.Namespace) -> int:
     from .app.compression import decompress_file
     from .app.outputs import MODEL, output
     source = Path(args.file)
-    out = Path(args.out) if args.out else source.with_name(f"{source.stem}.decoded.safetensors")
+    out = args.out or source.with_name(f"{source.stem}.decoded.safetensors")
     with output(out, MODEL, [source], args.overwrite) as out:
         print(f"{decompress_file(source, out)}")
     return 0
@@ -1130,6 +1136,8 @@ def run_bench(args: argparse.Namespace) -> int:
     overrides = Overrides(scenes_dir=args.scenes, scene_names=args.scene_names, colors=args.colors,
                           ratios=args.ratios, methods=args.methods, seeds=seeds, size=args.size, steps=args.steps,
                           curvature_warmup=args.curvature_warmup, device=args.device, backend=args.backend)
+    if args.out is not None:
+        check_continued(args.out, BENCH)  # before the plan reads the records there
     plan = make_plan(args.preset, args.out, overrides)
     for option, given in (("--fits", bool(args.fits)), ("--finetune", args.finetune != 0)):
         if given and (not PRESETS[args.preset].rate_distortion or PRESETS[args.preset].encode_fractions):
@@ -1245,20 +1253,75 @@ def _machine_or_bug(command: str, error: Exception) -> int:
     return EXIT_BUG
 
 
+POSITIONALS = {"image": "IMAGE", "run_dir": "RUN_DIR", "run_dirs": "RUN_DIR", "target": "RUN_DIR|MODEL",
+               "file": "FILE"}
+
+
+def _empty_argument(args: argparse.Namespace) -> str | None:
+    """The first argument given as an empty string (`--out ""` would otherwise mean the default place, or the
+    current folder), by its flag; None where there is none."""
+    for name, value in vars(args).items():
+        if value == "" or (isinstance(value, list) and "" in value):
+            return POSITIONALS.get(name, f"--{name.replace('_', '-')}")
+    return None
+
+
+# The thread counts that Numba, OpenMP (PyTorch) and MKL read from the environment as they load: 0 or garbage makes
+# Numba fail, or warn in several lines, before cvqpg could say anything. OpenMP also takes a list per nesting level.
+THREAD_VARIABLES = {"NUMBA_NUM_THREADS": False, "OMP_NUM_THREADS": True, "MKL_NUM_THREADS": False}
+
+
+def _bad_thread_variable() -> str | None:
+    """The first thread-count variable of the environment (`THREAD_VARIABLES`) set to something other than a
+    whole number ≥ 1 (or a list of them, where a list is taken); None where all are fine or unset."""
+    for name, listed in THREAD_VARIABLES.items():
+        value = os.environ.get(name)
+        if value is None:
+            continue
+        counts = value.split(",") if listed else [value]
+        if not all(count.strip().isdigit() and int(count) >= 1 for count in counts):
+            return name
+    return None
+
+
+def _cap_thread_variables() -> None:
+    """Lower a thread count of the environment (`THREAD_VARIABLES`, one number) above the cores this process may
+    use to their number, with a note: Numba starts as many threads as it is told (9999 took minutes for one step)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    for name in THREAD_VARIABLES:
+        value = os.environ.get(name, "")
+        if value.isdigit() and int(value) > cores:
+            os.environ[name] = str(cores)
+            print(f"cvqpg: note: {name}={value} lowered to {cores}, the cores this process may use", file=sys.stderr)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
     except SystemExit as stop:  # --help, --version, or a usage error already printed in one line
         return stop.code if isinstance(stop.code, int) else 2
     _show_notes()
+    if (empty := _empty_argument(args)) is not None:
+        print(f"cvqpg {args.command}: error: {empty} is empty; give a value (see cvqpg {args.command} --help)",
+              file=sys.stderr)
+        return EXIT_USAGE
+    if (variable := _bad_thread_variable()) is not None:
+        print(f"cvqpg {args.command}: error: the environment variable {variable}={os.environ[variable]!r} is not a "
+              f"thread count (a whole number ≥ 1); unset it, or set it to one", file=sys.stderr)
+        return EXIT_USAGE
+    _cap_thread_variables()
     if args.command in FORMER_COMMANDS:
         _warn_former(f"cvqpg {args.command}", f"cvqpg {FORMER_COMMANDS[args.command]}")
         args.command = FORMER_COMMANDS[args.command]
+    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         return {"fit": run_fit, "batch": run_batch, "eval": run_eval, "export": run_export, "info": run_info,
                 "render": run_render, "bench": run_bench, "results": run_results,
                 "compile": run_compile, "view": run_view, "compress": run_compress,
                 "decompress": run_decompress, "encode": run_encode}[args.command](args)
+    except Terminated:
+        print(f"cvqpg {args.command}: terminated", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except CvqpgError as error:
         print(f"cvqpg {args.command}: error: {flag_message(str(error))}", file=sys.stderr)
         return EXIT_USAGE
@@ -1269,6 +1332,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"cvqpg {args.command}: interrupted", file=sys.stderr)
         return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+class Terminated(BaseException):
+    """SIGTERM outside a fit's steps (which `StopRequest` ends cleanly): raised where the command is, so that it
+    removes what it half wrote, as after Ctrl-C, instead of dying with its staged folder and lock left behind."""
+
+
+def _terminate(_signum: int, _frame: object) -> None:
+    raise Terminated
 
 
 if __name__ == "__main__":

@@ -327,6 +327,8 @@ class FitConfig:
                               f"{self.targets.color!r}")
         for index, wavelength in enumerate(wavelengths):
             _check_range(f"wavelengths_m[{index}]", wavelength, *WAVELENGTH_RANGE_M, "number")
+        check_sampling(wavelengths, self.optics.pixel_pitch, "`wavelengths_m`", "keep every `wavelengths_m` below it, "
+                       "or give a larger `pixel_pitch`")
         check_distances(self.plane_distances, "plane distances", ": change `plane_center` or `plane_span`")
         count, pixels = self.primitive_count, self.targets.width * self.targets.height
         if not 0 < count <= pixels:
@@ -346,6 +348,16 @@ SECTION_CLASSES = {"targets": TargetSettings, "optics": OpticsSettings, "primiti
 # The range of every number (flat names): (lowest, highest, kind), both ends allowed. Lengths in m.
 MAX_SIZE_PX = 65536
 MAX_LEARNING_RATE = 10.0
+def check_sampling(wavelengths_m: Sequence[float], pixel_pitch: float, what: str, remedy: str) -> None:
+    """Refuse a wavelength (m) of √2 × the pixel pitch (m) or more: the sampled spectrum's corners then lie beyond
+    1/λ, where the propagation's transfer function (odak's, whose numbers the paper reports) is not a number."""
+    limit = math.sqrt(2) * pixel_pitch
+    if max(wavelengths_m) >= limit:
+        raise ConfigError(f"{what}: a wavelength of {max(wavelengths_m):g} m needs a pixel pitch above "
+                          f"{max(wavelengths_m) / math.sqrt(2):g} m (λ/√2), and the pitch is {pixel_pitch:g} m, "
+                          f"which takes wavelengths below {limit:g} m; {remedy}")
+
+
 WAVELENGTH_RANGE_M = (100e-9, 20e-6)  # deep UV to far infrared: what BLASM's scalar optics can mean
 MIN_DISTANCE_M, MAX_DISTANCE_M = 1e-6, 10.0
 MAX_SEED = 2**62  # the initialisation's own generators draw from seed + an offset: both fit in 64 bits

@@ -13,7 +13,7 @@ from PIL import Image
 from torch import Tensor
 
 from . import __version__
-from .config import MIN_SIZE_PX, SECTIONS, FitConfig, RunOptions
+from .config import MIN_SIZE_PX, SECTIONS, FitConfig, RunOptions, check_sampling
 from .errors import ConfigError, CvqpgError, InputError, ModelFileError
 from .files import write_atomic
 from .export import (DEFAULT_APERTURE, DEFAULT_LEVELS, Display, Encoding, PhasePattern, phase_pattern, place_on_canvas,
@@ -291,6 +291,11 @@ def _fitted_count(folder: Path) -> int | None:
     return count if isinstance(count, int) and not isinstance(count, bool) else None
 
 
+def evaluation_file(folder: str | Path, model: str | Path | None = None) -> Path:
+    """Where `evaluate_run` writes: the run's `metrics.json`, or `<model stem>.metrics.json` for `model`."""
+    return Path(folder) / (METRICS_FILE if model is None else f"{Path(model).stem}.{METRICS_FILE}")
+
+
 def evaluate_run(folder: str | Path, model: str | Path | None = None, device: str = "cpu") -> dict[str, Any]:
     """Recompute a saved run's metrics from its model (or `model`, e.g. a compressed file in the
     run folder) and inputs, rendered on `device` with the run's kernels where they run there
@@ -299,7 +304,7 @@ def evaluate_run(folder: str | Path, model: str | Path | None = None, device: st
     primitives, config, source = load_run_model(folder, model, device)
     scene = scene_from_source(source, config)
     _, recon = render(primitives, config, backend=read_run_options(folder).on_device(device).backend)
-    metrics_file = folder / METRICS_FILE if model is None else folder / f"{Path(model).stem}.{METRICS_FILE}"
+    metrics_file = evaluation_file(folder, model)
     previous = {}
     if (folder / METRICS_FILE).is_file():
         previous = read_record(folder / METRICS_FILE, "delete it and evaluate again (the fit's time and run "
@@ -395,17 +400,36 @@ def rescaled(primitives: Primitives, config: FitConfig, width: int, height: int)
     """The same physical hologram sampled on a W×H grid: positions and scales scale with the grid,
     the pixel pitch shrinks by as much, curvature (1/m) stays. Refuses another aspect ratio."""
     if min(width, height) < MIN_SIZE_PX:
-        raise ConfigError(f"size {width}×{height}: `width` and `height` need at least {MIN_SIZE_PX} px")
+        raise ConfigError(f"`size` {width}×{height}: each side needs at least {MIN_SIZE_PX} px")
     factor = width / config.targets.width
     if abs(height / config.targets.height - factor) > 0.01 * factor:
         raise ConfigError(f"size {width}×{height} changes the aspect ratio of the {config.targets.width}×"
                           f"{config.targets.height} model; keep W/H = "
                           f"{config.targets.width / config.targets.height:.4f} (`size`)")
+    check_sampling(config.wavelengths, config.optics.pixel_pitch / factor, f"`size` {width}×{height}",
+                   f"give a smaller `size` (the model's pitch is {config.optics.pixel_pitch:g} m at "
+                   f"{config.targets.width}×{config.targets.height})")
     values = primitives.tensors()
     values["position_px"] = (values["position_px"] + 0.5) * factor - 0.5
     values["scale_px"] = values["scale_px"] * factor
     return Primitives.from_tensors(values), config.replace(
         width=width, height=height, pixel_pitch=config.optics.pixel_pitch / factor, num_gaussians=primitives.count)
+
+
+def reconstruction_file(distance_m: float) -> str:
+    """The file `render_model` writes the reconstruction at `distance_m` (m) to, named in mm to 6 digits."""
+    return f"recon_{distance_m * 1e3:g}mm.png"
+
+
+def check_distinct_files(distances_m: Sequence[float]) -> None:
+    """Refuse distances (m) that `render_model` would write to one file (`reconstruction_file`)."""
+    seen: dict[str, float] = {}
+    for distance in distances_m:
+        name = reconstruction_file(distance)
+        if name in seen:
+            raise InputError(f"`distance` {seen[name]:.12g} and {distance:.12g} m would both be written to {name}; "
+                             "give distinct distances (they are named in mm to 6 digits)")
+        seen[name] = distance
 
 
 def render_model(target: str | Path, out: str | Path, size: tuple[int, int] | None = None,
@@ -426,7 +450,7 @@ def render_model(target: str | Path, out: str | Path, size: tuple[int, int] | No
     save_hologram_images(field, out)
     files = ["amplitude.png", "phase.png"]
     for distance, image in zip(distances, recon):
-        name = f"recon_{distance * 1e3:g}mm.png"
+        name = reconstruction_file(distance)
         to_8bit(image).save(out / name)
         files.append(name)
     return {"hologram_px": [config.targets.width, config.targets.height], "pixel_pitch_m": config.optics.pixel_pitch,

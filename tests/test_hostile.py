@@ -26,11 +26,16 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import re
 import shlex
 import shutil
+import signal
 import stat
+import subprocess
+import sys
+import time
 from pathlib import Path
 from typing import NamedTuple
 
@@ -41,9 +46,13 @@ from PIL import Image
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
+from cvqpg import FitConfig, fit
+from cvqpg.app.compilation import probe_planes
 from cvqpg.app.outputs import claimed
 from cvqpg.cli import main
+from cvqpg.config import RunOptions
 from cvqpg.fitting import blank_state
+from cvqpg.ops.propagation import FUSED_PLANES_AT_ONCE, plane_groups
 from cvqpg.runs import read_run
 from cvqpg.storage import save_checkpoint
 
@@ -233,6 +242,18 @@ NUMBERS = cases(
     ("render-size-other-aspect", "render {run} --size 33 24 --out new_render", "aspect ratio"),
     ("render-size-square", "render {run} --size 80 80 --out new_render", "aspect ratio"),
     ("render-size-negative", "render {run} --size -32 -24 --out new_render", "--size"),
+    ("render-size-16-12", "render {run} --size 16 12 --out new_render", "--size 16×12: each side needs at least 16 px"),
+    ("render-size-finer-than-the-wavelengths", "render {run} --size 320 240 --out new_render",
+     "--size 320×240: a wavelength of 6.39e-07 m needs a pixel pitch above"),
+    ("fit-wavelength-beyond-the-pitch", f"fit {FIT} --wavelengths 639e-9 532e-9 6e-6",
+     "which takes wavelengths below 5.28916e-06 m; keep every --wavelengths below it, or give a larger --pitch"),
+    ("fit-pitch-below-the-wavelengths", f"fit {FIT} --pitch 4e-7", "a wavelength of 6.39e-07 m needs a pixel pitch"),
+    ("export-aperture-1e300", "export {run} --aperture 1e300 --out new_export", "give a radius in [0, √2]"),
+    ("export-aperture-2", "export {run} --aperture 2 --out new_export", "--aperture 2"),
+    ("render-distance-twice", "render {run} --distance 0.001 0.001 --out new_render",
+     "--distance 0.001 and 0.001 m would both be written to recon_1mm.png"),
+    ("render-distance-alike-to-6-digits", "render {run} --distance 0.002 0.0010000001 0.001 --out new_render",
+     "give distinct distances"),
     ("view-distances-start-0", "view {run} --distances 0 1 5 --quiet --out new.html", "--distances"),
     ("view-distances-count-0", "view {run} --distances 0.001 0.002 0 --quiet --out new.html", "--distances"),
     ("view-distances-nan", "view {run} --distances 0.001 nan 3 --quiet --out new.html", "--distances"),
@@ -253,6 +274,8 @@ NUMBERS = cases(
     ("compress-bits-position-negative", "compress {run} --bits position=-1 --out new.cvq", "--bits"),
     ("compress-bits-unknown-attribute", "compress {run} --bits nonsense=3 --out new.cvq", "--bits"),
     ("compress-bits-not-a-number", "compress {run} --bits phase=x --out new.cvq", "--bits"),
+    ("compress-bits-an-attribute-twice", "compress {run} --bits phase=3 phase=5 --out new.cvq",
+     "--bits phase=3 and phase=5: give each attribute once"),
     ("bench-jobs-0", f"bench {BENCH} --jobs 0", "--jobs"),
     ("bench-jobs-negative", f"bench {BENCH} --jobs -1", "--jobs"),
     ("bench-threads-0", f"bench {BENCH} --threads 0", "--threads"),
@@ -362,6 +385,21 @@ USAGE = cases(
     ("compile-unknown-flag", "compile --bogus-flag", "--bogus-flag"),
     ("compile-extra-argument", "compile extra_argument", "extra_argument"),
     ("compile-device", "compile --device gpu", "--device"),
+    # An empty argument is no path: it would mean the default place, or the current folder.
+    ("fit-out-empty", f"fit {FIT} --out ''", "--out is empty"),
+    ("fit-resume-empty", "fit --resume '' --quiet", "--resume is empty"),
+    ("fit-image-empty", f"fit '' {FIT}", "IMAGE is empty"),
+    ("fit-depth-empty", f"fit {{image}} --depth '' {FIT}", "--depth is empty"),
+    ("compress-out-empty", "compress {run} --bits 8 --out ''", "--out is empty"),
+    ("render-target-empty", "render '' --out new_render", "RUN_DIR|MODEL is empty"),
+    ("eval-target-empty", "eval ''", "RUN_DIR is empty"),
+    ("view-out-empty", f"view {{run}} --quiet {SWEEP} --out ''", "--out is empty"),
+    ("export-out-empty", "export {run} --out ''", "--out is empty"),
+    ("decompress-file-empty", "decompress '' --out new.safetensors", "FILE is empty"),
+    ("encode-resume-empty", "encode --resume '' --quiet", "--resume is empty"),
+    ("results-root-empty-string", "results --root '' --out new.md", "--root is empty"),
+    ("bench-out-empty", f"bench {BENCH} --out ''", "--out is empty"),
+    ("compress-bits-empty", "compress {run} --bits '' --out new.cvq", "--bits is empty"),
     ("batch-no-out", "batch {scenes} --size 32 24 --steps 1 --quiet", "--out"),
     ("batch-depth", f"{BATCH} --depth {{depth}} --out new_batch", "--depth"),
     ("batch-gpus-per-fit-local", f"{BATCH} --gpus-per-fit 0.5 --out new_batch", "--gpus-per-fit"),
@@ -614,6 +652,24 @@ OUTPUTS = cases(
     ("encode-resume-into-a-users-file", "encode --resume {foreigncvq}.partial --quiet --overwrite", "foreign.cvq"),
     # A failure writes nothing.
     ("info-half-of-a-run-whose-image-is-gone", "info {lost} --half", "lost_photo.png"),
+    # Names and paths longer than the file system takes, with what cvqpg keeps beside an output.
+    ("fit-out-name-of-250-bytes", f"fit {FIT} --out {'n' * 250}", "a name longer than the file system takes"),
+    ("fit-out-name-of-300-bytes", f"fit {FIT} --out {'n' * 300}", "a name longer than the file system takes"),
+    ("fit-out-folder-name-of-300-bytes", f"fit {FIT} --out {'n' * 300}/run", "a name longer than"),
+    ("fit-out-path-of-5000-bytes", f"fit {FIT} --out {'/'.join(['n' * 200] * 25)}", "a path longer than"),
+    ("render-out-name-of-250-bytes", f"render {{run}} --out {'n' * 250}", "a name longer than"),
+    ("export-out-name-of-300-bytes", f"export {{run}} --out {'n' * 300}", "a name longer than"),
+    ("compress-out-name-of-246-bytes", f"compress {{run}} --bits 8 --out {'n' * 246}.cvq", "a name longer than"),
+    ("decompress-out-name-of-300-bytes", f"decompress {{cvq}} --out {'n' * 300}", "a name longer than"),
+    ("view-out-name-of-250-bytes", f"view {{run}} --quiet {SWEEP} --out {'n' * 245}.html", "a name longer than"),
+    ("encode-out-name-of-250-bytes", f"{ENCODE} --bpp 8 --out {'n' * 246}.cvq", "a name longer than"),
+    ("results-out-name-of-250-bytes", f"results --root {{records}} --out {'n' * 247}.md", "a name longer than"),
+    ("bench-out-name-of-300-bytes", f"bench {BENCH} --out {'n' * 300}", "a name longer than"),
+    # A file's name that ends in a slash names a folder.
+    ("view-out-ending-in-a-slash", f"view {{run}} --quiet {SWEEP} --out page/", "names a folder"),
+    ("compress-out-ending-in-a-slash", "compress {run} --bits 8 --out new.cvq/", "names a folder"),
+    ("decompress-out-ending-in-a-slash", "decompress {cvq} --out new.safetensors/", "names a folder"),
+    ("results-out-ending-in-a-slash", "results --root {records} --out new.md/", "names a folder"),
 )
 
 CASES = NUMBERS + USAGE + INPUTS + OUTPUTS
@@ -921,23 +977,95 @@ def test_every_command_that_writes_has_cases_of_outputs_it_must_not_write(capsys
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("argv, output", [
-    ("compress {run} --bits 6 --overwrite", "run_a/model.cvq"),
-    ("render {run} --overwrite", "run_a/render"),
-    ("decompress {cvq} --overwrite", "run_a/model.decoded.safetensors"),
-    ("fit --size 32 24 --steps 2 --quiet --out {run} --overwrite", "run_a"),
-    (f"view {{run}} --quiet {SWEEP} --out {{page}} --overwrite", "page.html"),
+@pytest.mark.parametrize("argv, output, shared", [
+    ("compress {run} --bits 6 --overwrite", "run_a/model.cvq", False),
+    ("render {run} --overwrite", "run_a/render", False),
+    ("decompress {cvq} --overwrite", "run_a/model.decoded.safetensors", False),
+    ("fit --size 32 24 --steps 2 --quiet --out {run} --overwrite", "run_a", False),
+    (f"view {{run}} --quiet {SWEEP} --out {{page}} --overwrite", "page.html", False),
+    # A fit resuming or replacing the run holds it: nothing is written into it meanwhile.
+    ("eval {run}", "run_a", False),
+    ("eval {cvq}", "run_a", False),
+    ("export {run} --overwrite", "run_a", False),
+    ("info {run} --half --overwrite", "run_a", False),
+    ("compress {run} --bits 6 --overwrite", "run_a", False),
+    # Another eval rewrites the run's metrics; another command writes into the run (a shared hold).
+    ("eval {run}", "run_a/metrics.json", False),
+    ("fit --size 32 24 --steps 2 --quiet --out {run} --overwrite", "run_a", True),
+    ("fit --resume {unfinished} --quiet", "unfinished", True),
 ])
-def test_a_second_writer_of_one_output_is_refused_in_one_line(argv, output, work, tmp_path, capsys):
+def test_a_second_writer_of_one_output_is_refused_in_one_line(argv, output, shared, work, tmp_path, capsys):
     """Another command holds the output (its lock, as `claimed` takes it): this one stops, and changes nothing."""
     argv = expand(argv, work)
-    with claimed(work / output):
+    with claimed(work / output, shared=shared):
         before = tree_state(tmp_path)
         code, _out, err = cli(argv, capsys)
         changes = tree_changes(before, tree_state(tmp_path))
     problems = refusal_problems(argv, code, err, "being written by another cvqpg command", changes)
     assert not problems, "; ".join(problems) + f"\n  stderr: {err.strip()[-800:]}"
     assert not list(work.rglob("*.cvqpg-lock"))
+
+
+@pytest.mark.parametrize("argv", [
+    f"view {{run}} --quiet {SWEEP} --out {{pipe}} --overwrite",
+    "compress {run} --bits 8 --out {pipe} --overwrite",
+    "decompress {cvq} --out {pipe} --overwrite",
+    "results --root {records} --out {pipe} --overwrite",
+    "render {run} --out {pipe} --overwrite",
+    f"fit {FIT} --out {{pipe}} --overwrite",
+])
+def test_a_pipe_or_a_device_is_never_an_output(argv, shared, template, tmp_path, monkeypatch, capsys):
+    """A named pipe (as a device node, /dev/null, would be, which root could otherwise replace): refused, left."""
+    pipe = tmp_path / "pipe.md"
+    os.mkfifo(pipe)
+    hostile_environment(monkeypatch, shared.folder)
+    argv = [token.format(tmp=shared.folder, pipe=pipe, **PLACES) for token in shlex.split(argv)]
+    code, _out, err = cli(argv, capsys)
+    problems = refusal_problems(argv, code, err, "is neither a file nor a folder",
+                                tree_changes(shared.state, tree_state(shared.root)))
+    assert not problems and stat.S_ISFIFO(os.lstat(pipe).st_mode), problems
+
+
+@pytest.mark.parametrize("variable, value", [("NUMBA_NUM_THREADS", "0"), ("NUMBA_NUM_THREADS", "abc"),
+                                             ("OMP_NUM_THREADS", "0"), ("OMP_NUM_THREADS", "-3"),
+                                             ("OMP_NUM_THREADS", "4,x"), ("MKL_NUM_THREADS", "1.5")])
+def test_a_thread_count_in_the_environment_that_is_none_is_refused(variable, value, shared, monkeypatch, capsys):
+    """Numba reads its count as it loads, and fails (0) or warns in several lines (garbage): refused first."""
+    hostile_environment(monkeypatch, shared.folder)
+    monkeypatch.setenv(variable, value)
+    argv = expand(f"fit {FIT}", shared.folder)
+    code, _out, err = cli(argv, capsys)
+    problems = refusal_problems(argv, code, err, f"{variable}={value!r} is not a thread count",
+                                tree_changes(shared.state, tree_state(shared.root)))
+    assert not problems, problems
+
+
+def test_a_thread_count_in_the_environment_beyond_the_cores_is_lowered_with_a_note(monkeypatch, capsys):
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "9999")
+    code, _out, err = cli(["fit", "--size", "32", "24", "--steps", "0"], capsys)  # refused after the environment
+    cores = len(os.sched_getaffinity(0))
+    assert code == 2 and os.environ["NUMBA_NUM_THREADS"] == str(cores)
+    assert f"cvqpg: note: NUMBA_NUM_THREADS=9999 lowered to {cores}" in err
+
+
+@pytest.mark.slow
+def test_sigterm_midway_leaves_nothing_half_written(work):
+    """SIGTERM while `render` fills its staged folder: exit 143, one line, and neither the folder nor the lock
+    stays (the default SIGTERM would kill the command where it stands)."""
+    distances = [f"{0.001 + 0.00001 * k:.5f}" for k in range(400)]
+    process = subprocess.Popen([sys.executable, "-m", "cvqpg.cli", "render", "run_a", "--out", "late", "--distance",
+                                *distances], cwd=work, stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "PYTHONPATH": str(ROOT)})
+    try:
+        deadline = time.monotonic() + 300
+        while not list(work.glob(".late.partial-*")) and process.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        process.send_signal(signal.SIGTERM)
+        _out, err = process.communicate(timeout=300)
+    finally:
+        process.kill()
+    assert process.returncode == 128 + signal.SIGTERM and err.strip() == "cvqpg render: terminated", err
+    assert not [path.name for path in work.iterdir() if "late" in path.name]
 
 
 @pytest.mark.slow
@@ -1029,3 +1157,35 @@ def test_a_fit_refused_with_overwrite_leaves_the_old_run_byte_for_byte(work, tmp
     code, _out, err = cli(argv, capsys)
     assert code == 2 and len(err.splitlines()) == 1, err
     assert tree_changes(before, tree_state(tmp_path)) == []
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Many planes: the propagation's kernels take them in groups, so that a fit of any plane count compiles a few
+# short kernels and starts at once.
+
+def test_the_compile_probe_has_the_group_lengths_of_any_plane_count_with_few_planes():
+    for planes in range(1, 257):
+        probe = probe_planes(planes)
+        assert group_lengths(probe) == group_lengths(planes) and probe < 2 * FUSED_PLANES_AT_ONCE
+
+
+def group_lengths(planes: int) -> set[int]:
+    return {group.stop - group.start for group in plane_groups(planes)}
+
+
+@pytest.mark.slow
+def test_a_fit_of_more_planes_than_the_kernels_once_took_finishes():
+    config = FitConfig.create(width=32, height=24, color="gray", num_planes=101, num_gaussians=24, steps=1,
+                              curvature_warmup=0, guard_band_px=8)
+    depth = torch.linspace(0, 1, 32 * 24).reshape(24, 32)  # some pixels on every plane
+    image = torch.rand(1, 24, 32, generator=torch.Generator().manual_seed(3))
+    result = fit(image, depth, config, RunOptions(backend="numba"))
+    assert len(result.metrics.per_plane["psnr"]) == 101 and math.isfinite(result.metrics.mean["psnr"])
+
+
+@pytest.mark.slow
+def test_a_render_at_more_distances_than_the_kernels_once_took_finishes(work, capsys):
+    distances = [f"{0.001 + 0.00004 * k:.5f}" for k in range(101)]
+    code, _out, err = cli(expand("render {run} --out many --distance", work) + distances, capsys)
+    assert code == 0, err
+    assert len(list((work / "many").glob("recon_*.png"))) == 101

@@ -497,10 +497,11 @@ def test_slm_field_gradient_finite_at_zero():
     assert torch.allclose(grad[inside], (weights + 2 * hologram.detach())[inside])
 
 
-def test_more_planes_than_the_fused_kernels_take_at_once_match_the_full_transforms(monkeypatch):
-    """Planes beyond the tuple that Numba's parallel loops accept (`MAX_FUSED_PLANES`, shrunk here to 2 of 3)
-    go through the unfused products and sums: forward and adjoint still match the full transforms in float64."""
-    monkeypatch.setattr(propagation_kernels, "MAX_FUSED_PLANES", 2)
+@pytest.mark.parametrize("at_once", [1, 2])
+def test_more_planes_than_the_fused_kernels_take_at_once_match_the_full_transforms(monkeypatch, at_once):
+    """Planes in groups (`FUSED_PLANES_AT_ONCE`, shrunk here to 1 or 2 of 3, one fused call each): forward and
+    adjoint, whose groups' sums add up, still match the full transforms in float64."""
+    monkeypatch.setattr(propagation, "FUSED_PLANES_AT_ONCE", at_once)
     grid = Grid(height=12, width=20, padded_height=32, padded_width=40)
     generator = torch.Generator().manual_seed(7)
     field = torch.complex(torch.randn(2, 32, 40, generator=generator), torch.randn(2, 32, 40, generator=generator))

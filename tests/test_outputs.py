@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from cvqpg.app.outputs import (BENCH, CVQ, DOCUMENT, EXPORT, MODEL, PAGE, RENDER, RUN, check_continued, check_output,
-                               claimed, output, staged_output)
+                               claimed, claimed_in_run, output, staged_output)
 from cvqpg.codec import MAGIC
 from cvqpg.errors import InputError
 from cvqpg.files import replace_folder, staged_folder
@@ -131,6 +131,39 @@ def test_a_second_claim_of_one_output_is_refused_and_the_lock_goes_with_the_firs
     assert not (place / ".out.cvq.cvqpg-lock").exists()
     with claimed(place / "out.cvq"):  # free again
         pass
+
+
+def test_shared_claims_of_a_run_coexist_and_keep_out_an_exclusive_one(place):
+    run, lock = place / "run", place / ".run.cvqpg-lock"
+    with claimed(run, shared=True), claimed(run, shared=True):
+        with pytest.raises(InputError, match="being written by another cvqpg command"):
+            with claimed(run):
+                pass
+        assert lock.exists()
+    assert not lock.exists(), "the last shared holder removes the lock file"
+    with claimed(run):
+        with pytest.raises(InputError, match="being written by another cvqpg command"):
+            with claimed(run, shared=True):
+                pass
+
+
+def test_an_output_inside_a_run_holds_the_run_while_a_fit_holds_it_exclusively(place):
+    with claimed(place / "run"):  # a fit resuming or replacing the run
+        for path in ("run/metrics.json", "run/export/metrics.json"):
+            with pytest.raises(InputError, match=r"its run folder .*run is being written by another cvqpg command"):
+                with claimed_in_run(place / path):
+                    pass
+        with pytest.raises(InputError, match="its run folder"):
+            with output("run/model.cvq", CVQ):
+                pass
+    with claimed_in_run("run/metrics.json"), output("run/model.cvq", CVQ):  # two writers into one run at once
+        with pytest.raises(InputError, match="being written by another cvqpg command"):
+            with claimed(place / "run"):
+                pass
+        with pytest.raises(InputError, match="run/metrics.json is being written by another cvqpg command"):
+            with claimed_in_run("run/metrics.json"):
+                pass
+    assert not list(place.rglob("*.cvqpg-lock"))
 
 
 def test_another_process_holding_the_claim_refuses_this_one(place):

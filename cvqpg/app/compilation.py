@@ -24,7 +24,7 @@ import torch
 from numba.core import event
 
 from ..config import FitConfig, RunOptions
-from ..ops.propagation import SPECTRUM_BLOCK_ROWS
+from ..ops.propagation import SPECTRUM_BLOCK_ROWS, plane_groups
 
 if TYPE_CHECKING:
     from ..targets import Scene
@@ -51,7 +51,14 @@ def probe_config(config: FitConfig) -> FitConfig:
     kernel specialisations, a few milliseconds per step once compiled."""
     width, height = PROBE_SIZE_PX
     return config.replace(width=width, height=height, num_gaussians=PROBE_PRIMITIVES, steps=1,
-                          curvature_warmup=0, guard_band_px=PROBE_GUARD_BAND_PX).validate()
+                          curvature_warmup=0, guard_band_px=PROBE_GUARD_BAND_PX,
+                          num_planes=probe_planes(config.targets.num_planes)).validate()
+
+
+def probe_planes(planes: int) -> int:
+    """Fewest planes whose groups (`plane_groups`) have every length that `planes` planes' groups have: the
+    same kernel specialisations, whatever the plane count (101 planes, 12 groups of 8 and one of 5: 13)."""
+    return sum({group.stop - group.start for group in plane_groups(planes)})
 
 
 def probe_scene(probe: FitConfig) -> Scene:

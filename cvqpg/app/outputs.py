@@ -10,7 +10,10 @@ The rule:
   writes), the current folder or one that holds it, or a symbolic link (which would send the output where the
   user did not name).
 - One writer at a time: `claimed` holds an exclusive lock beside the output while the command works, so that a
-  second command writing the same output stops with a one-line error instead of both succeeding.
+  second command writing the same output stops with a one-line error instead of both succeeding. An output
+  inside a run folder (a `.cvq` file, `export/`, `metrics.json` that `eval` rewrites, ...) also holds the run
+  folder with a shared lock (`claimed_in_run`): several such commands may write into one run at once, but none
+  while a fit resumes or replaces that run (a fit holds its run folder exclusively), nor a fit while they do.
 
 Messages name the parameter `out`, which the command line calls `--out`, unless the caller names another.
 """
@@ -37,10 +40,17 @@ RUN_FILES = (CONFIG_FILE, METRICS_FILE, MODEL_FILE, CHECKPOINT_FILE, HISTORY_FIL
              "amplitude.png", "phase.png", *PLANE_IMAGES)
 LOCK_SUFFIX = ".cvqpg-lock"
 HEAD_BYTES = 64  # enough of a file's start to recognise its kind
+# The most bytes that cvqpg adds to an output's name for what it keeps beside it: a staged folder or a replaced one
+# (".NAME.partial-PID", ".NAME.replaced-PID", a PID of up to 7 digits), the lock, an atomic write, a fit's
+# "NAME.partial".
+ADDED_NAME_BYTES = 18
 
 
 def is_run_folder(path: Path) -> bool:
-    return (Path(path) / CONFIG_FILE).is_file()
+    try:
+        return (Path(path) / CONFIG_FILE).is_file()
+    except OSError:  # a name too long to look up, which `check_output` names
+        return False
 
 
 def _head(path: Path) -> bytes:
@@ -128,12 +138,37 @@ def _place(path: Path, role: str) -> Path:
     return Path(os.path.normpath(path))
 
 
+def _check_length(path: Path, given: Path, role: str) -> None:
+    """Every name of `path`, and its own with what cvqpg adds beside it (`ADDED_NAME_BYTES`), within the file
+    system's limits (where they cannot be asked, the usual 255 bytes a name and 4096 a path)."""
+    ancestor = next(folder for folder in Path(os.path.abspath(path)).parents if os.path.exists(folder))
+    name_max, path_max = (_limit(ancestor, key, usual) for key, usual in (("PC_NAME_MAX", 255),
+                                                                          ("PC_PATH_MAX", 4096)))
+    longest = max(path.parts, key=lambda part: len(os.fsencode(part)))
+    if len(os.fsencode(path.name)) + ADDED_NAME_BYTES > name_max or len(os.fsencode(longest)) > name_max:
+        raise InputError(f"{role} {given}: a name longer than the file system takes ({name_max} bytes, less "
+                         f"{ADDED_NAME_BYTES} for what cvqpg keeps beside the output); choose a shorter name")
+    if len(os.fsencode(os.path.abspath(path))) + ADDED_NAME_BYTES > path_max:
+        raise InputError(f"{role} {given}: a path longer than the file system takes ({path_max} bytes); choose a "
+                         "shorter one")
+
+
+def _limit(folder: Path, key: str, usual: int) -> int:
+    try:
+        return os.pathconf(folder, key)
+    except (OSError, ValueError):
+        return usual
+
+
 def _refuse_fixed(path: Path, given: Path, inputs: Iterable[Path], role: str) -> None:
-    """What no command writes over, even with `overwrite`: links, its inputs and the folders that hold them, and
-    a run's own files."""
+    """What no command writes over, even with `overwrite`: links, what is neither a file nor a folder (a device,
+    a pipe), its inputs and the folders that hold them, and a run's own files."""
     if path.is_symlink():
         raise InputError(f"{role} {given} is a symbolic link (to {os.readlink(path)}); give the place itself, or "
                          "a new path")
+    if path.exists() and not (path.is_file() or path.is_dir()):
+        raise InputError(f"{role} {given} is neither a file nor a folder (a device, a pipe or a socket); give a "
+                         "new path")
     resolved = path.resolve()
     for source in inputs:
         source_resolved = Path(source).resolve()
@@ -187,8 +222,11 @@ def check_output(path: str | Path, kind: Kind, inputs: Iterable[Path] = (), over
                  role: str = "`out`", make_parents: bool = False) -> Path:
     """The path a command may write its output of `kind` at, by the module's rule, or an `InputError` naming what
     is in the way. `make_parents`: the command creates missing folders above it."""
+    if not kind.folder and str(path).endswith(os.sep):
+        raise InputError(f"{role} {path} names a folder (it ends in {os.sep}); give a file name")
     given = Path(path)
     path = _place(given, role)
+    _check_length(path, given, role)
     _refuse_fixed(path, given, inputs, role)
     _check_parent(path, given, role, make_parents)
     if path.exists():
@@ -202,6 +240,7 @@ def check_continued(path: str | Path, kind: Kind, role: str = "`out`") -> Path:
     """A folder of `kind` that a command adds to (a bench folder): new, empty or already of that kind."""
     given = Path(path)
     path = _place(given, role)
+    _check_length(path, given, role)
     _refuse_fixed(path, given, (), role)
     _check_parent(path, given, role, make_parents=True)
     if path.exists() and not (path.is_dir() and (not any(path.iterdir()) or kind.recognised(path))):
@@ -215,17 +254,18 @@ def _missing_folders(path: Path) -> list[Path]:
 
 
 @contextmanager
-def claimed(path: str | Path, role: str = "`out`") -> Iterator[None]:
+def claimed(path: str | Path, role: str = "`out`", shared: bool = False) -> Iterator[None]:
     """An exclusive lock on the output `path` for the block: a hidden lock file beside it, held with `flock` (so
-    that a killed command holds none). A second command claiming the same path gets an `InputError`. Missing
-    folders above `path` are created, and removed again where the block fails and leaves them empty."""
+    that a killed command holds none). A second command claiming the same path gets an `InputError`. With
+    `shared`, a lock that other shared claims may hold at once, but no exclusive one. Missing folders above
+    `path` are created, and removed again where the block fails and leaves them empty."""
     path = Path(path)
     lock = path.with_name(f".{path.name}{LOCK_SUFFIX}")
     created = _missing_folders(path)
     try:
         for folder in created:
             folder.mkdir()
-        handle = _locked(lock, path, role)
+        handle = _locked(lock, path, role, shared)
     except BaseException:
         _remove_empty(created)
         raise
@@ -238,7 +278,7 @@ def claimed(path: str | Path, role: str = "`out`") -> Iterator[None]:
     _release(lock, handle)
 
 
-def _locked(lock: Path, path: Path, role: str) -> int:
+def _locked(lock: Path, path: Path, role: str, shared: bool) -> int:
     """A descriptor of `lock` holding its `flock`; retried where another command removed the file meanwhile."""
     while True:
         try:
@@ -247,7 +287,7 @@ def _locked(lock: Path, path: Path, role: str) -> int:
             raise InputError(f"{role} {path}: cannot write beside it ({error.strerror}); choose another place") \
                 from None
         try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(handle, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
         except OSError as error:
             os.close(handle)
             if error.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
@@ -263,8 +303,34 @@ def _locked(lock: Path, path: Path, role: str) -> int:
 
 
 def _release(lock: Path, handle: int) -> None:
-    lock.unlink(missing_ok=True)  # while still holding it, so that no one locks a file about to vanish
+    """Remove the lock file while holding it exclusively, so that no one locks a file about to vanish; a shared
+    holder that cannot take it exclusively leaves the file to the last holder (a failed conversion drops the
+    shared lock, so of several holders leaving at once one always succeeds)."""
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(handle)
+        return
+    lock.unlink(missing_ok=True)
     os.close(handle)
+
+
+def enclosing_run(path: Path) -> Path | None:
+    """The run folder that `path` lies in (at any depth), or None."""
+    return next((folder for folder in Path(os.path.abspath(path)).parents if is_run_folder(folder)), None)
+
+
+@contextmanager
+def claimed_in_run(path: str | Path, role: str = "`out`") -> Iterator[None]:
+    """`claimed(path)`, and where `path` lies in a run folder, that folder claimed shared first (`claimed`): a
+    fit that would resume or replace the run waits for no one, it stops; and this command stops while one runs."""
+    run = enclosing_run(Path(path))
+    if run is None:
+        with claimed(path, role):
+            yield
+        return
+    with claimed(run, f"{role} {path}: its run folder", shared=True), claimed(path, role):
+        yield
 
 
 def _remove_empty(folders: list[Path]) -> None:
@@ -278,11 +344,11 @@ def _remove_empty(folders: list[Path]) -> None:
 @contextmanager
 def output(path: str | Path, kind: Kind, inputs: Iterable[Path] = (), overwrite: bool = False,
            role: str = "`out`") -> Iterator[Path]:
-    """`check_output`'s path, claimed (`claimed`) for the block and checked again once claimed: a file output
+    """`check_output`'s path, claimed (`claimed_in_run`) for the block and checked again once claimed: a file output
     is written in the block (atomically, `files.write_atomic`)."""
     inputs = list(inputs)
     path = check_output(path, kind, inputs, overwrite, role)
-    with claimed(path, role):
+    with claimed_in_run(path, role):
         yield check_output(path, kind, inputs, overwrite, role)
 
 

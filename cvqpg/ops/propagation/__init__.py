@@ -24,8 +24,8 @@ from ..field import Grid
 from . import cpu
 from .reference import TransferBank, propagate, release_transfer_functions, transfer_bank, transfer_function
 
-__all__ = ["SPECTRUM_BLOCK_ROWS", "TransferBank", "propagate", "propagate_content", "propagate_planes",
-           "release_transfer_functions", "transfer_function"]
+__all__ = ["SPECTRUM_BLOCK_ROWS", "TransferBank", "plane_groups", "propagate", "propagate_content",
+           "propagate_planes", "release_transfer_functions", "transfer_function"]
 
 
 @functools.lru_cache(maxsize=8)
@@ -86,35 +86,44 @@ def _planes_buffer(planes: int, rows: int, cols: int, dtype: torch.dtype, device
 def _filtered(spectrum: Tensor, halves: Sequence[Tensor], rows: slice, fused: bool) -> Tensor:
     """spectrum · T_p[rows] for every plane p [P, R, N] (a reused array: read it before the next call),
     for transfer functions T_p given as halves (`TransferBank.half`). One pass reads the spectrum for
-    all planes."""
+    a group of planes (`plane_groups`)."""
     out = _planes_buffer(len(halves), *spectrum.shape, spectrum.dtype, spectrum.device, threading.get_ident())
-    done = _fused_planes(len(halves), fused)
-    if done:
-        cpu.mirrored_products(spectrum.numpy(), tuple(half.numpy() for half in halves[:done]), rows.start,
-                              out[:done].numpy())
-    for plane in range(done, len(halves)):
-        torch.mul(spectrum, _transfer_rows(halves[plane], rows), out=out[plane])
+    if not fused:
+        for plane, half in enumerate(halves):
+            torch.mul(spectrum, _transfer_rows(half, rows), out=out[plane])
+        return out
+    for group in plane_groups(len(halves)):
+        cpu.mirrored_products(spectrum.numpy(), tuple(half.numpy() for half in halves[group]), rows.start,
+                              out[group].numpy())
     return out
 
 
-def _fused_planes(planes: int, fused: bool) -> int:
-    """How many of `planes` the fused kernels take in one call: all up to the tuple size that Numba's parallel
-    loops accept (`cpu.MAX_FUSED_PLANES`); the unfused path takes the rest."""
-    return min(planes, cpu.MAX_FUSED_PLANES) if fused else 0
+FUSED_PLANES_AT_ONCE = 8
+
+
+def plane_groups(planes: int) -> list[slice]:
+    """The planes in groups of at most `FUSED_PLANES_AT_ONCE`, one fused kernel call each. The kernels take a
+    group as a tuple of arrays, and Numba compiles them anew for every tuple length, the longer the longer
+    the tuple (about 2 s for 8 planes, 10 s for 32, minutes for 100, the most it takes): groups keep the
+    lengths few and short, whatever the plane count."""
+    at_once = min(FUSED_PLANES_AT_ONCE, cpu.MAX_FUSED_PLANES)
+    return [slice(start, min(start + at_once, planes)) for start in range(0, planes, at_once)]
 
 
 def _filtered_sum(spectra: Sequence[Tensor], halves: Sequence[Tensor], rows: slice, fused: bool) -> Tensor:
-    """Σ_p spectra[p] · T_p[rows], written into spectra[0], in one pass over the planes' spectra."""
+    """Σ_p spectra[p] · T_p[rows], written into spectra[0], in one pass over each group of planes' spectra
+    (`plane_groups`), whose sums add up in plane order."""
     total = spectra[0]
-    done = _fused_planes(len(halves), fused)
-    if done:
-        cpu.mirrored_sum(tuple(spectrum.numpy() for spectrum in spectra[:done]),
-                         tuple(half.numpy() for half in halves[:done]), rows.start)
-    else:
+    if not fused:
         total.mul_(_transfer_rows(halves[0], rows))
-        done = 1
-    for spectrum, half in zip(spectra[done:], halves[done:]):
-        total.addcmul_(spectrum, _transfer_rows(half, rows))
+        for spectrum, half in zip(spectra[1:], halves[1:]):
+            total.addcmul_(spectrum, _transfer_rows(half, rows))
+        return total
+    for group in plane_groups(len(halves)):
+        cpu.mirrored_sum(tuple(spectrum.numpy() for spectrum in spectra[group]),
+                         tuple(half.numpy() for half in halves[group]), rows.start)
+        if group.start:
+            total.add_(spectra[group.start])
     return total
 
 
