@@ -1132,8 +1132,8 @@ def run_decompress(args: argparse.Namespace) -> int:
 def run_bench(args: argparse.Namespace) -> int:
     from .app.allocator import keep_freed_memory
     from .app.outputs import BENCH, check_continued
-    from .campaign.bench import (CELLS_DIR, Overrides, RateDistortionOptions, describe_cells, folder_plan, make_plan,
-                                 parse_shard, peak_bytes, run_plan)
+    from .campaign.bench import (CELLS_DIR, Overrides, RateDistortionOptions, check_cells_device, describe_cells,
+                                 folder_plan, make_plan, parse_shard, peak_bytes, run_plan)
     from .campaign.report import write_summary
     seeds = [args.seed] if args.seed is not None else args.seeds
     overrides = Overrides(scenes_dir=args.scenes, scene_names=args.scene_names, colors=args.colors,
@@ -1166,6 +1166,7 @@ def run_bench(args: argparse.Namespace) -> int:
     if not args.summary_only:
         keep_freed_memory()
         device = plan.cells[0].run.device
+        check_cells_device(cells, executor)
         check_fits_at_once(peak_bytes(cells, 1), executor, device)
         with StopRequest() as stop_requested:
             control = RunControl(progress=not args.quiet, stop_requested=stop_requested)

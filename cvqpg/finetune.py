@@ -11,7 +11,8 @@ from dataclasses import replace
 import torch
 from torch import Tensor
 
-from .codec import BitDepths, Quantiser, chained_quantisers, coding, folded, primitives_from, quantisers, stream_shapes
+from .codec import (BitDepths, Quantiser, attribute_shapes, chained_quantisers, coding, folded, primitives_from,
+                    quantisers)
 from .config import FitConfig
 from .control import SILENT, RunControl
 from .fitting import FitInterrupted, hologram, hologram_loss, psnr_from_mse
@@ -49,7 +50,7 @@ def quantised(values: dict[str, Tensor], ranges: dict[str, list[float]], config:
         decoded[name] = straight_through(values[name], chosen.on(values[name].device))
         return decoded[name]
 
-    chained_quantisers(ranges, bits, stream_shapes(values["position"].shape[0], config), read)
+    chained_quantisers(ranges, bits, attribute_shapes(values["position"].shape[0], config), read)
     return primitives_from(decoded, torch.exp(decoded["scale"].float()), config)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 from pathlib import Path
@@ -270,9 +271,26 @@ def fit_fingerprint(config: FitConfig, source: dict[str, Any]) -> dict[str, Any]
     return {"schema": FINGERPRINT_SCHEMA, "config": config.to_dict(), "source": source}
 
 
+def fingerprint_digest(fingerprint: object) -> bytes | None:
+    """The 16 bytes a `.cvq` file (format 5 on) keeps of a `fit_fingerprint` record: the first half of the SHA-256
+    of its canonical JSON (keys sorted, no spaces), the settings as this version reads them; None where the
+    record is not one of `FINGERPRINT_SCHEMA`."""
+    if not (isinstance(fingerprint, dict) and fingerprint.get("schema") == FINGERPRINT_SCHEMA):
+        return None
+    try:
+        canonical = {**fingerprint, "config": FitConfig.from_dict(fingerprint["config"]).to_dict()}
+        text = json.dumps(canonical, sort_keys=True, separators=(",", ":"))
+    except (KeyError, TypeError, ValueError, CvqpgError):
+        return None
+    return hashlib.sha256(text.encode()).digest()[:16]
+
+
 def same_fit(recorded: object, fingerprint: dict[str, Any]) -> bool:
     """Whether a `fit_fingerprint` record read back from a file is `fingerprint`: the settings it recorded read
-    as the same configuration (a setting added later takes the value the fit had) and the same inputs."""
+    as the same configuration (a setting added later takes the value the fit had) and the same inputs. A `.cvq`
+    file records its `fingerprint_digest` (bytes)."""
+    if isinstance(recorded, bytes):
+        return recorded == fingerprint_digest(fingerprint)
     if not (isinstance(recorded, dict) and recorded.get("schema") == FINGERPRINT_SCHEMA):
         return False
     try:

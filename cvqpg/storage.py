@@ -13,7 +13,7 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save
 
-from .codec import MAGIC, SUFFIX, Compressed, bits_per_pixel, decode
+from .codec import FINGERPRINT, MAGIC, PREFIX, SUFFIX, Compressed, bits_per_pixel, decode, file_fingerprint
 from .config import FitConfig
 from .errors import ModelFileError, choices_error
 from .files import atomic_file, write_atomic
@@ -58,11 +58,13 @@ def save_model(path: str | Path, primitives: Primitives, config: FitConfig, dtyp
 
 
 def model_run(path: str | Path) -> Any:
-    """The fit a model file records that it came from (`save_model`'s `run`, read as JSON), or None where it
-    records none: a `.cvq` file, or a file of a version that did not write it."""
+    """The fit a model file records that it came from: `save_model`'s `run`, read as JSON; a `.cvq` file's fit
+    fingerprint (bytes, `codec.file_fingerprint`); None where it records none (a file of a version that did not
+    write it, or a `.cvq` file written without)."""
     path = _model_file(path)
     if is_compressed(path):
-        return None
+        with open(path, "rb") as handle:
+            return file_fingerprint(handle.read(PREFIX.size + FINGERPRINT.size))
     try:
         with safe_open(str(path), framework="pt") as handle:
             recorded = (handle.metadata() or {}).get(RUN_KEY)
@@ -138,13 +140,16 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Pr
 
 def model_info(path: str | Path) -> dict[str, Any]:
     """Size accounting of a model file: primitives, parameters, bytes and bits per hologram pixel
-    (all channels together); for a compressed file also the bits per attribute and each stream's coding."""
+    (all channels together); for a compressed file also the bits per attribute, the format's tools, the fit
+    fingerprint (hex, None where the file carries none) and each stream's coding."""
     path = _model_file(path)
     extra: dict[str, Any] = {}
     if is_compressed(path):
         compressed = read_compressed(path)
         primitives, config, dtype = compressed.primitives, compressed.config, "compressed"
         extra = {"format_version": compressed.version, "bits": asdict(compressed.bits),
+                 "tools": sorted(compressed.tools),
+                 "fit_fingerprint": None if compressed.fingerprint is None else compressed.fingerprint.hex(),
                  "streams": {s["name"]: {"coding": s["coding"], "bytes": s["bytes"]} for s in compressed.streams}}
     else:
         primitives, config, metadata = _read_safetensors(path)

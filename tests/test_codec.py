@@ -12,8 +12,10 @@ import torch
 
 from cvqpg import FitConfig, load_model
 from cvqpg.cli import main
-from cvqpg.codec import (CHECKSUM, MAGIC, PREFIX, BitDepths, coding, decode, decode_stream, derived_depths, encode,
-                         encode_stream, file_order, importance_offsets, rotation_depths)
+from cvqpg.codec import (AXES, CHANNELS, CHECKSUM, MAGIC, PREFIX, TOOLS, TURN, BitDepths, coding, decode, decode_stream,
+                         deflated, derived_depths, encode, encode_stream, exact_exp, file_fingerprint, file_order,
+                         header_start, importance_offsets, inflated, rotation_depths, with_fingerprint)
+from cvqpg.codec import NO_FINGERPRINT, _file
 from cvqpg.errors import ModelFileError
 from cvqpg.fitting import render
 from cvqpg.primitives import activate, init_gaussians
@@ -155,10 +157,12 @@ def test_long_tailed_streams_take_the_bit_length_coding():
 def tampered(data: bytes, change) -> bytes:
     """A `.cvq` file whose header `change` (a function of the header's dict) altered, checksum recomputed."""
     _, version, length = PREFIX.unpack_from(data)
-    header = json.loads(zlib.decompress(data[PREFIX.size:PREFIX.size + length]))
+    start = header_start(version)
+    header = json.loads(inflated(data[start:start + length], version))
     change(header)
-    packed = zlib.compress(json.dumps(header).encode())
-    body = PREFIX.pack(MAGIC, version, len(packed)) + packed + data[PREFIX.size + length:-CHECKSUM.size]
+    packed = deflated(header, version)
+    body = PREFIX.pack(MAGIC, version, len(packed)) + data[PREFIX.size:start] + packed \
+        + data[start + length:-CHECKSUM.size]
     return body + CHECKSUM.pack(zlib.crc32(body))
 
 
@@ -225,3 +229,164 @@ def test_a_tampered_file_is_one_line_exit_2_with_the_flag_named(tmp_path, capsys
     error = capsys.readouterr().err
     assert "--pitch must lie in [1e-07, 0.001]" in error
     assert len(error.strip().splitlines()) == 1 and "Traceback" not in error
+
+
+def ellipses(primitives) -> torch.Tensor:
+    """Each primitive's covariance (px², float64 [N, 2, 2]): the same for an ellipse whatever order its axes take."""
+    scale, angle = primitives.scale_px.double(), primitives.rotation_rad.double()
+    turn = torch.stack([torch.stack([angle.cos(), -angle.sin()], -1), torch.stack([angle.sin(), angle.cos()], -1)], -2)
+    return turn @ torch.diag_embed(scale**2) @ turn.transpose(1, 2)
+
+
+@pytest.mark.parametrize("tools", [frozenset(), frozenset({AXES}), frozenset({TURN}), frozenset({CHANNELS}), TOOLS],
+                         ids=["none", "axes", "turn", "channels", "all"])
+def test_every_set_of_format_5_tools_decodes_to_the_same_model(tools):
+    """The tools change how symbols are coded, not what they decode to: with `axes` an ellipse's axes come larger
+    first (turned by a quarter where they swap), and ellipses whose rotation took no bit get one. Phases of
+    channels at other depths go through `channels`' rescaling both ways."""
+    config = FitConfig.create(width=64, height=48, ratio=0.3, curvature="per-channel")
+    primitives = random_primitives(config)
+    bits = BitDepths()
+    reference = decode(encode(primitives, config, bits, tools=frozenset())).primitives
+    decoded = decode(_file(primitives, config, bits, NO_FINGERPRINT, tools))
+    assert decoded.tools == tools
+    for name in ("position_px", "amplitude", "phase_rad", "curvature_per_m", "opacity"):
+        assert torch.equal(getattr(decoded.primitives, name), getattr(reference, name)), name
+    if AXES in tools:
+        scale = decoded.primitives.scale_px
+        assert bool((scale[:, 0] >= scale[:, 1]).all())
+        # the same ellipse, but where a rotation took no bit without `axes`
+        depths = derived_depths("rotation", {"scale": reference.scale_px, "amplitude": reference.amplitude.double()},
+                                bits, (primitives.count,), tools=frozenset())
+        assert 0 < int((depths > 0).sum()) < primitives.count
+        torch.testing.assert_close(ellipses(decoded.primitives)[depths > 0], ellipses(reference)[depths > 0],
+                                   rtol=1e-5, atol=1e-5)
+    else:
+        assert torch.equal(decoded.primitives.scale_px, reference.scale_px)
+
+
+def gathered_primitives(config: FitConfig):
+    """`random_primitives` with positive weights, phases gathered about 0 across the period's end, and scales spread
+    over a wide range, as a fit's are."""
+    primitives = random_primitives(config)
+    values, generator = primitives.tensors(), torch.Generator().manual_seed(1)
+    values["amplitude"] = values["amplitude"].abs()
+    values["phase_rad"] = torch.remainder(0.2 * torch.randn(values["phase_rad"].shape, generator=generator),
+                                          2 * math.pi)
+    values["scale_px"] = torch.exp(1 + 0.8 * torch.randn(values["scale_px"].shape, generator=generator))
+    return type(primitives).from_tensors(values)
+
+
+def test_the_tools_save_bytes_where_their_symbols_gather():
+    """Phases gathered about one value across the period's end (positive weights, whose phases are not turned by
+    half), and ellipses of either axis order whose scales spread over a wide range, as a fit's do: `turn` and
+    `axes` each take fewer bytes than without."""
+    config = FitConfig.create(width=160, height=120, color="gray", ratio=0.3)
+    primitives = gathered_primitives(config)
+    sizes = {tools: len(encode(primitives, config, BitDepths(), tools=frozenset(tools)))
+             for tools in ((), (AXES,), (TURN,))}
+    assert sizes[(AXES,)] < sizes[()] and sizes[(TURN,)] < sizes[()]
+
+
+def test_channels_is_used_where_it_makes_the_file_smaller():
+    """Amplitudes and phases that follow the channel before take `channels`; independent ones do not."""
+    config = FitConfig.create(width=96, height=64, ratio=0.3)
+    primitives = gathered_primitives(config)
+    values = primitives.tensors()
+    assert CHANNELS not in decode(encode(primitives, config, BitDepths())).tools
+    values["amplitude"] = values["amplitude"][:, :1].expand(-1, 3) * torch.tensor([1.0, 0.9, 0.8])
+    values["phase_rad"] = values["phase_rad"][:, :1].expand(-1, 3).contiguous()
+    followed = type(primitives).from_tensors(values)
+    assert CHANNELS in decode(encode(followed, config, BitDepths())).tools
+
+
+def test_exact_exp_is_within_an_ulp_and_gives_the_same_bits_everywhere():
+    x = np.linspace(-60.0, 60.0, 200_001)
+    assert float((np.abs(exact_exp(x) - np.exp(x)) / np.spacing(np.exp(x))).max()) <= 1.0
+    # bits that any IEEE 754 machine reproduces (additions, multiplications and scalings by 2 alone)
+    assert [value.hex() for value in exact_exp(np.array([1.0, -0.5, 3.25])).tolist()] == \
+        ["0x1.5bf0a8b14576ap+1", "0x1.368b2fc6f960ap-1", "0x1.9ca53b781114bp+4"]
+    assert exact_exp(np.array([-1e300, 1e300])).tolist() == [5e-324, math.inf]  # as at ±745, the bound
+
+
+# NumPy's SIMD paths to leave out (where the CPU has them): without them its float32 exp, which formats 1–4 decode
+# the scale with, gives other last bits on an AVX-512 machine
+OLDER_SIMD = "AVX512_SKX AVX512_ICL AVX512_SPR X86_V4 AVX2 FMA3 X86_V3"
+
+
+def test_decoding_gives_the_same_bits_in_other_processes_threads_and_simd_paths(tmp_path):
+    """Decode a file in fresh interpreters, of one thread and of four, and with NumPy's AVX2 and AVX-512 paths left
+    out, as on an older CPU, and compare the primitives' bytes."""
+    import os
+    import subprocess
+    import sys
+
+    config = FitConfig.create(width=64, height=48, ratio=0.3)
+    path = tmp_path / "model.cvq"
+    path.write_bytes(encode(gathered_primitives(config), config, BitDepths()))
+    script = ("import hashlib, sys, torch; from cvqpg.codec import decode; torch.set_num_threads(int(sys.argv[2])); "
+              "p = decode(open(sys.argv[1], 'rb').read()).primitives; "
+              "print(hashlib.sha256(b''.join(t.numpy().tobytes() for t in p.tensors().values())).hexdigest())")
+    digests = {subprocess.run([sys.executable, "-c", script, str(path), threads], capture_output=True, text=True,
+                              check=True, env={**os.environ, **simd}).stdout
+               for threads, simd in (("1", {}), ("4", {}), ("1", {"NPY_DISABLE_CPU_FEATURES": OLDER_SIMD}))}
+    assert len(digests) == 1
+
+
+def test_the_fit_fingerprint_travels_in_place_and_costs_no_byte_of_the_budget():
+    config = FitConfig.create(width=48, height=32, ratio=0.3)
+    data = encode(random_primitives(config), config, BitDepths())
+    assert file_fingerprint(data) is None and decode(data).fingerprint is None
+    stamped = with_fingerprint(data, bytes(range(1, 17)))
+    assert len(stamped) == len(data) and file_fingerprint(stamped) == bytes(range(1, 17))
+    decoded = decode(stamped)
+    assert decoded.fingerprint == bytes(range(1, 17))
+    assert torch.equal(decoded.primitives.position_px, decode(data).primitives.position_px)
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda h: h.update(tools=["axes", "contexts"]), "its tools ['axes', 'contexts'] are not distinct names"),
+    (lambda h: h.update(tools=["turn", "turn"]), "are not distinct names"),
+    (lambda h: h.update(tools=["axes", "turn", "channels"]), "names the tool `channels` for one channel"),
+    (lambda h: h.pop("tools"), "its header is malformed (KeyError: 'tools')"),
+    (lambda h: h.update(tools=["axes"]), "a group's turn"),  # turned groups in a file that names no `turn`
+    (lambda h: [group.update(turn=1) for s in h["streams"] if s["name"] == "curvature" for group in s["groups"]],
+     "a group's turn 1 is not one of its"),
+    (lambda h: [group.update(turn=2 ** group["bits"]) for s in h["streams"] if s["name"] == "phase"
+                for group in s.get("groups", [])], "is not one of its"),
+])
+def test_format_5_s_tools_and_turns_are_checked_before_use(change, message):
+    config = FitConfig.create(width=160, height=120, color="gray", ratio=0.3, curvature="shared")
+    data = encode(gathered_primitives(config), config, BitDepths())
+    _, version, length = PREFIX.unpack_from(data)
+    header = json.loads(inflated(data[header_start(version):header_start(version) + length], version))
+    assert any("turn" in group for s in header["streams"] for group in s.get("groups", []))
+    with pytest.raises(ModelFileError, match=f"^model.cvq: .*{re.escape(message)}") as refused:
+        decode(tampered(data, change), "model.cvq")
+    assert "\n" not in str(refused.value)
+
+
+def test_an_elongation_beyond_its_scale_is_refused_in_one_line():
+    config = FitConfig.create(width=48, height=32, color="gray", ratio=0.3)
+    data = encode(random_primitives(config), config, BitDepths(), tools=frozenset({AXES}))
+    raw = {"coding": "raw", "width": 9, "min": 0, "max": 300}
+
+    def elongated(header):
+        for stream in header["streams"]:
+            if stream["name"] == "elongation":
+                count = stream["shape"][0]
+                stream.clear()
+                stream.update(name="elongation", shape=[count], bytes=(9 * count + 7) // 8, **raw)
+    _, version, length = PREFIX.unpack_from(data)
+    header = json.loads(inflated(data[header_start(version):header_start(version) + length], version))
+    elongation = next(s for s in header["streams"] if s["name"] == "elongation")
+    start = header_start(version) + length + sum(s["bytes"] for s in header["streams"][:header["streams"].index(
+        elongation)])
+    count = elongation["shape"][0]
+    payload = np.packbits(np.ones(9 * count, np.uint8), bitorder="little").tobytes()  # 511 everywhere
+    body = data[:start] + payload + data[start + elongation["bytes"]:-CHECKSUM.size]
+    data = body + CHECKSUM.pack(zlib.crc32(body))
+    raw["max"] = 511
+    with pytest.raises(ModelFileError, match="^model.cvq: .*an elongation beyond its scale code") as refused:
+        decode(tampered(data, elongated), "model.cvq")
+    assert "\n" not in str(refused.value)

@@ -10,13 +10,14 @@ import copy
 import json
 import math
 import zlib
+from pathlib import Path
 
 import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from cvqpg.codec import CHECKSUM, MAGIC, PREFIX, BitDepths, decode, encode
+from cvqpg.codec import CHECKSUM, MAGIC, PREFIX, BitDepths, decode, deflated, encode, header_start, inflated
 from cvqpg.config import FitConfig
 from cvqpg.errors import ModelFileError
 from cvqpg.primitives import activate, init_gaussians
@@ -37,18 +38,23 @@ def small_file(config: FitConfig, seed: int) -> bytes:
                                                            curvature=6))
 
 
-FILES = [small_file(config, seed) for seed, config in enumerate(CONFIGS)]
+# the current encoder's files, format 5's golden grayscale file (turned phases), and the golden files of format 4
+# (whose header follows the prefix directly)
+FILES = [small_file(config, seed) for seed, config in enumerate(CONFIGS)] + \
+    [(Path(__file__).parent / "data" / name).read_bytes()
+     for name in ("format_v5_gray.cvq", "format_v4.cvq", "format_v4_gray.cvq")]
 
 
 def parts(data: bytes) -> tuple[int, dict, bytes]:
     _, version, length = PREFIX.unpack_from(data)
-    return version, json.loads(zlib.decompress(data[PREFIX.size:PREFIX.size + length])), \
-        data[PREFIX.size + length:-CHECKSUM.size]
+    start = header_start(version)
+    return version, json.loads(inflated(data[start:start + length], version)), data[start + length:-CHECKSUM.size]
 
 
-def packed(version: int, header: object, payload: bytes) -> bytes:
-    text = zlib.compress(json.dumps(header).encode())
-    body = PREFIX.pack(MAGIC, version, len(text)) + text + payload
+def packed(version: int, header: object, payload: bytes, fingerprint: bytes = bytes(range(16))) -> bytes:
+    """A file of `version` (with `fingerprint` from format 5 on) of `header` and `payload`, checksum valid."""
+    text = deflated(header, version)
+    body = PREFIX.pack(MAGIC, version, len(text)) + fingerprint[:header_start(version) - PREFIX.size] + text + payload
     return body + CHECKSUM.pack(zlib.crc32(body))
 
 
@@ -94,12 +100,14 @@ def altered_files(draw) -> bytes:
         payload[draw(st.integers(min_value=0, max_value=len(payload) - 1))] = draw(st.integers(0, 255))
     if draw(st.integers(0, 9)) == 0:
         payload = payload[:draw(st.integers(min_value=0, max_value=len(payload)))]
-    return packed(version if draw(st.integers(0, 9)) else draw(st.sampled_from([1, 2, 3])), header, bytes(payload))
+    return packed(version if draw(st.integers(0, 9)) else draw(st.sampled_from([1, 2, 3, 4, 5])), header,
+                  bytes(payload))
 
 
 def test_the_unaltered_files_decode():
     for data, config in zip(FILES, CONFIGS):
         assert decode(data).primitives.count == config.primitive_count
+    assert any(turned for data in FILES for turned in ["turn" in json.dumps(parts(data)[1])])
 
 
 @pytest.mark.slow

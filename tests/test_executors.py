@@ -18,7 +18,7 @@ from safetensors.torch import load_file
 
 from cvqpg.app.executors import (DONE, FAILED, INTERRUPTED, NOT_STARTED, PROBE_PREFIX, ExecutorError, ExecutorOptions,
                                  Task, run_tasks)
-from cvqpg.campaign.bench import Overrides, make_plan, run_plan
+from cvqpg.campaign.bench import BenchError, Overrides, check_cells_device, make_plan, run_plan
 from cvqpg.cli import main
 from cvqpg.control import SILENT, RunControl
 from cvqpg.storage import load_checkpoint
@@ -292,3 +292,12 @@ def test_the_local_executor_never_imports_ray():
     done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "False"
+
+
+def test_cuda_cells_need_a_gpu_here_unless_a_cluster_elsewhere_fits_them(tmp_path, monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    cells = make_plan("quick", tmp_path / "b", Overrides(device="cuda")).cells
+    check_cells_device(cells, ExecutorOptions("ray", ray_address="auto", gpus_per_fit=1))  # its nodes have the GPUs
+    for here in (ExecutorOptions(), ExecutorOptions("ray", gpus_per_fit=1)):
+        with pytest.raises(BenchError, match="--device cuda: no CUDA GPU is visible to PyTorch"):
+            check_cells_device(cells, here)

@@ -119,6 +119,26 @@ def test_a_model_records_its_fit_and_another_run_s_model_of_the_same_targets_is_
     assert load_run_model(twin)[0].count == primitives.count
 
 
+def test_a_compressed_model_carries_its_fit_s_fingerprint_and_another_run_refuses_it(tmp_path, capsys):
+    """`cvqpg compress` writes the fit fingerprint of the model into the file; with a run folder of the same size and
+    optics but another fit it is refused in one line (exit 2), with its own run it is read."""
+    from cvqpg.codec import file_fingerprint
+    from cvqpg.runs import fingerprint_digest
+
+    first = tmp_path / "first"
+    assert main(["fit", "--size", "32", "24", "--steps", "1", "--quiet", "--out", str(first)]) == 0
+    assert main(["compress", str(first), "--bits", "6"]) == 0
+    packed = first / "model.cvq"
+    assert file_fingerprint(packed.read_bytes()) == fingerprint_digest(run_fit(first)) is not None
+    assert load_run_model(first, packed)[0].count == load_run_model(first)[0].count
+    twin = start_run(tmp_path / "twin", read_run(first)[0].replace(seed=7), {"scene": "demo"})
+    shutil.copy(packed, twin / "model.cvq")
+    capsys.readouterr()
+    assert main(["eval", str(twin / "model.cvq")]) == 2
+    error = capsys.readouterr().err.strip()
+    assert "was fitted in another run" in error and "\n" not in error
+
+
 def test_a_run_s_own_model_must_hold_the_n_of_its_metrics(tmp_path):
     folder = run_folder(tmp_path)
     (folder / "metrics.json").write_text(json.dumps({"num_gaussians": 31}))

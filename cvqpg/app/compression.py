@@ -8,17 +8,17 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from ..codec import bits_per_pixel
+from ..codec import bits_per_pixel, with_fingerprint
 from ..config import FitConfig
 from ..control import SILENT, RunControl
 from ..defaults import RATE_FINETUNE_STEPS, SUFFIX
 from ..errors import ConfigError, ModelFileError
 from ..files import write_atomic
 from ..primitives import Primitives
-from ..runs import CONFIG_FILE, load_run_model, model_path, scene_from_source
+from ..runs import CONFIG_FILE, fingerprint_digest, load_run_model, model_path, scene_from_source
 from ..search import (LADDER, Choice, CompressionSettings, FixedBits, MaxDrop, Reference, finetuned, pruned_count,
                       rate_control, reference_for, search)
-from ..storage import is_compressed, load_model, read_compressed, save_model
+from ..storage import is_compressed, load_model, model_run, read_compressed, save_model
 from ..targets import Scene
 
 
@@ -103,7 +103,8 @@ def compress_model(target: str | Path, settings: CompressionSettings = Compressi
         recorded = {"max_drop": goal.max_drop if isinstance(goal, MaxDrop) else None, "finetune_steps": steps,
                     "finetune_kept": tuned, "prune_fraction": settings.prune_fraction}
     seconds = time.perf_counter() - started
-    write_atomic(out, choice.data)
+    fingerprint = fingerprint_digest(model_run(given.model_file))
+    write_atomic(out, choice.data if fingerprint is None else with_fingerprint(choice.data, fingerprint))
     return compression_record(given, out, choice, reference, seconds, **recorded)
 
 

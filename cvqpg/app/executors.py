@@ -16,6 +16,7 @@ import os
 import queue
 import signal
 import socket
+import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator, Sequence
@@ -367,6 +368,7 @@ def _run_ray(tasks: Sequence[Task], options: ExecutorOptions, threads: int, cont
         settings: dict[str, Any] = {"logging_level": logging.ERROR, "include_dashboard": False}
         if options.ray_address is None:
             settings["num_cpus"] = available_cores()
+        sigterm = signal.getsignal(signal.SIGTERM)
         try:
             ray.init(address=options.ray_address, **settings)
         # Ray exits (SystemExit) where no cluster answers at the address
@@ -374,6 +376,10 @@ def _run_ray(tasks: Sequence[Task], options: ExecutorOptions, threads: int, cont
             where = f"--ray-address {options.ray_address}" if options.ray_address else "a Ray instance of this machine"
             reason = "no Ray cluster answered there" if isinstance(error, SystemExit) else one_line(error)
             raise ExecutorError(f"{where}: Ray did not start or connect ({reason})") from None
+        if sigterm is not None and threading.current_thread() is threading.main_thread():
+            # A Ray instance of this process takes SIGTERM to kill its tasks at once: the command's own stop
+            # request (its tasks checkpoint) comes back.
+            signal.signal(signal.SIGTERM, sigterm)
     try:
         check_cluster(ray, threads, options.gpus_per_fit)
         ray_probe(ray, shared_folder)

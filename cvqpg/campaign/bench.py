@@ -253,8 +253,6 @@ def make_plan(preset: str, folder: str | Path | None = None, overrides: Override
     methods = _choose("methods", overrides.methods, spec.methods, tuple(METHODS))
     ratios = spec.ratios if overrides.ratios is None else tuple(dict.fromkeys(overrides.ratios))
     seeds = (FitConfig().optimisation.seed,) if overrides.seeds is None else tuple(dict.fromkeys(overrides.seeds))
-    if overrides.device == "cuda" and not torch.cuda.is_available():
-        raise BenchError("--device cuda: no CUDA GPU is visible to PyTorch; use --device cpu")
     width, height = spec.size if overrides.size is None else tuple(overrides.size)
     run = RunOptions(overrides.device or "cpu", overrides.backend or "auto").validate()
 
@@ -384,6 +382,14 @@ def describe_cells(plan: BenchPlan, cells: tuple[Cell, ...], reuse: Sequence[Pat
 def peak_bytes(cells: tuple[Cell, ...], jobs: int) -> int:
     """Estimated memory (bytes) of `jobs` of the largest cells fitted at once on their device."""
     return jobs * max((estimated_peak_bytes(c.config, c.run.device) for c in cells), default=0)
+
+
+def check_cells_device(cells: Sequence[Cell], executor: ExecutorOptions) -> None:
+    """Cells on CUDA need a GPU that PyTorch sees here, unless they run on a Ray cluster given by its address
+    (whose nodes have the GPUs; its driver, on a head node, may have none)."""
+    if (executor.ray_address is None and not torch.cuda.is_available()
+            and any(torch.device(cell.run.device).type == "cuda" for cell in cells)):
+        raise BenchError("--device cuda: no CUDA GPU is visible to PyTorch; use --device cpu")
 
 
 def check_inputs(plan: BenchPlan, cells: tuple[Cell, ...]) -> None:
@@ -646,6 +652,7 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
     """
     cells = plan.cells if cells is None else cells
     executor = (ExecutorOptions(jobs=jobs, threads=threads) if executor is None else executor).validate()
+    check_cells_device(cells, executor)
     outcome = BenchOutcome()
     for cell in adopt_finished(plan, cells, reuse):
         outcome.statuses[cell.name] = REUSED
