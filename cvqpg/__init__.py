@@ -9,8 +9,6 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from .deprecations import install_moved_modules
-
 __version__ = "0.3.0"
 
 _API_MODULES = {
@@ -33,9 +31,6 @@ _API_MODULES = {
 _MODULE_OF = {name: module for module, names in _API_MODULES.items() for name in names}
 
 __all__ = [*_MODULE_OF, "__version__"]
-
-
-install_moved_modules()
 
 
 def __getattr__(name: str) -> Any:

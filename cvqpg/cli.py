@@ -28,7 +28,6 @@ from .control import RunControl
 from .defaults import (CHECKPOINT_SECONDS, DEFAULT_APERTURE, DEFAULT_LEVELS, DEFAULT_SWEEP, DEPTH_FILE, DEPTH_MODEL,
                        ENCODE_FINETUNE_STEPS, ENCODE_STEPS, ENCODINGS, EXECUTORS, PARTIAL_SUFFIX, RATE_FINETUNE_STEPS,
                        SCENE_NAMES, SUFFIX, VIEW_FILE)
-from .deprecations import REMOVED_IN
 from .errors import CvqpgError, allocation_failure, filesystem_refusal
 
 if TYPE_CHECKING:
@@ -44,8 +43,6 @@ DEFAULTS = FitConfig.create()  # the default recipe's
 RUN_DEFAULTS = RunOptions()
 # Exit codes besides 0 (success), 128 + N (stopped by signal N) and 130 (Ctrl-C).
 EXIT_BUG, EXIT_USAGE, EXIT_FILESYSTEM, EXIT_MEMORY = 1, 2, 3, 4
-# Subcommands' names before a rename, kept for one release (`FormerName` keeps options').
-FORMER_COMMANDS = {"warmup": "compile"}
 MEMORY_HINT = ("try a smaller --size, fewer primitives (--ratio, --num-gaussians) or planes (--planes), or another "
                "--device")
 
@@ -128,29 +125,6 @@ def whole(text: str) -> int:
     return value
 
 
-class FormerName(argparse.Action):
-    """An option's name before a rename, kept for one release: it works as the new one and warns on stderr."""
-
-    def __init__(self, option_strings: list[str], dest: str, new: str, **kwargs: object) -> None:
-        self.new = new
-        super().__init__(option_strings, dest, **kwargs)
-
-    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: object,
-                 option_string: str | None = None) -> None:
-        _warn_former(option_string, self.new)
-        setattr(namespace, self.dest, values)
-
-
-def _warn_former(former: str | None, new: str) -> None:
-    print(f"cvqpg: warning: {former} is deprecated and goes in cvqpg {REMOVED_IN}; use {new}", file=sys.stderr)
-
-
-def _former_name(p: argparse.ArgumentParser, former: str, new: str, **kwargs: object) -> None:
-    """Accept `former`, hidden from the help, as the option `new` (`FormerName`)."""
-    p.add_argument(former, action=FormerName, new=new, dest=new.lstrip("-").replace("-", "_"), help=argparse.SUPPRESS,
-                   **kwargs)
-
-
 def _overwrite_argument(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument("--overwrite", action="store_true", help=f"replace {what} if it exists (only once the command "
                    "has succeeded; never the command's input or a run's own files)")
@@ -216,7 +190,6 @@ def _fit_options(p: argparse.ArgumentParser, steps: int = DEFAULTS.optimisation.
                    f"reference) [default: {shown['steps']}]")
     p.add_argument("--curvature-warmup", type=whole, metavar="W", help="steps with curvature frozen at 0 (CVQPG "
                    f"only) [default: {shown['curvature-warmup']}]")
-    _former_name(p, "--warmup", "--curvature-warmup", type=whole)
     p.add_argument("--size", type=whole, nargs=2, metavar=("W", "H"),
                    default=(DEFAULTS.targets.width, DEFAULTS.targets.height), help="hologram size in px")
     p.add_argument("--planes", type=whole, metavar="M", help="depth planes at linspace(1 mm, 5 mm, M) "
@@ -397,7 +370,6 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=whole, help="optimisation steps [default: the preset's]")
     p.add_argument("--curvature-warmup", type=whole, metavar="W",
                    help="curvature warm-up steps [default: steps/5]")
-    _former_name(p, "--warmup", "--curvature-warmup", type=whole)
     p.add_argument("--size", type=whole, nargs=2, metavar=("W", "H"), help="hologram size in px [default: the "
                    "preset's]")
     p.add_argument("--device", choices=DEVICE_TYPES, help="torch device [default: cpu]")
@@ -523,9 +495,6 @@ def build_parser() -> argparse.ArgumentParser:
                    description="Compile the Numba CPU kernels that fits call (with 1 or 2 planes, the defaults) into "
                    "Numba's on-disk cache (next to the package, or NUMBA_CACHE_DIR), so that the first fit "
                    "starts at once.")
-    for former, command in FORMER_COMMANDS.items():
-        sub.add_parser(former, description=f"Former name of `cvqpg {command}`.")  # no help: not listed
-    sub.metavar = "{" + ",".join(name for name in sub.choices if name not in FORMER_COMMANDS) + "}"
     return parser
 
 
@@ -1313,9 +1282,6 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"thread count (a whole number ≥ 1); unset it, or set it to one", file=sys.stderr)
         return EXIT_USAGE
     _cap_thread_variables()
-    if args.command in FORMER_COMMANDS:
-        _warn_former(f"cvqpg {args.command}", f"cvqpg {FORMER_COMMANDS[args.command]}")
-        args.command = FORMER_COMMANDS[args.command]
     previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         return {"fit": run_fit, "batch": run_batch, "eval": run_eval, "export": run_export, "info": run_info,

@@ -3,16 +3,13 @@
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Sequence
 
 from torch import Tensor
 
 from .config import FitConfig
-from .deprecations import moved_attribute
 from .ops.field import Grid, clamped_intensity, guarded_field
 from .ops.propagation import propagate_planes
-
-MOVED = {"propagate": "cvqpg.ops.propagation", "transfer_function": "cvqpg.ops.propagation"}
 
 
 def reconstruct(hologram: Tensor, config: FitConfig, distances_m: Sequence[float] | None = None,
@@ -24,7 +21,3 @@ def reconstruct(hologram: Tensor, config: FitConfig, distances_m: Sequence[float
     distances = config.plane_distances if distances_m is None else tuple(distances_m)
     planes = propagate_planes(field, grid, distances, config.wavelengths, config.optics.pixel_pitch, backend)
     return clamped_intensity(planes, backend)
-
-
-def __getattr__(name: str) -> Any:
-    return moved_attribute(__name__, name, MOVED)

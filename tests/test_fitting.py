@@ -108,9 +108,7 @@ def write_text(self, *args, **kwargs):
 pathlib.Path.write_text = write_text
 def import_below(package):
     for module in pkgutil.iter_modules(package.__path__, package.__name__ + "."):
-        # cvqpg.compression and cvqpg.ratecontrol: deprecated names that re-export the app layer's workflows
-        if not module.name.startswith(("cvqpg.app", "cvqpg.campaign", "cvqpg.cli", "cvqpg.compression",
-                                       "cvqpg.ratecontrol")):
+        if not module.name.startswith(("cvqpg.app", "cvqpg.campaign", "cvqpg.cli")):
             imported = importlib.import_module(module.name)
             if module.ispkg:
                 import_below(imported)

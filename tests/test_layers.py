@@ -95,8 +95,6 @@ def test_the_codec_and_storage_sit_below_the_workflows():
 # decides a file's format (safetensors or the .cvq codec) when it reads one.
 MODEL_FILE_LAYERS = ("cvqpg.storage", "cvqpg.runs", "cvqpg.finetune", "cvqpg.search", "cvqpg.app.compression",
                      "cvqpg.app.encoding")
-# Deprecated modules kept for one release: each re-exports names of both the library and the application layer.
-SHIMS = ("cvqpg.compression", "cvqpg.ratecontrol")
 
 
 def test_the_model_file_workflows_import_one_way():
@@ -125,7 +123,7 @@ APP = "cvqpg.app"
 
 def test_the_core_never_imports_the_application_layer_or_the_command_line():
     """Compilation, provenance and memory tracking belong to the commands, not to a library call."""
-    core = {name for name in GRAPH if not name.startswith((APP, CAMPAIGN, "cvqpg.cli", *SHIMS))}
+    core = {name for name in GRAPH if not name.startswith((APP, CAMPAIGN, "cvqpg.cli"))}
     assert {name: sorted(m for m in GRAPH[name] if m.startswith((APP, "cvqpg.cli"))) for name in core
             if any(m.startswith((APP, "cvqpg.cli")) for m in GRAPH[name])} == {}
     assert {"cvqpg.fitting", "cvqpg.runs", "cvqpg.ops"} <= core

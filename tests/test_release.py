@@ -1,54 +1,51 @@
-"""The 0.2.0 release: former names that work for one release, with a warning that names the new one, and the
-process-wide allocator setting made only by the commands that fit."""
+"""The 0.3.0 release: the former names that 0.2.0 kept for one release fail as any unknown name does; those
+that moved in 0.3.0 work, with a warning that names the new place and 0.4.0. Also the process-wide allocator
+setting, made only by the commands that fit."""
 
 from __future__ import annotations
 
 import importlib
-import sys
 from pathlib import Path
 
 import pytest
 
-from cvqpg.cli import build_parser, main
-from cvqpg.deprecations import MOVED_MODULES
+import cvqpg.campaign.bench
+from cvqpg.app import executors
+from cvqpg.cli import main
 from cvqpg.errors import InputError
 
 DATA = Path(__file__).parent / "data"
 
 
-@pytest.mark.parametrize("command", ["fit", "encode", "bench"])
-def test_the_former_warmup_option_works_and_names_its_new_name(capsys, command):
-    args = build_parser().parse_args([command, "--warmup", "7"])
-    assert args.curvature_warmup == 7
+@pytest.mark.parametrize("argv", [["fit", "--warmup", "5"], ["bench", "--warmup", "5"], ["warmup"]])
+def test_a_former_option_or_command_of_0_2_0_is_a_usage_error(capsys, argv):
+    assert main(argv) == 2
     err = capsys.readouterr().err
-    assert "--warmup is deprecated" in err and "use --curvature-warmup" in err
+    assert ("unrecognized arguments: --warmup" in err if len(argv) > 1 else "invalid choice: 'warmup'" in err)
+    assert "deprecated" not in err
 
 
-def test_the_former_warmup_command_compiles_and_names_compile(capsys, monkeypatch):
-    monkeypatch.setattr("cvqpg.app.compilation.compile_all", lambda: 0.0)
-    assert main(["warmup"]) == 0
-    captured = capsys.readouterr()
-    assert "cvqpg warmup is deprecated" in captured.err and "use cvqpg compile" in captured.err
-    assert captured.out.startswith("cvqpg compile: CPU kernels compiled")
-    assert "warmup" not in build_parser().format_help()
+@pytest.mark.parametrize("old", ["cvqpg.compression", "cvqpg.ratecontrol", "cvqpg.bench", "cvqpg.rasterization"])
+def test_a_former_module_of_0_2_0_is_not_found(old):
+    with pytest.raises(ModuleNotFoundError, match=f"No module named '{old}'"):
+        importlib.import_module(old)
 
 
-@pytest.mark.parametrize(("old", "new"), sorted(MOVED_MODULES.items()))
-def test_a_moved_module_imports_at_its_former_path_with_a_warning(monkeypatch, old, new):
-    monkeypatch.delitem(sys.modules, old, raising=False)
-    with pytest.warns(DeprecationWarning, match=f"`{old}` moved to `{new}`"):
-        module = importlib.import_module(old)
-    assert module is importlib.import_module(new) and module.__spec__.name == new
-
-
-def test_a_moved_function_reads_at_its_former_place_with_a_warning():
+def test_a_former_function_of_0_2_0_is_no_attribute():
     import cvqpg.optics
-    from cvqpg.ops.propagation import transfer_function
 
-    with pytest.warns(DeprecationWarning, match="cvqpg.ops.propagation.transfer_function"):
-        assert cvqpg.optics.transfer_function is transfer_function
+    with pytest.raises(AttributeError, match="transfer_function"):
+        cvqpg.optics.transfer_function
+
+
+@pytest.mark.parametrize("name", ["limit_threads", "limited_threads", "POLL_SECONDS"])
+def test_a_name_that_moved_in_0_3_0_works_and_warns_of_its_removal_in_0_4_0(name):
+    with pytest.warns(DeprecationWarning, match=rf"`cvqpg.campaign.bench.{name}` moved to "
+                      rf"`cvqpg.app.executors.{name}`; the old name goes in cvqpg 0\.4\.0") as caught:
+        assert getattr(cvqpg.campaign.bench, name) is getattr(executors, name)
+    assert caught[0].filename == __file__  # the warning points at the line that read the name
     with pytest.raises(AttributeError):
-        cvqpg.optics.never_existed
+        cvqpg.campaign.bench.never_existed
 
 
 def test_only_the_commands_that_fit_keep_freed_memory(tmp_path, monkeypatch):
