@@ -700,12 +700,15 @@ def _resume_plan(args: argparse.Namespace) -> FitPlan:
     from .app.encoding import BUDGET_FILE
     from .app.outputs import is_run_folder
     from .app.runner import resumed_state
-    from .runs import CONFIG_FILE, read_run, read_run_options, scene_from_source
+    from .runs import CHECKPOINT_FILE, CONFIG_FILE, read_run, read_run_options, scene_from_source
     work = Path(os.path.abspath(args.resume))  # `--resume .` names the folder too
     if not (work / CONFIG_FILE).is_file():
         raise UsageError(f"--resume {work}: not a run folder (no {CONFIG_FILE})")
     if (work / BUDGET_FILE).is_file():
         raise UsageError(f"--resume {work} is an encode's folder; continue it with cvqpg encode --resume {work}")
+    if (work / CHECKPOINT_FILE).exists() and not (work / CHECKPOINT_FILE).is_file():
+        raise UsageError(f"--resume {work}: its {CHECKPOINT_FILE} is not a file; move it away to restart the run "
+                         "from step 0")
     config, source = read_run(work)
     run = read_run_options(work)
     check_device(run.device)

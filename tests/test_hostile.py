@@ -1048,6 +1048,20 @@ def test_a_thread_count_in_the_environment_beyond_the_cores_is_lowered_with_a_no
     assert f"cvqpg: note: NUMBA_NUM_THREADS=9999 lowered to {cores}" in err
 
 
+def test_a_resume_whose_checkpoint_is_a_folder_is_refused_and_changes_nothing(template, tmp_path, monkeypatch,
+                                                                              capsys):
+    run = Path(shutil.copytree(template.folder / "run_a", tmp_path / "w" / "cut.partial"))
+    (run / "metrics.json").unlink()
+    (run / "checkpoint.pt").mkdir()
+    hostile_environment(monkeypatch, tmp_path / "w")
+    before = tree_state(tmp_path)
+    argv = ["fit", "--resume", "cut.partial", "--quiet"]
+    code, _out, err = cli(argv, capsys)
+    problems = refusal_problems(argv, code, err, "checkpoint.pt is not a file",
+                                tree_changes(before, tree_state(tmp_path)))
+    assert not problems, problems
+
+
 @pytest.mark.slow
 def test_sigterm_midway_leaves_nothing_half_written(work):
     """SIGTERM while `render` fills its staged folder: exit 143, one line, and neither the folder nor the lock
