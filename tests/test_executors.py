@@ -17,7 +17,7 @@ import torch
 from safetensors.torch import load_file
 
 from cvqpg.app.executors import (DONE, FAILED, INTERRUPTED, NOT_STARTED, PROBE_PREFIX, ExecutorError, ExecutorOptions,
-                                 Task, run_tasks)
+                                 Task, run_tasks, _Relay)
 from cvqpg.campaign.bench import BenchError, Overrides, check_cells_device, make_plan, run_plan
 from cvqpg.cli import main
 from cvqpg.control import SILENT, RunControl
@@ -301,3 +301,13 @@ def test_cuda_cells_need_a_gpu_here_unless_a_cluster_elsewhere_fits_them(tmp_pat
     for here in (ExecutorOptions(), ExecutorOptions("ray", gpus_per_fit=1)):
         with pytest.raises(BenchError, match="--device cuda: no CUDA GPU is visible to PyTorch"):
             check_cells_device(cells, here)
+
+
+def test_the_bar_shows_a_fits_last_step_as_its_step_count(monkeypatch):
+    # a fit of S steps runs the indices 0..S; the bar's total is S
+    monkeypatch.setattr("cvqpg.app.executors.POLL_SECONDS", 0.0)
+    reported = []
+    control = _Relay("cell", lambda name, step: reported.append(step) or False).control()
+    for step in range(21):
+        control.report(step, 0.0, 0.0)
+    assert reported[-1] == 20

@@ -171,7 +171,7 @@ class _Relay:
         self.last = -math.inf
 
     def on_step(self, step: int, _loss: float, _psnr: float) -> None:
-        self.step = step + 1
+        self.step = step  # the fit loop runs indices 0..steps: its last step shows as steps/steps
         self._exchange()
 
     def should_stop(self) -> bool:
