@@ -15,6 +15,7 @@ from cvqpg.codec import BitDepths, encode
 from cvqpg.defaults import ENCODE_FINETUNE_STEPS, ENCODE_STEPS
 from cvqpg.search import LADDER, trial
 from cvqpg.storage import load_model, read_compressed
+from stopping import CountedStop
 
 W, H = 48, 36
 
@@ -70,18 +71,6 @@ def test_encode_writes_one_file_within_the_budget_that_decompress_and_info_read(
 
 STOPPED = [*ENCODE, "--bpp", "4", "--quiet", "--steps", "12"]
 FIT_ASKS = 13  # the stop request is asked before each of the fit's 13 steps
-
-
-class CountedStop(cli.StopRequest):
-    """A stop request that counts how often it is asked and, once `after` is set, stops after that many asks."""
-
-    asked: list = []
-    after: int | None = None
-
-    def __call__(self) -> bool:
-        self.asked.append(True)
-        self.signals = [signal.SIGINT] if self.after is not None and len(self.asked) > self.after else []
-        return bool(self.signals)
 
 
 @pytest.fixture(scope="module")

@@ -12,12 +12,13 @@ import torch
 from PIL import Image
 
 from cvqpg import cli
-from cvqpg.app import batch
+from cvqpg.app import batch, executors
 from cvqpg.app.batch import BatchInput, BatchSettings, plan_item, read_inputs
 from cvqpg.app.encoding import start_encode
 from cvqpg.cli import main
 from cvqpg.errors import InputError
 from cvqpg.storage import load_model, read_compressed
+from stopping import CountedStop
 
 W, H = 32, 24
 TINY = ["--size", str(W), str(H), "--steps", "3", "--quiet"]
@@ -225,26 +226,15 @@ def test_the_summaries_list_every_item_and_are_rewritten_at_most_every_few_secon
     assert summary(tmp_path)["c"]["error"] == "bad"
 
 
-class CountedStop(cli.StopRequest):
-    """A stop request that asks to stop from its `after`-th question on."""
-
-    asked: list = []
-    after: int | None = None
-
-    def __call__(self) -> bool:
-        self.asked.append(True)
-        self.signals = [signal.SIGINT] if self.after is not None and len(self.asked) > self.after else []
-        return bool(self.signals)
-
-
 @pytest.mark.slow
 def test_an_interrupted_batch_resumes_to_the_parameters_of_an_uninterrupted_one(tmp_path, monkeypatch, capsys):
     scenes = scene_folders(tmp_path / "scenes", names=("a", "b"))
     steps = ["--steps", "8", "--checkpoint-every", "2"]
     assert main(["batch", str(scenes), "--out", str(tmp_path / "whole"), *TINY, *steps]) == 0
+    monkeypatch.setattr(executors, "POLL_SECONDS", 0.0)  # every step asks: the stop comes at the same step each time
     monkeypatch.setattr(cli, "StopRequest", CountedStop)
     monkeypatch.setattr(CountedStop, "asked", [])
-    monkeypatch.setattr(CountedStop, "after", 5)  # after the checkpoint of step 2, before step 5
+    monkeypatch.setattr(CountedStop, "after", 5)  # a stops within its first steps, keeping a checkpoint
     out = tmp_path / "out"
     assert main(["batch", str(scenes), "--out", str(out), *TINY, *steps]) == 128 + signal.SIGINT
     rows = summary(out)
@@ -298,6 +288,7 @@ def test_an_interrupted_cvq_item_resumes_from_its_checkpoint_to_the_same_file(tm
     assert main([*arguments, "--out", str(tmp_path / "whole")]) == 0
     started = []
     monkeypatch.setattr(batch, "start_encode", lambda *args: started.append(args) or start_encode(*args))
+    monkeypatch.setattr(executors, "POLL_SECONDS", 0.0)  # every step asks: the stop comes at the same step each time
     monkeypatch.setattr(cli, "StopRequest", CountedStop)
     monkeypatch.setattr(CountedStop, "asked", [])
     monkeypatch.setattr(CountedStop, "after", 5)
