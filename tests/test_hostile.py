@@ -1072,7 +1072,10 @@ def test_sigterm_midway_leaves_nothing_half_written(work):
                                env={**os.environ, "PYTHONPATH": str(ROOT)})
     try:
         deadline = time.monotonic() + 300
-        while not list(work.glob(".late.partial-*")) and process.poll() is None and time.monotonic() < deadline:
+        # a first frame in the staged folder: the kernels are compiled (Numba's compiler ignores an exception raised
+        # in its callbacks), and the render is under way
+        while (not list(work.glob(".late.partial-*/*")) and process.poll() is None
+               and time.monotonic() < deadline):
             time.sleep(0.05)
         process.send_signal(signal.SIGTERM)
         _out, err = process.communicate(timeout=300)
