@@ -1,7 +1,7 @@
 """Fit configuration: every setting of method.md §2–§6 with the paper's value as default, grouped by concern
-(`TargetSettings`, `OpticsSettings`, `PrimitiveSettings`, `OptimisationSettings`, `LossSettings`) into one
-`FitConfig`, and the recipes (`RECIPES`) that choose what the paper leaves to the fit: the paper's own, and the
-default one (docs/beyond.md). Where a fit runs (`RunOptions`: device and kernels) is no part of it.
+(`TargetSettings`, `OpticsSettings`, `PrimitiveSettings`, `OptimisationSettings`, `LossSettings`, and the display
+the loss sees, `display.Display`) into one `FitConfig`, and the recipes (`RECIPES`) that choose what the paper
+leaves to the fit: the paper's own, and the default one (docs/beyond.md). Where a fit runs (`RunOptions`: device and kernels) is no part of it.
 
 A recipe is resolved when the configuration is made (`FitConfig.create`): every setting is a concrete value,
 which `config.json` records. `FitConfig.from_dict` reads the records of every earlier version."""
@@ -17,6 +17,7 @@ import os
 from dataclasses import dataclass, field
 from typing import Any, Literal, Sequence, get_args
 
+from .display import Display
 from .errors import ConfigError, choices_error
 
 Color = Literal["rgb", "gray"]
@@ -41,7 +42,7 @@ PAPER_BETAS = (0.98, 0.92, 0.99)  # method.md §6
 LONG_RUN_BETAS = (0.98, 0.99, 0.99)  # β2 averages the gradient's differences over ~100 steps, not ~12
 CURVATURE_WARMUP_SHARE = 400 / 2000  # the paper's curvature warm-up share of the steps
 MIN_SIZE_PX = 16  # the SSIM window
-CONFIG_SCHEMA = 2  # the layout `FitConfig.to_dict` writes; records without the key are the flat layout before it
+CONFIG_SCHEMA = 3  # the layout `FitConfig.to_dict` writes; records without the key are the flat layout before it
 
 
 def default_curvature_warmup(steps: int) -> int:
@@ -198,6 +199,7 @@ class FitConfig:
     primitives: PrimitiveSettings = field(default_factory=PrimitiveSettings)
     optimisation: OptimisationSettings = field(default_factory=OptimisationSettings)
     loss: LossSettings = field(default_factory=LossSettings)
+    display: Display = field(default_factory=Display)
     recipe: str = field(default=PAPER_RECIPE, compare=False)  # a label: two configurations compare by settings
 
     @classmethod
@@ -221,7 +223,7 @@ class FitConfig:
             if name in FLAT_NAMES:
                 section, key = FLAT_NAMES[name]
                 sections[section][key] = tuple(value) if isinstance(value, list) else value
-            elif name in SECTIONS or name == "recipe":
+            elif name in SECTIONS or name in ("display", "recipe"):
                 top[name] = value
             else:
                 raise ConfigError(f"`{name}` is not a setting; the settings are {', '.join(FLAT_NAMES)}")
@@ -299,7 +301,8 @@ class FitConfig:
             if isinstance(values.get("lr"), dict):
                 values["lr"] = LearningRates(**values["lr"])
             sections[name] = section_class(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
-        return cls(**sections, recipe=str(data.get("recipe", CUSTOM_RECIPE)))
+        return cls(**sections, display=Display.from_dict(data.get("display")),
+                   recipe=str(data.get("recipe", CUSTOM_RECIPE)))
 
     def validate(self) -> "FitConfig":
         """Raise `ConfigError` naming the first setting that cannot work, with the values it may take."""
@@ -330,6 +333,7 @@ class FitConfig:
         check_sampling(wavelengths, self.optics.pixel_pitch, "`wavelengths_m`", "keep every `wavelengths_m` below it, "
                        "or give a larger `pixel_pitch`")
         check_distances(self.plane_distances, "plane distances", ": change `plane_center` or `plane_span`")
+        self.display.canvas_for(self.targets.height, self.targets.width)
         count, pixels = self.primitive_count, self.targets.width * self.targets.height
         if not 0 < count <= pixels:
             raise ConfigError(f"{count} Gaussians for {pixels} pixels: need between 1 and the pixel count; "

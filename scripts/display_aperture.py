@@ -1,18 +1,21 @@
-"""PSNR of a run's simulated display for several 4f aperture radii, full frame and away from the edges.
+"""PSNR of a run's simulated DPAC display for several 4f aperture radii, full frame and away from the edges.
 
     python scripts/display_aperture.py RUN_DIR [--margin 40] [--apertures 0.2 0.3 0.5 0.7 1.0]
 
-The interior figure leaves out `--margin` px on every side, where the SLM's hard edge diffracts.
+The interior figure leaves out `--margin` px on every side, where the SLM's hard edge diffracts. Each radius is
+shown twice: the run's hologram as DPAC on an 8-bit phase-only SLM, and its complex field behind the same filter.
 """
 
 from __future__ import annotations
 
 import argparse
 
-from cvqpg.export import DEFAULT_LEVELS, Display, phase_pattern, simulate_display
+import torch
+
+from cvqpg.display import Display
 from cvqpg.fitting import render
 from cvqpg.metrics import mean_psnr
-from cvqpg.ops.field import slm_field
+from cvqpg.optics import reconstruct
 from cvqpg.runs import MODEL_FILE, read_run, scene_from_source
 from cvqpg.storage import load_model
 
@@ -26,9 +29,8 @@ def main() -> None:
     primitives, config = load_model(f"{args.run_dir}/{MODEL_FILE}")
     _, source = read_run(args.run_dir)
     targets = scene_from_source(source, config).targets
-    hologram, fitted = render(primitives, config)
-    canvas = (config.targets.height, config.targets.width)
-    pattern = phase_pattern(hologram, "dpac", DEFAULT_LEVELS, canvas)
+    complex_config = config.replace(display=Display())
+    hologram, fitted = render(primitives, complex_config)
     m = args.margin
     inner = (..., slice(m, config.targets.height - m), slice(m, config.targets.width - m))
 
@@ -38,9 +40,12 @@ def main() -> None:
     print(f"{'':28s} {'full':>7s} {'interior':>9s}  (PSNR dB, margin {m} px)")
     print(f"{'complex field, as fitted':28s} {both(fitted)}")
     for aperture in args.apertures:
-        display = Display(canvas, aperture)
-        for label, field in (("DPAC 8-bit", pattern.displayed_field), ("complex field", slm_field(hologram))):
-            print(f"aperture {aperture:4.2f}  {label:16s} {both(simulate_display(field, display, config))}")
+        for label, display in (("DPAC 8-bit", Display.create("dpac", aperture=aperture)),
+                               ("complex field", Display(aperture=aperture, canvas=config.display.canvas_for(
+                                   config.targets.height, config.targets.width)))):
+            with torch.no_grad():
+                shown = reconstruct(hologram, config.replace(display=display))
+            print(f"aperture {aperture:4.2f}  {label:16s} {both(shown)}")
 
 
 if __name__ == "__main__":
