@@ -1015,6 +1015,8 @@ def _checked_header(header: Any, name: str, version: int) -> tuple[FitConfig, Bi
     except (KeyError, TypeError, AttributeError, ValueError) as error:
         raise ModelFileError(f"{name}: its header is malformed ({type(error).__name__}: {error}); "
                              f"{REWRITE_MODEL}") from None
+    except ConfigError as error:
+        raise ModelFileError(f"{name}: its settings cannot work ({error}); {REWRITE_MODEL}") from None
     if not all(map(_number, ranges)):
         # every depth of format 4 derives from the decoded scale and amplitude
         raise ModelFileError(f"{name}: its ranges of log scale and amplitude {header['ranges']} are not finite; "
