@@ -204,11 +204,10 @@ def state_from_payload(payload: dict, config: FitConfig, run: RunOptions = RunOp
     state = blank_state(config, run)
     with torch.no_grad():
         for key, tensor in state.gaussians.tensors().items():
-            stored = payload["gaussians"].get(key)
-            if stored is None or stored.shape != tensor.shape:
-                found = "no" if stored is None else f"shape {tuple(stored.shape)} for its"
-                raise ModelFileError(f"{name} belongs to another run (it holds {found} {key}, this run's has shape "
-                                     f"{tuple(tensor.shape)}): delete it to restart from step 0")
+            stored = payload["gaussians"][key]
+            if stored.shape != tensor.shape:
+                raise ModelFileError(f"{name} belongs to another run (its {key} has shape {tuple(stored.shape)}, "
+                                     f"this run's {tuple(tensor.shape)}): delete it to restart from step 0")
             tensor.copy_(stored)
     state.optimizer.load_state_dict(payload["optimizer"])
     state.generator.set_state(payload["generator"])
