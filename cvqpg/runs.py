@@ -180,7 +180,11 @@ def read_run(folder: str | Path) -> tuple[FitConfig, dict[str, Any]]:
 def read_run_options(folder: str | Path) -> RunOptions:
     """Where the run in `folder` ran, as its `config.json` records it (device and backend): what a resume runs
     on, and the kernels a render of it takes where they run (`RunOptions.on_device`)."""
-    return RunOptions.from_dict(read_record(Path(folder) / CONFIG_FILE, RESTORE_RUN))
+    path = Path(folder) / CONFIG_FILE
+    try:
+        return RunOptions.from_dict(read_record(path, RESTORE_RUN))
+    except ConfigError as error:
+        raise InputError(f"{path}: {error}; {RESTORE_RUN}") from None
 
 
 def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[str, Any],

@@ -15,7 +15,7 @@ from safetensors.torch import load_file, save
 
 from .codec import FINGERPRINT, MAGIC, PREFIX, SUFFIX, Compressed, bits_per_pixel, decode, file_fingerprint
 from .config import FitConfig
-from .errors import ModelFileError, choices_error
+from .errors import ConfigError, ModelFileError, choices_error
 from .files import atomic_file, write_atomic
 from .primitives import REWRITE_MODEL, Primitives, TensorFields, check_settings
 from .representation import representation
@@ -115,6 +115,8 @@ def _read_safetensors(path: Path, device: str | torch.device = "cpu"
     except (KeyError, ValueError, TypeError, AttributeError) as error:
         raise ModelFileError(f"{path}: its metadata holds no readable configuration ({type(error).__name__}: "
                              f"{error}); {REWRITE_MODEL}") from None
+    except ConfigError as error:
+        raise ModelFileError(f"{path}: its settings cannot work ({error}); {REWRITE_MODEL}") from None
     kind = representation(config)
     missing = [name for name in kind.units if name not in tensors]
     if missing:

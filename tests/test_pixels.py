@@ -36,9 +36,9 @@ def test_a_pixel_configuration_takes_the_pixel_recipe_and_counts_its_pixels():
 
 @pytest.mark.parametrize("init, primitive", [("edges", "pixel"), ("zero", "cvqpg"), ("zero", "flat")])
 def test_an_initialisation_of_the_other_representation_is_refused_in_one_line(init, primitive):
-    config = FitConfig.create(primitive=primitive, width=32, height=24).replace(init=init)
+    config = FitConfig.create(primitive=primitive, width=32, height=24)
     with pytest.raises(ConfigError, match=f"`init` {init} starts"):
-        config.validate()
+        config.replace(init=init)
 
 
 def test_the_initialisations_start_where_they_say():
