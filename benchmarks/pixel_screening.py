@@ -34,8 +34,8 @@ ADAN = {"optimizer": "adan", "betas": PAPER_BETAS}
 VARIANTS: dict[str, dict] = {
     **{f"adan-{lr:g}": {**ADAN, "lr": rates(lr), "init": "uniform"} for lr in (0.001, 0.003, 0.01, 0.03)},
     **{f"adam-{lr:g}": {**ADAM, "lr": rates(lr), "init": "uniform"} for lr in (0.003, 0.01, 0.03, 0.05)},
-    **{f"adan-{lr:g}-init-{init}": {**ADAN, "lr": rates(lr), "init": init}
-       for lr in (0.001, 0.003) for init in ("zero", "targets")},
+    **{f"adam-{lr:g}-init-{init}": {**ADAM, "lr": rates(lr), "init": init}
+       for lr in (0.01,) for init in ("zero", "targets")},
 }
 
 

@@ -262,12 +262,12 @@ BEYOND_RECIPE = register_recipe(Recipe(
 BEYOND_SHORT_RECIPE = register_recipe(Recipe(
     "beyond-short", "for a few hundred steps: positions at the targets' energy, the paper's β2, no masked or "
     "correlation terms (docs/beyond.md)", LearningRates(), PAPER_BETAS, "targets", 0.0, 0.0)).name
-# The per-pixel hologram's (`primitive` pixel): its learning rates and start screened (docs/beyond.md).
-PIXEL_LEARNING_RATE = 0.03
+# The per-pixel hologram's (`primitive` pixel): its optimiser, learning rate and start screened (docs/beyond.md).
+PIXEL_LEARNING_RATE = 0.01
 PIXEL_RECIPE = register_recipe(Recipe(
-    "pixel", "for the per-pixel hologram: Adan at a learning rate screened for it, a small random phase to start, "
-    "the paper's loss (docs/beyond.md)", LearningRates(amplitude=PIXEL_LEARNING_RATE, phase=PIXEL_LEARNING_RATE),
-    PAPER_BETAS, "uniform", 1.0, 1.0)).name
+    "pixel", "for the per-pixel hologram: Adam at 0.01, a small random phase to start, the paper's loss "
+    "(docs/beyond.md)", LearningRates(amplitude=PIXEL_LEARNING_RATE, phase=PIXEL_LEARNING_RATE),
+    ADAM_BETAS, "uniform", 1.0, 1.0, "adam")).name
 DEFAULT_RECIPE = BEYOND_RECIPE  # measured better than the paper's on every scene (docs/beyond.md)
 CUSTOM_RECIPE = "custom"  # what `FitConfig.recipe` says where a setting differs from its recipe's
 
