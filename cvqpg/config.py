@@ -21,12 +21,13 @@ from .display import Display
 from .errors import ConfigError, choices_error
 
 Color = Literal["rgb", "gray"]
-Primitive = Literal["flat", "cvqpg"]
+Primitive = Literal["flat", "cvqpg", "pixel"]
 Bound = Literal["adaptive", "global"]
 Qpf = Literal["mahalanobis", "standard"]
 Curvature = Literal["shared", "per-channel", "channel-bound"]
 Backend = Literal["auto", "numba", "triton", "torch"]
-Init = Literal["uniform", "targets", "edges"]
+Init = Literal["uniform", "targets", "edges", "zero"]
+Optimizer = Literal["adan", "adam"]
 COLORS: tuple[str, ...] = get_args(Color)
 PRIMITIVES: tuple[str, ...] = get_args(Primitive)
 BOUNDS: tuple[str, ...] = get_args(Bound)
@@ -34,14 +35,18 @@ QPFS: tuple[str, ...] = get_args(Qpf)
 CURVATURES: tuple[str, ...] = get_args(Curvature)
 BACKENDS: tuple[str, ...] = get_args(Backend)
 INITS: tuple[str, ...] = get_args(Init)
+OPTIMIZERS: tuple[str, ...] = get_args(Optimizer)
+GAUSSIAN_ONLY_INITS = ("edges",)  # where a Gaussian's position starts
+PIXEL_ONLY_INITS = ("zero",)  # a per-pixel hologram's flat phase
 DEVICE_TYPES = ("cpu", "cuda")
 # The choices of every enumerated setting (flat names); the range of every number is in `RANGES`.
 CHOICES: dict[str, tuple[str, ...]] = {"color": COLORS, "primitive": PRIMITIVES, "bound": BOUNDS, "qpf": QPFS,
-                                       "curvature": CURVATURES, "init": INITS}
+                                       "curvature": CURVATURES, "init": INITS, "optimizer": OPTIMIZERS}
 
 RGB_WAVELENGTHS_M = (639e-9, 532e-9, 473e-9)
 GRAY_WAVELENGTH_M = 639e-9
 PAPER_BETAS = (0.98, 0.92, 0.99)  # method.md §6
+ADAM_BETAS = (0.9, 0.999, 0.99)  # Adam's usual β1 and β2; Adam has no third (Adan's β3, left at the paper's)
 LONG_RUN_BETAS = (0.98, 0.99, 0.99)  # β2 averages the gradient's differences over ~100 steps, not ~12
 CURVATURE_WARMUP_SHARE = 400 / 2000  # the paper's curvature warm-up share of the steps
 MIN_SIZE_PX = 16  # the SSIM window
@@ -181,7 +186,8 @@ class PrimitiveSettings:
 @dataclass(frozen=True)
 class OptimisationSettings:
     """The loop (method.md §6): its steps, the curvature's warm-up (steps with γ frozen at 0; `steps + 1`: all),
-    the seed, Adan's learning rates, betas and ε, the gradient clip norm, and where the primitives start (`init`)."""
+    the seed, the optimiser (the paper's Adan, or Adam, whose β1 and β2 are `betas`' first two) with its learning
+    rates, betas and ε, the gradient clip norm, and where the primitives start (`init`)."""
 
     steps: int = 2000
     curvature_warmup: int = 400
@@ -191,6 +197,7 @@ class OptimisationSettings:
     adan_eps: float = 1e-8
     grad_clip_norm: float = 1.0
     init: Init = "uniform"
+    optimizer: Optimizer = "adan"
 
     def __post_init__(self) -> None:
         _check_fields(self)
@@ -220,7 +227,7 @@ class LossSettings:
 
 @dataclass(frozen=True)
 class Recipe:
-    """The choices a fit makes beyond its problem, by name: Adan's learning rates and betas, where the
+    """The choices a fit makes beyond its problem, by name: the optimiser, its learning rates and betas, where the
     primitives start, and the weights of the loss's masked and correlation terms."""
 
     name: str
@@ -230,11 +237,12 @@ class Recipe:
     init: Init
     focus_weight: float
     product_weight: float
+    optimizer: Optimizer = "adan"
 
     def settings(self) -> dict[str, Any]:
         """The recipe's settings under their `FitConfig.create` names."""
         return {"lr": self.lr, "betas": self.betas, "init": self.init, "focus_weight": self.focus_weight,
-                "product_weight": self.product_weight}
+                "product_weight": self.product_weight, "optimizer": self.optimizer}
 
 
 RECIPES: dict[str, Recipe] = {}
@@ -255,6 +263,12 @@ BEYOND_RECIPE = register_recipe(Recipe(
 BEYOND_SHORT_RECIPE = register_recipe(Recipe(
     "beyond-short", "for a few hundred steps: positions at the targets' energy, the paper's β2, no masked or "
     "correlation terms (docs/beyond.md)", LearningRates(), PAPER_BETAS, "targets", 0.0, 0.0)).name
+# The per-pixel hologram's (`primitive` pixel): its optimiser, learning rate and start screened (docs/beyond.md).
+PIXEL_LEARNING_RATE = 0.01
+PIXEL_RECIPE = register_recipe(Recipe(
+    "pixel", "for the per-pixel hologram: Adam at 0.01, a small random phase to start, the paper's loss "
+    "(docs/beyond.md)", LearningRates(amplitude=PIXEL_LEARNING_RATE, phase=PIXEL_LEARNING_RATE),
+    ADAM_BETAS, "uniform", 1.0, 1.0, "adam")).name
 DEFAULT_RECIPE = BEYOND_RECIPE  # measured better than the paper's on every scene (docs/beyond.md)
 CUSTOM_RECIPE = "custom"  # what `FitConfig.recipe` says where a setting differs from its recipe's
 
@@ -267,7 +281,7 @@ FLAT_NAMES: dict[str, tuple[str, str]] = {
     "primitive": ("primitives", "kind"), "num_gaussians": ("primitives", "count"),
     **{name: ("primitives", name) for name in ("ratio", "bound", "global_bound", "eta", "qpf", "curvature")},
     **{name: ("optimisation", name) for name in ("steps", "curvature_warmup", "seed", "lr", "betas", "adan_eps",
-                                                  "grad_clip_norm", "init")},
+                                                  "grad_clip_norm", "init", "optimizer")},
     **{name: ("loss", name) for name in ("ssim_weight", "focus_weight", "product_weight", "target_noise")},
 }
 # Names that flat records (config.json, model metadata) used before a rename, and their names now.
@@ -306,15 +320,25 @@ class FitConfig:
         if not 0 < count <= pixels:
             raise ConfigError(f"{count} Gaussians for {pixels} pixels: need between 1 and the pixel count; "
                               "change `ratio` or `num_gaussians`")
+        # and where the representation starts on the primitive
+        pixel = self.primitives.kind == "pixel"
+        foreign = GAUSSIAN_ONLY_INITS if pixel else PIXEL_ONLY_INITS
+        if self.optimisation.init in foreign:
+            raise ConfigError(f"`init` {self.optimisation.init} starts {'Gaussians' if pixel else 'a per-pixel hologram'}"
+                              f" and `primitive` is {self.primitives.kind}: choose one of "
+                              f"{', '.join(i for i in INITS if i not in foreign)}")
         if not isinstance(self.display, Display):
             raise ConfigError(f"`display` must be Display, got {self.display!r}")
         self.display.canvas_for(self.targets.height, self.targets.width)
 
     @classmethod
-    def create(cls, recipe: str = DEFAULT_RECIPE, **settings: Any) -> "FitConfig":
+    def create(cls, recipe: str | None = None, **settings: Any) -> "FitConfig":
         """A configuration from flat names (`FLAT_NAMES`: `width`, `steps`, `pixel_pitch`, ...), with the recipe
-        `recipe`'s settings where not given; an unset (None) `curvature_warmup` is the paper's share of `steps`.
-        `recipe` names the result's recipe, or `custom` where a given setting differs from it."""
+        `recipe`'s settings where not given (None: `DEFAULT_RECIPE`, or `PIXEL_RECIPE` for `primitive` pixel); an
+        unset (None) `curvature_warmup` is the paper's share of `steps`. `recipe` names the result's recipe, or
+        `custom` where a given setting differs from it."""
+        if recipe is None:
+            recipe = PIXEL_RECIPE if settings.get("primitive") == "pixel" else DEFAULT_RECIPE
         config = cls().with_recipe(recipe)
         own = {k: v for k, v in settings.items() if not (k == "curvature_warmup" and v is None)}
         steps = own.get("steps", config.optimisation.steps)
@@ -364,7 +388,10 @@ class FitConfig:
 
     @property
     def primitive_count(self) -> int:
-        """N: `primitives.count`, or `ratio · W·H/2` (RGB) / `ratio · W·H/4` (grayscale), method.md §2."""
+        """N: `primitives.count`, or `ratio · W·H/2` (RGB) / `ratio · W·H/4` (grayscale), method.md §2; a per-pixel
+        hologram's W·H pixels."""
+        if self.primitives.kind == "pixel":
+            return self.targets.width * self.targets.height
         if self.primitives.count is not None:
             return self.primitives.count
         pixels_per_primitive = 2 if self.targets.color == "rgb" else 4
@@ -379,8 +406,17 @@ class FitConfig:
 
     @property
     def params_per_primitive(self) -> int:
-        """Learnable scalars per primitive: 12/13/15 (RGB flat/CVQPG/per-channel), 8/9 (grayscale)."""
+        """Learnable scalars per primitive: 12/13/15 (RGB flat/CVQPG/per-channel), 8/9 (grayscale); per pixel of a
+        per-pixel hologram, an amplitude and a phase per channel (a phase pattern: the phases alone)."""
+        if self.primitives.kind == "pixel":
+            return self.channels * (1 if self.phase_only_pixels else 2)
         return 2 + 2 + 1 + 2 * self.channels + 1 + self.learnable_curvatures
+
+    @property
+    def phase_only_pixels(self) -> bool:
+        """Whether a per-pixel hologram of this configuration is a phase pattern (one phase per pixel and channel)
+        rather than a complex hologram: where its display shows the bare phase."""
+        return False
 
     @property
     def plane_distances(self) -> tuple[float, ...]:

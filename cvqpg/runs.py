@@ -23,6 +23,7 @@ from .metrics import MetricReport, evaluate, mean_psnr
 from .ops.field import slm_field
 from .optics import reconstruct
 from .primitives import Primitives
+from .representation import require_gaussians
 from .scenes import builtin_scene
 from .storage import load_model, model_info, model_run, save_model
 from .targets import Scene, load_scene
@@ -470,6 +471,8 @@ def half_precision_model(folder: str | Path) -> dict[str, Any]:
 def rescaled(primitives: Primitives, config: FitConfig, width: int, height: int) -> tuple[Primitives, FitConfig]:
     """The same physical hologram sampled on a W×H grid: positions and scales scale with the grid,
     the pixel pitch shrinks by as much, curvature (1/m) stays. Refuses another aspect ratio."""
+    require_gaussians(config, "`size` (a render at another sampling)", "render it at its own "
+                      f"{config.targets.width}×{config.targets.height} px")
     if min(width, height) < MIN_SIZE_PX:
         raise ConfigError(f"`size` {width}×{height}: each side needs at least {MIN_SIZE_PX} px")
     factor = width / config.targets.width
