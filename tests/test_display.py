@@ -349,3 +349,12 @@ def test_a_cvq_file_keeps_the_display_and_refuses_one_that_cannot_work():
     body = PREFIX.pack(data[:8], version, len(packed)) + data[PREFIX.size:start] + packed + data[start + length:-4]
     with pytest.raises(ModelFileError, match="phase levels"):
         decode(body + CHECKSUM.pack(zlib.crc32(body)))
+
+
+def test_the_command_line_s_options_make_the_display(tmp_path):
+    (tmp_path / "lut.txt").write_text("0.0\n2.0\n4.0\n")
+    assert Display.from_options() == Display()
+    assert Display.from_options("dpac") == Display.create("dpac")
+    made = Display.from_options("phase", lut=tmp_path / "lut.txt", aperture=0.0, slm=(48, 40))
+    assert made == Display("phase", 3, (0.0, 2.0, 4.0), None, (40, 48))
+    assert Display.from_options("dpac", levels=16, aperture=0.7).aperture == 0.7
