@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal, Sequence, get_args
 
 from .errors import ConfigError, choices_error
+from .phase import CONSTANT, Phase, check_phase_settings, parse_phase
 
 Color = Literal["rgb", "gray"]
 Primitive = Literal["flat", "cvqpg"]
@@ -61,6 +62,8 @@ class LearningRates:
     opacity: float = 0.025
     rotation: float = 0.001
     curvature: float = 0.001
+    axes: float = 0.001  # the phase terms beyond the paper's (cvqpg/phase.py)
+    tilt: float = 0.001
 
 
 @dataclass(frozen=True)
@@ -100,6 +103,7 @@ class PrimitiveSettings:
     eta: float = 0.9
     qpf: Qpf = "mahalanobis"
     curvature: Curvature = "shared"
+    phase: str | None = None  # the phase terms (`phase.PHASES`); None: the kind's (flat: constant, cvqpg: quadratic)
 
 
 @dataclass(frozen=True)
@@ -109,6 +113,7 @@ class OptimisationSettings:
 
     steps: int = 2000
     curvature_warmup: int = 400
+    terms_warmup: int | None = None  # steps with the phase terms beyond the curvature frozen at 0; None: as γ
     seed: int = 100
     lr: LearningRates = field(default_factory=LearningRates)
     betas: tuple[float, float, float] = PAPER_BETAS
@@ -175,9 +180,10 @@ FLAT_NAMES: dict[str, tuple[str, str]] = {
                                              "defocus_sigma_px", "depth_exponent")},
     **{name: ("optics", name) for name in ("pixel_pitch", "wavelengths_m", "guard_band_px", "pad_multiple_px")},
     "primitive": ("primitives", "kind"), "num_gaussians": ("primitives", "count"),
-    **{name: ("primitives", name) for name in ("ratio", "bound", "global_bound", "eta", "qpf", "curvature")},
-    **{name: ("optimisation", name) for name in ("steps", "curvature_warmup", "seed", "lr", "betas", "adan_eps",
-                                                  "grad_clip_norm", "init")},
+    **{name: ("primitives", name) for name in ("ratio", "bound", "global_bound", "eta", "qpf", "curvature",
+                                                "phase")},
+    **{name: ("optimisation", name) for name in ("steps", "curvature_warmup", "terms_warmup", "seed", "lr", "betas",
+                                                  "adan_eps", "grad_clip_norm", "init")},
     **{name: ("loss", name) for name in ("ssim_weight", "focus_weight", "product_weight", "target_noise")},
 }
 # Names that flat records (config.json, model metadata) used before a rename, and their names now.
@@ -207,6 +213,7 @@ class FitConfig:
         `recipe` names the result's recipe, or `custom` where a given setting differs from it."""
         config = cls().with_recipe(recipe)
         own = {k: v for k, v in settings.items() if not (k == "curvature_warmup" and v is None)}
+        own.update(phase_settings(own.get("primitive"), own.get("phase")) if "phase" in own else {})
         steps = own.get("steps", config.optimisation.steps)
         warmup = default_curvature_warmup(steps) if _is_integer(steps) else 0  # `validate` names bad steps
         made = config.replace(**{"curvature_warmup": warmup, **own})
@@ -238,8 +245,10 @@ class FitConfig:
     def with_steps(self, steps: int) -> "FitConfig":
         """The same algorithm over `steps` steps: the curvature warm-up keeps its share of them."""
         current = self.optimisation
-        warmup = round(steps * current.curvature_warmup / current.steps) if current.steps else 0
-        return self.replace(steps=steps, curvature_warmup=warmup)
+        share = steps / current.steps if current.steps else 0
+        terms = None if current.terms_warmup is None else round(share * current.terms_warmup)
+        return self.replace(steps=steps, curvature_warmup=round(share * current.curvature_warmup),
+                            terms_warmup=terms)
 
     @property
     def channels(self) -> int:
@@ -261,16 +270,33 @@ class FitConfig:
         return int(round(self.primitives.ratio * self.targets.width * self.targets.height / pixels_per_primitive))
 
     @property
-    def learnable_curvatures(self) -> int:
-        """Curvature parameters per primitive: none (flat), one per channel (`per-channel`), else one."""
+    def phase(self) -> Phase:
+        """The phase terms of the primitives (`cvqpg.phase`): none for the flat primitive, `primitives.phase` or
+        the paper's quadratic term for CVQPG."""
         if self.primitives.kind != "cvqpg":
+            return Phase(())
+        return parse_phase(self.primitives.phase or "quadratic")
+
+    @property
+    def learnable_curvatures(self) -> int:
+        """Parameters of the paper's curvature per primitive: none without it (flat), one per channel
+        (`per-channel`), else one."""
+        if self.primitives.kind != "cvqpg" or not self.phase.has("quadratic"):
             return 0
         return self.channels if self.primitives.curvature == "per-channel" else 1
 
     @property
     def params_per_primitive(self) -> int:
-        """Learnable scalars per primitive: 12/13/15 (RGB flat/CVQPG/per-channel), 8/9 (grayscale)."""
-        return 2 + 2 + 1 + 2 * self.channels + 1 + self.learnable_curvatures
+        """Learnable scalars per primitive: 12/13/15 (RGB flat/CVQPG/per-channel), 8/9 (grayscale), and two more
+        for each of the phase terms `axes` and `tilt`."""
+        extra = sum(term.parameters for term in self.phase.extra_terms) if self.primitives.kind == "cvqpg" else 0
+        return 2 + 2 + 1 + 2 * self.channels + 1 + self.learnable_curvatures + extra
+
+    @property
+    def terms_warmup(self) -> int:
+        """Steps with the phase terms beyond the curvature frozen at 0: `optimisation.terms_warmup`, or γ's."""
+        warmup = self.optimisation.terms_warmup
+        return self.optimisation.curvature_warmup if warmup is None else warmup
 
     @property
     def plane_distances(self) -> tuple[float, ...]:
@@ -315,6 +341,9 @@ class FitConfig:
         steps = self.optimisation.steps
         # steps + 1: the curvature never trains (the loop's last update has index `steps`)
         _check_range("curvature_warmup", self.optimisation.curvature_warmup, 0, steps + 1, "integer")
+        if self.optimisation.terms_warmup is not None:
+            _check_range("terms_warmup", self.optimisation.terms_warmup, 0, steps + 1, "integer")
+        self.check_phase()
         for key, value in dataclasses.asdict(self.optimisation.lr).items():
             _check_range(f"lr.{key}", value, 0.0, MAX_LEARNING_RATE, "number")
         if not (isinstance(self.optimisation.betas, tuple) and len(self.optimisation.betas) == 3):
@@ -335,6 +364,18 @@ class FitConfig:
             raise ConfigError(f"{count} Gaussians for {pixels} pixels: need between 1 and the pixel count; "
                               "change `ratio` or `num_gaussians`")
         return self
+
+    def check_phase(self) -> None:
+        """`ConfigError` unless `primitives.phase` names a phase (`phase.PHASES`) that goes with the kind and the
+        other primitive settings."""
+        phase, kind = self.primitives.phase, self.primitives.kind
+        if phase is None:
+            return
+        parsed = parse_phase(phase)
+        if (kind == "flat") != (parsed.name == CONSTANT):
+            raise ConfigError(f"`phase` {phase} with `primitive` {kind}: the flat primitive is the constant phase; "
+                              "give `phase` alone")
+        check_phase_settings(parsed, self.primitives.curvature, self.primitives.bound)
 
     def setting(self, name: str) -> Any:
         """The value of the setting of flat name `name` (`FLAT_NAMES`)."""
@@ -410,6 +451,17 @@ def _check_range(name: str, value: Any, low: float, high: float, kind: str) -> N
     inside = {"positive": low < value <= high, "fraction": low <= value < high}.get(kind, low <= value <= high)
     if not inside:
         raise ConfigError(f"`{name}` must lie in {interval}, got {value!r}")
+
+
+def phase_settings(primitive: str | None, phase: str | None) -> dict[str, Any]:
+    """`primitive` and `phase` as a configuration holds them: `constant` is the flat primitive and `quadratic`
+    CVQPG's own (both recorded as the kind, without a phase), any other phase a CVQPG primitive's. A flat
+    `primitive` with another phase is left for `validate` to refuse."""
+    if phase is None or primitive == "flat" and phase != CONSTANT:
+        return {} if phase is None else {"phase": phase}
+    if phase in (CONSTANT, "quadratic"):
+        return {"primitive": "flat" if phase == CONSTANT else "cvqpg", "phase": None}
+    return {"primitive": "cvqpg", "phase": phase}
 
 
 def _is_integer(value: object) -> bool:

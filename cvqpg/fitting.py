@@ -79,10 +79,19 @@ def render(primitives: Primitives, config: FitConfig, distances_m: Sequence[floa
 
 
 def trainable_groups(config: FitConfig) -> tuple[str, ...]:
-    """Parameter groups the optimiser owns: the flat primitive has no curvature."""
-    if config.primitives.kind == "flat":
-        return tuple(g for g in LEARNING_RATE_GROUPS if g != "curvature")
-    return LEARNING_RATE_GROUPS
+    """Parameter groups the optimiser owns: the flat primitive has no curvature, a primitive without the paper's
+    quadratic term neither; the phase terms beyond it (`cvqpg.phase`) have one group each, under the term's name."""
+    extra = tuple(term.name for term in config.phase.extra_terms)
+    if config.primitives.kind == "flat" or not config.phase.has("quadratic"):
+        return tuple(g for g in LEARNING_RATE_GROUPS if g != "curvature") + extra
+    return LEARNING_RATE_GROUPS + extra
+
+
+def learning_rate(name: str, config: FitConfig) -> float:
+    """The learning rate of the group `name`: `lr`'s field of that name, or of the phase term's own."""
+    rates = config.optimisation.lr
+    term = next((t for t in config.phase.extra_terms if t.name == name), None)
+    return getattr(rates, term.learning_rate if term is not None else name)
 
 
 def make_optimizer(gaussians: Gaussians, config: FitConfig) -> Adan:
@@ -91,7 +100,7 @@ def make_optimizer(gaussians: Gaussians, config: FitConfig) -> Adan:
     # which the first run's compile processes, importing this module, do not need.
     from pytorch_optimizer import Adan
 
-    groups = [{"params": [getattr(gaussians, name)], "lr": getattr(config.optimisation.lr, name), "name": name}
+    groups = [{"params": [gaussians.parameter(name)], "lr": learning_rate(name, config), "name": name}
               for name in trainable_groups(config)]
     return Adan(groups, betas=config.optimisation.betas, eps=config.optimisation.adan_eps, weight_decay=0.0,
                 max_grad_norm=0.0)
@@ -178,7 +187,7 @@ def initial_state(config: FitConfig, scene: Scene | None = None, run: RunOptions
     device = torch.device(run.device)
     gaussians = initial_gaussians(config, scene, run.device)
     for name in trainable_groups(config):
-        getattr(gaussians, name).requires_grad_(True)
+        gaussians.parameter(name).requires_grad_(True)
     optimizer = make_optimizer(gaussians, config)
     generator = torch.Generator(device=device).manual_seed(config.optimisation.seed)
     return FitState(gaussians, optimizer, generator)
@@ -254,8 +263,9 @@ def update(state: FitState, scene: Scene, config: FitConfig, backend: str = "aut
     the host.
     """
     gaussians, step = state.gaussians, state.step
-    gaussians.curvature.requires_grad_(config.primitives.kind == "cvqpg"
-                                       and step >= config.optimisation.curvature_warmup)
+    gaussians.curvature.requires_grad_(config.phase.has("quadratic") and step >= config.optimisation.curvature_warmup)
+    for tensor in gaussians.terms.values():
+        tensor.requires_grad_(step >= config.terms_warmup)
     loss, mse = hologram_loss(render_hologram(gaussians, config, backend), scene, config, state.generator, backend)
     optimizer = state.optimizer
     optimizer.zero_grad(set_to_none=True)
@@ -323,11 +333,11 @@ PROBE_STEPS = 12
 def seconds_per_step(scene: Scene, config: FitConfig, run: RunOptions = RunOptions(),
                      probe_steps: int = PROBE_STEPS) -> float:
     """Seconds one update of a fit of `config` takes here on `run`, timed over `probe_steps` updates of a
-    throwaway state after one untimed update (first-call costs), past the curvature warm-up, where most steps
-    are."""
+    throwaway state after one untimed update (first-call costs), past the warm-ups of the phase terms, where most
+    steps are."""
     scene = scene.to(run.device)
     state = initial_state(config, scene, run)
-    first = config.optimisation.curvature_warmup
+    first = max(config.optimisation.curvature_warmup, config.terms_warmup)
     for step in range(first, first + probe_steps + 1):
         if step == first + 1:
             start = time.perf_counter()

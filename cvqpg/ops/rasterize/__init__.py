@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ...errors import ConfigError
 from ...primitives import COVARIANCE_REGULARISER_PX2, Primitives, device_constants
 from .. import resolve_backend
 from . import cpu
@@ -209,5 +210,8 @@ def rasterize(prims: Primitives, width: int, height: int, wavelengths_m: Sequenc
               pixel_pitch: float, qpf: Qpf = "mahalanobis", backend: str = "auto") -> Tensor:
     """Complex hologram [C, H, W] of the activated primitives on the W×H grid (px), pitch in m."""
     backend = resolve_backend(backend, prims.position_px.device)
+    if prims.terms and backend != "torch":
+        raise ConfigError(f"the {backend} kernels do not carry the phase terms {', '.join(prims.terms)} yet; use "
+                          "`backend` torch")
     wavenumbers = wavenumbers_for(wavelengths_m, prims.position_px.device)
     return BACKENDS[backend](prims, width, height, wavenumbers, pixel_pitch, qpf)
