@@ -11,7 +11,7 @@ from torch import Tensor
 
 from .config import FitConfig
 from .errors import ConfigError, ModelFileError
-from .phase import TERMS, activate_terms
+from .phase import QUADRATIC, TERMS, activate_terms
 
 COVARIANCE_REGULARISER_PX2 = 0.1
 MIN_SCALE_PX = 0.1
@@ -40,7 +40,8 @@ class TensorFields:
 
     @classmethod
     def from_tensors(cls, tensors: dict[str, Tensor]):
-        terms = {name: tensors[cls._term_name(name)] for name in TERMS if cls._term_name(name) in tensors}
+        terms = {name: tensors[cls._term_name(name)] for name in TERMS
+                 if name != QUADRATIC.name and cls._term_name(name) in tensors}
         return cls(**{f.name: tensors[f.name] for f in fields(cls) if f.name != "terms"}, terms=terms)
 
     def to(self, device: torch.device | str, dtype: torch.dtype | None = None):

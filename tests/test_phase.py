@@ -231,3 +231,84 @@ def test_raw_terms_take_gradients_through_their_activation():
         return torch.view_as_real(field)
 
     assert torch.autograd.gradcheck(render, leaves, eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=True)
+
+
+# --------------------------------------------------------------------------- the Numba kernels
+
+
+def term_gaussians(config: FitConfig, count: int, seed: int) -> Gaussians:
+    """test_ops_cpu's assorted primitives (tiny, huge, needles, at the edges, strongly curved) with random phase
+    terms, a third of them at 0 (the kernels' real lanes where the curvature is 0 too)."""
+    from test_ops_cpu import random_gaussians
+
+    raw = random_gaussians(count, config.channels, seed, per_channel=config.primitives.curvature == "per-channel")
+    if not config.phase.has("quadratic"):
+        raw.curvature = torch.zeros_like(raw.curvature)
+    generator = torch.Generator().manual_seed(seed + 1)
+    raw.terms = {term.name: torch.randn(count, term.parameters, generator=generator, dtype=F64)
+                 for term in config.phase.extra_terms}
+    for tensor in raw.terms.values():
+        tensor[1::3] = 0.0
+    return raw
+
+
+FAST_PHASES = {("axes+tilt", "rgb", "mahalanobis"), ("quadratic+tilt", "gray", "standard"), ("axes", "gray", "mahalanobis")}
+
+
+@pytest.mark.parametrize("phase, color, qpf", [
+    pytest.param(phase, color, qpf, id=f"{phase}-{color}-{qpf}",
+                 marks=[] if (phase, color, qpf) in FAST_PHASES else pytest.mark.slow)
+    for phase in TERM_PHASES for color in ("rgb", "gray") for qpf in ("mahalanobis", "standard")])
+def test_numba_kernels_match_the_reference_with_the_terms(phase, color, qpf):
+    import cvqpg.ops.rasterize.cpu as kernels
+    from test_ops_cpu import HEIGHT, WIDTH, assert_fused_matches_reference, ways
+    from cvqpg.ops.rasterize import wavenumbers_for
+
+    config = FitConfig.create(width=WIDTH, height=HEIGHT, color=color, qpf=qpf, phase=phase).validate()
+    prims = activate(term_gaussians(config, 200, seed=5), config)
+    offsets = torch.tensor([[-9.0, 3.0], [WIDTH + 4.0, 0.0], [0.0, -HEIGHT - 1.0], [0.0, 30.0]], dtype=F64)
+    prims.position_px = torch.cat([prims.position_px[:5], prims.position_px[5:9] + offsets, prims.position_px[9:]])
+    assert {kernels.OFF_IMAGE, kernels.TABULATED, kernels.WALKED} <= set(ways(prims, qpf).tolist())
+    assert_fused_matches_reference(prims, wavenumbers_for(config.wavelengths), qpf)
+
+
+def test_needles_walked_from_each_row_s_maximum_carry_the_terms():
+    import cvqpg.ops.rasterize.cpu as kernels
+    from test_ops_cpu import HEIGHT, WIDTH, assert_fused_matches_reference, ways
+    from cvqpg.ops.rasterize import wavenumbers_for
+
+    config = FitConfig.create(width=WIDTH, height=HEIGHT, phase="quadratic+tilt").validate()
+    raw = term_gaussians(config, 24, seed=4)
+    aspect = torch.linspace(math.log(10.0), math.log(60.0), 24, dtype=F64)
+    raw.scale = torch.stack([torch.full_like(aspect, 2.5), 2.5 - aspect], dim=1)
+    raw.rotation = torch.linspace(0.0, math.pi, 24, dtype=F64)
+    prims = activate(raw, config)
+    assert (ways(prims).eq(kernels.WALKED_FROM_RIDGE)).sum() >= 18
+    assert_fused_matches_reference(prims, wavenumbers_for(config.wavelengths))
+
+
+def test_numba_gradients_of_the_terms_match_finite_differences():
+    from test_ops_cpu import HEIGHT, WIDTH, outputs_and_gradients, weighted_sum
+    from cvqpg.ops.rasterize import splat_fused, splat_reference, wavenumbers_for
+
+    config = FitConfig.create(width=WIDTH, height=HEIGHT, phase="axes+tilt").validate()
+    raw = term_gaussians(config, 30, seed=2)
+    raw.terms = {name: tensor + 0.1 for name, tensor in raw.terms.items()}
+    prims = activate(raw, config)
+    k = wavenumbers_for(config.wavelengths)
+    _, grads = outputs_and_gradients(splat_fused, prims, k)
+    by_name = dict(zip(prims.tensors(), grads))
+
+    def loss(tensors: dict[str, torch.Tensor]) -> float:
+        return float(weighted_sum(splat_reference(Primitives.from_tensors(tensors), WIDTH, HEIGHT, k, PITCH,
+                                                  "mahalanobis")))
+
+    base = prims.tensors()
+    for name, index in (("tilt_rad", (7, 0)), ("tilt_rad", (0, 1)), ("axes_curvature_per_m", (7, 1)),
+                        ("axes_curvature_per_m", (2, 0)), ("position_px", (7, 0)), ("rotation_rad", (7,))):
+        eps = 1e-6 * max(1.0, abs(float(base[name][index])))
+        plus, minus = ({n: t.clone() for n, t in base.items()} for _ in range(2))
+        plus[name][index] += eps
+        minus[name][index] -= eps
+        numeric = (loss(plus) - loss(minus)) / (2 * eps)
+        assert math.isclose(float(by_name[name][index]), numeric, rel_tol=1e-3, abs_tol=1e-6), name
