@@ -312,3 +312,60 @@ def test_numba_gradients_of_the_terms_match_finite_differences():
         minus[name][index] -= eps
         numeric = (loss(plus) - loss(minus)) / (2 * eps)
         assert math.isclose(float(by_name[name][index]), numeric, rel_tol=1e-3, abs_tol=1e-6), name
+
+
+# --------------------------------------------------------------------------- the Triton kernels (interpreted on the CPU)
+
+
+def triton_raw(config: FitConfig, seed: int) -> Gaussians:
+    """test_ops_gpu's primitives (tiny, reach beyond the image, a needle) with random phase terms."""
+    from test_ops_gpu import COUNT, gaussians
+
+    raw = gaussians(config.channels, "shared" if config.phase.has("quadratic") else "flat", seed)
+    generator = torch.Generator().manual_seed(seed + 1)
+    terms = {term.name: torch.randn(COUNT, term.parameters, generator=generator, dtype=F64).to(raw.position.device)
+             for term in config.phase.extra_terms}
+    return Gaussians.from_tensors({**raw.tensors(), **terms})
+
+
+@pytest.mark.parametrize("phase, color, qpf", [
+    pytest.param("axes+tilt", "rgb", "mahalanobis", id="axes+tilt-rgb-mahalanobis"),
+    pytest.param("quadratic+tilt", "gray", "standard", id="quadratic+tilt-gray-standard", marks=pytest.mark.slow),
+    pytest.param("tilt", "rgb", "standard", id="tilt-rgb-standard", marks=pytest.mark.slow),
+    pytest.param("axes", "gray", "mahalanobis", id="axes-gray-mahalanobis", marks=pytest.mark.slow)])
+def test_triton_kernels_match_the_reference_with_the_terms(phase, color, qpf):
+    from test_ops_gpu import HEIGHT as GPU_HEIGHT, WIDTH as GPU_WIDTH, hologram_and_gradients, relative
+
+    config = FitConfig.create(width=GPU_WIDTH, height=GPU_HEIGHT, color=color, qpf=qpf, phase=phase).validate()
+    raw = triton_raw(config, seed=5)
+    expected, expected_grads = hologram_and_gradients("torch", raw, config)
+    actual, actual_grads = hologram_and_gradients("triton", raw, config)
+    assert expected.abs().max() > 0.1 and relative(actual, expected) < 1e-4
+    for name, got, want in zip(raw.tensors(), actual_grads, expected_grads):
+        assert want.abs().max() > 0 and relative(got, want) < 1e-4, name
+
+
+def test_triton_gradients_of_the_terms_match_finite_differences():
+    from test_ops_gpu import DEVICE, HEIGHT as GPU_HEIGHT, WIDTH as GPU_WIDTH
+    from cvqpg.ops.rasterize import splat_reference, splat_triton, wavenumbers_for
+
+    config = FitConfig.create(width=GPU_WIDTH, height=GPU_HEIGHT, phase="axes+tilt").validate()
+    prims = activate(triton_raw(config, seed=2), config)
+    k = wavenumbers_for(config.wavelengths)
+    weights = torch.randn(3, GPU_HEIGHT, GPU_WIDTH, generator=torch.Generator().manual_seed(4), dtype=torch.complex128)
+
+    def loss(backend, tensors: dict[str, torch.Tensor]) -> torch.Tensor:
+        hologram = backend(Primitives.from_tensors(tensors), GPU_WIDTH, GPU_HEIGHT, k, PITCH, "mahalanobis")
+        return (hologram.to(torch.complex128) * weights.to(DEVICE).conj()).real.sum()
+
+    base = prims.tensors()
+    leaves = {name: t.clone().requires_grad_() for name, t in base.items()}
+    grads = dict(zip(leaves, torch.autograd.grad(loss(splat_triton, leaves), list(leaves.values()))))
+    for name, index in (("tilt_rad", (7, 0)), ("tilt_rad", (8, 1)), ("axes_curvature_per_m", (7, 1)),
+                        ("axes_curvature_per_m", (9, 0)), ("position_px", (7, 0)), ("rotation_rad", (7,))):
+        eps = 1e-6 * max(1.0, abs(float(base[name][index])))
+        plus, minus = ({n: t.clone() for n, t in base.items()} for _ in range(2))
+        plus[name][index] += eps
+        minus[name][index] -= eps
+        numeric = float(loss(splat_reference, plus) - loss(splat_reference, minus)) / (2 * eps)
+        assert math.isclose(float(grads[name][index]), numeric, rel_tol=1e-3, abs_tol=1e-6), name

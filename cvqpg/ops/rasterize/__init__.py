@@ -23,7 +23,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ...errors import ConfigError
 from ...phase import FORM_COLUMNS, phase_form
 from ...primitives import COVARIANCE_REGULARISER_PX2, Primitives, device_constants
 from .. import resolve_backend
@@ -162,20 +161,26 @@ def splat_fused(prims: Primitives, width: int, height: int, wavenumbers: Tensor,
 class _TritonSplat(torch.autograd.Function):
     """The Triton kernels behind one autograd boundary: the complex hologram [C, H, W] of the splats'
     centres, conics and reaches, weights `w = amplitude·opacity`, phases and phase rates `κ = k·chirp`
-    ([N, C] each; `splat_triton` forms them with autograd). Float32 inside; the gradients come back
-    in each input's dtype, the reach's as None (the footprint carries none)."""
+    ([N, C] each), and the phase terms' form [N, 5] or None with the wavenumbers [C] (`splat_triton` forms them
+    with autograd). Float32 inside; the gradients come back in each input's dtype, the reach's as None (the
+    footprint carries none)."""
 
     @staticmethod
-    def forward(ctx, position, conic, reach, weight, phase, rate, width, height, mahalanobis):
+    def forward(ctx, position, conic, reach, weight, phase, rate, form, wavenumbers, width, height, mahalanobis):
         # Imported here: Triton takes seconds to import and only this backend needs it.
         from . import gpu
 
-        arrays = tuple(t.detach().to(torch.float32).contiguous() for t in (position, conic, reach, weight, phase, rate))
+        has_form = form is not None
+        form = form if has_form else position  # a placeholder the kernels do not read
+        arrays = tuple(t.detach().to(torch.float32).contiguous()
+                       for t in (position, conic, reach, weight, phase, rate, form, wavenumbers))
         channels = weight.shape[1]
         out = arrays[0].new_zeros(channels, height, width, 2)
-        gpu.launch(gpu.splat_forward, *arrays, out, height=height, width=width, mahalanobis=mahalanobis)
+        gpu.launch(gpu.splat_forward, *arrays, out, height=height, width=width, mahalanobis=mahalanobis,
+                   has_form=has_form)
         ctx.save_for_backward(*arrays)
-        ctx.mahalanobis, ctx.dtypes = mahalanobis, tuple(t.dtype for t in (position, conic, weight, phase, rate))
+        ctx.mahalanobis, ctx.has_form = mahalanobis, has_form
+        ctx.dtypes = tuple(t.dtype for t in (position, conic, weight, phase, rate, form))
         return torch.view_as_complex(out).to(torch.promote_types(position.dtype, torch.complex64))
 
     @staticmethod
@@ -183,14 +188,15 @@ class _TritonSplat(torch.autograd.Function):
         from . import gpu
 
         arrays = ctx.saved_tensors
-        position, conic, _, weight, phase, rate = arrays
+        position, conic, _, weight, phase, rate, form, _ = arrays
         _, height, width = grad.shape
         incoming = torch.view_as_real(grad.to(torch.complex64).resolve_conj().contiguous())
-        grads = tuple(torch.zeros_like(t) for t in (position, conic, weight, phase, rate))
+        grads = tuple(torch.zeros_like(t) for t in (position, conic, weight, phase, rate, form))
         gpu.launch(gpu.splat_backward, *arrays, incoming, *grads, height=height, width=width,
-                   mahalanobis=ctx.mahalanobis)
-        g_position, g_conic, g_weight, g_phase, g_rate = (g.to(dtype) for g, dtype in zip(grads, ctx.dtypes))
-        return g_position, g_conic, None, g_weight, g_phase, g_rate, None, None, None
+                   mahalanobis=ctx.mahalanobis, has_form=ctx.has_form)
+        g_position, g_conic, g_weight, g_phase, g_rate, g_form = (g.to(dtype) for g, dtype in zip(grads, ctx.dtypes))
+        return (g_position, g_conic, None, g_weight, g_phase, g_rate, g_form if ctx.has_form else None, None, None,
+                None, None)
 
 
 def splat_triton(prims: Primitives, width: int, height: int, wavenumbers: Tensor, pixel_pitch: float,
@@ -198,10 +204,11 @@ def splat_triton(prims: Primitives, width: int, height: int, wavenumbers: Tensor
     """GPU backend (Triton): complex hologram [C, H, W], float32 inside, pitch in m. The geometry is
     the reference's `splats`, differentiated by autograd."""
     s = splats(prims, pixel_pitch, qpf)
-    rate = s.chirp * wavenumbers.to(device=s.chirp.device, dtype=s.chirp.dtype)  # [N, 1 or C] · [C]
+    k = wavenumbers.to(device=s.chirp.device, dtype=s.chirp.dtype)
+    rate = s.chirp * k  # [N, 1 or C] · [C]
     weight = s.amplitude * s.opacity[:, None]
-    return _TritonSplat.apply(s.position_px, s.conic, s.reach_px, weight, s.phase_rad, rate.expand_as(weight),
-                              width, height, s.mahalanobis)
+    return _TritonSplat.apply(s.position_px, s.conic, s.reach_px, weight, s.phase_rad, rate.expand_as(weight), s.form,
+                              k, width, height, s.mahalanobis)
 
 
 Backend = Callable[[Primitives, int, int, Tensor, float, Qpf], Tensor]
@@ -217,8 +224,5 @@ def rasterize(prims: Primitives, width: int, height: int, wavelengths_m: Sequenc
               pixel_pitch: float, qpf: Qpf = "mahalanobis", backend: str = "auto") -> Tensor:
     """Complex hologram [C, H, W] of the activated primitives on the W×H grid (px), pitch in m."""
     backend = resolve_backend(backend, prims.position_px.device)
-    if prims.terms and backend == "triton":
-        raise ConfigError(f"the {backend} kernels do not carry the phase terms {', '.join(prims.terms)} yet; use "
-                          "`backend` torch")
     wavenumbers = wavenumbers_for(wavelengths_m, prims.position_px.device)
     return BACKENDS[backend](prims, width, height, wavenumbers, pixel_pitch, qpf)
