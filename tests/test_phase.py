@@ -369,3 +369,31 @@ def test_triton_gradients_of_the_terms_match_finite_differences():
         minus[name][index] -= eps
         numeric = float(loss(splat_reference, plus) - loss(splat_reference, minus)) / (2 * eps)
         assert math.isclose(float(grads[name][index]), numeric, rel_tol=1e-3, abs_tol=1e-6), name
+
+
+# --------------------------------------------------------------------------- files
+
+
+def test_model_files_and_checkpoints_carry_the_terms(tmp_path):
+    from cvqpg.errors import CvqpgError
+    from cvqpg.fitting import blank_state, state_from_payload
+    from cvqpg.storage import load_model, model_info, save_model
+    from cvqpg.codec import encode
+    from cvqpg.bitdepths import BitDepths
+
+    config = config_of("axes+tilt", "gray")
+    raw = random_raw(20, 1, "axes+tilt", seed=3, spread=1.0)
+    prims = activate(raw, config)
+    save_model(tmp_path / "model.safetensors", prims, config)
+    loaded, loaded_config = load_model(tmp_path / "model.safetensors")
+    assert loaded_config == config and loaded.tensors().keys() == prims.tensors().keys()
+    assert all(torch.equal(loaded.terms[name], prims.terms[name]) for name in prims.terms)
+    info = model_info(tmp_path / "model.safetensors")
+    assert (info["phase"], info["params_per_primitive"], info["learnable_params"]) == ("axes+tilt", 12, 240)
+    state = blank_state(config)
+    with torch.no_grad():
+        state.gaussians.terms["tilt"].copy_(raw.terms["tilt"])
+    restored = state_from_payload(state.to_payload(), config)
+    assert torch.equal(restored.gaussians.terms["tilt"], raw.terms["tilt"])
+    with pytest.raises(CvqpgError, match="`.cvq` files do not store the phase terms"):
+        encode(prims, config, BitDepths())

@@ -46,6 +46,11 @@ METHODS = {
     "channel-bound": Method("CVQPG, bound per λ", {"primitive": "cvqpg", "curvature": "channel-bound"}),
     "baseline+pc": Method("Baseline (per-channel's params)", {"primitive": "flat"}, params_of=PER_CHANNEL),
     "cvqpg+pc": Method("CVQPG (per-channel's params)", CVQPG, params_of=PER_CHANNEL),
+    # The phase terms beyond the curvature (cvqpg/phase.py), and CVQPG at each one's parameter count.
+    **{phase: Method(f"phase {phase}", {"primitive": "cvqpg", "phase": phase})
+       for phase in ("tilt", "quadratic+tilt", "axes", "axes+tilt")},
+    **{f"cvqpg@{phase}": Method(f"CVQPG ({phase}'s params)", CVQPG, params_of={"phase": phase})
+       for phase in ("tilt", "quadratic+tilt", "axes", "axes+tilt")},
 }
 
 
