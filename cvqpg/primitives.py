@@ -22,9 +22,10 @@ INIT_OPACITY_RAW = -0.5
 
 
 class TensorFields:
-    """Per-primitive tensors of a dataclass, handled as one dict (checkpoints, files, devices): its fields, and the
-    phase terms beyond the curvature (`terms`, by term name) under their names (`_term_name`), only where a model
-    has them, so that a model without them has exactly the tensors of the versions before them."""
+    """Per-primitive tensors of a dataclass, handled as one dict (checkpoints, files, devices): its fields, and where
+    it has a `terms` field (the phase terms beyond the curvature, by term name) those under their names
+    (`_term_name`), only where a model has them: a model without them has exactly the tensors of the versions
+    before them."""
 
     @staticmethod
     def _term_name(term: str) -> str:
@@ -36,13 +37,21 @@ class TensorFields:
 
     def tensors(self) -> dict[str, Tensor]:
         own = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "terms"}
-        return {**own, **{self._term_name(name): tensor for name, tensor in self.terms.items()}}
+        return {**own, **{self._term_name(name): tensor for name, tensor in getattr(self, "terms", {}).items()}}
 
     @classmethod
     def from_tensors(cls, tensors: dict[str, Tensor]):
+        own = {f.name: tensors[f.name] for f in fields(cls) if f.name != "terms"}
+        if "terms" not in {f.name for f in fields(cls)}:
+            return cls(**own)
         terms = {name: tensors[cls._term_name(name)] for name in TERMS
                  if name != QUADRATIC.name and cls._term_name(name) in tensors}
-        return cls(**{f.name: tensors[f.name] for f in fields(cls) if f.name != "terms"}, terms=terms)
+        return cls(**own, terms=terms)
+
+    def parameter(self, name: str) -> Tensor:
+        """The raw tensor of an optimiser group: a field, or a phase term."""
+        terms = getattr(self, "terms", {})
+        return terms[name] if name in terms else getattr(self, name)
 
     def to(self, device: torch.device | str, dtype: torch.dtype | None = None):
         return self.from_tensors({k: v.to(device, dtype) for k, v in self.tensors().items()})
@@ -67,10 +76,6 @@ class Gaussians(TensorFields):
     @property
     def channels(self) -> int:
         return self.amplitude.shape[1]
-
-    def parameter(self, name: str) -> Tensor:
-        """The raw tensor of an optimiser group: a field, or a phase term."""
-        return self.terms[name] if name in self.terms else getattr(self, name)
 
 
 @dataclass
