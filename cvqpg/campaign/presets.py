@@ -102,7 +102,7 @@ PRESETS = {
                           "17.0 min RGB, its runtime table), as fixed step counts measured on our 2-core CPU",
                           COLORS, (0.1,), ("cvqpg",), recipe=BEYOND_RECIPE,
                           steps_by_color=tuple(PAPER_TIME_STEPS.items())),
-    "phase": Preset("phase terms beyond the curvature (cvqpg/phase.py) with the beyond recipe at 2000 steps, "
+    "beyond-phase": Preset("phase terms beyond the curvature (cvqpg/phase.py) with the beyond recipe at 2000 steps, "
                     "{rgb, gray} 10%: CVQPG, quadratic+tilt and axes+tilt at equal N, and CVQPG at each one's "
                     "parameter count", COLORS, (0.1,),
                     ("cvqpg", "quadratic+tilt", "axes+tilt", "cvqpg@quadratic+tilt", "cvqpg@axes+tilt"),
