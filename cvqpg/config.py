@@ -1,7 +1,7 @@
 """Fit configuration: every setting of method.md §2–§6 with the paper's value as default, grouped by concern
-(`TargetSettings`, `OpticsSettings`, `PrimitiveSettings`, `OptimisationSettings`, `LossSettings`) into one
-`FitConfig`, and the recipes (`RECIPES`) that choose what the paper leaves to the fit: the paper's own, and the
-default one (docs/beyond.md). Where a fit runs (`RunOptions`: device and kernels) is no part of it.
+(`TargetSettings`, `OpticsSettings`, `PrimitiveSettings`, `OptimisationSettings`, `LossSettings`, and the display
+the loss sees, `display.Display`) into one `FitConfig`, and the recipes (`RECIPES`) that choose what the paper
+leaves to the fit: the paper's own, and the default one (docs/beyond.md). Where a fit runs (`RunOptions`: device and kernels) is no part of it.
 
 A recipe is resolved when the configuration is made (`FitConfig.create`): every setting is a concrete value,
 which `config.json` records. `FitConfig.from_dict` reads the records of every earlier version."""
@@ -17,15 +17,18 @@ import os
 from dataclasses import dataclass, field
 from typing import Any, Literal, Sequence, get_args
 
+from .display import Display
 from .errors import ConfigError, choices_error
+from .phase import CONSTANT, Phase, check_phase_settings, parse_phase
 
 Color = Literal["rgb", "gray"]
-Primitive = Literal["flat", "cvqpg"]
+Primitive = Literal["flat", "cvqpg", "pixel"]
 Bound = Literal["adaptive", "global"]
 Qpf = Literal["mahalanobis", "standard"]
 Curvature = Literal["shared", "per-channel", "channel-bound"]
 Backend = Literal["auto", "numba", "triton", "torch"]
-Init = Literal["uniform", "targets", "edges"]
+Init = Literal["uniform", "targets", "edges", "zero"]
+Optimizer = Literal["adan", "adam"]
 COLORS: tuple[str, ...] = get_args(Color)
 PRIMITIVES: tuple[str, ...] = get_args(Primitive)
 BOUNDS: tuple[str, ...] = get_args(Bound)
@@ -33,19 +36,23 @@ QPFS: tuple[str, ...] = get_args(Qpf)
 CURVATURES: tuple[str, ...] = get_args(Curvature)
 BACKENDS: tuple[str, ...] = get_args(Backend)
 INITS: tuple[str, ...] = get_args(Init)
+OPTIMIZERS: tuple[str, ...] = get_args(Optimizer)
+GAUSSIAN_ONLY_INITS = ("edges",)  # where a Gaussian's position starts
+PIXEL_ONLY_INITS = ("zero",)  # a per-pixel hologram's flat phase
 DEVICE_TYPES = ("cpu", "cuda")
 # The choices of every enumerated setting (flat names); the range of every number is in `RANGES`.
 CHOICES: dict[str, tuple[str, ...]] = {"color": COLORS, "primitive": PRIMITIVES, "bound": BOUNDS, "qpf": QPFS,
-                                       "curvature": CURVATURES, "init": INITS}
+                                       "curvature": CURVATURES, "init": INITS, "optimizer": OPTIMIZERS}
 
 RGB_WAVELENGTHS_M = (639e-9, 532e-9, 473e-9)
 GRAY_WAVELENGTH_M = 639e-9
 PAPER_BETAS = (0.98, 0.92, 0.99)  # method.md §6
+ADAM_BETAS = (0.9, 0.999, 0.99)  # Adam's usual β1 and β2; Adam has no third (Adan's β3, left at the paper's)
 LONG_RUN_BETAS = (0.98, 0.99, 0.99)  # β2 averages the gradient's differences over ~100 steps, not ~12
 CURVATURE_WARMUP_SHARE = 400 / 2000  # the paper's curvature warm-up share of the steps
 MIN_SIZE_PX = 16  # the SSIM window
 MAX_LEARNING_RATE = 10.0
-CONFIG_SCHEMA = 2  # the layout `FitConfig.to_dict` writes; records without the key are the flat layout before it
+CONFIG_SCHEMA = 3  # the layout `FitConfig.to_dict` writes; records without the key are the flat layout before it
 
 
 def _check_range(name: str, value: Any, low: float, high: float, kind: str) -> None:
@@ -110,6 +117,8 @@ class LearningRates:
     opacity: float = 0.025
     rotation: float = 0.001
     curvature: float = 0.001
+    axes: float = 0.001  # the phase terms beyond the paper's (cvqpg/phase.py)
+    tilt: float = 0.001
 
     def __post_init__(self) -> None:
         for key in (f.name for f in dataclasses.fields(self)):
@@ -172,29 +181,36 @@ class PrimitiveSettings:
     eta: float = 0.9
     qpf: Qpf = "mahalanobis"
     curvature: Curvature = "shared"
+    phase: str | None = None  # the phase terms (`phase.PHASES`); None: the kind's (flat: constant, cvqpg: quadratic)
 
     def __post_init__(self) -> None:
         _check_fields(self)
+        check_phase(self)
 
 
 @dataclass(frozen=True)
 class OptimisationSettings:
     """The loop (method.md §6): its steps, the curvature's warm-up (steps with γ frozen at 0; `steps + 1`: all),
-    the seed, Adan's learning rates, betas and ε, the gradient clip norm, and where the primitives start (`init`)."""
+    the seed, the optimiser (the paper's Adan, or Adam, whose β1 and β2 are `betas`' first two) with its learning
+    rates, betas and ε, the gradient clip norm, and where the primitives start (`init`)."""
 
     steps: int = 2000
     curvature_warmup: int = 400
+    terms_warmup: int | None = None  # steps with the phase terms beyond the curvature frozen at 0; None: as γ
     seed: int = 100
     lr: LearningRates = field(default_factory=LearningRates)
     betas: tuple[float, float, float] = PAPER_BETAS
     adan_eps: float = 1e-8
     grad_clip_norm: float = 1.0
     init: Init = "uniform"
+    optimizer: Optimizer = "adan"
 
     def __post_init__(self) -> None:
         _check_fields(self)
         # steps + 1: the curvature never trains (the loop's last update has index `steps`)
         _check_range("curvature_warmup", self.curvature_warmup, 0, self.steps + 1, "integer")
+        if self.terms_warmup is not None:
+            _check_range("terms_warmup", self.terms_warmup, 0, self.steps + 1, "integer")
         if not isinstance(self.lr, LearningRates):
             raise ConfigError(f"`lr` must be LearningRates, got {self.lr!r}")
         if not (isinstance(self.betas, tuple) and len(self.betas) == 3):
@@ -219,7 +235,7 @@ class LossSettings:
 
 @dataclass(frozen=True)
 class Recipe:
-    """The choices a fit makes beyond its problem, by name: Adan's learning rates and betas, where the
+    """The choices a fit makes beyond its problem, by name: the optimiser, its learning rates and betas, where the
     primitives start, and the weights of the loss's masked and correlation terms."""
 
     name: str
@@ -229,11 +245,12 @@ class Recipe:
     init: Init
     focus_weight: float
     product_weight: float
+    optimizer: Optimizer = "adan"
 
     def settings(self) -> dict[str, Any]:
         """The recipe's settings under their `FitConfig.create` names."""
         return {"lr": self.lr, "betas": self.betas, "init": self.init, "focus_weight": self.focus_weight,
-                "product_weight": self.product_weight}
+                "product_weight": self.product_weight, "optimizer": self.optimizer}
 
 
 RECIPES: dict[str, Recipe] = {}
@@ -254,6 +271,12 @@ BEYOND_RECIPE = register_recipe(Recipe(
 BEYOND_SHORT_RECIPE = register_recipe(Recipe(
     "beyond-short", "for a few hundred steps: positions at the targets' energy, the paper's β2, no masked or "
     "correlation terms (docs/beyond.md)", LearningRates(), PAPER_BETAS, "targets", 0.0, 0.0)).name
+# The per-pixel hologram's (`primitive` pixel): its optimiser, learning rate and start screened (docs/beyond.md).
+PIXEL_LEARNING_RATE = 0.01
+PIXEL_RECIPE = register_recipe(Recipe(
+    "pixel", "for the per-pixel hologram: Adam at 0.01, a small random phase to start, the paper's loss "
+    "(docs/beyond.md)", LearningRates(amplitude=PIXEL_LEARNING_RATE, phase=PIXEL_LEARNING_RATE),
+    ADAM_BETAS, "uniform", 1.0, 1.0, "adam")).name
 DEFAULT_RECIPE = BEYOND_RECIPE  # measured better than the paper's on every scene (docs/beyond.md)
 CUSTOM_RECIPE = "custom"  # what `FitConfig.recipe` says where a setting differs from its recipe's
 
@@ -264,9 +287,10 @@ FLAT_NAMES: dict[str, tuple[str, str]] = {
                                              "defocus_sigma_px", "depth_exponent")},
     **{name: ("optics", name) for name in ("pixel_pitch", "wavelengths_m", "guard_band_px", "pad_multiple_px")},
     "primitive": ("primitives", "kind"), "num_gaussians": ("primitives", "count"),
-    **{name: ("primitives", name) for name in ("ratio", "bound", "global_bound", "eta", "qpf", "curvature")},
-    **{name: ("optimisation", name) for name in ("steps", "curvature_warmup", "seed", "lr", "betas", "adan_eps",
-                                                  "grad_clip_norm", "init")},
+    **{name: ("primitives", name) for name in ("ratio", "bound", "global_bound", "eta", "qpf", "curvature",
+                                                "phase")},
+    **{name: ("optimisation", name) for name in ("steps", "curvature_warmup", "terms_warmup", "seed", "lr", "betas",
+                                                  "adan_eps", "grad_clip_norm", "init", "optimizer")},
     **{name: ("loss", name) for name in ("ssim_weight", "focus_weight", "product_weight", "target_noise")},
 }
 # Names that flat records (config.json, model metadata) used before a rename, and their names now.
@@ -287,6 +311,7 @@ class FitConfig:
     primitives: PrimitiveSettings = field(default_factory=PrimitiveSettings)
     optimisation: OptimisationSettings = field(default_factory=OptimisationSettings)
     loss: LossSettings = field(default_factory=LossSettings)
+    display: Display = field(default_factory=Display)
     recipe: str = field(default=PAPER_RECIPE, compare=False)  # a label: two configurations compare by settings
 
     def __post_init__(self) -> None:
@@ -304,14 +329,28 @@ class FitConfig:
         if not 0 < count <= pixels:
             raise ConfigError(f"{count} Gaussians for {pixels} pixels: need between 1 and the pixel count; "
                               "change `ratio` or `num_gaussians`")
+        # and where the representation starts on the primitive
+        pixel = self.primitives.kind == "pixel"
+        foreign = GAUSSIAN_ONLY_INITS if pixel else PIXEL_ONLY_INITS
+        if self.optimisation.init in foreign:
+            raise ConfigError(f"`init` {self.optimisation.init} starts {'Gaussians' if pixel else 'a per-pixel hologram'}"
+                              f" and `primitive` is {self.primitives.kind}: choose one of "
+                              f"{', '.join(i for i in INITS if i not in foreign)}")
+        if not isinstance(self.display, Display):
+            raise ConfigError(f"`display` must be Display, got {self.display!r}")
+        self.display.canvas_for(self.targets.height, self.targets.width)
 
     @classmethod
-    def create(cls, recipe: str = DEFAULT_RECIPE, **settings: Any) -> "FitConfig":
+    def create(cls, recipe: str | None = None, **settings: Any) -> "FitConfig":
         """A configuration from flat names (`FLAT_NAMES`: `width`, `steps`, `pixel_pitch`, ...), with the recipe
-        `recipe`'s settings where not given; an unset (None) `curvature_warmup` is the paper's share of `steps`.
-        `recipe` names the result's recipe, or `custom` where a given setting differs from it."""
+        `recipe`'s settings where not given (None: `DEFAULT_RECIPE`, or `PIXEL_RECIPE` for `primitive` pixel); an
+        unset (None) `curvature_warmup` is the paper's share of `steps`. `recipe` names the result's recipe, or
+        `custom` where a given setting differs from it."""
+        if recipe is None:
+            recipe = PIXEL_RECIPE if settings.get("primitive") == "pixel" else DEFAULT_RECIPE
         config = cls().with_recipe(recipe)
         own = {k: v for k, v in settings.items() if not (k == "curvature_warmup" and v is None)}
+        own.update(phase_settings(own.get("primitive"), own.get("phase")) if "phase" in own else {})
         steps = own.get("steps", config.optimisation.steps)
         warmup = default_curvature_warmup(steps) if _is_integer(steps) else 0  # `validate` names bad steps
         made = config.replace(**{"curvature_warmup": warmup, **own})
@@ -326,7 +365,7 @@ class FitConfig:
             if name in FLAT_NAMES:
                 section, key = FLAT_NAMES[name]
                 sections[section][key] = tuple(value) if isinstance(value, list) else value
-            elif name in SECTIONS or name == "recipe":
+            elif name in SECTIONS or name in ("display", "recipe"):
                 top[name] = value
             else:
                 raise ConfigError(f"`{name}` is not a setting; the settings are {', '.join(FLAT_NAMES)}")
@@ -343,8 +382,10 @@ class FitConfig:
     def with_steps(self, steps: int) -> "FitConfig":
         """The same algorithm over `steps` steps: the curvature warm-up keeps its share of them."""
         current = self.optimisation
-        warmup = round(steps * current.curvature_warmup / current.steps) if current.steps else 0
-        return self.replace(steps=steps, curvature_warmup=warmup)
+        share = steps / current.steps if current.steps else 0
+        terms = None if current.terms_warmup is None else round(share * current.terms_warmup)
+        return self.replace(steps=steps, curvature_warmup=round(share * current.curvature_warmup),
+                            terms_warmup=terms)
 
     @property
     def channels(self) -> int:
@@ -359,23 +400,52 @@ class FitConfig:
 
     @property
     def primitive_count(self) -> int:
-        """N: `primitives.count`, or `ratio · W·H/2` (RGB) / `ratio · W·H/4` (grayscale), method.md §2."""
+        """N: `primitives.count`, or `ratio · W·H/2` (RGB) / `ratio · W·H/4` (grayscale), method.md §2; a per-pixel
+        hologram's W·H pixels."""
+        if self.primitives.kind == "pixel":
+            return self.targets.width * self.targets.height
         if self.primitives.count is not None:
             return self.primitives.count
         pixels_per_primitive = 2 if self.targets.color == "rgb" else 4
         return int(round(self.primitives.ratio * self.targets.width * self.targets.height / pixels_per_primitive))
 
     @property
-    def learnable_curvatures(self) -> int:
-        """Curvature parameters per primitive: none (flat), one per channel (`per-channel`), else one."""
+    def phase(self) -> Phase:
+        """The phase terms of the primitives (`cvqpg.phase`): none for the flat primitive, `primitives.phase` or
+        the paper's quadratic term for CVQPG."""
         if self.primitives.kind != "cvqpg":
+            return Phase(())
+        return parse_phase(self.primitives.phase or "quadratic")
+
+    @property
+    def learnable_curvatures(self) -> int:
+        """Parameters of the paper's curvature per primitive: none without it (flat), one per channel
+        (`per-channel`), else one."""
+        if self.primitives.kind != "cvqpg" or not self.phase.has("quadratic"):
             return 0
         return self.channels if self.primitives.curvature == "per-channel" else 1
 
     @property
     def params_per_primitive(self) -> int:
-        """Learnable scalars per primitive: 12/13/15 (RGB flat/CVQPG/per-channel), 8/9 (grayscale)."""
-        return 2 + 2 + 1 + 2 * self.channels + 1 + self.learnable_curvatures
+        """Learnable scalars per primitive: 12/13/15 (RGB flat/CVQPG/per-channel), 8/9 (grayscale), two more for each
+        of the phase terms `axes` and `tilt`; per pixel of a per-pixel hologram, an amplitude and a phase per channel
+        (a phase pattern: the phases alone)."""
+        if self.primitives.kind == "pixel":
+            return self.channels * (1 if self.phase_only_pixels else 2)
+        extra = sum(term.parameters for term in self.phase.extra_terms)
+        return 2 + 2 + 1 + 2 * self.channels + 1 + self.learnable_curvatures + extra
+
+    @property
+    def terms_warmup(self) -> int:
+        """Steps with the phase terms beyond the curvature frozen at 0: `optimisation.terms_warmup`, or γ's."""
+        warmup = self.optimisation.terms_warmup
+        return self.optimisation.curvature_warmup if warmup is None else warmup
+
+    @property
+    def phase_only_pixels(self) -> bool:
+        """Whether a per-pixel hologram of this configuration is a phase pattern (one phase per pixel and channel)
+        rather than a complex hologram: where its display shows the bare phase."""
+        return False
 
     @property
     def plane_distances(self) -> tuple[float, ...]:
@@ -401,7 +471,8 @@ class FitConfig:
             if isinstance(values.get("lr"), dict):
                 values["lr"] = LearningRates(**values["lr"])
             sections[name] = section_class(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
-        return cls(**sections, recipe=str(data.get("recipe", CUSTOM_RECIPE)))
+        return cls(**sections, display=Display.from_dict(data.get("display")),
+                   recipe=str(data.get("recipe", CUSTOM_RECIPE)))
 
     def validate(self) -> "FitConfig":
         """This configuration: every setting is checked where a configuration is made (a `ConfigError` naming the
@@ -465,6 +536,30 @@ def check_time_budget(minutes: float) -> None:
     if not 0 < minutes <= MAX_TIME_MINUTES:
         raise ConfigError(f"`time` {minutes:g} min: give a positive number of minutes, at most {MAX_TIME_MINUTES} "
                           "(a year)")
+
+
+def phase_settings(primitive: str | None, phase: str | None) -> dict[str, Any]:
+    """`primitive` and `phase` as a configuration holds them: `constant` is the flat primitive and `quadratic`
+    CVQPG's own (both recorded as the kind, without a phase), any other phase a CVQPG primitive's. Another
+    `primitive` with a phase is left for `PrimitiveSettings` to refuse."""
+    if phase is None or primitive not in (None, "cvqpg") and phase != CONSTANT:
+        return {} if phase is None else {"phase": phase}
+    if phase in (CONSTANT, "quadratic"):
+        return {"primitive": "flat" if phase == CONSTANT else "cvqpg", "phase": None}
+    return {"primitive": "cvqpg", "phase": phase}
+
+
+def check_phase(primitives: PrimitiveSettings) -> None:
+    """`ConfigError` unless `primitives.phase` names a phase (`phase.PHASES`) of a CVQPG primitive that goes with
+    its other settings (None: the kind's own)."""
+    phase, kind = primitives.phase, primitives.kind
+    if phase is None:
+        return
+    parsed = parse_phase(phase)
+    if not (kind == "flat" and parsed.name == CONSTANT or kind == "cvqpg" and parsed.name != CONSTANT):
+        raise ConfigError(f"`phase` {phase} with `primitive` {kind}: the flat primitive is the constant phase, "
+                          "CVQPG's are the others; give `phase` alone, for Gaussian primitives")
+    check_phase_settings(parsed, primitives.curvature, primitives.bound)
 
 
 def from_flat_record(data: dict[str, Any]) -> FitConfig:

@@ -17,19 +17,17 @@ from .codec import FINGERPRINT, MAGIC, PREFIX, SUFFIX, Compressed, bits_per_pixe
 from .config import FitConfig
 from .errors import ConfigError, ModelFileError, choices_error
 from .files import atomic_file, write_atomic
-from .primitives import REWRITE_MODEL, Primitives, check_settings, check_tensors
+from .primitives import REWRITE_MODEL, Primitives, TensorFields, check_settings
+from .representation import representation
 
 MODEL_FORMAT = "cvqpg-model"
 MODEL_FORMAT_VERSION = "2"
 RUN_KEY = "run"  # the metadata entry of the fit a model came from (`save_model`)
 STORED_DTYPES = {"float32": torch.float32, "float16": torch.float16}
-UNITS = {"position_px": "px (x, y), pixel centres at integers", "scale_px": "px (σ along the Gaussian's axes)",
-         "rotation_rad": "rad", "amplitude": "per channel, unitless", "phase_rad": "rad in [0, 2π), per channel",
-         "opacity": "in (0, 1)", "curvature_per_m": "1/m (γ of the quadratic phase)"}
 
 
-def model_metadata(primitives: Primitives, config: FitConfig, dtype: str, run: dict[str, Any] | None = None
-                   ) -> dict[str, str]:
+def model_metadata(primitives: Primitives | TensorFields, config: FitConfig, dtype: str,
+                   run: dict[str, Any] | None = None) -> dict[str, str]:
     """What a model file says about itself: format, configuration, the optics in plain numbers, and the fit it
     came from (`run`, `runs.fit_fingerprint`) where it was fitted in a run folder."""
     return {**({} if run is None else {RUN_KEY: json.dumps(run)}),
@@ -38,13 +36,14 @@ def model_metadata(primitives: Primitives, config: FitConfig, dtype: str, run: d
             "width_px": str(config.targets.width), "height_px": str(config.targets.height),
             "pixel_pitch_m": repr(config.optics.pixel_pitch), "wavelengths_m": json.dumps(config.wavelengths),
             "plane_distances_m": json.dumps(config.plane_distances), "qpf": config.primitives.qpf,
-            "units": json.dumps(UNITS)}
+            "units": json.dumps({**representation(config).units, **{term.physical: f"{term.unit} ({term.summary})"
+                                                              for term in config.phase.extra_terms}})}
 
 
-def save_model(path: str | Path, primitives: Primitives, config: FitConfig, dtype: str = "float32",
+def save_model(path: str | Path, primitives: Primitives | TensorFields, config: FitConfig, dtype: str = "float32",
                run: dict[str, Any] | None = None) -> None:
-    """Write the activated primitives (physical units, see `UNITS`) and the optics, atomically; `run` binds the
-    file to the fit of a run folder (`model_metadata`).
+    """Write the activated primitives, or a per-pixel hologram (physical units, the representation's `units`), and
+    the optics, atomically; `run` binds the file to the fit of a run folder (`model_metadata`).
 
     `dtype="float16"` stores everything but the positions in float16 and about halves the file;
     positions stay float32 because float16's spacing grows to 2 px above 2048 px. Rendering casts
@@ -99,7 +98,8 @@ def _model_file(path: str | Path) -> Path:
     return path
 
 
-def _read_safetensors(path: Path, device: str | torch.device = "cpu") -> tuple[Primitives, FitConfig, dict[str, str]]:
+def _read_safetensors(path: Path, device: str | torch.device = "cpu"
+                      ) -> tuple[Primitives | TensorFields, FitConfig, dict[str, str]]:
     """A model written by `save_model`, as float32 primitives on `device`, with the file's metadata."""
     try:
         with safe_open(str(path), framework="pt") as handle:
@@ -118,11 +118,12 @@ def _read_safetensors(path: Path, device: str | torch.device = "cpu") -> tuple[P
                              f"{error}); {REWRITE_MODEL}") from None
     except ConfigError as error:
         raise ModelFileError(f"{path}: its settings cannot work ({error}); {REWRITE_MODEL}") from None
-    missing = [name for name in UNITS if name not in tensors]
+    kind = representation(config)
+    missing = [name for name in kind.units if name not in tensors]
     if missing:
         raise ModelFileError(f"{path}: missing tensors {', '.join(missing)}")
-    primitives = Primitives.from_tensors({name: t.float() for name, t in tensors.items()})
-    check_tensors(primitives, config, str(path))
+    primitives = kind.from_tensors({name: t.float() for name, t in tensors.items()}, config)
+    kind.check(primitives, config, str(path))
     check_settings(config, primitives.count, str(path))
     if metadata.get("num_primitives") != str(primitives.count):
         raise ModelFileError(f"{path}: its metadata says {metadata.get('num_primitives')} primitives, its tensors "
@@ -130,8 +131,9 @@ def _read_safetensors(path: Path, device: str | torch.device = "cpu") -> tuple[P
     return primitives, config, metadata
 
 
-def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Primitives, FitConfig]:
-    """Read a model written by `save_model`, or a compressed `.cvq` file, as float32 primitives on `device`."""
+def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Primitives | TensorFields, FitConfig]:
+    """Read a model written by `save_model`, or a compressed `.cvq` file, as float32 primitives (or a per-pixel
+    hologram) on `device`."""
     path = _model_file(path)
     if is_compressed(path):
         compressed = read_compressed(path)
@@ -141,7 +143,8 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Pr
 
 
 def model_info(path: str | Path) -> dict[str, Any]:
-    """Size accounting of a model file: primitives, parameters, bytes and bits per hologram pixel
+    """Size accounting of a model file: primitives, their phase terms, parameters (per primitive and in all), bytes
+    and bits per hologram pixel
     (all channels together); for a compressed file also the bits per attribute, the format's tools, the fit
     fingerprint (hex, None where the file carries none) and each stream's coding."""
     path = _model_file(path)
@@ -158,6 +161,7 @@ def model_info(path: str | Path) -> dict[str, Any]:
         dtype = metadata.get("dtype", "float32")
     file_bytes = path.stat().st_size
     return {"file": str(path), "num_primitives": primitives.count, "primitive": config.primitives.kind,
+            "phase": config.phase.name, "params_per_primitive": config.params_per_primitive,
             "learnable_params": primitives.count * config.params_per_primitive,
             "stored_values": sum(t.numel() for t in primitives.tensors().values()), "dtype": dtype,
             "file_bytes": file_bytes, "hologram_px": [config.targets.width, config.targets.height],
