@@ -472,8 +472,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-
-
 def _fit_settings(args: argparse.Namespace) -> dict:
     """`FitConfig.create`'s settings that `_fit_options` and `_count_options` give; `color`, `num_planes` and
     `steps` None where not given (the input decides them)."""
