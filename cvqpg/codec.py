@@ -137,6 +137,18 @@ class Quantiser:
         """The value (float64) each code stands for."""
         return self.low + codes.double() * (self.span / self.levels)
 
+    def scaled(self, values: Tensor) -> Tensor:
+        """Each value in units of its bin, unrounded (float64, differentiable): what `codes` rounds, clipped to the
+        codes' bounds, a periodic value taken into 0 ≤ code < `levels`. The rate model (`cvqpg.rate`) perturbs
+        these in place of rounding."""
+        if self.periodic:
+            return torch.remainder(values - self.low, self.span) / self.span * self.levels
+        scaled = (values - self.low) / self.span * self.levels
+        low = -math.inf if self.lowest is None else self.lowest
+        high = math.inf if self.highest is None else self.highest
+        return torch.clamp(scaled, torch.as_tensor(low, dtype=scaled.dtype, device=scaled.device),
+                           torch.as_tensor(high, dtype=scaled.dtype, device=scaled.device))
+
     def on(self, device: torch.device | str) -> "Quantiser":
         """The same quantiser with its per-value counts and bounds on `device`."""
         return replace(self, **{name: value.to(device) for name, value in
@@ -333,22 +345,32 @@ class Coding:
 def coding(primitives: Primitives, config: FitConfig, bits: BitDepths, tools: frozenset[str] = TOOLS) -> Coding:
     """The attributes of `primitives`, their ranges, and the quantisers at `bits` in a file using `tools`
     (see `Coding`)."""
-    p = {name: t.detach().cpu().double() for name, t in primitives.tensors().items()}
-    weight = p["amplitude"] * p["opacity"][:, None]
-    values = {"position": p["position_px"], "scale": torch.log(p["scale_px"]), "rotation": p["rotation_rad"],
-              "amplitude": weight, "phase": p["phase_rad"]}
-    ranges = {"scale": _outward_range(float(values["scale"].min()), float(values["scale"].max())),
-              "amplitude": [0.0, _outward_range(0.0, float(weight.abs().max()))[1]]}
-    if config.primitives.kind == "cvqpg":
-        # the decoder knows only the decoded scale: the curvature's bound follows it
-        scale = quantiser("scale", ranges, bits.scale)
-        bound = curvature_bound(decoded_scale(scale.values(scale.codes(values["scale"]))), config).double()
-        values["curvature"] = p["curvature_per_m"] / torch.where(bound > 0, bound, 1.0)
+    values, ranges = coded_values({name: t.detach().cpu().double() for name, t in primitives.tensors().items()},
+                                  config, bits)
     coded = folded(values)
     chosen, depths = chained_quantisers(ranges, bits, attribute_shapes(primitives.count, config),
                                         lambda name, chosen, _: chosen.values(chosen.codes(coded[name])),
                                         tools=tools)
     return Coding(values, ranges, chosen, depths)
+
+
+def coded_values(tensors: dict[str, Tensor], config: FitConfig, bits: BitDepths
+                 ) -> tuple[dict[str, Tensor], dict[str, list[float]]]:
+    """The attributes the codec codes (`Coding.values`) from a model's float64 tensors (`Primitives.tensors()`, on
+    any device, differentiable), and the header's ranges, which the values set (taken without their gradient)."""
+    weight = tensors["amplitude"] * tensors["opacity"][:, None]
+    values = {"position": tensors["position_px"], "scale": torch.log(tensors["scale_px"]),
+              "rotation": tensors["rotation_rad"], "amplitude": weight, "phase": tensors["phase_rad"]}
+    log_scale = values["scale"].detach()
+    ranges = {"scale": _outward_range(float(log_scale.min()), float(log_scale.max())),
+              "amplitude": [0.0, _outward_range(0.0, float(weight.detach().abs().max()))[1]]}
+    if config.primitives.kind == "cvqpg":
+        # the decoder knows only the decoded scale: the curvature's bound follows it
+        scale = quantiser("scale", ranges, bits.scale)
+        bound = curvature_bound(decoded_scale(scale.values(scale.codes(log_scale.cpu()))),
+                                config).double().to(weight.device)
+        values["curvature"] = tensors["curvature_per_m"] / torch.where(bound > 0, bound, 1.0)
+    return values, ranges
 
 
 def range_holders(primitives: Primitives) -> Tensor:
@@ -1025,6 +1047,8 @@ def _checked_header(header: Any, name: str, version: int) -> tuple[FitConfig, Bi
     except (KeyError, TypeError, AttributeError, ValueError) as error:
         raise ModelFileError(f"{name}: its header is malformed ({type(error).__name__}: {error}); "
                              f"{REWRITE_MODEL}") from None
+    except ConfigError as error:
+        raise ModelFileError(f"{name}: its settings cannot work ({error}); {REWRITE_MODEL}") from None
     if not all(map(_number, ranges)):
         # every depth of format 4 derives from the decoded scale and amplitude
         raise ModelFileError(f"{name}: its ranges of log scale and amplitude {header['ranges']} are not finite; "

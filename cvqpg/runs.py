@@ -23,6 +23,7 @@ from .fitting import FitResult, render
 from .metrics import MetricReport, evaluate, mean_psnr
 from .ops.field import slm_field
 from .primitives import Primitives
+from .representation import require_gaussians
 from .scenes import builtin_scene
 from .storage import load_model, model_info, model_run, save_model
 from .targets import Scene, load_scene
@@ -179,7 +180,11 @@ def read_run(folder: str | Path) -> tuple[FitConfig, dict[str, Any]]:
 def read_run_options(folder: str | Path) -> RunOptions:
     """Where the run in `folder` ran, as its `config.json` records it (device and backend): what a resume runs
     on, and the kernels a render of it takes where they run (`RunOptions.on_device`)."""
-    return RunOptions.from_dict(read_record(Path(folder) / CONFIG_FILE, RESTORE_RUN))
+    path = Path(folder) / CONFIG_FILE
+    try:
+        return RunOptions.from_dict(read_record(path, RESTORE_RUN))
+    except ConfigError as error:
+        raise InputError(f"{path}: {error}; {RESTORE_RUN}") from None
 
 
 def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[str, Any],
@@ -417,6 +422,8 @@ def half_precision_model(folder: str | Path) -> dict[str, Any]:
 def rescaled(primitives: Primitives, config: FitConfig, width: int, height: int) -> tuple[Primitives, FitConfig]:
     """The same physical hologram sampled on a W×H grid: positions and scales scale with the grid,
     the pixel pitch shrinks by as much, curvature (1/m) stays. Refuses another aspect ratio."""
+    require_gaussians(config, "`size` (a render at another sampling)", "render it at its own "
+                      f"{config.targets.width}×{config.targets.height} px")
     if min(width, height) < MIN_SIZE_PX:
         raise ConfigError(f"`size` {width}×{height}: each side needs at least {MIN_SIZE_PX} px")
     factor = width / config.targets.width

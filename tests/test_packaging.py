@@ -78,5 +78,6 @@ def test_version_is_the_package_version(capsys):
 
 
 def test_the_changelog_s_newest_release_is_the_package_version():
-    releases = re.findall(r"^## \[(\d+\.\d+\.\d+)\]", (REPO / "CHANGELOG.md").read_text(), re.MULTILINE)
+    # a release's heading is `## [X.Y.Z] - date`; the one in the making, `## X.Y.Z (unreleased)`
+    releases = re.findall(r"^## \[?(\d+\.\d+\.\d+)[\] ]", (REPO / "CHANGELOG.md").read_text(), re.MULTILINE)
     assert releases and releases[0] == cvqpg.__version__

@@ -30,7 +30,6 @@ from ..app.runner import checkpoint_policy, fit_in_folder, resumed_state, write_
 from ..config import BEYOND_RECIPE, FLAT_NAMES, FitConfig, RunOptions
 from ..control import SILENT, RunControl
 from ..defaults import RATE_FINETUNE_STEPS
-from ..deprecations import moved_attribute
 from ..errors import CvqpgError
 from ..fitting import FitInterrupted, FitState, estimated_peak_bytes
 from ..metrics import radial_error_spectrum
@@ -41,8 +40,6 @@ from ..targets import check_depth_geometry, load_picture
 from .presets import COLORS, METHODS, PRESETS
 
 log = logging.getLogger("cvqpg")
-# Moved to the executors that bench and batch share; the former names work, with a warning, for one release.
-MOVED = {name: "cvqpg.app.executors" for name in ("limit_threads", "limited_threads", "POLL_SECONDS")}
 
 CELLS_DIR = "cells"
 SPECTRUM_FILE = "spectrum.json"
@@ -679,6 +676,3 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
             outcome.failures[name] = error
     return outcome
 
-
-def __getattr__(name: str) -> Any:
-    return moved_attribute(__name__, name, MOVED)
