@@ -92,6 +92,8 @@ def read_compressed(path: str | Path) -> Compressed:
 
 def _model_file(path: str | Path) -> Path:
     path = Path(path)
+    if path.is_dir():
+        raise ModelFileError(f"{path} is a folder, not a model file; move it away, or give the model file")
     if not path.is_file():
         raise ModelFileError(f"{path}: no such model file")
     return path

@@ -81,8 +81,8 @@ def note_upscaled(picture: Image.Image, role: str, width: int, height: int) -> N
     """A note where `picture` is smaller than the fit's W×H px on either side: it is upscaled, and holds no detail
     finer than its own pixels (a 1×1 image fits a constant)."""
     if picture.size[0] < width or picture.size[1] < height:
-        log.warning(f"the {role} is {picture.size[0]}×{picture.size[1]} px, upscaled to {width}×{height} px: it holds "
-                    "no detail finer than its own pixels")
+        log.warning(f"the {role} is {picture.size[0]}×{picture.size[1]} px, upscaled to {width}×{height} px: it "
+                    "holds no detail finer than its own pixels")
 
 
 def unit_values(picture: Image.Image, role: str, width: int, height: int) -> Tensor:

@@ -115,6 +115,7 @@ PLACES = {
     "linked": "linked",                    # -> notarun; linked.partial an interrupted run that would finish there
     "encoded": "enc.cvq.partial",          # an interrupted encode's folder
     "foreigncvq": "foreign.cvq",           # a user's text file named .cvq; foreign.cvq.partial an interrupted encode
+    "tampered": "tampered.cvq.partial",    # an interrupted encode whose budget.json was changed to 1 byte
     "lost": "lost",                        # a finished run whose image is gone
     "linkdir": "linkdir",                  # -> notarun
     "linkrender": "linkrender",            # -> run_a/render
@@ -714,6 +715,7 @@ OUTPUTS = cases(
     ("fit-resume-into-a-link", "fit --resume {linked}.partial --quiet --overwrite", "linked"),
     ("fit-resume-an-encode", "fit --resume {encoded} --quiet", "encode"),
     ("encode-resume-into-a-users-file", "encode --resume {foreigncvq}.partial --quiet --overwrite", "foreign.cvq"),
+    ("encode-resume-a-changed-budget", "encode --resume {tampered} --quiet", "the budget of 1 bytes in"),
     # A failure writes nothing.
     ("info-half-of-a-run-whose-image-is-gone", "info {lost} --half", "lost_photo.png"),
     # Names and paths longer than the file system takes, with what cvqpg keeps beside an output.
@@ -833,10 +835,10 @@ def output_traps(t: Path) -> None:
         (t / f"{name}.partial").mkdir()
         shutil.copy(t / "unfinished" / "config.json", t / f"{name}.partial" / "config.json")
     (t / "linked").symlink_to("notarun")
-    for name in ("enc.cvq.partial", "foreign.cvq.partial"):
+    for name, max_bytes in (("enc.cvq.partial", 900), ("foreign.cvq.partial", 900), ("tampered.cvq.partial", 1)):
         (t / name).mkdir()
         shutil.copy(t / "unfinished" / "config.json", t / name / "config.json")
-        (t / name / "budget.json").write_text(json.dumps({"max_bytes": 900, "given": "--bpp 8",
+        (t / name / "budget.json").write_text(json.dumps({"max_bytes": max_bytes, "given": "--bpp 8",
                                                            "finetune_steps": 1}))
     (t / "foreign.cvq").write_text("a user's notes, named .cvq\n")
     lost_image = shutil.copy(t / "photo.png", t / "lost_photo.png")

@@ -100,6 +100,18 @@ def test_a_time_budget_is_timed_and_recorded_with_the_compile_time_it_spent(monk
         timed_config(builtin_scene("demo", config), config, 0.0, progress=False)
 
 
+@pytest.mark.parametrize("warmup, noted", [(None, False), (1000, True)])
+def test_a_warm_up_given_with_a_time_budget_keeps_its_share_with_a_note(warmup, noted, monkeypatch, caplog):
+    monkeypatch.setattr(runner, "prepare_kernels", lambda config, run, show_status=True: 0.0)
+    monkeypatch.setattr(runner, "seconds_per_step", lambda scene, config, run: 0.1)
+    config = FitConfig.create(width=32, height=24, num_gaussians=30, color="gray", curvature_warmup=warmup)
+    with caplog.at_level("WARNING", logger="cvqpg"):
+        timed = timed_config(builtin_scene("demo", config), config, 0.1, progress=False)[0]
+    assert timed.optimisation.steps == 59 and timed.optimisation.curvature_warmup == (30 if noted else 12)
+    assert ("the curvature warm-up of 1000 of 2000 steps keeps its share of the 59 steps the time allows: 30"
+            in caplog.text) == noted
+
+
 @pytest.mark.parametrize("recipe", [BEYOND_RECIPE, PAPER_RECIPE])
 def test_the_same_time_on_a_machine_twice_as_fast_runs_the_same_algorithm_with_twice_the_steps(monkeypatch, recipe):
     monkeypatch.setattr(runner, "prepare_kernels", lambda config, run, show_status=True: 0.0)

@@ -19,7 +19,7 @@ from ..codec import encode
 from ..config import FitConfig, RunOptions
 from ..control import SILENT, RunControl
 from ..defaults import CHECKPOINT_SECONDS, ENCODE_FINETUNE_STEPS, ENCODE_STEPS
-from ..errors import InputError
+from ..errors import ConfigError, InputError
 from ..fitting import FitResult, fit_scene
 from ..primitives import Primitives, activate, init_gaussians
 from ..representation import require_gaussians
@@ -165,6 +165,11 @@ def read_encode(folder: Path) -> tuple[FitConfig, dict[str, Any], Budget, int]:
     except (KeyError, TypeError, ValueError):
         raise InputError(f"{path} lacks the budget or the fine-tuning steps; delete the folder and encode "
                          "again") from None
+    try:  # as `encode_budget` checked it before the fit, so that a changed file stops the resume before its steps
+        Budget(budget.max_bytes, f"the budget of {budget.max_bytes} bytes in {path}").check(
+            smallest_file(stand_in(config, 1), config), config)
+    except ConfigError as error:
+        raise InputError(f"{error}; delete the folder and encode again") from None
     return config, source, budget, settings.finetune_steps
 
 

@@ -22,7 +22,7 @@ import time
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from contextlib import contextmanager, nullcontext
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -430,6 +430,17 @@ def _ray_session(options: ExecutorOptions, threads: int, shared_folder: Path) ->
             ray.shutdown()
 
 
+def _ended_within(work: Callable[[], None], seconds: float) -> bool:
+    """Run `work` in a thread of its own (a daemon, which ends with the command where `work` never does, as
+    Ray connecting to a cluster that accepts and never answers), its standard error sent nowhere (Ray's core warns
+    there, a line every few seconds, while it retries an address): whether it ended within `seconds`."""
+    thread = threading.Thread(target=work, name="ray-connect", daemon=True)
+    with _quiet_stderr():
+        thread.start()
+        thread.join(seconds)
+    return not thread.is_alive()
+
+
 @contextmanager
 def _quiet_stderr() -> Iterator[None]:
     """The process's standard error (its file descriptor, which Ray's C++ core writes to) sent nowhere for the
@@ -502,14 +513,9 @@ def _connect(ray: Any, options: ExecutorOptions) -> None:
         except BaseException as error:  # Ray exits (SystemExit) where no cluster answers at the address
             outcome["error"] = error
 
-    # In a thread of its own, so that a cluster that accepts a connection and never answers cannot hold the
-    # command: it ends, and the thread (a daemon) with it.
-    connecting = threading.Thread(target=init, name="ray-connect", daemon=True)
-    # Ray's core warns on the terminal, a line every few seconds, while it retries a cluster's address
-    with _quiet_stderr() if options.ray_address is not None else nullcontext():
-        connecting.start()
-        connecting.join(RAY_CONNECT_SECONDS)
-    if connecting.is_alive():
+    if options.ray_address is None:  # a Ray instance of this machine, started here: no address to wait on
+        init()
+    elif not _ended_within(init, RAY_CONNECT_SECONDS):
         raise ExecutorError(f"{_where(options)}: Ray did not connect within {RAY_CONNECT_SECONDS:g} s; check that "
                             "the address is a Ray cluster's (`ray status` there)")
     error = outcome.get("error")

@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from ..config import FitConfig, RunOptions, check_time_budget
+from ..config import FitConfig, RunOptions, check_time_budget, default_curvature_warmup
 from ..control import RunControl
 from ..defaults import CHECKPOINT_SECONDS
 from ..errors import CvqpgError, ModelFileError
@@ -22,6 +23,8 @@ from ..storage import load_checkpoint, save_checkpoint
 from ..targets import Scene
 from .compilation import prepare_kernels
 from .provenance import code_commit, peak_memory, reset_peak_memory, run_record
+
+log = logging.getLogger("cvqpg")
 
 FINGERPRINT_KEY = "run_fingerprint"
 # Checkpoints of earlier versions hold a SHA-256 of their config.json's settings (`legacy_fingerprint`): all but
@@ -132,8 +135,12 @@ def timed_config(scene: Scene, config: FitConfig, minutes: float, run: RunOption
     compile_seconds = prepare_kernels(config, run, show_status=progress)
     seconds_each = seconds_per_step(scene, config, run)
     steps = steps_within(60 * minutes, seconds_each)
-    return config.with_steps(steps).validate(), {"minutes": minutes, "seconds_per_step": seconds_each,
-                                                 "compile_seconds": compile_seconds}
+    timed = config.with_steps(steps).validate()
+    given = config.optimisation
+    if given.curvature_warmup != default_curvature_warmup(given.steps):  # a warm-up of the caller's, not the share
+        log.warning(f"the curvature warm-up of {given.curvature_warmup} of {given.steps} steps keeps its share of "
+                    f"the {steps} steps the time allows: {timed.optimisation.curvature_warmup}")
+    return timed, {"minutes": minutes, "seconds_per_step": seconds_each, "compile_seconds": compile_seconds}
 
 
 def write_fitted_run(folder: Path, result: FitResult, scene: Scene, source: dict[str, Any]) -> Path:
