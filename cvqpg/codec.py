@@ -1115,15 +1115,17 @@ def decode(data: bytes, name: str = "file") -> Compressed:
         descriptor, payload = located[stream]
         try:
             return decode_stream(descriptor, payload, widths, turned(stream, version, tools))
-        except (KeyError, TypeError, ValueError, IndexError, zlib.error) as error:
+        except (KeyError, TypeError, ValueError, IndexError, ArithmeticError, zlib.error) as error:
             raise ModelFileError(f"{name}: stream {stream!r} does not decode ({error}); {REWRITE_MODEL}") from None
 
     try:
-        primitives = read_primitives(symbols, header["num_primitives"], header["ranges"], config, bits, version,
-                                     tools)
+        # NumPy's overflow or invalid value from a file's numbers is the file's fault: one error, not a warning
+        with np.errstate(over="raise", invalid="raise", divide="raise"):
+            primitives = read_primitives(symbols, header["num_primitives"], header["ranges"], config, bits,
+                                         version, tools)
     except ModelFileError:
         raise
-    except (KeyError, TypeError, IndexError, ValueError, OverflowError) as error:
+    except (KeyError, TypeError, IndexError, ValueError, ArithmeticError) as error:
         raise ModelFileError(f"{name}: its ranges or symbols are malformed ({type(error).__name__}: {error}); "
                              f"{REWRITE_MODEL}") from None
     check_tensors(primitives, config, name)
