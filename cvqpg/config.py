@@ -1,7 +1,7 @@
 """Fit configuration: every setting of method.md §2–§6 with the paper's value as default, grouped by concern
-(`TargetSettings`, `OpticsSettings`, `PrimitiveSettings`, `OptimisationSettings`, `LossSettings`) into one
-`FitConfig`, and the recipes (`RECIPES`) that choose what the paper leaves to the fit: the paper's own, and the
-default one (docs/beyond.md). Where a fit runs (`RunOptions`: device and kernels) is no part of it.
+(`TargetSettings`, `OpticsSettings`, `PrimitiveSettings`, `OptimisationSettings`, `LossSettings`, and the display
+the loss sees, `display.Display`) into one `FitConfig`, and the recipes (`RECIPES`) that choose what the paper
+leaves to the fit: the paper's own, and the default one (docs/beyond.md). Where a fit runs (`RunOptions`: device and kernels) is no part of it.
 
 A recipe is resolved when the configuration is made (`FitConfig.create`): every setting is a concrete value,
 which `config.json` records. `FitConfig.from_dict` reads the records of every earlier version."""
@@ -17,6 +17,7 @@ import os
 from dataclasses import dataclass, field
 from typing import Any, Literal, Sequence, get_args
 
+from .display import Display
 from .errors import ConfigError, choices_error
 
 Color = Literal["rgb", "gray"]
@@ -50,7 +51,7 @@ LONG_RUN_BETAS = (0.98, 0.99, 0.99)  # β2 averages the gradient's differences o
 CURVATURE_WARMUP_SHARE = 400 / 2000  # the paper's curvature warm-up share of the steps
 MIN_SIZE_PX = 16  # the SSIM window
 MAX_LEARNING_RATE = 10.0
-CONFIG_SCHEMA = 2  # the layout `FitConfig.to_dict` writes; records without the key are the flat layout before it
+CONFIG_SCHEMA = 3  # the layout `FitConfig.to_dict` writes; records without the key are the flat layout before it
 
 
 def _check_range(name: str, value: Any, low: float, high: float, kind: str) -> None:
@@ -301,6 +302,7 @@ class FitConfig:
     primitives: PrimitiveSettings = field(default_factory=PrimitiveSettings)
     optimisation: OptimisationSettings = field(default_factory=OptimisationSettings)
     loss: LossSettings = field(default_factory=LossSettings)
+    display: Display = field(default_factory=Display)
     recipe: str = field(default=PAPER_RECIPE, compare=False)  # a label: two configurations compare by settings
 
     def __post_init__(self) -> None:
@@ -325,6 +327,9 @@ class FitConfig:
             raise ConfigError(f"`init` {self.optimisation.init} starts {'Gaussians' if pixel else 'a per-pixel hologram'}"
                               f" and `primitive` is {self.primitives.kind}: choose one of "
                               f"{', '.join(i for i in INITS if i not in foreign)}")
+        if not isinstance(self.display, Display):
+            raise ConfigError(f"`display` must be Display, got {self.display!r}")
+        self.display.canvas_for(self.targets.height, self.targets.width)
 
     @classmethod
     def create(cls, recipe: str | None = None, **settings: Any) -> "FitConfig":
@@ -350,7 +355,7 @@ class FitConfig:
             if name in FLAT_NAMES:
                 section, key = FLAT_NAMES[name]
                 sections[section][key] = tuple(value) if isinstance(value, list) else value
-            elif name in SECTIONS or name == "recipe":
+            elif name in SECTIONS or name in ("display", "recipe"):
                 top[name] = value
             else:
                 raise ConfigError(f"`{name}` is not a setting; the settings are {', '.join(FLAT_NAMES)}")
@@ -437,7 +442,8 @@ class FitConfig:
             if isinstance(values.get("lr"), dict):
                 values["lr"] = LearningRates(**values["lr"])
             sections[name] = section_class(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
-        return cls(**sections, recipe=str(data.get("recipe", CUSTOM_RECIPE)))
+        return cls(**sections, display=Display.from_dict(data.get("display")),
+                   recipe=str(data.get("recipe", CUSTOM_RECIPE)))
 
     def validate(self) -> "FitConfig":
         """This configuration: every setting is checked where a configuration is made (a `ConfigError` naming the
