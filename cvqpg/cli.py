@@ -513,10 +513,10 @@ def _print_view(record: ViewRecord) -> None:
 
 
 def run_fit(args: argparse.Namespace) -> int:
-    from .app.fitplan import fit_planned, new_plan, resume_plan, run_finished
+    from .app.fitplan import finished_note, fit_planned, new_plan, resume_plan, run_finished
     from .app.runfolders import view_of_run
     if args.resume and run_finished(args.resume):
-        print(f"{args.resume}: this run is finished; nothing to resume")
+        print(finished_note(args.resume))
         return 0
     if args.resume:
         plan = resume_plan(args.resume, args.overwrite)
@@ -744,7 +744,7 @@ def _machine_or_bug(command: str, error: Exception) -> int:
 
 
 POSITIONALS = {"image": "IMAGE", "run_dir": "RUN_DIR", "run_dirs": "RUN_DIR", "target": "RUN_DIR|MODEL",
-               "file": "FILE"}
+               "file": "FILE", "inputs": "INPUTS"}
 
 
 def _empty_argument(args: argparse.Namespace) -> str | None:

@@ -116,6 +116,10 @@ PLACES = {
     "encoded": "enc.cvq.partial",          # an interrupted encode's folder
     "foreigncvq": "foreign.cvq",           # a user's text file named .cvq; foreign.cvq.partial an interrupted encode
     "tampered": "tampered.cvq.partial",    # an interrupted encode whose budget.json was changed to 1 byte
+    "modelfolder": "model_folder",         # run_a's files with a folder at model.safetensors
+    "modelless": "modelless",              # run_a's files but model.safetensors: finished, its model gone
+    "stranded": "stranded",                # stranded.partial: a finished run (run_b) never moved into place
+    "filedwork": "filed_work",             # filed_work.partial: a file
     "lost": "lost",                        # a finished run whose image is gone
     "linkdir": "linkdir",                  # -> notarun
     "linkrender": "linkrender",            # -> run_a/render
@@ -413,6 +417,7 @@ USAGE = cases(
     ("fit-out-empty", f"fit {FIT} --out ''", "--out is empty"),
     ("fit-resume-empty", "fit --resume '' --quiet", "--resume is empty"),
     ("fit-image-empty", f"fit '' {FIT}", "IMAGE is empty"),
+    ("batch-inputs-empty", "batch '' --size 32 24 --steps 1 --quiet --out new_batch", "INPUTS is empty"),
     ("fit-depth-empty", f"fit {{image}} --depth '' {FIT}", "--depth is empty"),
     ("compress-out-empty", "compress {run} --bits 8 --out ''", "--out is empty"),
     ("render-target-empty", "render '' --out new_render", "RUN_DIR|MODEL is empty"),
@@ -478,6 +483,9 @@ INPUTS = cases(
     ("render-run-holding-a-twin-run-model", "render {twin} --out new_render", "was fitted in another run"),
     ("export-model-of-a-twin-run", "export {twin}/foreign.safetensors --out new_export", "was fitted in another run"),
     ("eval-damaged-model", "eval {damaged}", "not a readable safetensors file"),
+    ("eval-model-a-folder", "eval {modelfolder}", "is a folder, not the run's model file"),
+    ("render-model-a-folder", "render {modelfolder}/model.safetensors --out new_render", "is a folder"),
+    ("eval-finished-run-without-its-model", "eval {modelless}", "finished run whose model.safetensors is gone"),
     ("eval-model-of-format-0", "eval {oldformat}", "format version"),
     ("eval-model-missing-a-tensor", "eval {lacking}", "missing tensors curvature_per_m"),
     ("eval-model-of-another-shape", "eval {misshapen}", "has shape"),
@@ -714,6 +722,10 @@ OUTPUTS = cases(
     ("fit-resume-into-a-file", "fit --resume {filed}.partial --quiet --overwrite", "filed"),
     ("fit-resume-into-a-link", "fit --resume {linked}.partial --quiet --overwrite", "linked"),
     ("fit-resume-an-encode", "fit --resume {encoded} --quiet", "encode"),
+    ("fit-out-beside-a-finished-fit-never-moved", "fit --size 32 24 --steps 1 --quiet --out {stranded}",
+     "never moved into place; rename it to stranded"),
+    ("fit-out-beside-a-file-where-its-work-goes", "fit --size 32 24 --steps 1 --quiet --out {filedwork}",
+     "filed_work.partial is in the way"),
     ("encode-resume-into-a-users-file", "encode --resume {foreigncvq}.partial --quiet --overwrite", "foreign.cvq"),
     ("encode-resume-a-changed-budget", "encode --resume {tampered} --quiet", "the budget of 1 bytes in"),
     # A failure writes nothing.
@@ -841,6 +853,12 @@ def output_traps(t: Path) -> None:
         (t / name / "budget.json").write_text(json.dumps({"max_bytes": max_bytes, "given": "--bpp 8",
                                                            "finetune_steps": 1}))
     (t / "foreign.cvq").write_text("a user's notes, named .cvq\n")
+    for name in ("model_folder", "modelless"):
+        shutil.copytree(t / "run_b", t / name)
+        (t / name / "model.safetensors").unlink()
+    (t / "model_folder" / "model.safetensors").mkdir()
+    shutil.copytree(t / "run_b", t / "stranded.partial")
+    (t / "filed_work.partial").write_text("a user's file\n")
     lost_image = shutil.copy(t / "photo.png", t / "lost_photo.png")
     assert main(["fit", str(lost_image), "--depth", str(t / "depth.png"), "--size", "32", "24", "--num-gaussians", "20",
                  "--steps", "1", "--quiet", "--out", str(t / "lost")]) == 0
