@@ -85,7 +85,7 @@ def test_the_readme_s_shell_blocks_run_as_written_in_a_fresh_shell(tmp_path):
                    **{name: os.environ[name] for name in ("NUMBA_CACHE_DIR",) if name in os.environ}}  # compiled
     for block in shell_blocks():
         done = subprocess.run(["/bin/bash", "-euo", "pipefail", "-c", shrunk_shell(block)], cwd=tmp_path,
-                              env=environment, capture_output=True, text=True, timeout=600)
+                              env=environment, capture_output=True, text=True, timeout=1800)
         assert done.returncode == 0, f"{block}\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}"
     assert (tmp_path / "runs" / "demo" / "view.html").is_file()
     assert (tmp_path / "runs" / "photo" / "model.cvq").is_file()

@@ -18,6 +18,9 @@ if TYPE_CHECKING:
 def finished_run(folder: Path) -> Path:
     """A run folder that holds a model, or a UsageError saying what it is instead."""
     from ..runs import CONFIG_FILE, METRICS_FILE, MODEL_FILE
+    if folder.is_dir() and not (folder / CONFIG_FILE).is_file() and (folder.parent / CONFIG_FILE).is_file():
+        raise UsageError(f"{folder} is a folder, not a model file of the run {folder.parent}; give the run folder "
+                         "or one of its model files")
     if not (folder / CONFIG_FILE).is_file():
         raise UsageError(f"{folder} is not a run folder (no {CONFIG_FILE}); give a folder written by "
                          "`cvqpg fit`")
@@ -36,9 +39,6 @@ def finished_run(folder: Path) -> Path:
 def run_and_model(target: Path) -> tuple[Path, Path | None]:
     """A run folder and None (its own model), or the run folder that holds the model file `target`."""
     from ..runs import CONFIG_FILE
-    if target.is_dir() and not (target / CONFIG_FILE).is_file() and (target.parent / CONFIG_FILE).is_file():
-        raise UsageError(f"{target} is a folder, not a model file of the run {target.parent}; give the run folder "
-                         "or one of its model files")
     if not target.is_file():
         return finished_run(target), None
     if not (target.parent / CONFIG_FILE).is_file():
