@@ -23,6 +23,7 @@ from ..errors import InputError
 from ..fitting import FitResult, fit_scene
 from ..primitives import Primitives, activate, init_gaussians
 from ..runs import read_record, read_run, start_run, write_json
+from ..ratefit import PLAIN, RateFit, RateObjective, silent_removed
 from ..search import Budget, CompressionSettings, RateChoice, Reference, rate_control, reference_for, smallest_file
 from ..targets import Scene
 from .compression import choice_record
@@ -104,14 +105,20 @@ class Encoding:
 
 
 def encode_fitted(fitted: FitResult, scene: Scene, budget: Budget, finetune_steps: int = ENCODE_FINETUNE_STEPS,
-                  control: RunControl = SILENT) -> Encoding:
-    """Rate-control a fit of `scene` (of `encode_config`'s settings) into a file within `budget`, fine-tuned for
-    `finetune_steps` on the scene's targets; a progress bar (`control.progress`) shows the search's bpp and PSNR.
-    A stop request (`control`) ends it between two rungs or tuning steps with `fitting.FitInterrupted`."""
+                  control: RunControl = SILENT, fit: RateFit = PLAIN) -> Encoding:
+    """Rate-control a fit of `scene` (of `encode_config`'s settings, made with `fit`'s levers) into a file within
+    `budget`, fine-tuned for `finetune_steps` on the scene's targets (with the fit's rate term and last λ where it
+    had one); where the fit pruned by rate, the primitives whose weight codes to 0 go first
+    (`ratefit.silent_removed`). A progress bar (`control.progress`) shows the search's bpp and PSNR. A stop
+    request (`control`) ends it between two rungs or tuning steps with `fitting.FitInterrupted`."""
     started, cpu_started = time.perf_counter(), time.process_time()
     primitives = fitted.primitives  # activated once: `FitResult.primitives` activates on every access
+    if fit.prune:
+        primitives = silent_removed(primitives, fitted.config, fit.bits)
     reference = reference_for(primitives, fitted.config, scene.targets, "the scene's targets")
-    rate = rate_control(primitives, fitted.config, reference, budget, scene, finetune_steps, control)
+    weights = fitted.history.get("rate_lambda")
+    rate = rate_control(primitives, fitted.config, reference, budget, scene, finetune_steps, control,
+                        fit if fit.rate else None, weights[-1] if weights else None)
     return Encoding(fitted, reference, rate, time.perf_counter() - started, time.process_time() - cpu_started)
 
 
@@ -125,8 +132,14 @@ def encode_scene(scene: Scene, config: FitConfig, settings: CompressionSettings,
     (`fitting.FitInterrupted`); `encode_in_folder` runs the same with checkpoints."""
     budget = encode_budget(config, settings)
     steps = ENCODE_FINETUNE_STEPS if settings.finetune_steps is None else settings.finetune_steps
-    fitted = fit_scene(scene, encode_config(config, budget), control=control)
-    return encode_fitted(fitted, scene, budget, steps, control)
+    fit, config = settings.rate_fit(budget), encode_config(config, budget)
+    fitted = fit_scene(scene, config, control=control, objective=objective_for(fit, config))
+    return encode_fitted(fitted, scene, budget, steps, control, fit)
+
+
+def objective_for(fit: RateFit, config: FitConfig) -> RateObjective | None:
+    """The fit's rate term for `fit`'s levers (None: today's float fit)."""
+    return RateObjective(fit, config) if fit.active else None
 
 
 def encoding_record(encoded: Encoding, out: str | Path, budget: Budget) -> dict[str, Any]:
@@ -138,13 +151,25 @@ def encoding_record(encoded: Encoding, out: str | Path, budget: Budget) -> dict[
 
 
 def start_encode(folder: Path, config: FitConfig, source: dict[str, Any], budget: Budget, finetune_steps: int,
-                 run: RunOptions = RunOptions()) -> Path:
+                 run: RunOptions = RunOptions(), fit: RateFit = PLAIN) -> Path:
     """A folder for an encode of `config` (`encode_config`'s) into `budget` on `run`: a run folder
-    (`runs.start_run`) that also records the budget and the fine-tuning steps (`BUDGET_FILE`)."""
+    (`runs.start_run`) that also records the budget, the fine-tuning steps and, where the fit has the rate in its
+    loss, its levers (`BUDGET_FILE`)."""
     start_run(folder, config, source, run)
     write_json(Path(folder) / BUDGET_FILE, {"max_bytes": budget.max_bytes, "given": budget.given,
-                                            "finetune_steps": finetune_steps})
+                                            "finetune_steps": finetune_steps,
+                                            **({"rate_fit": fit.record()} if fit.active else {})})
     return Path(folder)
+
+
+def encode_fit(folder: Path) -> RateFit:
+    """The levers an encode's folder records for its fit (`start_encode`; none: today's float fit)."""
+    recorded = read_record(Path(folder) / BUDGET_FILE, "delete the folder and encode again")
+    try:
+        return RateFit.from_record(recorded["rate_fit"]) if "rate_fit" in recorded else PLAIN
+    except (KeyError, TypeError, ValueError):
+        raise InputError(f"{Path(folder) / BUDGET_FILE} holds a malformed `rate_fit`; delete the folder and "
+                         "encode again") from None
 
 
 def read_encode(folder: Path) -> tuple[FitConfig, dict[str, Any], Budget, int]:
@@ -168,11 +193,13 @@ def read_encode(folder: Path) -> tuple[FitConfig, dict[str, Any], Budget, int]:
 def encode_in_folder(folder: Path, scene: Scene, config: FitConfig, budget: Budget, finetune_steps: int,
                      run: RunOptions = RunOptions(), control: RunControl = SILENT,
                      checkpoint_every_steps: int | None = None,
-                     checkpoint_every_seconds: float | None = CHECKPOINT_SECONDS) -> Encoding:
+                     checkpoint_every_seconds: float | None = CHECKPOINT_SECONDS, fit: RateFit = PLAIN) -> Encoding:
     """`encode_fitted` of a fit of `config` on `run` in `folder` (made by `start_encode`), from the folder's
     checkpoint where it has one. The fit checkpoints as `runner.fit_in_folder` (by default every
     `CHECKPOINT_SECONDS`) and at its end, and a stop request (`control`) raises `FitInterrupted`: within the fit
-    after saving, within rate control with the finished fit saved, which a resume then rate-controls again."""
+    after saving, within rate control with the finished fit saved, which a resume then rate-controls again. `fit`
+    (`start_encode`'s, `encode_fit`) says which levers of the rate the fit pulls."""
     fitted = fit_in_folder(folder, scene, config, run, control, resumed_state(folder, config, run),
-                           checkpoint_every_steps, checkpoint_every_seconds, checkpoint_at_end=True)
-    return encode_fitted(fitted, scene, budget, finetune_steps, control)
+                           checkpoint_every_steps, checkpoint_every_seconds, checkpoint_at_end=True,
+                           objective=objective_for(fit, config))
+    return encode_fitted(fitted, scene, budget, finetune_steps, control, fit)
