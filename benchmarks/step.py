@@ -11,6 +11,10 @@ baseline and during CVQPG's warm-up (curvature frozen at zero), and curved, as a
 and round (a few grow to hundreds of pixels, some become needles), and its rasterizer costs more;
 `--model` measures a step of that model's configuration on its own primitives.
 
+A display step is a whole step of the same primitives through the DPAC display (`Display.create("dpac")`:
+double-phase coding, 256 levels, its 4f aperture folded into the transfer functions); its ratio to the complex
+step is formed round by round like the others.
+
 The floor is the Fourier transforms that BLASM propagation cannot avoid, as 2D transforms of the
 zero-padded grid, timed alone in the same process: per step one forward FFT per channel and one
 inverse per channel and plane, and as many again in the backward pass. This package prunes them
@@ -47,6 +51,7 @@ from cvqpg.app.allocator import keep_freed_memory
 from cvqpg.app.runner import fit_in_folder
 from cvqpg.config import RunOptions, default_curvature_warmup
 from cvqpg.control import SILENT
+from cvqpg.display import Display
 from cvqpg.fitting import apply_gradients, initial_state, optimisation_step, render_hologram
 from cvqpg.ops.field import Grid, clamped_intensity, guarded_field
 from cvqpg.ops.loss import multiplane_loss, noisy_targets, standard_normal
@@ -159,6 +164,12 @@ def stage_actions(config: FitConfig, run: RunOptions, primitives: Primitives | N
             curvature = state.gaussians.curvature
             curvature.copy_(2 * torch.rand(curvature.shape, generator=torch.Generator().manual_seed(1)) - 1)
     state.gaussians.curvature.requires_grad_(curved)
+    display_config = config.replace(display=Display.create("dpac"))
+    display_state = initial_state(display_config, scene, run)
+    with torch.no_grad():
+        for name, tensor in display_state.gaussians.tensors().items():
+            tensor.copy_(state.gaussians.tensors()[name])
+    display_state.gaussians.curvature.requires_grad_(curved)
     gaussians, optimizer, generator = state.gaussians, state.optimizer, state.generator
     hologram_grad = torch.randn(config.channels, config.targets.height, config.targets.width, dtype=torch.complex64,
                                 device=run.device)
@@ -176,6 +187,9 @@ def stage_actions(config: FitConfig, run: RunOptions, primitives: Primitives | N
 
     def propagation():
         reconstruct(leaf, config, backend=backend).backward(recon_grad)
+
+    def display_propagation():
+        reconstruct(leaf, display_config, backend=backend).backward(recon_grad)
 
     def pruned_propagation():  # the step's propagation with the pruned transforms, through PyTorch's operations
         grid = Grid.for_config(config)
@@ -198,7 +212,9 @@ def stage_actions(config: FitConfig, run: RunOptions, primitives: Primitives | N
     actions = {"raster forward": raster_forward, "raster forward+backward": raster_forward_backward,
                "propagation forward+backward": propagation, "loss forward+backward": loss,
                "optimizer": lambda: apply_gradients(optimizer, config, state.step),
-               "whole step": lambda: optimisation_step(state, scene, config, backend)}
+               "whole step": lambda: optimisation_step(state, scene, config, backend),
+               "display propagation f+b": display_propagation,
+               "display step": lambda: optimisation_step(display_state, scene, display_config, backend)}
     if run.kernels != "numba":  # the numba step's propagation is the pruned one
         actions[PRUNED_STAGE] = pruned_propagation
     return actions
@@ -264,7 +280,8 @@ def report(label: str, config: FitConfig, run: RunOptions, rounds: int, referenc
     median = {name: float(values.median()) for name, values in per_round.items()}
     ratios = {"step / floor": float((step / per_round["FFT floor"]).median()),
               "pruned / floor": float((per_round["pruned transforms"] / per_round["FFT floor"]).median()),
-              "raster / step": float((per_round["raster forward+backward"] / step).median())}
+              "raster / step": float((per_round["raster forward+backward"] / step).median()),
+              "display step / step": float((per_round["display step"] / step).median())}
     reference = None
     if reference_rounds:
         reference_times = interleaved_seconds(
@@ -277,13 +294,15 @@ def report(label: str, config: FitConfig, run: RunOptions, rounds: int, referenc
     print(f"\n## {label}: {config.targets.width}×{config.targets.height}, N = {count}, "
           f"{config.targets.num_planes} planes, {run.device} ({where}), medians of {rounds} rounds")
     for name in ("raster forward", "raster backward", "propagation forward+backward", PRUNED_STAGE,
-                 "loss forward+backward", "optimizer", "whole step", "FFT floor"):
+                 "loss forward+backward", "optimizer", "whole step", "display propagation f+b", "display step",
+                 "FFT floor"):
         if name in median:
             print(f"{name:>30}: {1000 * median[name]:9.1f} ms")
     print(f"{'step / floor':>30}: {ratios['step / floor']:9.2f}")
     print(f"{'pruned transforms alone':>30}: {1000 * median['pruned transforms']:9.1f} ms = "
           f"{ratios['pruned / floor']:.2f} × floor")
     print(f"{'raster / step':>30}: {ratios['raster / step']:9.1%}")
+    print(f"{'display step / step':>30}: {ratios['display step / step']:9.3f}")
     if reference:
         torch_raster = reference["raster forward+backward"]
         print(f"{'torch-backend raster f+b':>30}: {1000 * torch_raster:9.1f} ms")

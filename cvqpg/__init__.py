@@ -16,6 +16,7 @@ _API_MODULES = {
     "control": ("RunControl",),
     "errors": ("CvqpgError", "ConfigError", "InputError", "ModelFileError"),
     "depth": ("estimate_depth", "load_depth_model"),
+    "display": ("Display", "read_lut"),
     "fitting": ("FitResult", "fit", "fit_scene", "hologram", "render", "render_hologram"),
     "metrics": ("MetricReport", "evaluate"),
     "optics": ("reconstruct",),

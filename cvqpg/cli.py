@@ -55,7 +55,7 @@ FLAGS = {"width": "--size", "height": "--size", "size": "--size", "num_planes": 
              "depth", "image", "max_drop", "bits", "prune", "finetune", "levels", "aperture", "slm", "distance",
              "encoding", "distances", "out")},
          "finetune_steps": "--finetune", "prune_fraction": "--prune", "overwrite": "--overwrite", "bpp": "--bpp",
-         "max_bytes": "--max-bytes", "time": "--time", "recipe": "--recipe"}
+         "max_bytes": "--max-bytes", "time": "--time", "recipe": "--recipe", "canvas": "--slm", "lut": "--lut"}
 
 
 class UsageError(CvqpgError):

@@ -1,7 +1,7 @@
 """Fit configuration: every setting of method.md §2–§6 with the paper's value as default, grouped by concern
-(`TargetSettings`, `OpticsSettings`, `PrimitiveSettings`, `OptimisationSettings`, `LossSettings`) into one
-`FitConfig`, and the recipes (`RECIPES`) that choose what the paper leaves to the fit: the paper's own, and the
-default one (docs/beyond.md). Where a fit runs (`RunOptions`: device and kernels) is no part of it.
+(`TargetSettings`, `OpticsSettings`, `PrimitiveSettings`, `OptimisationSettings`, `LossSettings`, and the display
+the loss sees, `display.Display`) into one `FitConfig`, and the recipes (`RECIPES`) that choose what the paper
+leaves to the fit: the paper's own, and the default one (docs/beyond.md). Where a fit runs (`RunOptions`: device and kernels) is no part of it.
 
 A recipe is resolved when the configuration is made (`FitConfig.create`): every setting is a concrete value,
 which `config.json` records. `FitConfig.from_dict` reads the records of every earlier version."""
@@ -17,15 +17,17 @@ import os
 from dataclasses import dataclass, field
 from typing import Any, Literal, Sequence, get_args
 
+from .display import Display
 from .errors import ConfigError, choices_error
 
 Color = Literal["rgb", "gray"]
-Primitive = Literal["flat", "cvqpg"]
+Primitive = Literal["flat", "cvqpg", "pixel"]
 Bound = Literal["adaptive", "global"]
 Qpf = Literal["mahalanobis", "standard"]
 Curvature = Literal["shared", "per-channel", "channel-bound"]
 Backend = Literal["auto", "numba", "triton", "torch"]
-Init = Literal["uniform", "targets", "edges"]
+Init = Literal["uniform", "targets", "edges", "zero"]
+Optimizer = Literal["adan", "adam"]
 COLORS: tuple[str, ...] = get_args(Color)
 PRIMITIVES: tuple[str, ...] = get_args(Primitive)
 BOUNDS: tuple[str, ...] = get_args(Bound)
@@ -33,15 +35,68 @@ QPFS: tuple[str, ...] = get_args(Qpf)
 CURVATURES: tuple[str, ...] = get_args(Curvature)
 BACKENDS: tuple[str, ...] = get_args(Backend)
 INITS: tuple[str, ...] = get_args(Init)
+OPTIMIZERS: tuple[str, ...] = get_args(Optimizer)
+GAUSSIAN_ONLY_INITS = ("edges",)  # where a Gaussian's position starts
+PIXEL_ONLY_INITS = ("zero",)  # a per-pixel hologram's flat phase
 DEVICE_TYPES = ("cpu", "cuda")
+# The choices of every enumerated setting (flat names); the range of every number is in `RANGES`.
+CHOICES: dict[str, tuple[str, ...]] = {"color": COLORS, "primitive": PRIMITIVES, "bound": BOUNDS, "qpf": QPFS,
+                                       "curvature": CURVATURES, "init": INITS, "optimizer": OPTIMIZERS}
 
 RGB_WAVELENGTHS_M = (639e-9, 532e-9, 473e-9)
 GRAY_WAVELENGTH_M = 639e-9
 PAPER_BETAS = (0.98, 0.92, 0.99)  # method.md §6
+ADAM_BETAS = (0.9, 0.999, 0.99)  # Adam's usual β1 and β2; Adam has no third (Adan's β3, left at the paper's)
 LONG_RUN_BETAS = (0.98, 0.99, 0.99)  # β2 averages the gradient's differences over ~100 steps, not ~12
 CURVATURE_WARMUP_SHARE = 400 / 2000  # the paper's curvature warm-up share of the steps
 MIN_SIZE_PX = 16  # the SSIM window
-CONFIG_SCHEMA = 2  # the layout `FitConfig.to_dict` writes; records without the key are the flat layout before it
+MAX_LEARNING_RATE = 10.0
+CONFIG_SCHEMA = 3  # the layout `FitConfig.to_dict` writes; records without the key are the flat layout before it
+
+
+def _check_range(name: str, value: Any, low: float, high: float, kind: str) -> None:
+    """`ConfigError` unless `value` is a number of `kind` in its range: `integer` (a whole number in [low, high]),
+    `number` (finite, in [low, high]), `positive` (in (low, high]) or `fraction` (in [low, high)). Cheap where
+    the value is good: every configuration made runs it for every setting."""
+    if kind == "integer":
+        problem = None if _is_integer(value) else "must be a whole number in"
+    elif _is_integer(value) or (isinstance(value, float) and math.isfinite(value)):
+        problem = None
+    else:
+        problem = "must be a finite number in"
+    if problem is None:
+        if low < value <= high if kind == "positive" else low <= value < high if kind == "fraction" else \
+                low <= value <= high:
+            return
+        problem = "must lie in"
+    low_text, high_text = (str(v) if isinstance(v, int) else f"{v:g}" for v in (low, high))
+    interval = {"positive": f"({low_text}, {high_text}]", "fraction": f"[{low_text}, {high_text})"}.get(
+        kind, f"[{low_text}, {high_text}]")
+    raise ConfigError(f"`{name}` {problem} {interval}, got {value!r}")
+
+
+def _is_integer(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _check_fields(section: object) -> None:
+    """`ConfigError` naming the first field of a settings section outside its choices (`CHOICES`) or its range
+    (`RANGES`), by its flat name."""
+    for key, name in _flat_names(type(section)):
+        value = getattr(section, key)
+        if name in CHOICES:
+            if value not in CHOICES[name]:
+                raise choices_error(name, value, CHOICES[name])
+        elif name in RANGES and not (value is None and name in OPTIONAL):
+            _check_range(name, value, *RANGES[name])
+
+
+@functools.cache
+def _flat_names(section_class: type) -> tuple[tuple[str, str], ...]:
+    """(field, flat name) of each field of a settings section that has a flat name (`FLAT_NAMES`), in field order."""
+    section = next(name for name, known in SECTION_CLASSES.items() if known is section_class)
+    names = {key: flat for flat, (owner, key) in FLAT_NAMES.items() if owner == section}
+    return tuple((f.name, names[f.name]) for f in dataclasses.fields(section_class) if f.name in names)
 
 
 def default_curvature_warmup(steps: int) -> int:
@@ -62,6 +117,10 @@ class LearningRates:
     rotation: float = 0.001
     curvature: float = 0.001
 
+    def __post_init__(self) -> None:
+        for key in (f.name for f in dataclasses.fields(self)):
+            _check_range(f"lr.{key}", getattr(self, key), 0.0, MAX_LEARNING_RATE, "number")
+
 
 @dataclass(frozen=True)
 class TargetSettings:
@@ -76,6 +135,17 @@ class TargetSettings:
     defocus_sigma_px: float = 8.0
     depth_exponent: float = 1.0
 
+    def __post_init__(self) -> None:
+        _check_fields(self)
+        check_distances(self.plane_distances, "plane distances", ": change `plane_center` or `plane_span`")
+
+    @property
+    def plane_distances(self) -> tuple[float, ...]:
+        """Propagation distances (m): `linspace(d − V/2, d + V/2, M)` (one plane: d − V/2, as linspace)."""
+        start = self.plane_center - self.plane_span / 2
+        step = self.plane_span / max(self.num_planes - 1, 1)
+        return tuple(start + m * step for m in range(self.num_planes))
+
 
 @dataclass(frozen=True)
 class OpticsSettings:
@@ -86,6 +156,14 @@ class OpticsSettings:
     wavelengths_m: tuple[float, ...] | None = None
     guard_band_px: int = 144
     pad_multiple_px: int = 64
+
+    def __post_init__(self) -> None:
+        _check_fields(self)
+        if self.wavelengths_m is not None:
+            if not isinstance(self.wavelengths_m, tuple):
+                raise ConfigError(f"`wavelengths_m` must be a tuple of numbers (m), got {self.wavelengths_m!r}")
+            for index, wavelength in enumerate(self.wavelengths_m):
+                _check_range(f"wavelengths_m[{index}]", wavelength, *WAVELENGTH_RANGE_M, "number")
 
 
 @dataclass(frozen=True)
@@ -101,11 +179,15 @@ class PrimitiveSettings:
     qpf: Qpf = "mahalanobis"
     curvature: Curvature = "shared"
 
+    def __post_init__(self) -> None:
+        _check_fields(self)
+
 
 @dataclass(frozen=True)
 class OptimisationSettings:
     """The loop (method.md §6): its steps, the curvature's warm-up (steps with γ frozen at 0; `steps + 1`: all),
-    the seed, Adan's learning rates, betas and ε, the gradient clip norm, and where the primitives start (`init`)."""
+    the seed, the optimiser (the paper's Adan, or Adam, whose β1 and β2 are `betas`' first two) with its learning
+    rates, betas and ε, the gradient clip norm, and where the primitives start (`init`)."""
 
     steps: int = 2000
     curvature_warmup: int = 400
@@ -115,6 +197,18 @@ class OptimisationSettings:
     adan_eps: float = 1e-8
     grad_clip_norm: float = 1.0
     init: Init = "uniform"
+    optimizer: Optimizer = "adan"
+
+    def __post_init__(self) -> None:
+        _check_fields(self)
+        # steps + 1: the curvature never trains (the loop's last update has index `steps`)
+        _check_range("curvature_warmup", self.curvature_warmup, 0, self.steps + 1, "integer")
+        if not isinstance(self.lr, LearningRates):
+            raise ConfigError(f"`lr` must be LearningRates, got {self.lr!r}")
+        if not (isinstance(self.betas, tuple) and len(self.betas) == 3):
+            raise ConfigError(f"`betas` must be three numbers (β1, β2, β3), got {self.betas!r}")
+        for index, beta in enumerate(self.betas):
+            _check_range(f"betas[{index}]", beta, 0.0, 1.0, "fraction")
 
 
 @dataclass(frozen=True)
@@ -127,10 +221,13 @@ class LossSettings:
     product_weight: float = 1.0
     target_noise: float = 1e-3
 
+    def __post_init__(self) -> None:
+        _check_fields(self)
+
 
 @dataclass(frozen=True)
 class Recipe:
-    """The choices a fit makes beyond its problem, by name: Adan's learning rates and betas, where the
+    """The choices a fit makes beyond its problem, by name: the optimiser, its learning rates and betas, where the
     primitives start, and the weights of the loss's masked and correlation terms."""
 
     name: str
@@ -140,11 +237,12 @@ class Recipe:
     init: Init
     focus_weight: float
     product_weight: float
+    optimizer: Optimizer = "adan"
 
     def settings(self) -> dict[str, Any]:
         """The recipe's settings under their `FitConfig.create` names."""
         return {"lr": self.lr, "betas": self.betas, "init": self.init, "focus_weight": self.focus_weight,
-                "product_weight": self.product_weight}
+                "product_weight": self.product_weight, "optimizer": self.optimizer}
 
 
 RECIPES: dict[str, Recipe] = {}
@@ -165,6 +263,12 @@ BEYOND_RECIPE = register_recipe(Recipe(
 BEYOND_SHORT_RECIPE = register_recipe(Recipe(
     "beyond-short", "for a few hundred steps: positions at the targets' energy, the paper's β2, no masked or "
     "correlation terms (docs/beyond.md)", LearningRates(), PAPER_BETAS, "targets", 0.0, 0.0)).name
+# The per-pixel hologram's (`primitive` pixel): its optimiser, learning rate and start screened (docs/beyond.md).
+PIXEL_LEARNING_RATE = 0.01
+PIXEL_RECIPE = register_recipe(Recipe(
+    "pixel", "for the per-pixel hologram: Adam at 0.01, a small random phase to start, the paper's loss "
+    "(docs/beyond.md)", LearningRates(amplitude=PIXEL_LEARNING_RATE, phase=PIXEL_LEARNING_RATE),
+    ADAM_BETAS, "uniform", 1.0, 1.0, "adam")).name
 DEFAULT_RECIPE = BEYOND_RECIPE  # measured better than the paper's on every scene (docs/beyond.md)
 CUSTOM_RECIPE = "custom"  # what `FitConfig.recipe` says where a setting differs from its recipe's
 
@@ -177,7 +281,7 @@ FLAT_NAMES: dict[str, tuple[str, str]] = {
     "primitive": ("primitives", "kind"), "num_gaussians": ("primitives", "count"),
     **{name: ("primitives", name) for name in ("ratio", "bound", "global_bound", "eta", "qpf", "curvature")},
     **{name: ("optimisation", name) for name in ("steps", "curvature_warmup", "seed", "lr", "betas", "adan_eps",
-                                                  "grad_clip_norm", "init")},
+                                                  "grad_clip_norm", "init", "optimizer")},
     **{name: ("loss", name) for name in ("ssim_weight", "focus_weight", "product_weight", "target_noise")},
 }
 # Names that flat records (config.json, model metadata) used before a rename, and their names now.
@@ -198,13 +302,43 @@ class FitConfig:
     primitives: PrimitiveSettings = field(default_factory=PrimitiveSettings)
     optimisation: OptimisationSettings = field(default_factory=OptimisationSettings)
     loss: LossSettings = field(default_factory=LossSettings)
+    display: Display = field(default_factory=Display)
     recipe: str = field(default=PAPER_RECIPE, compare=False)  # a label: two configurations compare by settings
 
+    def __post_init__(self) -> None:
+        for name in SECTIONS:
+            if not isinstance(getattr(self, name), SECTION_CLASSES[name]):
+                raise ConfigError(f"`{name}` must be {SECTION_CLASSES[name].__name__}, got {getattr(self, name)!r}")
+        # What depends on settings of two sections: the wavelengths on the colour, the count on the size.
+        wavelengths = self.wavelengths
+        if len(wavelengths) != self.channels:
+            raise ConfigError(f"`wavelengths_m` {wavelengths}: need {self.channels} value(s) for `color` "
+                              f"{self.targets.color!r}")
+        check_sampling(wavelengths, self.optics.pixel_pitch, "`wavelengths_m`", "keep every `wavelengths_m` below it, "
+                       "or give a larger `pixel_pitch`")
+        count, pixels = self.primitive_count, self.targets.width * self.targets.height
+        if not 0 < count <= pixels:
+            raise ConfigError(f"{count} Gaussians for {pixels} pixels: need between 1 and the pixel count; "
+                              "change `ratio` or `num_gaussians`")
+        # and where the representation starts on the primitive
+        pixel = self.primitives.kind == "pixel"
+        foreign = GAUSSIAN_ONLY_INITS if pixel else PIXEL_ONLY_INITS
+        if self.optimisation.init in foreign:
+            raise ConfigError(f"`init` {self.optimisation.init} starts {'Gaussians' if pixel else 'a per-pixel hologram'}"
+                              f" and `primitive` is {self.primitives.kind}: choose one of "
+                              f"{', '.join(i for i in INITS if i not in foreign)}")
+        if not isinstance(self.display, Display):
+            raise ConfigError(f"`display` must be Display, got {self.display!r}")
+        self.display.canvas_for(self.targets.height, self.targets.width)
+
     @classmethod
-    def create(cls, recipe: str = DEFAULT_RECIPE, **settings: Any) -> "FitConfig":
+    def create(cls, recipe: str | None = None, **settings: Any) -> "FitConfig":
         """A configuration from flat names (`FLAT_NAMES`: `width`, `steps`, `pixel_pitch`, ...), with the recipe
-        `recipe`'s settings where not given; an unset (None) `curvature_warmup` is the paper's share of `steps`.
-        `recipe` names the result's recipe, or `custom` where a given setting differs from it."""
+        `recipe`'s settings where not given (None: `DEFAULT_RECIPE`, or `PIXEL_RECIPE` for `primitive` pixel); an
+        unset (None) `curvature_warmup` is the paper's share of `steps`. `recipe` names the result's recipe, or
+        `custom` where a given setting differs from it."""
+        if recipe is None:
+            recipe = PIXEL_RECIPE if settings.get("primitive") == "pixel" else DEFAULT_RECIPE
         config = cls().with_recipe(recipe)
         own = {k: v for k, v in settings.items() if not (k == "curvature_warmup" and v is None)}
         steps = own.get("steps", config.optimisation.steps)
@@ -221,7 +355,7 @@ class FitConfig:
             if name in FLAT_NAMES:
                 section, key = FLAT_NAMES[name]
                 sections[section][key] = tuple(value) if isinstance(value, list) else value
-            elif name in SECTIONS or name == "recipe":
+            elif name in SECTIONS or name in ("display", "recipe"):
                 top[name] = value
             else:
                 raise ConfigError(f"`{name}` is not a setting; the settings are {', '.join(FLAT_NAMES)}")
@@ -254,7 +388,10 @@ class FitConfig:
 
     @property
     def primitive_count(self) -> int:
-        """N: `primitives.count`, or `ratio · W·H/2` (RGB) / `ratio · W·H/4` (grayscale), method.md §2."""
+        """N: `primitives.count`, or `ratio · W·H/2` (RGB) / `ratio · W·H/4` (grayscale), method.md §2; a per-pixel
+        hologram's W·H pixels."""
+        if self.primitives.kind == "pixel":
+            return self.targets.width * self.targets.height
         if self.primitives.count is not None:
             return self.primitives.count
         pixels_per_primitive = 2 if self.targets.color == "rgb" else 4
@@ -269,16 +406,22 @@ class FitConfig:
 
     @property
     def params_per_primitive(self) -> int:
-        """Learnable scalars per primitive: 12/13/15 (RGB flat/CVQPG/per-channel), 8/9 (grayscale)."""
+        """Learnable scalars per primitive: 12/13/15 (RGB flat/CVQPG/per-channel), 8/9 (grayscale); per pixel of a
+        per-pixel hologram, an amplitude and a phase per channel (a phase pattern: the phases alone)."""
+        if self.primitives.kind == "pixel":
+            return self.channels * (1 if self.phase_only_pixels else 2)
         return 2 + 2 + 1 + 2 * self.channels + 1 + self.learnable_curvatures
 
     @property
+    def phase_only_pixels(self) -> bool:
+        """Whether a per-pixel hologram of this configuration is a phase pattern (one phase per pixel and channel)
+        rather than a complex hologram: where its display shows the bare phase."""
+        return False
+
+    @property
     def plane_distances(self) -> tuple[float, ...]:
-        """Propagation distances (m): `linspace(d − V/2, d + V/2, M)` (one plane: d − V/2, as linspace)."""
-        targets = self.targets
-        start = targets.plane_center - targets.plane_span / 2
-        step = targets.plane_span / max(targets.num_planes - 1, 1)
-        return tuple(start + m * step for m in range(targets.num_planes))
+        """Propagation distances (m) of the target planes (`TargetSettings.plane_distances`)."""
+        return self.targets.plane_distances
 
     def to_dict(self) -> dict[str, Any]:
         """The record `config.json` and model files keep (JSON types), with its layout's `config_schema`."""
@@ -299,41 +442,12 @@ class FitConfig:
             if isinstance(values.get("lr"), dict):
                 values["lr"] = LearningRates(**values["lr"])
             sections[name] = section_class(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
-        return cls(**sections, recipe=str(data.get("recipe", CUSTOM_RECIPE)))
+        return cls(**sections, display=Display.from_dict(data.get("display")),
+                   recipe=str(data.get("recipe", CUSTOM_RECIPE)))
 
     def validate(self) -> "FitConfig":
-        """Raise `ConfigError` naming the first setting that cannot work, with the values it may take."""
-        for name, choices in (("color", COLORS), ("primitive", PRIMITIVES), ("bound", BOUNDS), ("qpf", QPFS),
-                              ("curvature", CURVATURES), ("init", INITS)):
-            value = self.setting(name)
-            if value not in choices:
-                raise choices_error(name, value, choices)
-        for name, (low, high, kind) in RANGES.items():
-            value = self.setting(name)
-            if not (value is None and name in OPTIONAL):
-                _check_range(name, value, low, high, kind)
-        steps = self.optimisation.steps
-        # steps + 1: the curvature never trains (the loop's last update has index `steps`)
-        _check_range("curvature_warmup", self.optimisation.curvature_warmup, 0, steps + 1, "integer")
-        for key, value in dataclasses.asdict(self.optimisation.lr).items():
-            _check_range(f"lr.{key}", value, 0.0, MAX_LEARNING_RATE, "number")
-        if not (isinstance(self.optimisation.betas, tuple) and len(self.optimisation.betas) == 3):
-            raise ConfigError(f"`betas` must be three numbers (β1, β2, β3), got {self.optimisation.betas!r}")
-        for index, beta in enumerate(self.optimisation.betas):
-            _check_range(f"betas[{index}]", beta, 0.0, 1.0, "fraction")
-        wavelengths = self.wavelengths
-        if len(wavelengths) != self.channels:
-            raise ConfigError(f"`wavelengths_m` {wavelengths}: need {self.channels} value(s) for `color` "
-                              f"{self.targets.color!r}")
-        for index, wavelength in enumerate(wavelengths):
-            _check_range(f"wavelengths_m[{index}]", wavelength, *WAVELENGTH_RANGE_M, "number")
-        check_sampling(wavelengths, self.optics.pixel_pitch, "`wavelengths_m`", "keep every `wavelengths_m` below it, "
-                       "or give a larger `pixel_pitch`")
-        check_distances(self.plane_distances, "plane distances", ": change `plane_center` or `plane_span`")
-        count, pixels = self.primitive_count, self.targets.width * self.targets.height
-        if not 0 < count <= pixels:
-            raise ConfigError(f"{count} Gaussians for {pixels} pixels: need between 1 and the pixel count; "
-                              "change `ratio` or `num_gaussians`")
+        """This configuration: every setting is checked where a configuration is made (a `ConfigError` naming the
+        first that cannot work, with the values it may take), so one that exists is valid."""
         return self
 
     def setting(self, name: str) -> Any:
@@ -347,7 +461,6 @@ SECTION_CLASSES = {"targets": TargetSettings, "optics": OpticsSettings, "primiti
 
 # The range of every number (flat names): (lowest, highest, kind), both ends allowed. Lengths in m.
 MAX_SIZE_PX = 65536
-MAX_LEARNING_RATE = 10.0
 def check_sampling(wavelengths_m: Sequence[float], pixel_pitch: float, what: str, remedy: str) -> None:
     """Refuse a wavelength (m) of √2 × the pixel pitch (m) or more: the sampled spectrum's corners then lie beyond
     1/λ, where the propagation's transfer function (odak's, whose numbers the paper reports) is not a number."""
@@ -394,26 +507,6 @@ def check_time_budget(minutes: float) -> None:
     if not 0 < minutes <= MAX_TIME_MINUTES:
         raise ConfigError(f"`time` {minutes:g} min: give a positive number of minutes, at most {MAX_TIME_MINUTES} "
                           "(a year)")
-
-
-def _check_range(name: str, value: Any, low: float, high: float, kind: str) -> None:
-    """`ConfigError` unless `value` is a number of `kind` in its range: `integer` (a whole number in [low, high]),
-    `number` (finite, in [low, high]), `positive` (in (low, high]) or `fraction` (in [low, high))."""
-    low_text, high_text = (str(v) if isinstance(v, int) else f"{v:g}" for v in (low, high))
-    interval = {"positive": f"({low_text}, {high_text}]", "fraction": f"[{low_text}, {high_text})"}.get(
-        kind, f"[{low_text}, {high_text}]")
-    whole = kind == "integer"
-    if whole and not _is_integer(value):
-        raise ConfigError(f"`{name}` must be a whole number in {interval}, got {value!r}")
-    if not whole and not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)):
-        raise ConfigError(f"`{name}` must be a finite number in {interval}, got {value!r}")
-    inside = {"positive": low < value <= high, "fraction": low <= value < high}.get(kind, low <= value <= high)
-    if not inside:
-        raise ConfigError(f"`{name}` must lie in {interval}, got {value!r}")
-
-
-def _is_integer(value: object) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def from_flat_record(data: dict[str, Any]) -> FitConfig:
@@ -498,10 +591,16 @@ class RunOptions:
     device: str = "cpu"
     backend: Backend = "auto"
 
-    def validate(self) -> "RunOptions":
-        """`ConfigError` where the device is unknown or the backend cannot run on it (`resolve_backend`)."""
+    def __post_init__(self) -> None:
+        # Which backends run on this machine is `validate`'s: a record of a run elsewhere still reads.
         if not isinstance(self.device, str):
             raise choices_error("device", self.device, DEVICE_TYPES)
+        device_kind(self.device)
+        if self.backend not in BACKENDS:
+            raise choices_error("backend", self.backend, BACKENDS)
+
+    def validate(self) -> "RunOptions":
+        """These options, or `ConfigError` where the backend cannot run on the device here (`resolve_backend`)."""
         resolve_backend(self.backend, self.device)
         return self
 

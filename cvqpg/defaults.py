@@ -20,8 +20,10 @@ SCENE_NAMES = ("demo", "star")
 VIEW_FILE = "view.html"
 DEFAULT_SWEEP = (0.5e-3, 6e-3, 41)  # START (m), STOP (m), COUNT
 
-# `cvqpg export` (`export`): the phase-only encodings, the SLM's phase levels, and the 4f filter's aperture
-# (a fraction of the Nyquist frequency).
+# The display a hologram is shown on (`display`): its encodings (`display.ENCODINGS`), the phase-only ones that
+# `cvqpg export` writes, a phase-only SLM's phase levels, and the 4f filter's aperture (a fraction of the Nyquist
+# frequency) that `dpac` takes by default (docs/method.md §8).
+DISPLAY_ENCODINGS: tuple[str, ...] = ("complex", "dpac", "phase")
 ENCODINGS: tuple[str, ...] = ("dpac", "phase")
 DEFAULT_LEVELS = 256
 DEFAULT_APERTURE = 0.5

@@ -21,10 +21,9 @@ from .control import RunControl
 from .errors import InputError, ModelFileError
 from .metrics import MetricReport, evaluate
 from .ops.loss import multiplane_loss, noisy_targets, standard_normal
-from .ops.rasterize import rasterize
 from .optics import reconstruct
-from .initialisation import initial_gaussians
-from .primitives import Gaussians, Primitives, activate
+from .primitives import Gaussians, Primitives, TensorFields
+from .representation import param_groups, representation
 from .targets import Scene, load_scene
 
 if TYPE_CHECKING:
@@ -32,14 +31,12 @@ if TYPE_CHECKING:
 
     from .ratefit import RateObjective
 
-LEARNING_RATE_GROUPS = ("position", "scale", "rotation", "amplitude", "phase", "opacity", "curvature")
-
 
 @dataclass
 class FitResult:
     """A fitted model with its settings, final metrics and per-step history."""
 
-    gaussians: Gaussians
+    gaussians: Gaussians | TensorFields  # the raw parameters of the configuration's representation
     config: FitConfig
     metrics: MetricReport
     hologram: Tensor  # [C, H, W] complex, of the fitted model
@@ -54,24 +51,23 @@ class FitResult:
     run: RunOptions = field(default_factory=RunOptions)  # where it was fitted
 
     @property
-    def primitives(self) -> Primitives:
+    def primitives(self) -> Primitives | TensorFields:
         """The fitted model's activated, physical parameters (what a model file stores)."""
-        return activate(self.gaussians, self.config)
+        return representation(self.config).activate(self.gaussians, self.config)
 
 
-def hologram(primitives: Primitives, config: FitConfig, backend: str = "auto") -> Tensor:
-    """Complex hologram [C, H, W] of activated primitives on `config`'s W×H SLM grid, with the kernels of
-    `backend` (`config.resolve_backend`) on the primitives' device."""
-    return rasterize(primitives, config.targets.width, config.targets.height, config.wavelengths,
-                     config.optics.pixel_pitch, config.primitives.qpf, backend)
+def hologram(primitives: Primitives | TensorFields, config: FitConfig, backend: str = "auto") -> Tensor:
+    """Complex hologram [C, H, W] of a model's physical parameters (`representation`) on `config`'s W×H SLM grid,
+    with the kernels of `backend` (`config.resolve_backend`) on the parameters' device."""
+    return representation(config).field(primitives, config, backend)
 
 
-def render_hologram(gaussians: Gaussians, config: FitConfig, backend: str = "auto") -> Tensor:
+def render_hologram(gaussians: Gaussians | TensorFields, config: FitConfig, backend: str = "auto") -> Tensor:
     """Complex hologram [C, H, W] of raw parameters under `config` (differentiable)."""
-    return hologram(activate(gaussians, config), config, backend)
+    return hologram(representation(config).activate(gaussians, config), config, backend)
 
 
-def render(primitives: Primitives, config: FitConfig, distances_m: Sequence[float] | None = None,
+def render(primitives: Primitives | TensorFields, config: FitConfig, distances_m: Sequence[float] | None = None,
            backend: str = "auto") -> tuple[Tensor, Tensor]:
     """Hologram [C, H, W] and clamped reconstructions [M, C, H, W] at `config`'s planes (or at
     `distances_m`, m), without gradients, with the kernels of `backend`."""
@@ -81,22 +77,27 @@ def render(primitives: Primitives, config: FitConfig, distances_m: Sequence[floa
 
 
 def trainable_groups(config: FitConfig) -> tuple[str, ...]:
-    """Parameter groups the optimiser owns: the flat primitive has no curvature."""
-    if config.primitives.kind == "flat":
-        return tuple(g for g in LEARNING_RATE_GROUPS if g != "curvature")
-    return LEARNING_RATE_GROUPS
+    """The learning rates of the parameter groups the optimiser owns (`representation.param_groups`): the flat
+    primitive has no curvature, a per-pixel hologram an amplitude and a phase or the phase alone."""
+    return tuple(representation(config).groups(config).values())
 
 
-def make_optimizer(gaussians: Gaussians, config: FitConfig) -> Adan:
-    """Adan (pytorch-optimizer) with one group per parameter kind and method.md §6 learning rates."""
+def make_optimizer(gaussians: Gaussians | TensorFields, config: FitConfig) -> Adan | torch.optim.Adam:
+    """The optimiser of `optimisation.optimizer` with one group per parameter kind and its learning rate (method.md
+    §6): Adan (pytorch-optimizer) with `betas`, or torch's Adam with `betas`' first two, both without weight decay.
+    Adam keeps its step count on the parameters' device (`capturable` on CUDA), where an undone update restores
+    it (`apply_gradients`)."""
+    settings = config.optimisation
+    groups = param_groups(gaussians, config)
+    if settings.optimizer == "adam":
+        device = groups[0]["params"][0].device
+        return torch.optim.Adam(groups, betas=settings.betas[:2], eps=settings.adan_eps,
+                                capturable=device.type == "cuda")
     # Imported here: pytorch-optimizer imports transformers where it is installed (a second or more),
     # which the first run's compile processes, importing this module, do not need.
     from pytorch_optimizer import Adan
 
-    groups = [{"params": [getattr(gaussians, name)], "lr": getattr(config.optimisation.lr, name), "name": name}
-              for name in trainable_groups(config)]
-    return Adan(groups, betas=config.optimisation.betas, eps=config.optimisation.adan_eps, weight_decay=0.0,
-                max_grad_norm=0.0)
+    return Adan(groups, betas=settings.betas, eps=settings.adan_eps, weight_decay=0.0, max_grad_norm=0.0)
 
 
 def position_learning_rate(step: int, config: FitConfig) -> float:
@@ -115,7 +116,7 @@ def psnr_from_mse(mse: Tensor) -> Tensor:
 class FitState:
     """Everything the loop carries between steps; a checkpoint stores exactly this."""
 
-    gaussians: Gaussians
+    gaussians: Gaussians | TensorFields  # the raw parameters of the configuration's representation
     optimizer: Adan
     generator: torch.Generator
     step: int = 0  # the next step index to run
@@ -157,7 +158,8 @@ class FitState:
             self.sanitised_steps += int(sanitised)
             if skipped:
                 for group in self.optimizer.param_groups:
-                    group["step"] -= 1
+                    if "step" in group:  # Adan counts on the host; Adam's count, on the device, was restored
+                        group["step"] -= 1
         if values[-1][2]:
             for parameter in outcomes[-1].fresh_state:
                 self.optimizer.state.pop(parameter, None)
@@ -175,11 +177,11 @@ class FitState:
 
 def initial_state(config: FitConfig, scene: Scene | None = None, run: RunOptions = RunOptions()) -> FitState:
     """The state on `run.device` before step 0: the initialisation of `config.optimisation.init`
-    (`initialisation.initial_gaussians`; all but `uniform` need the `scene`), the optimiser and the noise
+    (`representation.initial`; those drawn from the targets need the `scene`), the optimiser and the noise
     generator."""
     device = torch.device(run.device)
-    gaussians = initial_gaussians(config, scene, run.device)
-    for name in trainable_groups(config):
+    gaussians = representation(config).initial(config, scene, run.device)
+    for name in representation(config).groups(config):
         getattr(gaussians, name).requires_grad_(True)
     optimizer = make_optimizer(gaussians, config)
     generator = torch.Generator(device=device).manual_seed(config.optimisation.seed)
@@ -260,13 +262,13 @@ def update(state: FitState, scene: Scene, config: FitConfig, backend: str = "aut
     the host.
     """
     gaussians, step = state.gaussians, state.step
-    gaussians.curvature.requires_grad_(config.primitives.kind == "cvqpg"
-                                       and step >= config.optimisation.curvature_warmup)
+    representation(config).before_update(gaussians, config, step)
     if objective is None:
         loss, mse = hologram_loss(render_hologram(gaussians, config, backend), scene, config, state.generator,
                                   backend)
     else:
-        shown, term = objective.step(activate(gaussians, config), step, config.optimisation.steps, state.generator)
+        shown, term = objective.step(representation(config).activate(gaussians, config), step,
+                                     config.optimisation.steps, state.generator)
         loss, mse = hologram_loss(hologram(shown, config, backend), scene, config, state.generator, backend)
         if term is not None:
             loss = loss + term
@@ -498,7 +500,7 @@ def fit_scene(scene: Scene, config: FitConfig | None = None, run: RunOptions = R
             checkpoint.save(state)
             last_save = time.perf_counter()
     fitted = state.gaussians.detached()
-    hologram, recon = render(activate(fitted, config), config, backend=run.backend)
+    hologram, recon = render(representation(config).activate(fitted, config), config, backend=run.backend)
     metrics = evaluate(recon, scene.targets)
     return FitResult(fitted, config, metrics, hologram, recon, state.history, state.seconds,
                      state.skipped_steps, state.sanitised_steps, state.peak_memory, state.compile_seconds,

@@ -1,5 +1,6 @@
-"""Reconstruction of a hologram at its depth planes (method.md §3): the SLM field, propagated by BLASM
-(odak 0.2.7's convention), as clamped intensities; each an op of `cvqpg.ops`, on the caller's backend."""
+"""What a hologram shows at its depth planes (method.md §3, §8): the SLM field, shown on the configuration's
+display (`display.Display`), propagated by BLASM (odak 0.2.7's convention), as clamped intensities; each an op of
+`cvqpg.ops`, on the caller's backend."""
 
 from __future__ import annotations
 
@@ -7,17 +8,51 @@ from typing import Sequence
 
 from torch import Tensor
 
-from .config import FitConfig
-from .ops.field import Grid, clamped_intensity, guarded_field
+from .config import FitConfig, padded_size
+from .display import canvas_offset, displayed_field
+from .ops.field import Grid, clamped_intensity, guarded_field, slm_field
 from .ops.propagation import propagate_planes
 
 
 def reconstruct(hologram: Tensor, config: FitConfig, distances_m: Sequence[float] | None = None,
                 backend: str = "auto") -> Tensor:
-    """Hologram [C, H, W] → reconstructed intensity [M, C, H, W] clamped to [0, 1] (method.md §3), at
-    `config`'s planes or at `distances_m` (m), with the kernels of `backend` (`config.resolve_backend`)."""
-    grid = Grid.for_config(config)
-    field = guarded_field(hologram, grid, backend)
+    """Hologram [C, H, W] → the intensity [M, C, H, W], clamped to [0, 1], that `config.display` shows at
+    `config`'s planes or at `distances_m` (m), with the kernels of `backend` (`config.resolve_backend`).
+
+    The default display, the ideal complex SLM, is method.md §3's: the hologram with its guard band. Any other
+    shows its canvas (`display.displayed_field` of the clamped SLM field) in a dark zero-padded array, behind the
+    4f aperture, which the propagation's transfer functions carry (method.md §8). Differentiable either way: the
+    fit's loss sees what the display shows.
+    """
+    display = config.display
     distances = config.plane_distances if distances_m is None else tuple(distances_m)
-    planes = propagate_planes(field, grid, distances, config.wavelengths, config.optics.pixel_pitch, backend)
+    if display.ideal:
+        grid = Grid.for_config(config)
+        field = guarded_field(hologram, grid, backend)
+    else:
+        grid = display_grid(config)
+        field = on_display_grid(displayed_field(slm_field(hologram), display), grid, config)
+    planes = propagate_planes(field, grid, distances, config.wavelengths, config.optics.pixel_pitch, backend,
+                              display.aperture)
     return clamped_intensity(planes, backend)
+
+
+def display_grid(config: FitConfig) -> Grid:
+    """The hologram's H×W inside the zero-padded array of its display's canvas: the guard band (`optics`) around
+    the canvas, not the hologram, since no light comes from beyond the SLM."""
+    height, width = config.display.canvas_for(config.targets.height, config.targets.width)
+    optics = config.optics
+    return Grid(config.targets.height, config.targets.width,
+                padded_size(height, optics.guard_band_px, optics.pad_multiple_px),
+                padded_size(width, optics.guard_band_px, optics.pad_multiple_px))
+
+
+def on_display_grid(canvas_field: Tensor, grid: Grid, config: FitConfig) -> Tensor:
+    """A canvas field [C, canvas H, canvas W] in the dark array [C, P_H, P_W] of `display_grid`, placed so that
+    the hologram on it sits where `grid` crops the planes (differentiable)."""
+    canvas_h, canvas_w = canvas_field.shape[-2:]
+    inner_top, inner_left = canvas_offset((canvas_h, canvas_w), (config.targets.height, config.targets.width))
+    top, left = grid.top - inner_top, grid.left - inner_left
+    padded = canvas_field.new_zeros(canvas_field.shape[0], grid.padded_height, grid.padded_width)
+    padded[:, top:top + canvas_h, left:left + canvas_w] = canvas_field
+    return padded

@@ -17,12 +17,13 @@ from . import __version__
 from .config import MIN_SIZE_PX, SECTIONS, FitConfig, RunOptions, check_sampling
 from .errors import ConfigError, CvqpgError, InputError, ModelFileError
 from .files import write_atomic
-from .export import (DEFAULT_APERTURE, DEFAULT_LEVELS, Display, Encoding, PhasePattern, phase_pattern, place_on_canvas,
-                     simulate_display)
+from .display import Display, Encoding, PhasePattern, phase_pattern
 from .fitting import FitResult, render
 from .metrics import MetricReport, evaluate, mean_psnr
 from .ops.field import slm_field
+from .optics import reconstruct
 from .primitives import Primitives
+from .representation import require_gaussians
 from .scenes import builtin_scene
 from .storage import load_model, model_info, model_run, save_model
 from .targets import Scene, load_scene
@@ -127,6 +128,16 @@ def metrics_record(report: MetricReport, config: FitConfig, seconds: float,
             "seconds": seconds, **(extra or {})}
 
 
+def complex_field_metrics(primitives: Primitives, config: FitConfig, scene: Scene, backend: str = "auto"
+                          ) -> dict[str, Any]:
+    """For a model fitted through a display other than the complex one: `complex_field`, the metrics of its
+    complex field as method.md §3 reconstructs it, beside those of what the display shows; else nothing."""
+    if config.display.ideal:
+        return {}
+    _, recon = render(primitives, config.replace(display=Display()), backend=backend)
+    return {"complex_field": evaluate(recon, scene.targets).to_dict()}
+
+
 def start_run(folder: str | Path, config: FitConfig, source: dict[str, Any], run: RunOptions = RunOptions(),
               keep_checkpoint: bool = False) -> Path:
     """Create the run folder with its `config.json` (enough to resume: the settings, the inputs and where it runs);
@@ -179,7 +190,11 @@ def read_run(folder: str | Path) -> tuple[FitConfig, dict[str, Any]]:
 def read_run_options(folder: str | Path) -> RunOptions:
     """Where the run in `folder` ran, as its `config.json` records it (device and backend): what a resume runs
     on, and the kernels a render of it takes where they run (`RunOptions.on_device`)."""
-    return RunOptions.from_dict(read_record(Path(folder) / CONFIG_FILE, RESTORE_RUN))
+    path = Path(folder) / CONFIG_FILE
+    try:
+        return RunOptions.from_dict(read_record(path, RESTORE_RUN))
+    except ConfigError as error:
+        raise InputError(f"{path}: {error}; {RESTORE_RUN}") from None
 
 
 def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[str, Any],
@@ -201,7 +216,8 @@ def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[
     history = result.history["psnr"]
     write_json(folder / METRICS_FILE, metrics_record(
         result.metrics, config, result.seconds,
-        {"updates": len(history), "initial_psnr": history[0] if history else None,
+        {**complex_field_metrics(result.primitives, config, scene, result.run.backend),
+         "updates": len(history), "initial_psnr": history[0] if history else None,
          "skipped_steps": result.skipped_steps, "sanitised_steps": result.sanitised_steps,
          **({} if run is None else {"run": run})}))
     (folder / CHECKPOINT_FILE).unlink(missing_ok=True)
@@ -271,6 +287,21 @@ def fit_fingerprint(config: FitConfig, source: dict[str, Any]) -> dict[str, Any]
     return {"schema": FINGERPRINT_SCHEMA, "config": config.to_dict(), "source": source}
 
 
+# The `config_schema` before the display, and what it added: a fit through the complex display hashes as that
+# schema recorded it, so that the files written before it keep their fingerprints.
+PRE_DISPLAY_SCHEMA = 2
+
+
+def canonical_config(config: FitConfig) -> dict[str, Any]:
+    """The record of `config` that fingerprints hash: `to_dict`'s, but for the complex display, which records
+    nothing (and `PRE_DISPLAY_SCHEMA`): every fit before displays had it."""
+    record = config.to_dict()
+    if config.display.ideal:
+        del record["display"]
+        record["config_schema"] = PRE_DISPLAY_SCHEMA
+    return record
+
+
 def fingerprint_digest(fingerprint: object) -> bytes | None:
     """The 16 bytes a `.cvq` file (format 5 on) keeps of a `fit_fingerprint` record: the first half of the SHA-256
     of its canonical JSON (keys sorted, no spaces), the settings as this version reads them; None where the
@@ -278,7 +309,7 @@ def fingerprint_digest(fingerprint: object) -> bytes | None:
     if not (isinstance(fingerprint, dict) and fingerprint.get("schema") == FINGERPRINT_SCHEMA):
         return None
     try:
-        canonical = {**fingerprint, "config": FitConfig.from_dict(fingerprint["config"]).to_dict()}
+        canonical = {**fingerprint, "config": canonical_config(FitConfig.from_dict(fingerprint["config"]))}
         text = json.dumps(canonical, sort_keys=True, separators=(",", ":"))
     except (KeyError, TypeError, ValueError, CvqpgError):
         return None
@@ -321,14 +352,16 @@ def evaluate_run(folder: str | Path, model: str | Path | None = None, device: st
     folder = Path(folder)
     primitives, config, source = load_run_model(folder, model, device)
     scene = scene_from_source(source, config)
-    _, recon = render(primitives, config, backend=read_run_options(folder).on_device(device).backend)
+    backend = read_run_options(folder).on_device(device).backend
+    _, recon = render(primitives, config, backend=backend)
     metrics_file = evaluation_file(folder, model)
     previous = {}
     if (folder / METRICS_FILE).is_file():
         previous = read_record(folder / METRICS_FILE, "delete it and evaluate again (the fit's time and run "
                                "record go with it)")
-    kept = {k: v for k, v in previous.items() if k not in ("mean", "per_plane", "unavailable")}
-    record = {**metrics_record(evaluate(recon, scene.targets), config, previous.get("seconds", 0.0)), **kept}
+    kept = {k: v for k, v in previous.items() if k not in ("mean", "per_plane", "unavailable", "complex_field")}
+    record = {**metrics_record(evaluate(recon, scene.targets), config, previous.get("seconds", 0.0),
+                               complex_field_metrics(primitives, config, scene, backend)), **kept}
     write_json(metrics_file, record)
     return record
 
@@ -344,48 +377,69 @@ def channel_labels(config: FitConfig) -> list[str]:
     return [f"{name}_{round(w * 1e9)}nm" for name, w in zip(names, config.wavelengths)]
 
 
-def save_phase_pattern(pattern: PhasePattern, labels: list[str], folder: Path) -> list[str]:
+def save_phase_pattern(pattern: PhasePattern, display: Display, labels: list[str], folder: Path) -> list[str]:
     """Per channel: the gray levels as PNG (8-bit up to 256 levels, else 16-bit) and the
     unquantised phase (rad) as float32 `.npy`. Returns the file names."""
     written = []
     for label, gray, phase in zip(labels, pattern.gray, pattern.phase_rad):
-        depth = np.uint8 if pattern.levels <= 256 else np.uint16
+        depth = np.uint8 if display.levels <= 256 else np.uint16
         Image.fromarray(gray.cpu().numpy().astype(depth)).save(folder / f"phase_{label}.png")
         np.save(folder / f"phase_{label}.npy", phase.cpu().numpy().astype(np.float32))
         written += [f"phase_{label}.png", f"phase_{label}.npy"]
     return written
 
 
-def export_run(folder: str | Path, encoding: Encoding = "dpac", levels: int = DEFAULT_LEVELS,
-               slm: tuple[int, int] | None = None, aperture: float | None = DEFAULT_APERTURE,
-               out: str | Path | None = None, model: str | Path | None = None, device: str = "cpu"
-               ) -> dict[str, Any]:
+def export_display(config: FitConfig, encoding: Encoding | None = None, levels: int | None = None,
+                   lut: tuple[float, ...] | None = None, aperture: float | None | str = "auto",
+                   canvas: tuple[int, int] | None = None) -> Display:
+    """The phase-only display that `export_run` writes for: the run's own where it was fitted through one, else
+    DPAC with its default aperture; each setting given replaces its own (None, `auto`: not given; `aperture`
+    None: no filter). A new encoding takes its own default aperture, and given `levels` uniform levels."""
+    base = config.display if config.display.phase_only else Display.create("dpac")
+    encoding = encoding or base.encoding
+    if lut is None and levels is None:
+        lut = base.lut
+    if aperture == "auto" and encoding == base.encoding:
+        aperture = base.aperture
+    return Display.create(encoding, levels if levels is not None or lut is not None else base.levels, lut,
+                          aperture, canvas or base.canvas)
+
+
+def export_run(folder: str | Path, encoding: Encoding | None = None, levels: int | None = None,
+               slm: tuple[int, int] | None = None, aperture: float | None | str = "auto",
+               out: str | Path | None = None, model: str | Path | None = None, device: str = "cpu",
+               lut: tuple[float, ...] | None = None) -> dict[str, Any]:
     """Write a run's phase-only SLM patterns and simulate showing them (method.md §8), rendered on `device`;
     `model` replaces the run's own model (e.g. a compressed file in the run folder).
 
-    `slm` is the SLM's (W, H) in px (default: the hologram's own size). Writes the patterns, the
-    simulated display's planes and `metrics.json` (phase-only display, the same 4f display fed
-    the complex field, and the fit's own complex reconstruction, all against the targets).
+    The display is `export_display`'s (the run's own, for a run fitted through one: the very patterns the fit
+    optimised, and the display the fit's metrics measured); `slm` is the SLM's (W, H) in px (default: the
+    hologram's own size). Writes the patterns, the simulated display's planes and `metrics.json` (phase-only
+    display, the complex field on the same canvas behind the same 4f aperture, and the complex field as method.md
+    §3 reconstructs it, all against the targets).
     """
     folder = Path(folder)
     out = Path(out) if out is not None else folder / EXPORT_FOLDER
     primitives, config, source = load_run_model(folder, model, device)
+    display = export_display(config, encoding, levels, lut, aperture, None if slm is None else (slm[1], slm[0]))
+    shown_config = config.replace(display=display)
+    shown_config.validate()
     out.mkdir(parents=True, exist_ok=True)
     scene = scene_from_source(source, config)
-    hologram, complex_recon = render(primitives, config)
-    canvas = (config.targets.height, config.targets.width) if slm is None else (slm[1], slm[0])
-    pattern = phase_pattern(hologram, encoding, levels, canvas)
-    files = save_phase_pattern(pattern, channel_labels(config), out)
-    display = Display(canvas, aperture)
+    complex_config = config.replace(display=Display())
+    hologram, complex_recon = render(primitives, complex_config)
     with torch.no_grad():
-        shown = simulate_display(pattern.displayed_field, display, config)
-        complex_shown = simulate_display(place_on_canvas(slm_field(hologram), canvas[1], canvas[0]), display,
-                                         config)
+        pattern = phase_pattern(slm_field(hologram), display)
+        shown = reconstruct(hologram, shown_config)
+        complex_shown = reconstruct(hologram, config.replace(display=Display(aperture=display.aperture,
+                                                                             canvas=display.canvas)))
+    files = save_phase_pattern(pattern, display, channel_labels(config), out)
     for plane, image in enumerate(shown):
         to_8bit(image).save(out / f"display_plane{plane}.png")
         files.append(f"display_plane{plane}.png")
-    record = {"encoding": encoding, "levels": levels, "slm_px": list(slm) if slm else None,
-              "hologram_px": [config.targets.width, config.targets.height], "aperture_of_nyquist": aperture,
+    record = {"display": display.to_dict(), "encoding": display.encoding, "levels": display.levels,
+              "slm_px": list(slm) if slm else None,
+              "hologram_px": [config.targets.width, config.targets.height], "aperture_of_nyquist": display.aperture,
               "files": files,
               "phase_only_display": evaluate(shown, scene.targets).to_dict(),
               "complex_display": evaluate(complex_shown, scene.targets).to_dict(),
@@ -417,6 +471,8 @@ def half_precision_model(folder: str | Path) -> dict[str, Any]:
 def rescaled(primitives: Primitives, config: FitConfig, width: int, height: int) -> tuple[Primitives, FitConfig]:
     """The same physical hologram sampled on a W×H grid: positions and scales scale with the grid,
     the pixel pitch shrinks by as much, curvature (1/m) stays. Refuses another aspect ratio."""
+    require_gaussians(config, "`size` (a render at another sampling)", "render it at its own "
+                      f"{config.targets.width}×{config.targets.height} px")
     if min(width, height) < MIN_SIZE_PX:
         raise ConfigError(f"`size` {width}×{height}: each side needs at least {MIN_SIZE_PX} px")
     factor = width / config.targets.width

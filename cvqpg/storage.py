@@ -15,21 +15,19 @@ from safetensors.torch import load_file, save
 
 from .codec import FINGERPRINT, MAGIC, PREFIX, SUFFIX, Compressed, bits_per_pixel, decode, file_fingerprint
 from .config import FitConfig
-from .errors import ModelFileError, choices_error
+from .errors import ConfigError, ModelFileError, choices_error
 from .files import atomic_file, write_atomic
-from .primitives import REWRITE_MODEL, Primitives, check_settings, check_tensors
+from .primitives import REWRITE_MODEL, Primitives, TensorFields, check_settings
+from .representation import representation
 
 MODEL_FORMAT = "cvqpg-model"
 MODEL_FORMAT_VERSION = "2"
 RUN_KEY = "run"  # the metadata entry of the fit a model came from (`save_model`)
 STORED_DTYPES = {"float32": torch.float32, "float16": torch.float16}
-UNITS = {"position_px": "px (x, y), pixel centres at integers", "scale_px": "px (σ along the Gaussian's axes)",
-         "rotation_rad": "rad", "amplitude": "per channel, unitless", "phase_rad": "rad in [0, 2π), per channel",
-         "opacity": "in (0, 1)", "curvature_per_m": "1/m (γ of the quadratic phase)"}
 
 
-def model_metadata(primitives: Primitives, config: FitConfig, dtype: str, run: dict[str, Any] | None = None
-                   ) -> dict[str, str]:
+def model_metadata(primitives: Primitives | TensorFields, config: FitConfig, dtype: str,
+                   run: dict[str, Any] | None = None) -> dict[str, str]:
     """What a model file says about itself: format, configuration, the optics in plain numbers, and the fit it
     came from (`run`, `runs.fit_fingerprint`) where it was fitted in a run folder."""
     return {**({} if run is None else {RUN_KEY: json.dumps(run)}),
@@ -38,13 +36,13 @@ def model_metadata(primitives: Primitives, config: FitConfig, dtype: str, run: d
             "width_px": str(config.targets.width), "height_px": str(config.targets.height),
             "pixel_pitch_m": repr(config.optics.pixel_pitch), "wavelengths_m": json.dumps(config.wavelengths),
             "plane_distances_m": json.dumps(config.plane_distances), "qpf": config.primitives.qpf,
-            "units": json.dumps(UNITS)}
+            "units": json.dumps(representation(config).units)}
 
 
-def save_model(path: str | Path, primitives: Primitives, config: FitConfig, dtype: str = "float32",
+def save_model(path: str | Path, primitives: Primitives | TensorFields, config: FitConfig, dtype: str = "float32",
                run: dict[str, Any] | None = None) -> None:
-    """Write the activated primitives (physical units, see `UNITS`) and the optics, atomically; `run` binds the
-    file to the fit of a run folder (`model_metadata`).
+    """Write the activated primitives, or a per-pixel hologram (physical units, the representation's `units`), and
+    the optics, atomically; `run` binds the file to the fit of a run folder (`model_metadata`).
 
     `dtype="float16"` stores everything but the positions in float16 and about halves the file;
     positions stay float32 because float16's spacing grows to 2 px above 2048 px. Rendering casts
@@ -99,7 +97,8 @@ def _model_file(path: str | Path) -> Path:
     return path
 
 
-def _read_safetensors(path: Path, device: str | torch.device = "cpu") -> tuple[Primitives, FitConfig, dict[str, str]]:
+def _read_safetensors(path: Path, device: str | torch.device = "cpu"
+                      ) -> tuple[Primitives | TensorFields, FitConfig, dict[str, str]]:
     """A model written by `save_model`, as float32 primitives on `device`, with the file's metadata."""
     try:
         with safe_open(str(path), framework="pt") as handle:
@@ -116,11 +115,14 @@ def _read_safetensors(path: Path, device: str | torch.device = "cpu") -> tuple[P
     except (KeyError, ValueError, TypeError, AttributeError) as error:
         raise ModelFileError(f"{path}: its metadata holds no readable configuration ({type(error).__name__}: "
                              f"{error}); {REWRITE_MODEL}") from None
-    missing = [name for name in UNITS if name not in tensors]
+    except ConfigError as error:
+        raise ModelFileError(f"{path}: its settings cannot work ({error}); {REWRITE_MODEL}") from None
+    kind = representation(config)
+    missing = [name for name in kind.units if name not in tensors]
     if missing:
         raise ModelFileError(f"{path}: missing tensors {', '.join(missing)}")
-    primitives = Primitives.from_tensors({name: t.float() for name, t in tensors.items()})
-    check_tensors(primitives, config, str(path))
+    primitives = kind.from_tensors({name: t.float() for name, t in tensors.items()}, config)
+    kind.check(primitives, config, str(path))
     check_settings(config, primitives.count, str(path))
     if metadata.get("num_primitives") != str(primitives.count):
         raise ModelFileError(f"{path}: its metadata says {metadata.get('num_primitives')} primitives, its tensors "
@@ -128,8 +130,9 @@ def _read_safetensors(path: Path, device: str | torch.device = "cpu") -> tuple[P
     return primitives, config, metadata
 
 
-def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Primitives, FitConfig]:
-    """Read a model written by `save_model`, or a compressed `.cvq` file, as float32 primitives on `device`."""
+def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Primitives | TensorFields, FitConfig]:
+    """Read a model written by `save_model`, or a compressed `.cvq` file, as float32 primitives (or a per-pixel
+    hologram) on `device`."""
     path = _model_file(path)
     if is_compressed(path):
         compressed = read_compressed(path)

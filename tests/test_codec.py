@@ -203,7 +203,7 @@ def test_a_model_file_that_makes_no_physical_sense_is_refused(tmp_path, damage, 
 
     config = FitConfig.create(width=48, height=32, ratio=0.3)
     path = tmp_path / "model.safetensors"
-    save_model(path, random_primitives(config), config.replace(pixel_pitch=0) if damage == "pitch" else config)
+    save_model(path, random_primitives(config), config)
     tensors = load_file(path)
     with safe_open(str(path), framework="pt") as handle:
         metadata = handle.metadata()
@@ -213,6 +213,10 @@ def test_a_model_file_that_makes_no_physical_sense_is_refused(tmp_path, damage, 
         tensors["scale_px"][0, 0] = -1.0
     elif damage == "config":
         metadata["config"] = "{not json"
+    elif damage == "pitch":
+        record = json.loads(metadata["config"])
+        record["optics"]["pixel_pitch"] = 0
+        metadata["config"] = json.dumps(record)
     elif damage == "count":
         metadata["num_primitives"] = "5"
     save_file(tensors, str(path), metadata=metadata)

@@ -1,22 +1,80 @@
-"""FitConfig: settings by concern, every number checked against its range in one message style, recipes resolved
-when a configuration is made, and the records of every earlier version read as the values they ran with."""
+"""FitConfig: settings by concern, every number checked against its range in one message style where a configuration
+is made (so one that exists is valid), recipes resolved then, and the records of every earlier version read as the
+values they ran with."""
 
 from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import pytest
 
 from cvqpg import ConfigError, CvqpgError, FitConfig
-from cvqpg.config import (BOUNDS, COLORS, CURVATURES, FLAT_NAMES, INITS, LONG_RUN_BETAS, MAX_TIME_MINUTES, PAPER_BETAS,
-                          PRIMITIVES, QPFS, LearningRates, RunOptions, check_distances, check_time_budget,
-                          resolve_backend)
+from cvqpg.config import (BOUNDS, CHOICES, COLORS, CURVATURES, FLAT_NAMES, INITS, LONG_RUN_BETAS, MAX_TIME_MINUTES,
+                          OPTIONAL, PAPER_BETAS, PRIMITIVES, QPFS, RANGES, SECTION_CLASSES, LearningRates,
+                          OptimisationSettings, RunOptions, check_distances, check_time_budget, resolve_backend)
 
 ENUMERATED = {"color": COLORS, "primitive": PRIMITIVES, "bound": BOUNDS, "qpf": QPFS, "curvature": CURVATURES,
               "init": INITS}
 CONFIGS = Path(__file__).parent / "data" / "configs"
+
+
+def made_with(name: str, value: object) -> dict[str, object]:
+    """Every way to make a configuration with the setting of flat name `name` at `value`, each a thunk: its section
+    constructed, `FitConfig.create`, `FitConfig.replace` and `FitConfig.from_dict` of a record holding it."""
+    section, key = FLAT_NAMES[name]
+    record = FitConfig.create(steps=30).to_dict()
+    record[section][key] = value
+    return {"section": lambda: SECTION_CLASSES[section](**{key: value}),
+            "create": lambda: FitConfig.create(**{name: value}),
+            "replace": lambda: FitConfig.create(steps=30).replace(**{name: value}),
+            "from_dict": lambda: FitConfig.from_dict(json.loads(json.dumps(record)))}
+
+
+def just_outside(low: float, high: float, kind: str) -> tuple[float, float]:
+    """The nearest values below and above a range of `config.RANGES` that it refuses."""
+    if kind == "integer":
+        return low - 1, high + 1
+    below = low if kind == "positive" else math.nextafter(low, -math.inf)
+    return below, high if kind == "fraction" else math.nextafter(high, math.inf)
+
+
+@pytest.mark.parametrize("name", sorted(RANGES))
+def test_a_value_just_outside_its_range_makes_no_configuration_by_any_route(name):
+    for value in just_outside(*RANGES[name]):
+        for route, make in made_with(name, value).items():
+            with pytest.raises(ConfigError, match=rf"^`{name}` must lie in .*, got {re.escape(repr(value))}$"):
+                make()
+                pytest.fail(f"{name} = {value!r} made a configuration by {route}")
+
+
+@pytest.mark.parametrize("name", sorted(CHOICES))
+def test_a_value_outside_its_choices_makes_no_configuration_by_any_route(name):
+    for route, make in made_with(name, CHOICES[name][-1] + "s").items():
+        with pytest.raises(ConfigError, match=f"^`{name}` .* is not one of"):
+            make()
+            pytest.fail(f"{name} made a configuration by {route}")
+
+
+def test_every_setting_is_checked_where_it_is_made():
+    # the four checked by their own rules in their sections; a new setting needs a row in RANGES or CHOICES
+    assert set(FLAT_NAMES) - set(RANGES) - set(CHOICES) == {"wavelengths_m", "lr", "betas", "curvature_warmup"}
+    assert set(OPTIONAL) <= set(RANGES) and not set(RANGES) & set(CHOICES)
+    config = FitConfig.create(steps=30)
+    assert config.validate() is config  # kept for callers: a configuration that exists is valid
+
+
+def test_checks_across_settings_refuse_where_both_are_held():
+    with pytest.raises(ConfigError, match=r"^`curvature_warmup` must lie in \[0, 31\], got 32$"):
+        OptimisationSettings(steps=30, curvature_warmup=32)
+    with pytest.raises(ConfigError, match=r"^`lr.position` must lie in \[0, 10\], got -0.01$"):
+        LearningRates(position=-0.01)
+    with pytest.raises(ConfigError, match=r"need 1 value\(s\) for `color` 'gray'"):
+        FitConfig.create(wavelengths_m=(639e-9, 532e-9, 473e-9)).replace(color="gray")
+    with pytest.raises(ConfigError, match="change `ratio` or `num_gaussians`"):
+        FitConfig.create(width=16, height=16, num_gaussians=257)
 
 
 @pytest.mark.parametrize("name", sorted(ENUMERATED))
@@ -25,7 +83,7 @@ def test_every_bad_value_of_an_enumerated_setting_is_refused_listing_the_choices
     good = ENUMERATED[name][-1]
     value = {"upper": good.upper(), "typo": good + "s", "empty": "", "none": None}[bad]
     with pytest.raises(ConfigError) as error:
-        FitConfig.create(**{name: value}).validate()
+        FitConfig.create(**{name: value})
     message = str(error.value)
     assert f"`{name}`" in message and all(repr(choice) in message for choice in ENUMERATED[name])
     assert "\n" not in message and isinstance(error.value, CvqpgError)
@@ -34,7 +92,6 @@ def test_every_bad_value_of_an_enumerated_setting_is_refused_listing_the_choices
 # Values each setting refuses; every number must be finite too (`test_non_finite_numbers_are_refused`).
 OUT_OF_RANGE = {
     "betas": [(0.98, 1.5, 0.99), (-0.1, 0.92, 0.99), (0.98, 0.92, 1.0)],
-    "lr": [LearningRates(position=-0.01), LearningRates(curvature=100.0)],
     "grad_clip_norm": [-1.0, 0.0], "adan_eps": [0.0, -1e-8], "target_noise": [-1e-3, 2.0],
     "defocus_sigma_px": [-8.0], "global_bound": [-200.0], "ssim_weight": [-0.5], "focus_weight": [-0.5],
     "product_weight": [-1.0], "eta": [0.0, -0.9], "ratio": [0.0, -0.2], "depth_exponent": [0.0],
@@ -48,7 +105,7 @@ OUT_OF_RANGE = {
 @pytest.mark.parametrize(("name", "value"), [(n, v) for n, values in OUT_OF_RANGE.items() for v in values])
 def test_a_value_out_of_its_range_is_refused_naming_the_setting_and_the_range(name, value):
     with pytest.raises(ConfigError) as error:
-        FitConfig.create(**{name: value}).validate()
+        FitConfig.create(**{name: value})
     message = str(error.value)
     assert message.startswith("`") and "\n" not in message
     assert name.split("_m")[0] in message.split("`")[1] or "plane distances" in message
@@ -57,11 +114,11 @@ def test_a_value_out_of_its_range_is_refused_naming_the_setting_and_the_range(na
 
 def test_the_range_message_says_where_a_number_may_lie():
     with pytest.raises(ConfigError, match=r"^`betas\[1\]` must lie in \[0, 1\), got 1.5$"):
-        FitConfig.create(betas=(0.98, 1.5, 0.99)).validate()
+        FitConfig.create(betas=(0.98, 1.5, 0.99))
     with pytest.raises(ConfigError, match=r"^`pixel_pitch` must lie in \[1e-07, 0.001\], got 1e-30$"):
-        FitConfig.create(pixel_pitch=1e-30).validate()
+        FitConfig.create(pixel_pitch=1e-30)
     with pytest.raises(ConfigError, match=r"^`seed` must lie in \[0, 4611686018427387904\], got 100000000"):
-        FitConfig.create(seed=10**23).validate()
+        FitConfig.create(seed=10**23)
 
 
 @pytest.mark.parametrize("name", ["ratio", "pixel_pitch", "plane_center", "plane_span", "eta", "ssim_weight",
@@ -69,21 +126,21 @@ def test_the_range_message_says_where_a_number_may_lie():
 @pytest.mark.parametrize("value", [math.inf, -math.inf, math.nan, "1", True])
 def test_non_finite_numbers_are_refused(name, value):
     with pytest.raises(ConfigError, match=f"^`{name}` must be a finite number in"):
-        FitConfig.create(**{name: value}).validate()
+        FitConfig.create(**{name: value})
 
 
 @pytest.mark.parametrize("changes", [{"steps": 2.5}, {"num_planes": True}, {"width": "640"}, {"num_gaussians": 1.5},
                                      {"seed": 1e23}, {"curvature_warmup": 7.0}])
 def test_counts_must_be_whole_numbers(changes):
     with pytest.raises(ConfigError, match=f"^`{next(iter(changes))}` must be a whole number in"):
-        FitConfig.create(**changes).validate()
+        FitConfig.create(**changes)
 
 
 def test_settings_live_in_their_concern_and_create_routes_every_flat_name():
-    config = FitConfig.create(width=64, pixel_pitch=8e-6, primitive="flat", num_gaussians=50, steps=30,
+    config = FitConfig.create(width=64, pixel_pitch=8e-6, primitive="flat", num_gaussians=50, steps=3000,
                               ssim_weight=0.01)
     assert (config.targets.width, config.optics.pixel_pitch, config.primitives.kind, config.primitives.count,
-            config.optimisation.steps, config.loss.ssim_weight) == (64, 8e-6, "flat", 50, 30, 0.01)
+            config.optimisation.steps, config.loss.ssim_weight) == (64, 8e-6, "flat", 50, 3000, 0.01)
     reference = FitConfig()
     for name in FLAT_NAMES:
         assert config.replace(**{name: reference.setting(name)}).setting(name) == reference.setting(name)
@@ -98,7 +155,7 @@ def test_the_curvature_warm_up_is_resolved_when_the_configuration_is_made_and_ke
     assert FitConfig.create(steps=300, curvature_warmup=7).optimisation.curvature_warmup == 7
     assert FitConfig.create(steps=300, curvature_warmup=30).with_steps(600).optimisation.curvature_warmup == 60
     with pytest.raises(ConfigError, match=r"`curvature_warmup` must lie in \[0, 301\], got 400"):
-        FitConfig.create(steps=300, curvature_warmup=400).validate()
+        FitConfig.create(steps=300, curvature_warmup=400)
 
 
 def test_a_first_version_s_warm_up_longer_than_its_run_reads_as_never_training():

@@ -13,8 +13,8 @@ from PIL import Image
 from cvqpg import FitConfig, load_model, save_model
 from cvqpg.cli import main
 from cvqpg.config import ConfigError
-from cvqpg.export import (Display, checkerboard, dequantise, double_phase, encode, place_on_canvas, quantise,
-                          simulate_display)
+from cvqpg.display import Display, checkerboard, double_phase, level_phases, place_on_canvas, quantise
+from cvqpg.optics import reconstruct
 from cvqpg.fitting import render
 from cvqpg.primitives import Primitives
 from cvqpg.runs import rescaled
@@ -53,24 +53,25 @@ def test_dpac_neighbours_average_to_the_field():
 
 
 def test_quantisation_round_trips():
+    display = Display.create("dpac")
     levels = torch.arange(256)
-    assert torch.equal(quantise(dequantise(levels)), levels)
+    assert torch.equal(quantise(level_phases(display)[levels], display), levels)
     phase = torch.linspace(-7.0, 13.0, 10_001)
-    error = circular_distance(dequantise(quantise(phase)), phase)
+    error = circular_distance(level_phases(display)[quantise(phase, display)], phase)
     assert error.abs().max() <= math.pi / 256 + 1e-6
-    assert quantise(torch.tensor([2 * math.pi - 1e-4])).item() == 0  # wraps, never 256
-    assert quantise(torch.tensor([math.pi]), levels=1024).item() == 512
+    assert quantise(torch.tensor([2 * math.pi - 1e-4]), display).item() == 0  # wraps, never 256
+    assert quantise(torch.tensor([math.pi]), Display.create("dpac", levels=1024)).item() == 512
     with pytest.raises(ConfigError, match="phase levels"):
-        quantise(phase, levels=1)
+        Display.create("dpac", levels=1)
 
 
 def test_pattern_is_centred_on_the_slm_canvas():
     pattern = torch.ones(1, 3, 4)
-    canvas = place_on_canvas(pattern, 10, 7)
+    canvas = place_on_canvas(pattern, (7, 10))
     assert canvas.shape == (1, 7, 10) and canvas.sum() == 12
     assert torch.equal(canvas[0, 2:5, 3:7], pattern[0])
     with pytest.raises(ConfigError, match="smaller than"):
-        place_on_canvas(pattern, 3, 7)
+        Display.create("dpac", canvas=(7, 3)).canvas_for(3, 4)
 
 
 def smooth_field(height: int, width: int) -> torch.Tensor:
@@ -88,13 +89,9 @@ def correlation(a: torch.Tensor, b: torch.Tensor) -> float:
 def test_aperture_filtered_dpac_reconstructs_like_the_field_itself():
     config = FitConfig.create(width=64, height=48, color="gray", guard_band_px=32)
     field = smooth_field(config.targets.height, config.targets.width)
-    canvas = (config.targets.height, config.targets.width)
-    own = simulate_display(field, Display(canvas, aperture=None), config)
-    def displayed(encoding: str) -> torch.Tensor:
-        pattern = dequantise(quantise(encode(field, encoding)))
-        return simulate_display(torch.polar(torch.ones_like(pattern), pattern), Display(canvas), config)
-
-    shown = {encoding: displayed(encoding) for encoding in ("dpac", "phase")}
+    own = reconstruct(field, config.replace(display=Display(canvas=(48, 64))))
+    shown = {encoding: reconstruct(field, config.replace(display=Display.create(encoding, aperture=0.5)))
+             for encoding in ("dpac", "phase")}
     for plane in range(config.targets.num_planes):
         assert correlation(shown["dpac"][plane], own[plane]) > 0.95
         assert correlation(shown["phase"][plane], own[plane]) < correlation(shown["dpac"][plane], own[plane])

@@ -145,7 +145,7 @@ def test_position_learning_rate_is_torch_cosine_annealing():
     assert position_learning_rate(0, config) == pytest.approx(0.01, rel=1e-14)
     assert position_learning_rate(config.optimisation.steps, config) > 1e-3
     # a shorter run: T_max = steps + 1
-    short = config.replace(steps=10)
+    short = config.with_steps(10)
     closed = [1e-3 + (0.01 - 1e-3) * (1 + math.cos(math.pi * s / 11)) / 2 for s in range(11)]
     assert [position_learning_rate(s, short) for s in range(11)] == pytest.approx(closed, rel=1e-12)
 

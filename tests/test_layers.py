@@ -87,7 +87,9 @@ def test_the_codec_and_storage_sit_below_the_workflows():
     assert GRAPH["cvqpg.codec"] <= {"cvqpg.bitdepths", "cvqpg.config", "cvqpg.defaults", "cvqpg.errors",
                                     "cvqpg.primitives"}
     assert GRAPH["cvqpg.storage"] <= {"cvqpg.codec", "cvqpg.config", "cvqpg.errors", "cvqpg.files",
-                                      "cvqpg.primitives"}
+                                      "cvqpg.primitives", "cvqpg.representation"}
+    assert not any(name.startswith("cvqpg.app") or name in MODEL_FILE_LAYERS
+                   for name in reachable(GRAPH, "cvqpg.representation"))
     assert "cvqpg.search" not in GRAPH["cvqpg.finetune"] | GRAPH["cvqpg.runs"]
 
 

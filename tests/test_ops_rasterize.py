@@ -308,8 +308,8 @@ def test_gradients_match_direct_evaluation(qpf):
 
 @pytest.mark.parametrize("qpf", ["mahalanobis", "standard"])
 def test_cvqpg_with_zero_curvature_renders_exactly_as_flat(qpf):
-    base = FitConfig.create(width=20, height=14, num_gaussians=40, qpf=qpf)
-    raw = init_gaussians(40, 3, 20, 14, seed=7)
+    base = FitConfig.create(width=20, height=16, num_gaussians=40, qpf=qpf)
+    raw = init_gaussians(40, 3, 20, 16, seed=7)
     assert torch.all(raw.curvature == 0)
     cvqpg = render_hologram(raw, base.replace(primitive="cvqpg"))
     flat = render_hologram(raw, base.replace(primitive="flat"))

@@ -347,14 +347,14 @@ def test_grid_for_paper_config_is_768_by_960():
 
 
 def small_grid() -> Grid:
-    return Grid.for_config(FitConfig.create(width=20, height=12, guard_band_px=10, pad_multiple_px=8))
+    return Grid.for_config(FitConfig.create(width=20, height=16, guard_band_px=10, pad_multiple_px=8))
 
 
 def test_guard_band_sizes_for_small_grid():
     grid = small_grid()
-    # 12 + 20 = 32 → 32; 20 + 20 = 40 → 40
-    assert (grid.padded_height, grid.padded_width) == (32, 40)
-    assert (grid.top, grid.left) == (10, 10)
+    # 16 + 20 = 36 → 40; 20 + 20 = 40 → 40
+    assert (grid.padded_height, grid.padded_width) == (40, 40)
+    assert (grid.top, grid.left) == (12, 10)  # the content centred: (40 − 16) / 2
 
 
 def test_pad_with_guard_band_content_edges_and_window():

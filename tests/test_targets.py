@@ -99,22 +99,22 @@ def test_single_plane_without_depth_all_plane_zero():
 
 
 def test_two_plane_targets_match_hand_computation():
-    image = small_image(2, 9, 13, seed=0)
+    image = small_image(2, 16, 17, seed=0)
     rng = np.random.default_rng(1)
-    depth = rng.random((9, 13)).astype(np.float32)
+    depth = rng.random((16, 17)).astype(np.float32)
     depth[0, :3] = 0.5  # exactly half: plane 0
     depth[4, 4] = 1.0
     masks = hand_masks(depth, 2)
     assert masks[0, 0, :3].tolist() == [1, 1, 1]
     expected = hand_targets(image.astype(np.float64), masks)
     ours = defocus_targets(torch.from_numpy(image), torch.from_numpy(masks).float())
-    assert ours.shape == (2, 2, 9, 13)
+    assert ours.shape == (2, 2, 16, 17)
     np.testing.assert_allclose(ours.numpy(), expected, rtol=0, atol=1e-6)
     # plane m is sharp where Mask_m is set
     sharp = masks[0].astype(bool)
     np.testing.assert_allclose(ours[0].numpy()[:, sharp], image[:, sharp], atol=1e-6)
 
-    config = FitConfig.create(width=13, height=9, color="gray", num_planes=2)
+    config = FitConfig.create(width=17, height=16, color="gray", num_planes=2)
     scene = build_scene(torch.from_numpy(image), torch.from_numpy(depth), config)
     np.testing.assert_array_equal(scene.masks.numpy(), masks)
     np.testing.assert_allclose(scene.targets.numpy(), expected, rtol=0, atol=1e-6)
@@ -122,24 +122,24 @@ def test_two_plane_targets_match_hand_computation():
 
 
 def test_three_plane_targets_match_hand_computation():
-    image = small_image(1, 8, 11, seed=2)
-    depth = np.random.default_rng(3).random((8, 11)).astype(np.float32)
+    image = small_image(1, 16, 18, seed=2)
+    depth = np.random.default_rng(3).random((16, 18)).astype(np.float32)
     depth[2, 2] = 0.25  # 0.5 → plane 0
     depth[3, 3] = 0.75  # 1.5 → plane 2
     masks = hand_masks(depth, 3)
     assert masks[0, 2, 2] == 1 and masks[2, 3, 3] == 1
     expected = hand_targets(image.astype(np.float64), masks)  # σ = 0, 8, 16
-    config = FitConfig.create(width=11, height=8, color="gray", num_planes=3)
+    config = FitConfig.create(width=18, height=16, color="gray", num_planes=3)
     scene = build_scene(torch.from_numpy(image), torch.from_numpy(depth), config)
     np.testing.assert_array_equal(scene.masks.numpy(), masks)
     np.testing.assert_allclose(scene.targets.numpy(), expected, rtol=0, atol=1e-6)
 
 
 def test_build_scene_needs_depth_for_several_planes():
-    image = torch.rand(1, 4, 5)
+    image = torch.rand(1, 16, 17)
     with pytest.raises(ValueError):
-        build_scene(image, None, FitConfig.create(width=5, height=4, color="gray", num_planes=2))
-    scene = build_scene(image, None, FitConfig.create(width=5, height=4, color="gray", num_planes=1))
+        build_scene(image, None, FitConfig.create(width=17, height=16, color="gray", num_planes=2))
+    scene = build_scene(image, None, FitConfig.create(width=17, height=16, color="gray", num_planes=1))
     assert torch.allclose(scene.targets[0], image, atol=1e-7)
 
 

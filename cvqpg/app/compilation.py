@@ -158,7 +158,7 @@ def compile_kernels(config: FitConfig, alongside: bool = True) -> None:
     another process compiles the other kernels meanwhile (`ALONGSIDE_PARTS`), and the step waits for
     it and loads them from the cache. Otherwise the step compiles them."""
     from ..fitting import initial_state, optimisation_step, render
-    from ..primitives import activate
+    from ..representation import representation
 
     probe = probe_config(config)
     with CompileAlongside([alongside_command(probe)] if alongside else []):
@@ -166,7 +166,7 @@ def compile_kernels(config: FitConfig, alongside: bool = True) -> None:
         scene = probe_scene(probe)
         state = initial_state(probe, scene)  # the optimiser's imports, before waiting for the other process
     optimisation_step(state, scene, probe, "numba")
-    render(activate(state.gaussians.detached(), probe), probe, backend="numba")
+    render(representation(probe).activate(state.gaussians.detached(), probe), probe, backend="numba")
 
 
 class CompileStatus(event.Listener):

@@ -15,6 +15,7 @@ from ..defaults import RATE_FINETUNE_STEPS, SUFFIX
 from ..errors import ConfigError, ModelFileError
 from ..files import write_atomic
 from ..primitives import Primitives
+from ..representation import require_gaussians
 from ..runs import CONFIG_FILE, fingerprint_digest, load_run_model, model_path, scene_from_source
 from ..search import (LADDER, Choice, CompressionSettings, FixedBits, MaxDrop, Reference, finetuned, pruned_count,
                       rate_control, reference_for, search)
@@ -45,9 +46,14 @@ def compression_input(target: str | Path, finetune_steps: int = 0) -> Compressio
     if finetune_steps and folder is None:
         raise ConfigError(f"`finetune_steps` needs the run folder's inputs; {model_file} is not in a run folder")
     if folder is None:
-        return CompressionInput(model_file, *load_model(model_file), None)
-    primitives, config, source = load_run_model(folder, model_file)
-    return CompressionInput(model_file, primitives, config, scene_from_source(source, config))
+        primitives, config = load_model(model_file)
+        source = None
+    else:
+        primitives, config, source = load_run_model(folder, model_file)
+    require_gaussians(config, "the .cvq codec", f"{model_file} is the pattern itself (`cvqpg info --half` stores it "
+                      "in float16)")
+    return CompressionInput(model_file, primitives, config, None if source is None else scene_from_source(source,
+                                                                                                         config))
 
 
 def choice_record(choice: Choice, reference: Reference, config: FitConfig) -> dict[str, Any]:

@@ -22,6 +22,7 @@ from ..defaults import CHECKPOINT_SECONDS, ENCODE_FINETUNE_STEPS, ENCODE_STEPS
 from ..errors import InputError
 from ..fitting import FitResult, fit_scene
 from ..primitives import Primitives, activate, init_gaussians
+from ..representation import require_gaussians
 from ..runs import read_record, read_run, start_run, write_json
 from ..ratefit import PLAIN, RateFit, RateObjective, silent_removed
 from ..search import Budget, CompressionSettings, RateChoice, Reference, rate_control, reference_for, smallest_file
@@ -56,7 +57,9 @@ def stand_in(config: FitConfig, count: int, seed: int = 0) -> Primitives:
 
 def encode_budget(config: FitConfig, settings: CompressionSettings) -> Budget:
     """The budget of `settings` for a fit of `config` to be encoded, checked before any fitting: not below the
-    smallest file of a model of its shape (`stand_in`, `search.smallest_file`)."""
+    smallest file of a model of its shape (`stand_in`, `search.smallest_file`); a per-pixel fit is refused."""
+    require_gaussians(config, "`cvqpg encode` (the .cvq codec)", "fit it with `cvqpg fit`, whose model file is the "
+                      "pattern")
     budget = settings.budget(config)
     budget.check(smallest_file(stand_in(config, 1), config), config)
     return budget

@@ -202,20 +202,21 @@ class _ContentPropagation(torch.autograd.Function):
 
 
 def propagate_content(field: Tensor, grid: Grid, distances_m: Sequence[float], wavelengths_m: Sequence[float],
-                      pixel_pitch: float, fused: bool) -> Tensor:
-    """The H×W content [M, C, H, W] of `propagate(field, ...)` for a [C, P_H, P_W] field (distances,
+                      pixel_pitch: float, fused: bool, aperture: float | None = None) -> Tensor:
+    """The H×W content [M, C, H, W] of `propagate(field, ..., aperture)` for a [C, P_H, P_W] field (distances,
     wavelengths and pitch in m), lean in memory and time: the pruned transforms, their copies,
     transposes and transfer products as the CPU kernels (`fused`, a CPU field) or PyTorch's
-    operations (any device)."""
-    bank = transfer_bank(field, distances_m, wavelengths_m, pixel_pitch, transposed=True)
+    operations (any device). The 4f `aperture` rides in the transfer functions (`TransferBank`)."""
+    bank = transfer_bank(field, distances_m, wavelengths_m, pixel_pitch, transposed=True, aperture=aperture)
     return _ContentPropagation.apply(field, grid, bank, fused)
 
 
 def propagate_planes(field: Tensor, grid: Grid, distances_m: Sequence[float], wavelengths_m: Sequence[float],
-                     pixel_pitch: float, backend: str = "auto") -> Tensor:
+                     pixel_pitch: float, backend: str = "auto", aperture: float | None = None) -> Tensor:
     """The H×W content [M, C, H, W] of a [C, P_H, P_W] SLM field propagated to every distance (m) at
-    each channel's wavelength (m), pitch in m (method.md §3): the pruned transforms with the CPU kernels
+    each channel's wavelength (m), pitch in m (method.md §3), behind a 4f system's circular Fourier `aperture`
+    (a fraction of the Nyquist frequency; None: none, method.md §8): the pruned transforms with the CPU kernels
     (`numba`), else the full-grid ones (`torch`, `triton`); the same numbers to float32 rounding."""
     if resolve_backend(backend, field.device) == "numba":
-        return propagate_content(field, grid, distances_m, wavelengths_m, pixel_pitch, fused=True)
-    return grid.crop(propagate(field, distances_m, wavelengths_m, pixel_pitch))
+        return propagate_content(field, grid, distances_m, wavelengths_m, pixel_pitch, fused=True, aperture=aperture)
+    return grid.crop(propagate(field, distances_m, wavelengths_m, pixel_pitch, aperture))

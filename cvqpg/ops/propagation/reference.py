@@ -1,6 +1,6 @@
 """BLASM propagation's PyTorch reference (method.md §3, odak 0.2.7's convention): the transfer function,
-its distance-independent spectral terms, the bank of transfer functions a propagation uses, and the
-full-grid propagation."""
+its distance-independent spectral terms, the bank of transfer functions a propagation uses (with a display's 4f
+aperture folded in, method.md §8), and the full-grid propagation."""
 
 from __future__ import annotations
 
@@ -36,7 +36,7 @@ def spectral_terms(rows: int, cols: int, pixel_pitch: float, wavelength: float, 
 def transfer_function(rows: int, cols: int, pixel_pitch: float, wavelength: float, distance: float,
                       device: torch.device, centred: bool = True,
                       part: tuple[slice, slice] = (slice(None), slice(None)),
-                      terms: SpectralTerms | None = None) -> Tensor:
+                      terms: SpectralTerms | None = None, aperture: float | None = None) -> Tensor:
     """BLASM transfer function [rows, cols] (complex64), exactly as odak 0.2.7 builds it.
 
     Computed in float32 like odak, whose numbers the paper reports. As in odak, the band limit of
@@ -44,6 +44,9 @@ def transfer_function(rows: int, cols: int, pixel_pitch: float, wavelength: floa
     `centred=False` gives it ifftshift-ed (zero frequency first, FFT order): the shift is applied to
     the 1D frequency axes, so no second full-size array is ever made. `part` (rows, columns) computes
     only that block of it; `terms`, this grid's and wavelength's `spectral_terms`, are shared by every distance.
+    `aperture` multiplies it by a 4f system's circular Fourier aperture, which passes spatial frequencies up to
+    `aperture` × the Nyquist frequency 1/(2·pixel_pitch) (None: no aperture); on these frequencies, symmetric about
+    zero, the aperture is even like the transfer function.
     """
     length_rows, length_cols = pixel_pitch * rows, pixel_pitch * cols
     terms = terms or spectral_terms(rows, cols, pixel_pitch, wavelength, device, centred)
@@ -54,6 +57,8 @@ def transfer_function(rows: int, cols: int, pixel_pitch: float, wavelength: floa
     limit_cols = 1 / torch.sqrt((2 * z * (1 / length_rows)) ** 2 + 1) / wavelength
     limit_rows = 1 / torch.sqrt((2 * z * (1 / length_cols)) ** 2 + 1) / wavelength
     passband = (abs_cols < limit_cols) & (abs_rows < limit_rows)
+    if aperture is not None:
+        passband &= abs_cols**2 + abs_rows**2 <= (aperture / (2 * pixel_pitch)) ** 2
     return torch.polar(passband.float(), phase)
 
 
@@ -69,7 +74,9 @@ class TransferBank:
     the bank keeps those halves, half the memory. They are built once and kept while all of them
     fit in `TRANSFER_CACHE_BYTES` (1 GiB: 640×480 RGB needs 0.07 GiB, 3840×2160 RGB 0.93 GiB); past
     that each is rebuilt when asked, which its users do once per pass. `transposed` banks hold each
-    function as [cols, rows] (frequency f_x first), the layout of `propagate_content`'s spectra.
+    function as [cols, rows] (frequency f_x first), the layout of `propagate_content`'s spectra. A bank with an
+    `aperture` (a fraction of the Nyquist frequency) holds each function times a display's 4f aperture
+    (`transfer_function`): the filter costs the propagation no transform and no product of its own.
     """
 
     rows: int
@@ -79,6 +86,7 @@ class TransferBank:
     distances: tuple[float, ...]
     device: torch.device
     transposed: bool = False
+    aperture: float | None = None
 
     @property
     def nbytes(self) -> int:
@@ -105,7 +113,7 @@ class TransferBank:
         part = (slice(None), slice(self.cols // 2)) if self.transposed else (slice(self.rows // 2), slice(None))
         transfer = transfer_function(self.rows, self.cols, self.pixel_pitch, self.wavelengths[channel],
                                      self.distances[plane], self.device, centred=False, part=part,
-                                     terms=terms or self.spectral_terms(channel))
+                                     terms=terms or self.spectral_terms(channel), aperture=self.aperture)
         return transfer.T.contiguous() if self.transposed else transfer
 
 
@@ -127,24 +135,28 @@ def release_transfer_functions() -> None:
 
 
 def transfer_bank(field: Tensor, distances_m: Sequence[float], wavelengths_m: Sequence[float],
-                  pixel_pitch: float, transposed: bool = False) -> TransferBank:
-    """The transfer functions that propagate a [C, P_H, P_W] field (zero-padded to 2P_H×2P_W)."""
+                  pixel_pitch: float, transposed: bool = False, aperture: float | None = None) -> TransferBank:
+    """The transfer functions that propagate a [C, P_H, P_W] field (zero-padded to 2P_H×2P_W), times the 4f
+    `aperture` (a fraction of the Nyquist frequency; None: none)."""
     channels, rows, cols = field.shape
     if len(wavelengths_m) != channels:
         raise ValueError(f"{len(wavelengths_m)} wavelengths for a field of {channels} channels")
     return TransferBank(2 * rows, 2 * cols, float(pixel_pitch), tuple(map(float, wavelengths_m)),
-                        tuple(map(float, distances_m)), field.device, transposed)
+                        tuple(map(float, distances_m)), field.device, transposed,
+                    None if aperture is None else float(aperture))
 
 
 def propagate(field: Tensor, distances_m: Sequence[float], wavelengths_m: Sequence[float],
-              pixel_pitch: float) -> Tensor:
-    """Propagate a [C, P_H, P_W] field to every distance: complex [M, C, P_H, P_W].
+              pixel_pitch: float, aperture: float | None = None) -> Tensor:
+    """Propagate a [C, P_H, P_W] field to every distance: complex [M, C, P_H, P_W], through a 4f system's
+    circular Fourier `aperture` first (a fraction of the Nyquist frequency; None: none).
 
     odak's recipe: zero-pad to 2P_H×2P_W, centred FFT, BLASM transfer function, inverse, centre
     crop. Because fftshift/ifftshift cancel around a pointwise product on even grids, the shifts are
-    folded into the transfer functions; one forward FFT per channel serves every plane.
+    folded into the transfer functions; one forward FFT per channel serves every plane. The aperture
+    filters the same spectrum: it is one more factor of the transfer functions.
     """
-    bank = transfer_bank(field, distances_m, wavelengths_m, pixel_pitch)
+    bank = transfer_bank(field, distances_m, wavelengths_m, pixel_pitch, aperture=aperture)
     channels, rows, cols = field.shape
     top, left = rows // 2, cols // 2
     padded = field.new_zeros(channels, 2 * rows, 2 * cols)

@@ -1,0 +1,313 @@
+"""What an SLM shows (method.md §8): the display a hologram is shown on, and the pattern it is sent.
+
+A `Display` is one definition that the fit's loss, `eval`, `export`, `view` and `bench` share: the encoding of the
+SLM field (`complex`, an ideal complex SLM; `dpac`, double-phase amplitude coding on a phase-only SLM; `phase`,
+the field's bare phase on one), the phase levels a phase-only SLM shows (uniform levels, or a measured lookup
+table), the circular aperture of the 4f system behind it, and the SLM's canvas. The functions here turn an SLM
+field into the field the display shows on its canvas, with gradients defined on purpose where the encoding has
+none (method.md §8); `optics.reconstruct` propagates it to the planes, the 4f aperture folded into the
+propagation's transfer functions.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Literal, get_args
+
+import torch
+from torch import Tensor
+
+from .defaults import DEFAULT_APERTURE, DEFAULT_LEVELS
+from .errors import ConfigError, InputError, choices_error
+
+Encoding = Literal["complex", "dpac", "phase"]
+ENCODINGS: tuple[str, ...] = get_args(Encoding)
+PHASE_ENCODINGS = ("dpac", "phase")
+MAX_LEVELS = 2**16
+MAX_CANVAS_PX = 65536
+MAX_APERTURE = math.sqrt(2)  # the spectrum's corners: from there on the aperture passes every frequency
+TWO_PI = 2 * math.pi
+# DPAC's offset arccos(A) has slope −1/√(1 − A²), unbounded as the amplitude A reaches 1: above this amplitude
+# its gradient keeps the slope it has here (−22.4), and the value stays exact.
+DPAC_SLOPE_AMPLITUDE = 1 - 1e-3
+
+
+@dataclass(frozen=True)
+class Display:
+    """A display: the `encoding` of the SLM field, the phase `levels` of a phase-only SLM (or `lut`, the phase in
+    rad that each gray level shows, `levels` of them), the 4f system's circular Fourier `aperture` as a fraction
+    of the Nyquist frequency (None: no filter) and the SLM's `canvas` (H, W) px (None: the hologram's own size).
+
+    The default, an ideal complex SLM with neither aperture nor canvas, is the fit of method.md §3: the hologram
+    with its guard band. Any other display shows its canvas alone, with no light around it. Checked where made
+    (`ConfigError`); `Display.create` gives `dpac` its measured aperture.
+    """
+
+    encoding: Encoding = "complex"
+    levels: int = DEFAULT_LEVELS
+    lut: tuple[float, ...] | None = None
+    aperture: float | None = None
+    canvas: tuple[int, int] | None = None
+
+    def __post_init__(self) -> None:
+        if self.encoding not in ENCODINGS:
+            raise choices_error("display", self.encoding, ENCODINGS)
+        if isinstance(self.levels, bool) or not isinstance(self.levels, int) or not 2 <= self.levels <= MAX_LEVELS:
+            raise ConfigError(f"`levels` {self.levels!r}: an SLM has between 2 and {MAX_LEVELS} phase levels")
+        if self.lut is not None:
+            if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in self.lut):
+                raise ConfigError("`lut`: every gray level's phase must be a finite number (rad)")
+            if len(self.lut) != self.levels:
+                raise ConfigError(f"`lut` holds {len(self.lut)} phases for {self.levels} `levels`: give one phase per "
+                                  "gray level (`Display.create` counts them)")
+        if self.aperture is not None and not (isinstance(self.aperture, (int, float))
+                                              and not isinstance(self.aperture, bool)
+                                              and 0 < self.aperture <= MAX_APERTURE):
+            raise ConfigError(f"`aperture` {self.aperture!r}: give a radius in (0, √2] (a fraction of the Nyquist "
+                              "frequency), or none for no filter")
+        if self.canvas is not None and not (isinstance(self.canvas, tuple) and len(self.canvas) == 2 and all(
+                isinstance(n, int) and not isinstance(n, bool) and 1 <= n <= MAX_CANVAS_PX for n in self.canvas)):
+            shown = (f"{self.canvas[1]}×{self.canvas[0]}" if isinstance(self.canvas, tuple) and len(self.canvas) == 2
+                     else repr(self.canvas))
+            raise ConfigError(f"`canvas` {shown}: each side of the SLM (W×H) takes 1 to {MAX_CANVAS_PX} px")
+        if self.encoding == "complex" and (self.levels != DEFAULT_LEVELS or self.lut is not None):
+            raise ConfigError("`levels` and `lut` are a phase-only SLM's: use them with the `dpac` or `phase` display")
+
+    @classmethod
+    def create(cls, encoding: Encoding = "complex", levels: int | None = None, lut: tuple[float, ...] | None = None,
+               aperture: float | None | Literal["auto"] = "auto", canvas: tuple[int, int] | None = None
+               ) -> "Display":
+        """A display with its encoding's defaults where not given: `levels` that of the `lut` (else 256), and the
+        `auto` aperture `DEFAULT_APERTURE` for `dpac` (which removes the checkerboard's carrier), none otherwise."""
+        lut = None if lut is None else tuple(float(v) for v in lut)
+        if levels is None:
+            levels = DEFAULT_LEVELS if lut is None else len(lut)
+        if aperture == "auto":
+            aperture = DEFAULT_APERTURE if encoding == "dpac" else None
+        return cls(encoding, levels, lut, aperture, None if canvas is None else tuple(canvas))
+
+    @property
+    def ideal(self) -> bool:
+        """Whether this is the default display, the complex hologram of method.md §3 (guard band and all)."""
+        return self == Display()
+
+    @property
+    def phase_only(self) -> bool:
+        return self.encoding in PHASE_ENCODINGS
+
+    def canvas_for(self, height: int, width: int) -> tuple[int, int]:
+        """The canvas (H, W) px of a `height`×`width` hologram on this display; `ConfigError` where it is smaller."""
+        canvas = self.canvas or (height, width)
+        if canvas[0] < height or canvas[1] < width:
+            raise ConfigError(f"`canvas` {canvas[1]}×{canvas[0]} is smaller than the {width}×{height} hologram; "
+                              "give an SLM at least that large")
+        return canvas
+
+    def label(self) -> str:
+        """E.g. `dpac, 256 levels, aperture 0.5` or `complex`."""
+        if self.ideal:
+            return "complex"
+        parts = [self.encoding]
+        if self.phase_only:
+            parts.append(f"{self.levels}-level LUT" if self.lut is not None else f"{self.levels} levels")
+        parts.append("no aperture" if self.aperture is None else f"aperture {self.aperture:g}")
+        if self.canvas is not None:
+            parts.append(f"canvas {self.canvas[1]}×{self.canvas[0]}")
+        return ", ".join(parts)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The record `config.json` keeps (JSON types)."""
+        record = asdict(self)
+        return {**record, "lut": None if self.lut is None else list(self.lut),
+                "canvas": None if self.canvas is None else list(self.canvas)}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any] | None) -> "Display":
+        """The display a `to_dict` recorded; a record without one (every run before displays) is the complex one."""
+        if not data:
+            return cls()
+        lut, canvas = data.get("lut"), data.get("canvas")
+        return cls(data.get("encoding", "complex"), data.get("levels", DEFAULT_LEVELS),
+                   None if lut is None else tuple(lut), data.get("aperture"),
+                   None if canvas is None else tuple(canvas))
+
+
+def read_lut(path: str | Path) -> tuple[float, ...]:
+    """A measured lookup table: the phase (rad) that each gray level of the SLM shows, from a text or CSV file.
+
+    One row per gray level, from level 0 up: either the phase alone, or the gray level and its phase (separated
+    by a comma, semicolon, tab or spaces; the levels 0, 1, 2, … in order). Blank lines, `#` comments and a header
+    row of names are skipped. `InputError` naming the file and the row where it cannot be read.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as error:
+        raise InputError(f"{path}: cannot read the lookup table ({error}); give a text file of one phase (rad) per "
+                         "gray level") from None
+    phases: list[float] = []
+    for number, line in enumerate(text.splitlines(), 1):
+        fields = [f for f in re.split(r"[,;\s]+", line.split("#", 1)[0].strip()) if f]
+        if not fields:
+            continue
+        try:
+            values = [float(f) for f in fields]
+        except ValueError:
+            if not phases and all(re.match(r"^[A-Za-z_]", f) for f in fields):
+                continue  # a header row
+            raise InputError(f"{path}, row {number}: {line.strip()!r} is not a number; give one phase (rad) per "
+                             "gray level, or the gray level and its phase") from None
+        if len(values) > 2 or (len(values) == 2 and values[0] != len(phases)) or not math.isfinite(values[-1]):
+            raise InputError(f"{path}, row {number}: {line.strip()!r}; give gray level {len(phases)}'s phase (rad) "
+                             "as `PHASE` or `GRAY, PHASE`, the levels in order from 0")
+        phases.append(values[-1])
+    if not 2 <= len(phases) <= MAX_LEVELS:
+        raise InputError(f"{path}: {len(phases)} gray levels; a lookup table holds between 2 and {MAX_LEVELS}")
+    return tuple(phases)
+
+
+def checkerboard(height: int, width: int, device: torch.device | str = "cpu") -> Tensor:
+    """Bool [H, W], true where row + column is odd."""
+    rows = torch.arange(height, device=device)[:, None]
+    cols = torch.arange(width, device=device)[None, :]
+    return (rows + cols) % 2 == 1
+
+
+class _DpacOffset(torch.autograd.Function):
+    """arccos(A) of amplitudes A ∈ [0, 1], whose slope is held at its value at `DPAC_SLOPE_AMPLITUDE` above it."""
+
+    @staticmethod
+    def forward(ctx, amplitude: Tensor) -> Tensor:
+        ctx.save_for_backward(amplitude)
+        return torch.arccos(amplitude.clamp(0.0, 1.0))
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> Tensor:
+        (amplitude,) = ctx.saved_tensors
+        held = amplitude.clamp(0.0, DPAC_SLOPE_AMPLITUDE)
+        return -grad * torch.rsqrt(1 - held * held)
+
+
+def dpac_offset(amplitude: Tensor) -> Tensor:
+    """The double-phase offset arccos(A) (rad) of amplitudes in [0, 1], differentiable everywhere: where A nears
+    1 its slope −1/√(1 − A²) grows without bound, so above `DPAC_SLOPE_AMPLITUDE` it keeps its value there."""
+    return _DpacOffset.apply(amplitude)
+
+
+def double_phase(field: Tensor) -> Tensor:
+    """DPAC of a field [C, H, W] with |field| ≤ 1: phase φ ± arccos(A) on the two checkerboard halves (rad, in
+    [0, 2π)). Each pair of neighbours averages to A·e^{iφ}. The gradient through the wrap at 2π is 1."""
+    offset = dpac_offset(field.abs())
+    phase = field.angle()
+    odd = checkerboard(field.shape[-2], field.shape[-1], field.device)
+    return torch.remainder(torch.where(odd, phase + offset, phase - offset), TWO_PI)
+
+
+def encode(field: Tensor, encoding: Encoding) -> Tensor:
+    """Phase-only pattern (rad, [0, 2π)) of a field [C, H, W]: DPAC, or its bare phase (amplitude dropped)."""
+    if encoding == "dpac":
+        return double_phase(field)
+    if encoding == "phase":
+        return torch.remainder(field.angle(), TWO_PI)
+    raise choices_error("encoding", encoding, PHASE_ENCODINGS)
+
+
+def level_phases(display: Display, device: torch.device | str = "cpu") -> Tensor:
+    """The phase (rad, float32) each gray level shows [levels]: the lookup table, else 2πg/levels."""
+    if display.lut is not None:
+        return torch.tensor(display.lut, dtype=torch.float32, device=device)
+    return torch.arange(display.levels, device=device, dtype=torch.float32) * (TWO_PI / display.levels)
+
+
+def quantise(phase: Tensor, display: Display) -> Tensor:
+    """Gray levels (int64) of phases (rad): the level whose phase lies nearest on the circle. With uniform levels
+    g ↔ 2πg/levels, rounding and wrapping at 2π; with a lookup table, the nearest of its phases modulo 2π."""
+    if display.lut is None:
+        return torch.remainder(torch.round(phase / TWO_PI * display.levels), display.levels).to(torch.int64)
+    table = torch.remainder(level_phases(display, phase.device).double(), TWO_PI)
+    ordered, order = torch.sort(table)
+    wrapped = torch.remainder(phase.detach().double(), TWO_PI)
+    above = torch.searchsorted(ordered, wrapped).remainder(len(ordered))
+    below = (above - 1).remainder(len(ordered))
+
+    def distance(index: Tensor) -> Tensor:
+        gap = torch.remainder(wrapped - ordered[index], TWO_PI)
+        return torch.minimum(gap, TWO_PI - gap)
+
+    return order[torch.where(distance(below) <= distance(above), below, above)]
+
+
+class _StraightThrough(torch.autograd.Function):
+    """The value of `shown`, exactly, with the gradient of `phase`: the identity."""
+
+    @staticmethod
+    def forward(ctx, phase: Tensor, shown: Tensor) -> Tensor:
+        return shown
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:
+        return grad, None
+
+
+def shown_phase(phase: Tensor, display: Display) -> tuple[Tensor, Tensor]:
+    """The gray levels of phases [..] (rad) and the phases they show, whose gradient is the identity (the
+    straight-through rule: the quantiser's own derivative is 0 almost everywhere)."""
+    gray = quantise(phase, display)
+    return gray, _StraightThrough.apply(phase, level_phases(display, phase.device)[gray])
+
+
+def canvas_offset(canvas: tuple[int, int], pattern: tuple[int, int]) -> tuple[int, int]:
+    """(top, left) px of a (H, W) pattern centred on a (H, W) canvas."""
+    return (canvas[0] - pattern[0]) // 2, (canvas[1] - pattern[1]) // 2
+
+
+def place_on_canvas(pattern: Tensor, canvas: tuple[int, int], fill: float | complex = 0.0) -> Tensor:
+    """[C, H, W] → [C, canvas H, canvas W]: centred, the rest of the canvas at `fill` (differentiable)."""
+    channels, height, width = pattern.shape
+    if canvas == (height, width):
+        return pattern
+    top, left = canvas_offset(canvas, (height, width))
+    placed = pattern.new_full((channels, *canvas), fill)
+    placed[:, top:top + height, left:left + width] = pattern
+    return placed
+
+
+@dataclass
+class PhasePattern:
+    """A phase-only pattern on an SLM canvas, per colour channel: what the SLM is sent."""
+
+    gray: Tensor  # [C, canvas H, canvas W] int64 levels
+    phase_rad: Tensor  # [C, canvas H, canvas W] the unquantised phase on the canvas (rad)
+    shown_rad: Tensor  # [C, canvas H, canvas W] the phase the gray levels show (rad), with straight-through gradient
+
+    @property
+    def field(self) -> Tensor:
+        """e^{iθ} of the shown phase θ: the field the SLM shows under unit illumination."""
+        return torch.polar(torch.ones_like(self.shown_rad), self.shown_rad)
+
+
+def phase_pattern(field: Tensor, display: Display) -> PhasePattern:
+    """The phase-only pattern that a phase-only `display` is sent for an SLM field [C, H, W] (|field| ≤ 1): its
+    encoding, placed on the canvas (the rest at gray level 0), quantised to the display's levels."""
+    canvas = display.canvas_for(field.shape[-2], field.shape[-1])
+    phase = place_on_canvas(encode(field, display.encoding), canvas)
+    gray, shown = shown_phase(phase, display)
+    if canvas != tuple(field.shape[-2:]):  # the canvas beyond the hologram shows gray level 0
+        top, left = canvas_offset(canvas, tuple(field.shape[-2:]))
+        inside = torch.zeros(canvas, dtype=torch.bool, device=field.device)
+        inside[top:top + field.shape[-2], left:left + field.shape[-1]] = True
+        gray = torch.where(inside, gray, 0)
+        shown = torch.where(inside, shown, level_phases(display, field.device)[0])
+    return PhasePattern(gray, phase, shown)
+
+
+def displayed_field(field: Tensor, display: Display) -> Tensor:
+    """The complex field [C, canvas H, canvas W] that `display` shows for an SLM field [C, H, W] (|field| ≤ 1):
+    the phase-only pattern's e^{iθ}, or the complex field itself, on the canvas (the complex one dark beyond the
+    hologram). Differentiable (`phase_pattern`)."""
+    if display.phase_only:
+        return phase_pattern(field, display).field
+    return place_on_canvas(field, display.canvas_for(field.shape[-2], field.shape[-1]))
