@@ -213,7 +213,7 @@ def _group_bytes(group: StreamRate, extra: dict) -> int:
 
 
 def _wrapped(codes: Tensor, levels: Tensor | float) -> Tensor:
-    """Periodic codes in units of bins taken into −½ ≤ code < levels − ½, the bins of the symbols 0..levels − 1."""
+    """Periodic codes in units of bins taken into −½ ≤ code < levels − ½, the bins of symbols 0..levels − 1."""
     return torch.remainder(codes + 0.5, levels) - 0.5
 
 

@@ -9,6 +9,9 @@
   set by the budget with a controller during the fit (`RateController`): each step it grows where the estimate
   exceeds `target_bytes` and shrinks where it falls below, multiplicatively. One fit, no probes: probing fits
   for λ would cost a share of the fit's time each, and the bits a λ buys move as the fit does;
+- `depths`: the depths the noise and the rate stand for chosen per file where the noise starts to give way
+  (`ANNEAL_SHARE`): the finest rung of the search's ladder at which the rate model's estimate of the whole model
+  fits the budget (`rung_within`), in place of the default depths;
 - `prune`: a primitive's bits weighed by a gate that closes as its weight |amplitude·opacity| falls below
   `GATE_BINS` bins of the amplitude quantiser, so that the rate term can switch off a primitive that costs more
   bits than it earns; primitives whose weight codes to 0 are removed before coding (`silent_removed`).
@@ -25,11 +28,11 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import Tensor
 
-from .bitdepths import BitDepths
+from .bitdepths import LADDER, BitDepths
 from .codec import quantiser
 from .config import FitConfig
 from .primitives import Primitives
-from .rate import coded
+from .rate import coded, estimate
 
 # The noise gives way to rounding over the fit's last 30% of steps.
 ANNEAL_SHARE = 0.3
@@ -50,25 +53,43 @@ class RateFit:
     prune: bool = False
     bits: BitDepths = BitDepths()
     target_bytes: int | None = None
+    depths: bool = False
 
     @property
     def active(self) -> bool:
         """Whether the fit differs from today's float fit."""
-        return self.noise or self.rate or self.prune
+        return self.noise or self.rate or self.prune or self.depths
 
     def record(self) -> dict:
         """The settings as JSON (an encode's `budget.json`)."""
         return {"noise": self.noise, "rate": self.rate, "prune": self.prune, "bits": asdict(self.bits),
-                "target_bytes": self.target_bytes}
+                "target_bytes": self.target_bytes, "depths": self.depths}
 
     @classmethod
     def from_record(cls, record: dict) -> "RateFit":
         return cls(bool(record["noise"]), bool(record["rate"]), bool(record["prune"]), BitDepths(**record["bits"]),
-                   None if record["target_bytes"] is None else int(record["target_bytes"]))
+                   None if record["target_bytes"] is None else int(record["target_bytes"]),
+                   bool(record.get("depths", False)))
 
 
 PLAIN = RateFit()
 FULL = dict(noise=True, rate=True, prune=True)  # the new fit: every lever
+
+
+def anneal_start(steps: int) -> int:
+    """The first step of a fit of `steps` steps at which the noise gives way to rounding."""
+    return math.floor((1 - ANNEAL_SHARE) * steps) + 1
+
+
+def rung_within(primitives: Primitives, config: FitConfig, max_bytes: int) -> BitDepths:
+    """The finest rung of the search's ladder (`bitdepths.LADDER`, the defaults shifted together) at which the rate
+    model's estimate of `primitives`' file is at most `max_bytes`; the coarsest where none is."""
+    detached, chosen = primitives.detached(), LADDER[0]
+    for bits in LADDER:  # sizes grow with the rung
+        if estimate(detached, config, bits).file_bytes > max_bytes:
+            break
+        chosen = bits
+    return chosen
 
 
 def noise_share(step: int, steps: int) -> float:
@@ -108,6 +129,7 @@ class RateObjective:
         self.controller = None if not settings.rate else RateController(
             settings.target_bytes, INITIAL_LAMBDA if weight is None else weight)
         self.last_bytes: int | None = None
+        self.bits = settings.bits  # the depths the quantisers stand for now (`depths` moves them once)
 
     def resume(self, weight: float) -> None:
         """Take up λ where a fit left it (its history's last `rate_lambda`)."""
@@ -124,15 +146,17 @@ class RateObjective:
         """The primitives to render at `step` of `steps` and the term to add to the loss (None: none): through the
         quantisers with noise where `noise`, λ·bpp where `rate`, each primitive's bits gated where `prune`."""
         settings = self.settings
+        if settings.depths and settings.target_bytes is not None and step == anneal_start(steps):
+            self.bits = rung_within(primitives, self.config, settings.target_bytes)
         share = noise_share(step, steps) if settings.noise else 0.0
-        result = coded(primitives, self.config, settings.bits, share, generator)
+        result = coded(primitives, self.config, self.bits, share, generator)
         self.last_bytes = result.rate.file_bytes
         shown = result.primitives if settings.noise else primitives
         if self.controller is None:
             return shown, None
         per_primitive = result.rate.primitive_bits
         if settings.prune:
-            per_primitive = per_primitive * presence(primitives, self.config, settings.bits)
+            per_primitive = per_primitive * presence(primitives, self.config, self.bits)
         pixels = self.config.targets.width * self.config.targets.height
         term = self.controller.weight * per_primitive.sum().to(primitives.position_px.device) / pixels
         self.controller.update(result.rate.file_bytes)

@@ -38,7 +38,7 @@ from typing import Any, Callable, ClassVar, Sequence
 import torch
 from tqdm.auto import tqdm
 
-from .bitdepths import MAX_BITS, BitDepths
+from .bitdepths import LADDER, BitDepths
 from .codec import bits_per_pixel, decode, encode, range_holders
 from .config import FitConfig
 from .control import SILENT, RunControl
@@ -50,9 +50,7 @@ from .primitives import Primitives, field_energy
 from .ratefit import FULL, PLAIN, RateFit, RateObjective
 from .targets import Scene
 
-# The depths every search tries: the defaults shifted together, from 3 bits coarser up to every attribute's
-# finest depth, so that a budget the whole model fits in at the finest default-shaped depths still has rungs.
-LADDER = tuple(dict.fromkeys(BitDepths().shifted(delta) for delta in range(-3, MAX_BITS)))
+# The depths every search tries are `LADDER`'s (`bitdepths`), coarsest first.
 COARSEST = LADDER[0]
 # The drop `cvqpg compress` aims at where it is given no goal.
 DEFAULT_MAX_DROP_DB = 0.1

@@ -95,6 +95,7 @@ class Encoding:
     rate: RateChoice
     rate_seconds: float
     rate_cpu_seconds: float
+    fit_levers: RateFit = PLAIN  # the rate in the fit's loss (`ratefit`), none by default
 
     @property
     def seconds(self) -> float:
@@ -122,7 +123,7 @@ def encode_fitted(fitted: FitResult, scene: Scene, budget: Budget, finetune_step
     weights = fitted.history.get("rate_lambda")
     rate = rate_control(primitives, fitted.config, reference, budget, scene, finetune_steps, control,
                         fit if fit.rate else None, weights[-1] if weights else None)
-    return Encoding(fitted, reference, rate, time.perf_counter() - started, time.process_time() - cpu_started)
+    return Encoding(fitted, reference, rate, time.perf_counter() - started, time.process_time() - cpu_started, fit)
 
 
 def encode_scene(scene: Scene, config: FitConfig, settings: CompressionSettings, control: RunControl = SILENT
@@ -150,7 +151,10 @@ def encoding_record(encoded: Encoding, out: str | Path, budget: Budget) -> dict[
     of the fit: the primitives it fitted and its seconds."""
     return {"file": str(out), **choice_record(encoded.rate.choice, encoded.reference, encoded.fit.config),
             **encoded.rate.record(budget), "fitted_primitives": encoded.fit.config.primitive_count,
-            "fit_seconds": encoded.fit.seconds, "fit_cpu_seconds": encoded.fit.cpu_seconds}
+            "fit_seconds": encoded.fit.seconds, "fit_cpu_seconds": encoded.fit.cpu_seconds,
+            **({"rate_fit": encoded.fit_levers.record(),
+                "rate_lambda": encoded.fit.history.get("rate_lambda", [None])[-1]} if encoded.fit_levers.active
+               else {})}
 
 
 def start_encode(folder: Path, config: FitConfig, source: dict[str, Any], budget: Budget, finetune_steps: int,

@@ -175,7 +175,8 @@ def budget_points(primitives: Primitives, config: FitConfig, scene: Scene, fit_p
 def encode_point(scene: Scene, config: FitConfig, source: dict[str, Any], bpp: float, work: Path,
                  finetune_steps: int = ENCODE_FINETUNE_STEPS, run: RunOptions = RunOptions(),
                  control: RunControl = SILENT, rate_loss: bool = False) -> Point | None:
-    """The file `cvqpg encode --bpp` (with `rate_loss`, `--rate-loss`: labelled `ENCODER_RATE`) writes of `scene` (its inputs `source`) with `config`'s settings: a fit at the
+    """The file `cvqpg encode --bpp` (with `rate_loss`, `--rate-loss`: labelled `ENCODER_RATE`) writes of `scene`
+    (its inputs `source`) with `config`'s settings: a fit at the
     budget's primitive count in the folder `work` (`app.encoding.encode_in_folder`), rate control and
     `finetune_steps` of fine-tuning; None where the budget is below the smallest file of a model of the fit's
     shape. The fit (on `run`), or its rate control, raises `fitting.FitInterrupted` once `control` asks to stop, with
@@ -191,7 +192,8 @@ def encode_point(scene: Scene, config: FitConfig, source: dict[str, Any], bpp: f
         start_encode(work, fit_config, source, budget, finetune_steps, run, fit)
     encoded = encode_in_folder(work, scene, fit_config, budget, finetune_steps, run, control.quiet(), fit=fit)
     chosen = encoded.rate.choice
-    point = _decoded_point(ENCODER_RATE if rate_loss else ENCODER, f"--bpp {bpp:.3f}: {fit_config.primitive_count} fitted, {_describe(chosen.bits)}",
+    point = _decoded_point(ENCODER_RATE if rate_loss else ENCODER,
+                           f"--bpp {bpp:.3f}: {fit_config.primitive_count} fitted, {_describe(chosen.bits)}",
                            chosen.data, config, scene.targets, encoded.seconds)
     point.budget_bpp, point.encode_cpu_s = bpp, encoded.cpu_seconds
     shutil.rmtree(work)
