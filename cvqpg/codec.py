@@ -346,6 +346,9 @@ class Coding:
 def coding(primitives: Primitives, config: FitConfig, bits: BitDepths, tools: frozenset[str] = TOOLS) -> Coding:
     """The attributes of `primitives`, their ranges, and the quantisers at `bits` in a file using `tools`
     (see `Coding`)."""
+    if config.phase.extra_terms:
+        raise ConfigError(f"`.cvq` files do not store the phase terms of `phase` {config.phase.name}: keep the model "
+                          "as model.safetensors, or fit with `phase` quadratic to compress it")
     values, ranges = coded_values({name: t.detach().cpu().double() for name, t in primitives.tensors().items()},
                                   config, bits)
     coded = folded(values)

@@ -50,6 +50,11 @@ METHODS = {
     "channel-bound": Method("CVQPG, bound per λ", {"primitive": "cvqpg", "curvature": "channel-bound"}),
     "baseline+pc": Method("Baseline (per-channel's params)", {"primitive": "flat"}, params_of=PER_CHANNEL),
     "cvqpg+pc": Method("CVQPG (per-channel's params)", CVQPG, params_of=PER_CHANNEL),
+    # The phase terms beyond the curvature (cvqpg/phase.py), and CVQPG at each one's parameter count.
+    **{phase: Method(f"phase {phase}", {"primitive": "cvqpg", "phase": phase})
+       for phase in ("tilt", "quadratic+tilt", "axes", "axes+tilt")},
+    **{f"cvqpg@{phase}": Method(f"CVQPG ({phase}'s params)", CVQPG, params_of={"phase": phase})
+       for phase in ("tilt", "quadratic+tilt", "axes", "axes+tilt")},
 }
 
 
@@ -109,6 +114,11 @@ PRESETS = {
                           "17.0 min RGB, its runtime table), as fixed step counts measured on our 2-core CPU",
                           COLORS, (0.1,), ("cvqpg",), recipe=BEYOND_RECIPE,
                           steps_by_color=tuple(PAPER_TIME_STEPS.items())),
+    "beyond-phase": Preset("phase terms beyond the curvature (cvqpg/phase.py) with the beyond recipe at 2000 steps, "
+                    "{rgb, gray} 10%: CVQPG, quadratic+tilt and axes+tilt at equal N, and CVQPG at each one's "
+                    "parameter count", COLORS, (0.1,),
+                    ("cvqpg", "quadratic+tilt", "axes+tilt", "cvqpg@quadratic+tilt", "cvqpg@axes+tilt"),
+                    recipe=BEYOND_RECIPE),
     "quick": Preset("smoke test: built-in scenes, 160×120, 60 steps",
                     ("gray",), (0.1,), ("baseline", "cvqpg"), ("demo", "star"), (160, 120), 60),
 }
