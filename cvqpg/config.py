@@ -416,7 +416,7 @@ class FitConfig:
     def phase_only_pixels(self) -> bool:
         """Whether a per-pixel hologram of this configuration is a phase pattern (one phase per pixel and channel)
         rather than a complex hologram: where its display shows the bare phase."""
-        return False
+        return self.display.encoding == "phase"
 
     @property
     def plane_distances(self) -> tuple[float, ...]:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..config import BEYOND_RECIPE, PAPER_RECIPE
+from ..config import BEYOND_RECIPE, PAPER_RECIPE, PIXEL_RECIPE
 
 COLORS = ("rgb", "gray")
 # The budgets of a rate grid's cell (`--preset rate`), as fractions of the rate of the codec's smallest ladder
@@ -23,18 +23,36 @@ ENCODE_FRACTIONS = BUDGET_FRACTIONS
 PAPER_TIME_STEPS = {"gray": 7745, "rgb": 4503}
 
 
+# How many steps of the per-pixel hologram take the time of one step of CVQPG at 10% through the DPAC display, at
+# 640×480 on our 2-core CPU (`python benchmarks/display_time.py`, docs/bench.md): the display grid's per-pixel fit at
+# the CVQPG fit's time runs this many times its steps.
+PIXEL_STEPS_PER_CVQPG_STEP = {"gray": 1.0, "rgb": 1.0}
+
+
 @dataclass(frozen=True)
 class Method:
-    """A row of the paper's tables: FitConfig changes, and the changes of the method whose parameter
-    count N grows to match (None: N as the setting's ratio gives it)."""
+    """A row of the tables: FitConfig changes, and the changes of the method whose parameter count N grows to match
+    (None: N as the setting's ratio gives it); the recipe it fits with (None: the preset's); the display its loss
+    sees (an encoding, `display.Display.create`'s; None: the ideal complex SLM); the encoding its fitted model is
+    exported to and shown with after the fit (None: none); and its steps as a multiple of the preset's, per colour
+    (none given: the preset's)."""
 
     label: str
     changes: dict[str, str]
     params_of: dict[str, str] | None = None
+    recipe: str | None = None
+    display: str | None = None
+    exported: str | None = None
+    step_factors: tuple[tuple[str, float], ...] = ()
+
+    def steps_for(self, color: str, steps: int) -> int:
+        """The method's steps in a grid of `steps` steps, for `color`."""
+        return max(1, round(steps * dict(self.step_factors).get(color, 1.0)))
 
 
 CVQPG = {"primitive": "cvqpg"}
 PER_CHANNEL = {"primitive": "cvqpg", "curvature": "per-channel"}
+PIXEL = {"primitive": "pixel"}
 METHODS = {
     "baseline": Method("Baseline", {"primitive": "flat"}),
     "baseline+": Method("Baseline⁺", {"primitive": "flat"}, params_of=CVQPG),
@@ -46,7 +64,16 @@ METHODS = {
     "channel-bound": Method("CVQPG, bound per λ", {"primitive": "cvqpg", "curvature": "channel-bound"}),
     "baseline+pc": Method("Baseline (per-channel's params)", {"primitive": "flat"}, params_of=PER_CHANNEL),
     "cvqpg+pc": Method("CVQPG (per-channel's params)", CVQPG, params_of=PER_CHANNEL),
+    # what a phase-only SLM shows (the display grid)
+    "cvqpg-exported": Method("CVQPG, fitted complex, then exported", CVQPG, exported="dpac"),
+    "cvqpg-dpac": Method("CVQPG through the display", CVQPG, display="dpac"),
+    "flat-dpac": Method("flat through the display", {"primitive": "flat"}, display="dpac"),
+    "pixel-dpac": Method("per-pixel through the display", PIXEL, recipe=PIXEL_RECIPE, display="dpac"),
+    "pixel-phase": Method("per-pixel, phase-only", PIXEL, recipe=PIXEL_RECIPE, display="phase"),
+    "pixel-dpac-time": Method("per-pixel through the display, CVQPG's time", PIXEL, recipe=PIXEL_RECIPE,
+                              display="dpac", step_factors=tuple(PIXEL_STEPS_PER_CVQPG_STEP.items())),
 }
+DISPLAY_METHODS = ("cvqpg-exported", "cvqpg-dpac", "flat-dpac", "pixel-dpac", "pixel-phase", "pixel-dpac-time")
 
 
 @dataclass(frozen=True)
@@ -97,6 +124,10 @@ PRESETS = {
                           "17.0 min RGB, its runtime table), as fixed step counts measured on our 2-core CPU",
                           COLORS, (0.1,), ("cvqpg",), recipe=BEYOND_RECIPE,
                           steps_by_color=tuple(PAPER_TIME_STEPS.items())),
+    "display": Preset("what a phase-only SLM shows: {rgb, gray} 10%, CVQPG fitted complex then exported, CVQPG, flat "
+                      "and the per-pixel hologram fitted through the DPAC display, the per-pixel phase pattern, at "
+                      "equal steps, and the per-pixel hologram at the CVQPG display fit's time", COLORS, (0.1,),
+                      DISPLAY_METHODS, recipe=BEYOND_RECIPE),
     "quick": Preset("smoke test: built-in scenes, 160×120, 60 steps",
                     ("gray",), (0.1,), ("baseline", "cvqpg"), ("demo", "star"), (160, 120), 60),
 }
