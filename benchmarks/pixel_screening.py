@@ -7,7 +7,7 @@
 Every fit is grayscale, 320×240, 300 steps, seed 100, `--primitive pixel` with the `pixel` recipe's loss and noise,
 changed by one variant: the optimiser (Adan with the paper's betas, or Adam with its usual β1 0.9 and β2 0.999),
 the learning rate of every group (amplitude and phase alike), the initialisation. `--display` names the display the loss sees (complex, dpac or phase, with its
-defaults). Prints one JSON line per fit (and appends it to `--out`/screening.jsonl): scene, display, variant, PSNR
+defaults; `--aperture` replaces its 4f aperture). Prints one JSON line per fit (and appends it to `--out`/screening.jsonl): scene, display, variant, PSNR
 and SSIM (mean over the planes) of what the display shows, seconds. Run it with
 OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1: the fits then depend on the CPU only.
 """
@@ -47,7 +47,7 @@ def screen(scene_dir: Path, variant: str, base: FitConfig) -> dict:
     start = time.perf_counter()
     result = fit_scene(scene, config, control=SILENT)
     settings = config.optimisation
-    return {"scene": scene_dir.name, "display": config.display.encoding, "variant": variant, "optimizer": settings.optimizer, "lr": settings.lr.phase,
+    return {"scene": scene_dir.name, "display": config.display.label(), "variant": variant, "optimizer": settings.optimizer, "lr": settings.lr.phase,
             "init": settings.init, "psnr": round(result.metrics.mean["psnr"], 3),
             "ssim": round(result.metrics.mean["ssim"], 4), "seconds": round(time.perf_counter() - start, 1)}
 
@@ -61,10 +61,13 @@ def main() -> None:
     parser.add_argument("--size", type=int, nargs=2, default=(320, 240), metavar=("W", "H"))
     parser.add_argument("--display", choices=ENCODINGS, default="complex",
                         help="the display the fits' loss sees (`display.Display.create`'s defaults)")
+    parser.add_argument("--aperture", type=float, help="the 4f aperture (fraction of Nyquist) [default: the "
+                        "display's]")
     parser.add_argument("--out", type=Path, help="a folder to append screening.jsonl to")
     args = parser.parse_args()
+    display = Display.create(args.display, aperture="auto" if args.aperture is None else args.aperture)
     base = FitConfig.create(PIXEL_RECIPE, primitive="pixel", color="gray", width=args.size[0], height=args.size[1],
-                            steps=args.steps).replace(display=Display.create(args.display))
+                            steps=args.steps).replace(display=display)
     for variant in args.variants:
         for name in args.names:
             line = json.dumps(screen(args.scenes / name, variant, base))

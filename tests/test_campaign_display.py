@@ -25,12 +25,14 @@ def test_the_display_grid_fits_every_row_through_its_display(module_scenes_dir, 
     assert {method for method, _ in configs} == set(DISPLAY_METHODS) == set(PRESETS["display"].methods)
     for (method, color), config in configs.items():
         spec = METHODS[method]
-        assert config.display == (Display.create(spec.display) if spec.display else Display()), method
+        assert config.display == (Display.create(spec.display, aperture=spec.aperture) if spec.display
+                                  else Display()), method
         assert config.primitives.kind == spec.changes["primitive"]
         assert config.recipe == (spec.recipe or PRESETS["display"].recipe)
         steps = 4 if not spec.step_factors else max(1, round(4 * PIXEL_STEPS_PER_CVQPG_STEP[color]))
         assert config.optimisation.steps == steps, method
-    assert configs[("pixel-phase", "gray")].phase_only_pixels
+    phase = configs[("pixel-phase", "gray")]
+    assert phase.phase_only_pixels and phase.display.aperture == configs[("cvqpg-dpac", "gray")].display.aperture
 
     cells = tuple(c for c in plan.cells if c.config.targets.color == "gray")
     outcome = run_plan(plan, cells, control=SILENT)

@@ -226,7 +226,7 @@ def cell_config(base: FitConfig, scene: BenchScene, color: str, ratio: float, me
     if spec.recipe is not None:
         base = base.with_recipe(spec.recipe)
     if spec.display is not None:
-        base = base.replace(display=Display.create(spec.display))
+        base = base.replace(display=Display.create(spec.display, aperture=spec.aperture))
     if spec.step_factors:
         base = base.with_steps(spec.steps_for(color, base.optimisation.steps))
     config = base.replace(color=color, ratio=ratio, seed=seed, num_planes=scene.planes, **spec.changes)

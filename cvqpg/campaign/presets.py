@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..config import BEYOND_RECIPE, PAPER_RECIPE, PIXEL_RECIPE
+from ..defaults import DEFAULT_APERTURE
 
 COLORS = ("rgb", "gray")
 # The budgets of a rate grid's cell (`--preset rate`), as fractions of the rate of the codec's smallest ladder
@@ -33,7 +34,8 @@ PIXEL_STEPS_PER_CVQPG_STEP = {"gray": 1.0, "rgb": 1.0}
 class Method:
     """A row of the tables: FitConfig changes, and the changes of the method whose parameter count N grows to match
     (None: N as the setting's ratio gives it); the recipe it fits with (None: the preset's); the display its loss
-    sees (an encoding, `display.Display.create`'s; None: the ideal complex SLM); the encoding its fitted model is
+    sees (an encoding and its 4f aperture, `display.Display.create`'s; None: the ideal complex SLM); the encoding its
+    fitted model is
     exported to and shown with after the fit (None: none); and its steps as a multiple of the preset's, per colour
     (none given: the preset's)."""
 
@@ -42,6 +44,7 @@ class Method:
     params_of: dict[str, str] | None = None
     recipe: str | None = None
     display: str | None = None
+    aperture: float | None | str = "auto"
     exported: str | None = None
     step_factors: tuple[tuple[str, float], ...] = ()
 
@@ -69,7 +72,9 @@ METHODS = {
     "cvqpg-dpac": Method("CVQPG through the display", CVQPG, display="dpac"),
     "flat-dpac": Method("flat through the display", {"primitive": "flat"}, display="dpac"),
     "pixel-dpac": Method("per-pixel through the display", PIXEL, recipe=PIXEL_RECIPE, display="dpac"),
-    "pixel-phase": Method("per-pixel, phase-only", PIXEL, recipe=PIXEL_RECIPE, display="phase"),
+    # a phase pattern behind the DPAC rows' 4f aperture, which blocks the light that a phase-only SLM cannot dim
+    "pixel-phase": Method("per-pixel, phase-only", PIXEL, recipe=PIXEL_RECIPE, display="phase",
+                          aperture=DEFAULT_APERTURE),
     "pixel-dpac-time": Method("per-pixel through the display, CVQPG's time", PIXEL, recipe=PIXEL_RECIPE,
                               display="dpac", step_factors=tuple(PIXEL_STEPS_PER_CVQPG_STEP.items())),
 }

@@ -844,8 +844,9 @@ def document(root: Path) -> str:
              "Every row is shown on the same simulated display: DPAC of the SLM field on a phase-only SLM of 256 "
              "levels behind the 4f system's aperture (docs/method.md §8), evaluated against the noise-free targets. "
              "`CVQPG, fitted complex, then exported` is today's `cvqpg fit` followed by `cvqpg export`; the others "
-             "see that display in their loss (`--display dpac`; the per-pixel phase pattern `--display phase`, its "
-             "bare phase with no filter). The Gaussian rows fit with the default recipe at 10% of the pixels, the "
+             "see that display in their loss (`--display dpac`; the per-pixel phase pattern `--display phase`: its "
+             "bare phase, behind the same aperture, which blocks the light a phase-only SLM cannot dim). The Gaussian "
+             "rows fit with the default recipe at 10% of the pixels, the "
              "per-pixel rows with the `pixel` recipe (docs/beyond.md); `CVQPG's time` gives the per-pixel hologram "
              "as many steps as take the CVQPG display fit's time on our CPU (docs/bench.md).", "",
              *(f"- {line}" for line in display_claims(grids["display"])), "",
