@@ -4,12 +4,15 @@
     python benchmarks/step.py --quick                # smaller, for a smoke test
     python benchmarks/step.py --model runs/bento     # the primitives of a fitted model instead
     python benchmarks/step.py --device cuda --whole-fit   # on the GPU, and whole 2000-step fits
+    python benchmarks/step.py --phase axes+tilt      # a step with those phase terms against CVQPG's, side by side
 
 Primitives at initialisation are small and round. They are measured twice for RGB: flat, as in the
 baseline and during CVQPG's warm-up (curvature frozen at zero), and curved, as after the warm-up
 (each curvature a random fraction of its Nyquist bound). A fitted model's primitives are not small
 and round (a few grow to hundreds of pixels, some become needles), and its rasterizer costs more;
-`--model` measures a step of that model's configuration on its own primitives.
+`--model` measures a step of that model's configuration on its own primitives. `--phase` measures the
+rasterizer and whole steps of RGB 10% with the phase terms of that name (cvqpg/phase.py, each parameter a random
+fraction of its bound) against CVQPG's curved step, the two taking turns in each round, and their ratio.
 
 A display step is a whole step of the same primitives through the DPAC display (`Display.create("dpac")`:
 double-phase coding, 256 levels, its 4f aperture folded into the transfer functions); its ratio to the complex
@@ -161,15 +164,16 @@ def stage_actions(config: FitConfig, run: RunOptions, primitives: Primitives | N
         load_raw_parameters(state.gaussians, primitives, config)
     elif curved:
         with torch.no_grad():
-            curvature = state.gaussians.curvature
-            curvature.copy_(2 * torch.rand(curvature.shape, generator=torch.Generator().manual_seed(1)) - 1)
-    state.gaussians.curvature.requires_grad_(curved)
+            generator = torch.Generator().manual_seed(1)
+            for tensor in (state.gaussians.curvature, *state.gaussians.terms.values()):
+                tensor.copy_(2 * torch.rand(tensor.shape, generator=generator) - 1)
+    state.gaussians.curvature.requires_grad_(curved and config.phase.has("quadratic"))
     display_config = config.replace(display=Display.create("dpac"))
     display_state = initial_state(display_config, scene, run)
     with torch.no_grad():
         for name, tensor in display_state.gaussians.tensors().items():
             tensor.copy_(state.gaussians.tensors()[name])
-    display_state.gaussians.curvature.requires_grad_(curved)
+    display_state.gaussians.curvature.requires_grad_(curved and config.phase.has("quadratic"))
     gaussians, optimizer, generator = state.gaussians, state.optimizer, state.generator
     hologram_grad = torch.randn(config.channels, config.targets.height, config.targets.width, dtype=torch.complex64,
                                 device=run.device)
@@ -312,6 +316,28 @@ def report(label: str, config: FitConfig, run: RunOptions, rounds: int, referenc
     return {**median, **ratios, "torch backend": reference}
 
 
+def phase_report(config: FitConfig, phase: str, run: RunOptions, rounds: int) -> dict[str, float]:
+    """The rasterizer's and whole steps' seconds of `config` with the phase terms `phase` against CVQPG's own
+    (both curved), taking turns in every round, and the medians of the rounds' ratios."""
+    fast = RunOptions(run.device, fast_backend(run.device))
+    kept = ("raster forward+backward", "whole step")
+    actions = {}
+    for label, variant in (("quadratic", config), (phase, config.replace(phase=phase))):
+        actions.update({f"{label}: {name}": action for name, action in stage_actions(variant, fast).items()
+                        if name in kept})
+    per_round = {name: torch.tensor(values, dtype=torch.float64)
+                 for name, values in interleaved_seconds(actions, rounds, torch.device(run.device)).items()}
+    print(f"\n## phase {phase} against quadratic (CVQPG): {config.targets.width}×{config.targets.height} "
+          f"{config.targets.color}, N = {config.primitive_count}, {run.device}, medians of {rounds} rounds")
+    numbers = {}
+    for name in kept:
+        ours, theirs = per_round[f"{phase}: {name}"], per_round[f"quadratic: {name}"]
+        numbers[name] = float((ours / theirs).median())
+        print(f"{name:>30}: {1000 * float(theirs.median()):9.1f} ms → {1000 * float(ours.median()):9.1f} ms = "
+              f"{numbers[name]:.3f} ×")
+    return numbers
+
+
 def print_whole_fits(base: FitConfig, run: RunOptions, big: tuple[int, int], steps: int, which: str
                      ) -> dict[str, dict[str, float]]:
     """`whole_fit` of RGB 20% and grayscale 10% at `base`'s size (`which` small or all) and of RGB 20% at
@@ -353,6 +379,8 @@ def main() -> None:
     parser.add_argument("--fit-steps", type=int, default=2000, help="steps of each whole fit")
     parser.add_argument("--big-size", type=int, nargs=2, default=(3840, 2160), metavar=("W", "H"),
                         help="size of the large whole fit")
+    parser.add_argument("--phase", help="measure a step of RGB 10%% with these phase terms against CVQPG's, "
+                                        "side by side (cvqpg/phase.py: tilt, axes+tilt, ...)")
     parser.add_argument("--json", help="also write the numbers here")
     args = parser.parse_args()
     if args.device == "cuda" and not torch.cuda.is_available():
@@ -363,6 +391,11 @@ def main() -> None:
     if args.model and args.quick:
         parser.error("--quick sets the size, --model brings its own; pass one of them")
     gray = rgb.replace(color="gray", ratio=0.1)
+    if args.phase:
+        results = phase_report(rgb.replace(ratio=0.1), args.phase, run, args.rounds)
+        if args.json:
+            Path(args.json).write_text(json.dumps(results, indent=2))
+        return
     if args.model:
         primitives, config = load_model(model_path(args.model))
         settings = {f"fitted model {args.model}": (config, primitives, True)}

@@ -32,6 +32,7 @@ from torch import Tensor
 from .bitdepths import MAX_BITS, MAX_POSITION_BITS, BitDepths
 from .config import FitConfig
 from .defaults import SUFFIX
+from .display import Display
 from .errors import ConfigError, ModelFileError
 from .primitives import (REWRITE_MODEL, Primitives, check_settings, check_tensors, curvature_bound,
                          model_shapes)
@@ -39,10 +40,11 @@ from .primitives import (REWRITE_MODEL, Primitives, check_settings, check_tensor
 MAGIC = b"\x89CVQ\r\n\x1a\n"
 # 2 added the `bitlength` coding, 3 rotation's depth per primitive, 4 the depths of position, amplitude, rotation,
 # phase and curvature by importance, 5 the fit fingerprint and the tools (`TOOLS`); older files read unchanged
-FORMAT_VERSION = 5
+FORMAT_VERSION = 6
 ROTATION_DEPTH_VERSION = 3  # files from this version on code rotation at a depth per primitive
 IMPORTANCE_VERSION = 4  # files from this version on code at `derived_depths`' importance rule
 TOOLS_VERSION = 5  # files from this version on carry a fit fingerprint and name the tools they use
+DISPLAY_VERSION = 6  # files from this version on keep the display a model was fitted through (none: the complex one)
 # Format 5's tools, each named in the header where a file uses it. `axes`: the larger scale code first, the
 # ellipse turned by a quarter where its axes swap, and the smaller coded as its difference from the larger
 # (`elongation`); `turn`: a periodic stream's symbols of each depth turned so that their circular mean lies
@@ -344,6 +346,9 @@ class Coding:
 def coding(primitives: Primitives, config: FitConfig, bits: BitDepths, tools: frozenset[str] = TOOLS) -> Coding:
     """The attributes of `primitives`, their ranges, and the quantisers at `bits` in a file using `tools`
     (see `Coding`)."""
+    if config.phase.extra_terms:
+        raise ConfigError(f"`.cvq` files do not store the phase terms of `phase` {config.phase.name}: keep the model "
+                          "as model.safetensors, or fit with `phase` quadratic to compress it")
     values, ranges = coded_values({name: t.detach().cpu().double() for name, t in primitives.tensors().items()},
                                   config, bits)
     coded = folded(values)
@@ -885,7 +890,8 @@ def _file(primitives: Primitives, config: FitConfig, bits: BitDepths, fingerprin
         descriptor, data = encode_stream(values, encoded.widths.get(name), TURN in tools and name in PERIODIC)
         descriptors.append({"name": name, **descriptor})
         payload.append(data)
-    header = deflated({"optics": optics(config), "num_primitives": primitives.count, "bits": asdict(bits),
+    shown = {} if config.display.ideal else {"display": config.display.to_dict()}
+    header = deflated({"optics": optics(config), **shown, "num_primitives": primitives.count, "bits": asdict(bits),
                        "ranges": encoded.ranges, "tools": sorted(tools), "streams": descriptors})
     body = PREFIX.pack(MAGIC, FORMAT_VERSION, len(header)) + FINGERPRINT.pack(fingerprint) + header \
         + b"".join(payload)
@@ -928,7 +934,7 @@ def file_fingerprint(data: bytes) -> bytes | None:
 
 
 def with_fingerprint(data: bytes, fingerprint: bytes) -> bytes:
-    """A format-5 file's bytes `data` (as `encode` wrote them) with the fit fingerprint `fingerprint` (16 bytes)
+    """A file's bytes `data` (format 5 on) (as `encode` wrote them) with the fit fingerprint `fingerprint` (16 bytes)
     in place of the one it held, its checksum recomputed: the same size, so that a budget rate control met
     still holds."""
     body = data[:PREFIX.size] + FINGERPRINT.pack(fingerprint) + data[PREFIX.size + FINGERPRINT.size:-CHECKSUM.size]
@@ -1019,6 +1025,10 @@ def _checked_header(header: Any, name: str, version: int) -> tuple[FitConfig, Bi
     written by another program."""
     try:
         config, count = config_from_optics(header["optics"]), header["num_primitives"]
+        if version >= DISPLAY_VERSION and "display" in header:
+            if not isinstance(header["display"], dict):
+                raise ValueError(f"its display {header['display']!r} is not an object")
+            config = config.replace(display=Display.from_dict(header["display"]))
         bits = BitDepths(**header["bits"])
         if not all(isinstance(value, int) and not isinstance(value, bool) for value in asdict(bits).values()):
             raise ValueError(f"bit depths {header['bits']} are not whole numbers")

@@ -19,6 +19,7 @@ from typing import Any, Literal, Sequence, get_args
 
 from .display import Display
 from .errors import ConfigError, choices_error
+from .phase import CONSTANT, Phase, check_phase_settings, parse_phase
 
 Color = Literal["rgb", "gray"]
 Primitive = Literal["flat", "cvqpg", "pixel"]
@@ -116,6 +117,8 @@ class LearningRates:
     opacity: float = 0.025
     rotation: float = 0.001
     curvature: float = 0.001
+    axes: float = 0.001  # the phase terms beyond the paper's (cvqpg/phase.py)
+    tilt: float = 0.001
 
     def __post_init__(self) -> None:
         for key in (f.name for f in dataclasses.fields(self)):
@@ -178,9 +181,11 @@ class PrimitiveSettings:
     eta: float = 0.9
     qpf: Qpf = "mahalanobis"
     curvature: Curvature = "shared"
+    phase: str | None = None  # the phase terms (`phase.PHASES`); None: the kind's (flat: constant, cvqpg: quadratic)
 
     def __post_init__(self) -> None:
         _check_fields(self)
+        check_phase(self)
 
 
 @dataclass(frozen=True)
@@ -191,6 +196,7 @@ class OptimisationSettings:
 
     steps: int = 2000
     curvature_warmup: int = 400
+    terms_warmup: int | None = None  # steps with the phase terms beyond the curvature frozen at 0; None: as γ
     seed: int = 100
     lr: LearningRates = field(default_factory=LearningRates)
     betas: tuple[float, float, float] = PAPER_BETAS
@@ -203,6 +209,8 @@ class OptimisationSettings:
         _check_fields(self)
         # steps + 1: the curvature never trains (the loop's last update has index `steps`)
         _check_range("curvature_warmup", self.curvature_warmup, 0, self.steps + 1, "integer")
+        if self.terms_warmup is not None:
+            _check_range("terms_warmup", self.terms_warmup, 0, self.steps + 1, "integer")
         if not isinstance(self.lr, LearningRates):
             raise ConfigError(f"`lr` must be LearningRates, got {self.lr!r}")
         if not (isinstance(self.betas, tuple) and len(self.betas) == 3):
@@ -279,9 +287,10 @@ FLAT_NAMES: dict[str, tuple[str, str]] = {
                                              "defocus_sigma_px", "depth_exponent")},
     **{name: ("optics", name) for name in ("pixel_pitch", "wavelengths_m", "guard_band_px", "pad_multiple_px")},
     "primitive": ("primitives", "kind"), "num_gaussians": ("primitives", "count"),
-    **{name: ("primitives", name) for name in ("ratio", "bound", "global_bound", "eta", "qpf", "curvature")},
-    **{name: ("optimisation", name) for name in ("steps", "curvature_warmup", "seed", "lr", "betas", "adan_eps",
-                                                  "grad_clip_norm", "init", "optimizer")},
+    **{name: ("primitives", name) for name in ("ratio", "bound", "global_bound", "eta", "qpf", "curvature",
+                                                "phase")},
+    **{name: ("optimisation", name) for name in ("steps", "curvature_warmup", "terms_warmup", "seed", "lr", "betas",
+                                                  "adan_eps", "grad_clip_norm", "init", "optimizer")},
     **{name: ("loss", name) for name in ("ssim_weight", "focus_weight", "product_weight", "target_noise")},
 }
 # Names that flat records (config.json, model metadata) used before a rename, and their names now.
@@ -341,6 +350,7 @@ class FitConfig:
             recipe = PIXEL_RECIPE if settings.get("primitive") == "pixel" else DEFAULT_RECIPE
         config = cls().with_recipe(recipe)
         own = {k: v for k, v in settings.items() if not (k == "curvature_warmup" and v is None)}
+        own.update(phase_settings(own.get("primitive"), own.get("phase")) if "phase" in own else {})
         steps = own.get("steps", config.optimisation.steps)
         warmup = default_curvature_warmup(steps) if _is_integer(steps) else 0  # `validate` names bad steps
         made = config.replace(**{"curvature_warmup": warmup, **own})
@@ -372,8 +382,10 @@ class FitConfig:
     def with_steps(self, steps: int) -> "FitConfig":
         """The same algorithm over `steps` steps: the curvature warm-up keeps its share of them."""
         current = self.optimisation
-        warmup = round(steps * current.curvature_warmup / current.steps) if current.steps else 0
-        return self.replace(steps=steps, curvature_warmup=warmup)
+        share = steps / current.steps if current.steps else 0
+        terms = None if current.terms_warmup is None else round(share * current.terms_warmup)
+        return self.replace(steps=steps, curvature_warmup=round(share * current.curvature_warmup),
+                            terms_warmup=terms)
 
     @property
     def channels(self) -> int:
@@ -398,19 +410,36 @@ class FitConfig:
         return int(round(self.primitives.ratio * self.targets.width * self.targets.height / pixels_per_primitive))
 
     @property
-    def learnable_curvatures(self) -> int:
-        """Curvature parameters per primitive: none (flat), one per channel (`per-channel`), else one."""
+    def phase(self) -> Phase:
+        """The phase terms of the primitives (`cvqpg.phase`): none for the flat primitive, `primitives.phase` or
+        the paper's quadratic term for CVQPG."""
         if self.primitives.kind != "cvqpg":
+            return Phase(())
+        return parse_phase(self.primitives.phase or "quadratic")
+
+    @property
+    def learnable_curvatures(self) -> int:
+        """Parameters of the paper's curvature per primitive: none without it (flat), one per channel
+        (`per-channel`), else one."""
+        if self.primitives.kind != "cvqpg" or not self.phase.has("quadratic"):
             return 0
         return self.channels if self.primitives.curvature == "per-channel" else 1
 
     @property
     def params_per_primitive(self) -> int:
-        """Learnable scalars per primitive: 12/13/15 (RGB flat/CVQPG/per-channel), 8/9 (grayscale); per pixel of a
-        per-pixel hologram, an amplitude and a phase per channel (a phase pattern: the phases alone)."""
+        """Learnable scalars per primitive: 12/13/15 (RGB flat/CVQPG/per-channel), 8/9 (grayscale), two more for each
+        of the phase terms `axes` and `tilt`; per pixel of a per-pixel hologram, an amplitude and a phase per channel
+        (a phase pattern: the phases alone)."""
         if self.primitives.kind == "pixel":
             return self.channels * (1 if self.phase_only_pixels else 2)
-        return 2 + 2 + 1 + 2 * self.channels + 1 + self.learnable_curvatures
+        extra = sum(term.parameters for term in self.phase.extra_terms)
+        return 2 + 2 + 1 + 2 * self.channels + 1 + self.learnable_curvatures + extra
+
+    @property
+    def terms_warmup(self) -> int:
+        """Steps with the phase terms beyond the curvature frozen at 0: `optimisation.terms_warmup`, or γ's."""
+        warmup = self.optimisation.terms_warmup
+        return self.optimisation.curvature_warmup if warmup is None else warmup
 
     @property
     def phase_only_pixels(self) -> bool:
@@ -507,6 +536,30 @@ def check_time_budget(minutes: float) -> None:
     if not 0 < minutes <= MAX_TIME_MINUTES:
         raise ConfigError(f"`time` {minutes:g} min: give a positive number of minutes, at most {MAX_TIME_MINUTES} "
                           "(a year)")
+
+
+def phase_settings(primitive: str | None, phase: str | None) -> dict[str, Any]:
+    """`primitive` and `phase` as a configuration holds them: `constant` is the flat primitive and `quadratic`
+    CVQPG's own (both recorded as the kind, without a phase), any other phase a CVQPG primitive's. Another
+    `primitive` with a phase is left for `PrimitiveSettings` to refuse."""
+    if phase is None or primitive not in (None, "cvqpg") and phase != CONSTANT:
+        return {} if phase is None else {"phase": phase}
+    if phase in (CONSTANT, "quadratic"):
+        return {"primitive": "flat" if phase == CONSTANT else "cvqpg", "phase": None}
+    return {"primitive": "cvqpg", "phase": phase}
+
+
+def check_phase(primitives: PrimitiveSettings) -> None:
+    """`ConfigError` unless `primitives.phase` names a phase (`phase.PHASES`) of a CVQPG primitive that goes with
+    its other settings (None: the kind's own)."""
+    phase, kind = primitives.phase, primitives.kind
+    if phase is None:
+        return
+    parsed = parse_phase(phase)
+    if not (kind == "flat" and parsed.name == CONSTANT or kind == "cvqpg" and parsed.name != CONSTANT):
+        raise ConfigError(f"`phase` {phase} with `primitive` {kind}: the flat primitive is the constant phase, "
+                          "CVQPG's are the others; give `phase` alone, for Gaussian primitives")
+    check_phase_settings(parsed, primitives.curvature, primitives.bound)
 
 
 def from_flat_record(data: dict[str, Any]) -> FitConfig:

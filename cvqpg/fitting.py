@@ -179,7 +179,7 @@ def initial_state(config: FitConfig, scene: Scene | None = None, run: RunOptions
     device = torch.device(run.device)
     gaussians = representation(config).initial(config, scene, run.device)
     for name in representation(config).groups(config):
-        getattr(gaussians, name).requires_grad_(True)
+        gaussians.parameter(name).requires_grad_(True)
     optimizer = make_optimizer(gaussians, config)
     generator = torch.Generator(device=device).manual_seed(config.optimisation.seed)
     return FitState(gaussians, optimizer, generator)
@@ -323,11 +323,11 @@ PROBE_STEPS = 12
 def seconds_per_step(scene: Scene, config: FitConfig, run: RunOptions = RunOptions(),
                      probe_steps: int = PROBE_STEPS) -> float:
     """Seconds one update of a fit of `config` takes here on `run`, timed over `probe_steps` updates of a
-    throwaway state after one untimed update (first-call costs), past the curvature warm-up, where most steps
-    are."""
+    throwaway state after one untimed update (first-call costs), past the warm-ups of the phase terms, where most
+    steps are."""
     scene = scene.to(run.device)
     state = initial_state(config, scene, run)
-    first = config.optimisation.curvature_warmup
+    first = max(config.optimisation.curvature_warmup, config.terms_warmup)
     for step in range(first, first + probe_steps + 1):
         if step == first + 1:
             start = time.perf_counter()

@@ -61,7 +61,8 @@ def initial_gaussians(config: FitConfig, scene: Scene | None = None, device: str
     (`implied_slm_field`) carries its energy, with `edges` mostly to the targets' edges (`edge_density`)."""
     width, height, seed = config.targets.width, config.targets.height, config.optimisation.seed
     gaussians = init_gaussians(config.primitive_count, config.channels, width, height, seed, "cpu",
-                               config.primitives.curvature == "per-channel")
+                               config.primitives.curvature == "per-channel",
+                               tuple(term.name for term in config.phase.extra_terms))
     init = config.optimisation.init
     if init != "uniform":
         if scene is None:

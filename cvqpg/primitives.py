@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 import torch
 from torch import Tensor
 
 from .config import FitConfig
 from .errors import ConfigError, ModelFileError
+from .phase import QUADRATIC, TERMS, activate_terms
 
 COVARIANCE_REGULARISER_PX2 = 0.1
 MIN_SCALE_PX = 0.1
@@ -21,18 +22,36 @@ INIT_OPACITY_RAW = -0.5
 
 
 class TensorFields:
-    """Per-primitive tensors of a dataclass, handled as one dict (checkpoints, files, devices)."""
+    """Per-primitive tensors of a dataclass, handled as one dict (checkpoints, files, devices): its fields, and where
+    it has a `terms` field (the phase terms beyond the curvature, by term name) those under their names
+    (`_term_name`), only where a model has them: a model without them has exactly the tensors of the versions
+    before them."""
+
+    @staticmethod
+    def _term_name(term: str) -> str:
+        return term
 
     @property
     def count(self) -> int:
         return getattr(self, fields(self)[0].name).shape[0]
 
     def tensors(self) -> dict[str, Tensor]:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+        own = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "terms"}
+        return {**own, **{self._term_name(name): tensor for name, tensor in getattr(self, "terms", {}).items()}}
 
     @classmethod
     def from_tensors(cls, tensors: dict[str, Tensor]):
-        return cls(**{f.name: tensors[f.name] for f in fields(cls)})
+        own = {f.name: tensors[f.name] for f in fields(cls) if f.name != "terms"}
+        if "terms" not in {f.name for f in fields(cls)}:
+            return cls(**own)
+        terms = {name: tensors[cls._term_name(name)] for name in TERMS
+                 if name != QUADRATIC.name and cls._term_name(name) in tensors}
+        return cls(**own, terms=terms)
+
+    def parameter(self, name: str) -> Tensor:
+        """The raw tensor of an optimiser group: a field, or a phase term."""
+        terms = getattr(self, "terms", {})
+        return terms[name] if name in terms else getattr(self, name)
 
     def to(self, device: torch.device | str, dtype: torch.dtype | None = None):
         return self.from_tensors({k: v.to(device, dtype) for k, v in self.tensors().items()})
@@ -52,6 +71,7 @@ class Gaussians(TensorFields):
     phase: Tensor  # [N, C] → rad via mod 2π
     opacity: Tensor  # [N] → sigmoid
     curvature: Tensor  # [N], or [N, C] per channel → 1/m via γ_max·tanh
+    terms: dict[str, Tensor] = field(default_factory=dict)  # the phase terms beyond γ [N, P] (cvqpg/phase.py)
 
     @property
     def channels(self) -> int:
@@ -69,6 +89,11 @@ class Primitives(TensorFields):
     phase_rad: Tensor  # [N, C]
     opacity: Tensor  # [N]
     curvature_per_m: Tensor  # [N] shared, or [N, C] one per channel: γ in 1/m
+    terms: dict[str, Tensor] = field(default_factory=dict)  # the phase terms beyond γ, physical [N, P], by term name
+
+    @staticmethod
+    def _term_name(term: str) -> str:
+        return TERMS[term].physical
 
     @property
     def channels(self) -> int:
@@ -84,7 +109,8 @@ def model_shapes(count: int, config: FitConfig) -> dict[str, tuple[int, ...]]:
     channels = config.channels
     return {"position_px": (count, 2), "scale_px": (count, 2), "rotation_rad": (count,),
             "amplitude": (count, channels), "phase_rad": (count, channels), "opacity": (count,),
-            "curvature_per_m": (count,) if config.primitives.curvature == "shared" else (count, channels)}
+            "curvature_per_m": (count,) if config.primitives.curvature == "shared" else (count, channels),
+            **{term.physical: (count, term.parameters) for term in config.phase.extra_terms}}
 
 
 def check_settings(config: FitConfig, count: object, name: str) -> None:
@@ -103,7 +129,13 @@ def check_tensors(primitives: Primitives, config: FitConfig, name: str) -> None:
     it and finite values, and every scale (px) is positive."""
     tensors = primitives.tensors()
     count = tensors["position_px"].shape[0] if tensors["position_px"].dim() else 0
-    for tensor_name, shape in model_shapes(count, config).items():
+    shapes = model_shapes(count, config)
+    unknown = sorted(tensors.keys() - shapes.keys())
+    if unknown:
+        raise ModelFileError(f"{name}: tensor {unknown[0]!r} belongs to no phase term of its settings; {REWRITE_MODEL}")
+    for tensor_name, shape in shapes.items():
+        if tensor_name not in tensors:
+            raise ModelFileError(f"{name}: tensor {tensor_name!r} is missing; {REWRITE_MODEL}")
         if tuple(tensors[tensor_name].shape) != shape:
             raise ModelFileError(f"{name}: tensor {tensor_name!r} has shape {tuple(tensors[tensor_name].shape)}, "
                                  f"expected {shape}; {REWRITE_MODEL}")
@@ -117,10 +149,12 @@ def check_tensors(primitives: Primitives, config: FitConfig, name: str) -> None:
 
 
 def init_gaussians(count: int, channels: int, width: int, height: int, seed: int,
-                   device: torch.device | str = "cpu", per_channel_curvature: bool = False) -> Gaussians:
+                   device: torch.device | str = "cpu", per_channel_curvature: bool = False,
+                   terms: tuple[str, ...] = ()) -> Gaussians:
     """The reference initialisation: draws from a CPU generator in method.md's order (§2), then moves to `device`.
 
-    Curvature starts at 0, [N] or [N, C] with `per_channel_curvature`; the draws do not depend on it.
+    Curvature starts at 0, [N] or [N, C] with `per_channel_curvature`, and so do the phase `terms` beyond it
+    (names in `phase.TERMS`): the primitive starts flat. The draws depend on neither.
     """
     generator = torch.Generator().manual_seed(seed)
     u_position = torch.rand(count, 2, generator=generator)
@@ -136,6 +170,7 @@ def init_gaussians(count: int, channels: int, width: int, height: int, seed: int
         phase=torch.zeros(count, channels),
         opacity=torch.full((count,), INIT_OPACITY_RAW),
         curvature=torch.zeros((count, channels) if per_channel_curvature else (count,)),
+        terms={name: torch.zeros(count, TERMS[name].parameters) for name in terms},
     )
     return raw.to(device)
 
@@ -182,15 +217,22 @@ def curvature_bound(scale_px: Tensor, config: FitConfig) -> Tensor:
 
 
 def activate(raw: Gaussians, config: FitConfig) -> Primitives:
-    """Apply method.md §2's activations; the curvature bound follows `primitives.bound` and `primitives.curvature`.
+    """Apply method.md §2's activations; the curvature bound follows `primitives.bound` and `primitives.curvature`,
+    and takes its share of the Nyquist limit beside the other phase terms (`phase.Phase.nyquist_shares`).
 
     `channel-bound` shares one raw curvature: every channel gets the same fraction of its own bound.
     """
     scale = scales_px(raw.scale)
     bound = curvature_bound(scale, config)
+    phase = config.phase
+    shares = phase.nyquist_shares()
+    if shares.get("quadratic", 1.0) != 1.0:  # alone the paper's bound, as it was
+        bound = bound * shares["quadratic"]
     share = torch.tanh(raw.curvature)
     if share.dim() < bound.dim():
         share = share[:, None]
+    terms = activate_terms(raw.terms, phase, scale, config.primitives.eta, min(config.wavelengths),
+                           config.optics.pixel_pitch) if phase.extra_terms else {}
     return Primitives(
         position_px=positions_px(raw.position, config.targets.width, config.targets.height),
         scale_px=scale,
@@ -199,6 +241,7 @@ def activate(raw: Gaussians, config: FitConfig) -> Primitives:
         phase_rad=torch.remainder(raw.phase, 2 * math.pi),
         opacity=torch.sigmoid(raw.opacity),
         curvature_per_m=bound * share,
+        terms=terms,
     )
 
 

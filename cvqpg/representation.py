@@ -67,11 +67,16 @@ class GaussianRepresentation:
         return initial_gaussians(config, scene, device)
 
     def groups(self, config: FitConfig) -> dict[str, str]:
-        # the flat primitive has no curvature
-        return {name: name for name in GAUSSIAN_GROUPS if name != "curvature" or config.primitives.kind == "cvqpg"}
+        # the flat primitive has no curvature, a phase without the quadratic term neither; each further phase term
+        # (`cvqpg.phase`) is a group of its own
+        phase = config.phase
+        own = {name: name for name in GAUSSIAN_GROUPS if name != "curvature" or phase.has("quadratic")}
+        return {**own, **{term.name: term.learning_rate for term in phase.extra_terms}}
 
     def before_update(self, raw: Gaussians, config: FitConfig, step: int) -> None:
-        raw.curvature.requires_grad_(config.primitives.kind == "cvqpg" and step >= config.optimisation.curvature_warmup)
+        raw.curvature.requires_grad_(config.phase.has("quadratic") and step >= config.optimisation.curvature_warmup)
+        for tensor in raw.terms.values():
+            tensor.requires_grad_(step >= config.terms_warmup)
 
     def activate(self, raw: Gaussians, config: FitConfig) -> Primitives:
         return activate(raw, config)
@@ -131,7 +136,7 @@ def param_groups(raw: TensorFields, config: FitConfig, lr: LearningRates | None 
     """The optimiser's groups of `raw`: one per trainable tensor, named by its learning rate in `lr` (default:
     `config.optimisation.lr`)."""
     lr = config.optimisation.lr if lr is None else lr
-    return [{"params": [getattr(raw, tensor)], "lr": getattr(lr, rate), "name": rate}
+    return [{"params": [raw.parameter(tensor)], "lr": getattr(lr, rate), "name": rate}
             for tensor, rate in representation(config).groups(config).items()]
 
 

@@ -36,7 +36,8 @@ def model_metadata(primitives: Primitives | TensorFields, config: FitConfig, dty
             "width_px": str(config.targets.width), "height_px": str(config.targets.height),
             "pixel_pitch_m": repr(config.optics.pixel_pitch), "wavelengths_m": json.dumps(config.wavelengths),
             "plane_distances_m": json.dumps(config.plane_distances), "qpf": config.primitives.qpf,
-            "units": json.dumps(representation(config).units(config))}
+            "units": json.dumps({**representation(config).units(config), **{term.physical: f"{term.unit} ({term.summary})"
+                                                              for term in config.phase.extra_terms}})}
 
 
 def save_model(path: str | Path, primitives: Primitives | TensorFields, config: FitConfig, dtype: str = "float32",
@@ -142,7 +143,8 @@ def load_model(path: str | Path, device: str | torch.device = "cpu") -> tuple[Pr
 
 
 def model_info(path: str | Path) -> dict[str, Any]:
-    """Size accounting of a model file: primitives, parameters, bytes and bits per hologram pixel
+    """Size accounting of a model file: primitives, their phase terms, parameters (per primitive and in all), bytes
+    and bits per hologram pixel
     (all channels together); for a compressed file also the bits per attribute, the format's tools, the fit
     fingerprint (hex, None where the file carries none) and each stream's coding."""
     path = _model_file(path)
@@ -159,6 +161,7 @@ def model_info(path: str | Path) -> dict[str, Any]:
         dtype = metadata.get("dtype", "float32")
     file_bytes = path.stat().st_size
     return {"file": str(path), "num_primitives": primitives.count, "primitive": config.primitives.kind,
+            "phase": config.phase.name, "params_per_primitive": config.params_per_primitive,
             "learnable_params": primitives.count * config.params_per_primitive,
             "stored_values": sum(t.numel() for t in primitives.tensors().values()), "dtype": dtype,
             "file_bytes": file_bytes, "hologram_px": [config.targets.width, config.targets.height],

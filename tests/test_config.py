@@ -59,8 +59,9 @@ def test_a_value_outside_its_choices_makes_no_configuration_by_any_route(name):
 
 
 def test_every_setting_is_checked_where_it_is_made():
-    # the four checked by their own rules in their sections; a new setting needs a row in RANGES or CHOICES
-    assert set(FLAT_NAMES) - set(RANGES) - set(CHOICES) == {"wavelengths_m", "lr", "betas", "curvature_warmup"}
+    # the six checked by their own rules in their sections; a new setting needs a row in RANGES or CHOICES
+    assert set(FLAT_NAMES) - set(RANGES) - set(CHOICES) == {"wavelengths_m", "lr", "betas", "curvature_warmup",
+                                                            "terms_warmup", "phase"}
     assert set(OPTIONAL) <= set(RANGES) and not set(RANGES) & set(CHOICES)
     config = FitConfig.create(steps=30)
     assert config.validate() is config  # kept for callers: a configuration that exists is valid

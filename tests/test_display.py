@@ -326,3 +326,26 @@ def test_a_fit_through_the_complex_display_keeps_the_fingerprint_of_the_schema_b
     assert fingerprint_digest(fit_fingerprint(small_config(), source)) == hashlib.sha256(text.encode()).digest()[:16]
     through_dpac = fit_fingerprint(small_config(display=Display.create("dpac")), source)
     assert fingerprint_digest(through_dpac) not in (None, fingerprint_digest(fit_fingerprint(small_config(), source)))
+
+
+def test_a_cvq_file_keeps_the_display_and_refuses_one_that_cannot_work():
+    import zlib
+
+    from cvqpg.codec import CHECKSUM, PREFIX, BitDepths, decode, deflated, encode, header_start, inflated
+    from cvqpg.errors import ModelFileError
+    from cvqpg.primitives import activate, init_gaussians
+
+    config = FitConfig.create(width=32, height=24, color="gray", ratio=0.1,
+                              display=Display.create("dpac", levels=64, canvas=(30, 40)))
+    primitives = activate(init_gaussians(config.primitive_count, 1, 32, 24, 1), config)
+    data = encode(primitives, config, BitDepths())
+    assert decode(data).config.display == config.display
+    assert decode(encode(primitives, config.replace(display=Display()), BitDepths())).config.display == Display()
+    _, version, length = PREFIX.unpack_from(data)
+    start = header_start(version)
+    header = json.loads(inflated(data[start:start + length], version))
+    header["display"]["levels"] = 1
+    packed = deflated(header)
+    body = PREFIX.pack(data[:8], version, len(packed)) + data[PREFIX.size:start] + packed + data[start + length:-4]
+    with pytest.raises(ModelFileError, match="phase levels"):
+        decode(body + CHECKSUM.pack(zlib.crc32(body)))

@@ -24,7 +24,11 @@ covered, where `encode` keeps the smaller file without it (3,161 bytes); its gra
 used: 160×120 px grayscale, 2 planes, shared curvature, ratio 0.3 (1,440 primitives), `random_primitives(config)`
 of tests/test_codec.py (seed 3) with amplitude |amplitude|, phase 0.2·N(0, 1) mod 2π and scale exp(1 + 0.8·N(0, 1))
 px drawn in that order from `torch.Generator().manual_seed(1)` (`gathered_primitives`). Version 5 decodes the scale
-with `codec.exact_exp`, so its files decode to the same bits on every machine and are compared exactly.
+with `codec.exact_exp`, so its files decode to the same bits on every machine and are compared exactly. Version
+6's files were written at the commit that introduced it, its grayscale file by the version-5 recipe (its bytes are
+version 5's but for the version number), its RGB file by the version-5 RGB recipe of that commit (the primitives
+`random_primitives(config)` drew there) for a model fitted through a DPAC display with a lookup table of 300
+phases (0.02·g rad), aperture 0.6 and a 56×40 canvas, so that the header's `display` is covered.
 
 **Never regenerate a golden file**: a file written by today's code proves only that today's decoder reads what
 today's encoder writes. A new format version adds its own pair of files; a version's files stay as they are.
@@ -41,6 +45,7 @@ import torch
 from safetensors.torch import load_file
 
 from cvqpg.codec import FORMAT_VERSION, MAGIC, PREFIX, BitDepths, decode, header_start, inflated, optics
+from cvqpg.display import Display
 
 DATA = Path(__file__).parent / "data"
 GOLDEN = [(version, kind) for version in range(1, FORMAT_VERSION + 1) for kind in ("rgb", "gray")]
@@ -79,6 +84,7 @@ def test_a_golden_file_decodes_as_the_version_that_wrote_it_decoded_it(version, 
     assert decoded.bits == BitDepths(**written["bits"])
     rendering = optics(decoded.config)
     assert {name: rendering[name] for name in written["optics"]} == written["optics"]
+    assert decoded.config.display == Display.from_dict(written.get("display") if version >= 6 else None)
     tensors = decoded.primitives.tensors()
     assert tensors.keys() == expected.keys()
     for name, tensor in tensors.items():

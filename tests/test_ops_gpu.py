@@ -139,9 +139,9 @@ from triton.backends.compiler import GPUTarget
 from triton.compiler import ASTSource, compile
 from cvqpg.ops.rasterize import gpu
 
-for kernel, pointers in ((gpu.splat_forward, 7), (gpu.splat_backward, 12)):
+for kernel, pointers in ((gpu.splat_forward, 9), (gpu.splat_backward, 15)):
     names = list(inspect.signature(kernel.fn).parameters)
-    constants = {"CHANNELS": 3, "CHANNEL_BLOCK": 4, "MAHALANOBIS": True, "BLOCK": gpu.BLOCK}
+    constants = {"CHANNELS": 3, "CHANNEL_BLOCK": 4, "MAHALANOBIS": True, "HAS_FORM": True, "BLOCK": gpu.BLOCK}
     signature = {name: "constexpr" if name in constants else "*fp32" if i < pointers else "i32"
                  for i, name in enumerate(names)}
     source = ASTSource(fn=kernel, signature=signature,

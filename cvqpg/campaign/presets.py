@@ -77,6 +77,11 @@ METHODS = {
                           aperture=DEFAULT_APERTURE),
     "pixel-dpac-time": Method("per-pixel through the display, CVQPG's time", PIXEL, recipe=PIXEL_RECIPE,
                               display="dpac", step_factors=tuple(PIXEL_STEPS_PER_CVQPG_STEP.items())),
+    # The phase terms beyond the curvature (cvqpg/phase.py), and CVQPG at each one's parameter count.
+    **{phase: Method(f"phase {phase}", {"primitive": "cvqpg", "phase": phase})
+       for phase in ("tilt", "quadratic+tilt", "axes", "axes+tilt")},
+    **{f"cvqpg@{phase}": Method(f"CVQPG ({phase}'s params)", CVQPG, params_of={"phase": phase})
+       for phase in ("tilt", "quadratic+tilt", "axes", "axes+tilt")},
 }
 DISPLAY_METHODS = ("cvqpg-exported", "cvqpg-dpac", "flat-dpac", "pixel-dpac", "pixel-phase", "pixel-dpac-time")
 
@@ -133,6 +138,11 @@ PRESETS = {
                       "and the per-pixel hologram fitted through the DPAC display, the per-pixel phase pattern, at "
                       "equal steps, and the per-pixel hologram at the CVQPG display fit's time", COLORS, (0.1,),
                       DISPLAY_METHODS, recipe=BEYOND_RECIPE),
+    "beyond-phase": Preset("phase terms beyond the curvature (cvqpg/phase.py) with the beyond recipe at 2000 steps, "
+                    "{rgb, gray} 10%: CVQPG, quadratic+tilt and axes+tilt at equal N, and CVQPG at each one's "
+                    "parameter count", COLORS, (0.1,),
+                    ("cvqpg", "quadratic+tilt", "axes+tilt", "cvqpg@quadratic+tilt", "cvqpg@axes+tilt"),
+                    recipe=BEYOND_RECIPE),
     "quick": Preset("smoke test: built-in scenes, 160×120, 60 steps",
                     ("gray",), (0.1,), ("baseline", "cvqpg"), ("demo", "star"), (160, 120), 60),
 }

@@ -312,7 +312,7 @@ def _lane_exponents(dx, dy, a, b, c):
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, **CALLED_BY_KERNELS_ONLY)
-def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumbers, mahalanobis, count, lanes,
+def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, form, phase, wavenumbers, mahalanobis, count, lanes,
                  scratch):
     """Every channel's lanes (lane = column · C + channel) on the box's first row, zero past them up to
     `count` (a whole number of strips): G = e^{iφ}·exp(E), without the amplitude αc (the forward pass
@@ -321,7 +321,7 @@ def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumb
     which changes by exp(2B). Q = exp(2C) depends on the channel only: Q − 1 goes into the scratch's
     pattern (`_pattern_index`; see `_stepped_down`). Those six exponentials per channel share their
     real parts, −½ of the same expressions in (a, b, c); their imaginary parts are k_c χ times them
-    in (α_A, α_B, α_C)."""
+    in (α_A, α_B, α_C), plus k_c times the phase terms' form (`_form_exponents`) where the primitive has one."""
     channels = phase.shape[1]
     dx, dy = first - x0, low - y0
     angles, cosines, sines, magnitudes, patterns, starts = scratch
@@ -333,6 +333,11 @@ def _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumb
         for j in range(6):
             angles[6 * ch + j] = k_chirp * quadratic[j]
         angles[6 * ch] += phase[n, ch]
+    if _has_form(n, form):
+        extra = _form_exponents(dx, dy, n, form)
+        for ch in range(channels):
+            for j in range(6):
+                angles[6 * ch + j] += wavenumbers[ch] * extra[j]
     cosines_and_sines(angles[:6 * channels], cosines, sines)
     for ch in range(channels):
         g, ratio, step, h, h_step, q = _lane_exponentials(magnitudes, cosines, sines, ch)
@@ -419,6 +424,38 @@ def _is_real(n, chirp):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
+def _has_form(n, form):
+    """Whether primitive n has a phase beyond the paper's chirp (`reference.Splats.form`, [N, 5] or [0, 5] for
+    none): the path P_a dx² + 2P_b dx dy + P_c dy² + L_x dx + L_y dy (m) is not zero."""
+    if form.shape[0] == 0:
+        return False
+    for j in range(form.shape[1]):
+        if form[n, j] != 0.0:
+            return True
+    return False
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _form_exponents(dx, dy, n, form):
+    """The form's path (m) in the six lane exponentials (`_lane_exponents`) at the box's top-left offset: its
+    quadratic part as the envelope's, and its linear part L·d in G, L_x in the row's ratio, L_y in H."""
+    pa, pb, pc, lx, ly = (np.float64(form[n, 0]), np.float64(form[n, 1]), np.float64(form[n, 2]),
+                          np.float64(form[n, 3]), np.float64(form[n, 4]))
+    g, ratio, step, h, h_step, q = _lane_exponents(dx, dy, pa, pb, pc)
+    return g + lx * dx + ly * dy, ratio + lx, step, h + ly, h_step, q
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _with_form(A, B, C, k, n, form, tilted):
+    """(A, B, C) of the complex exponent with k times the form's quadratic part added to their imaginary parts
+    where `tilted`, and the linear coefficients (D, F) of E's D dx + F dy (zero otherwise)."""
+    if not tilted:
+        return A, B, C, 0j, 0j
+    return (A + complex(0.0, k * form[n, 0]), B + complex(0.0, k * form[n, 1]), C + complex(0.0, k * form[n, 2]),
+            complex(0.0, k * form[n, 3]), complex(0.0, k * form[n, 4]))
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
 def _amplitude_pattern(n, color, opacity, patterns):
     """The amplitude αc of primitive n's channels into the scratch's pattern (`_pattern_index`)."""
     channels = color.shape[1]
@@ -443,17 +480,17 @@ def _rotation_pattern(n, phase, color, opacity, with_amplitude, patterns):
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
-def _tabulate(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-              count, lanes, scratch, with_amplitude):
+def _tabulate(n, a, b, c, x0, y0, low, first, columns, chirp, form, color, phase, opacity, wavenumbers,
+              mahalanobis, count, lanes, scratch, with_amplitude):
     """The box's lane tables and the scratch's patterns, the amplitude αc among them if `with_amplitude`
     (the forward pass): real lanes (`_real_lane_tables`) for a primitive without curvature, else
     complex ones (`_lane_tables`). Returns whether the lanes are real."""
     patterns = scratch[4]
-    if _is_real(n, chirp):
+    if _is_real(n, chirp) and not _has_form(n, form):
         _real_lane_tables(a, b, c, x0, y0, low, first, columns, phase.shape[1], count, lanes, scratch[3], patterns)
         _rotation_pattern(n, phase, color, opacity, with_amplitude, patterns)
         return True
-    _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, phase, wavenumbers, mahalanobis, count, lanes,
+    _lane_tables(n, a, b, c, x0, y0, low, first, columns, chirp, form, phase, wavenumbers, mahalanobis, count, lanes,
                  scratch)
     if with_amplitude:
         _amplitude_pattern(n, color, opacity, patterns)
@@ -633,16 +670,29 @@ def _exact_at(A, B, C, dx, dy):
 
 
 @nb.njit(cache=True, nogil=True, **CALLED_BY_KERNELS_ONLY)
-def _walk_start(A, B, C, dx0, dy0):
+def _walk_start(A, B, C, D, F, tilted, dx0, dy0):
     """Exact values at the walk's start (column dx0, first row dy0): exp(E), the vertical ratio and
-    its change, the rightward and leftward ratios, their changes per row (right, left) and per step."""
+    its change, the rightward and leftward ratios, their changes per row (right, left) and per step.
+    Where `tilted`, E's linear part D dx + F dy scales exp(E) and the ratios: it changes none of the steps."""
     z0, s_right, s_left = _exact_at(A, B, C, dx0, dy0)
-    return (z0, cmath.exp(2.0 * B * dx0 + C * (2.0 * dy0 + 1.0)), cmath.exp(2.0 * C), s_right, s_left,
-            cmath.exp(2.0 * B), cmath.exp(-2.0 * B), cmath.exp(2.0 * A))
+    vertical = cmath.exp(2.0 * B * dx0 + C * (2.0 * dy0 + 1.0))
+    if tilted:
+        z0, s_right, s_left = _tilted(z0, s_right, s_left, D, F, dx0, dy0)
+        vertical *= cmath.exp(F)
+    return (z0, vertical, cmath.exp(2.0 * C), s_right, s_left, cmath.exp(2.0 * B), cmath.exp(-2.0 * B),
+            cmath.exp(2.0 * A))
 
 
 @nb.njit(cache=True, nogil=True, **CALLED_BY_KERNELS_ONLY)
-def _row_walks(walk, A, B, C, scale, z_row, s_right, s_left, s_step, x0, dy, cx, ridge_slope, left, right):
+def _tilted(z, s_right, s_left, D, F, dx, dy):
+    """exp(E) at (dx, dy) and its ratios to the right and left neighbours (`_exact_at`) with E's linear part
+    D dx + F dy added."""
+    return z * cmath.exp(D * dx + F * dy), s_right * cmath.exp(D), s_left * cmath.exp(-D)
+
+
+@nb.njit(cache=True, nogil=True, **CALLED_BY_KERNELS_ONLY)
+def _row_walks(walk, A, B, C, D, F, tilted, scale, z_row, s_right, s_left, s_step, x0, dy, cx, ridge_slope, left,
+               right):
     """Both walks of a row, stepped together so that their two multiplication chains overlap.
 
     Returns the start column, the rightward walk's value and ratio there, the leftward walk's one
@@ -655,6 +705,8 @@ def _row_walks(walk, A, B, C, scale, z_row, s_right, s_left, s_step, x0, dy, cx,
     else:
         start = min(max(round(x0 + ridge_slope * dy), left), right)
         z_row, s_right, s_left = _exact_at(A, B, C, start - x0, dy)
+        if tilted:
+            z_row, s_right, s_left = _tilted(z_row, s_right, s_left, D, F, start - x0, dy)
         z_row *= scale
     steps = max(right + 1 - start, start - left) if left <= right else 0
     return start, z_row, s_right, z_row * s_left, s_left * s_step, steps
@@ -682,17 +734,20 @@ def _chirp_slot(channel, chirp):
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, **CALLED_BY_KERNELS_ONLY)
-def _walked_rows(A, B, C, amplitude, way, x0, y0, low, high, lefts, rights, lane, channels, out_re, out_im):
-    """out += amplitude · exp(E) over the footprint, each row walked outwards (see the module notes)."""
+def _walked_rows(A, B, C, D, F, tilted, amplitude, way, x0, y0, low, high, lefts, rights, lane, channels, out_re,
+                 out_im):
+    """out += amplitude · exp(E) over the footprint, each row walked outwards (see the module notes); E has the
+    linear part D dx + F dy where `tilted`."""
     cx = round(x0)
-    z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, cx - x0, low - y0)
+    z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, D, F, tilted, cx - x0,
+                                                                               low - y0)
     z_row *= amplitude
     for py in range(low, high + 1):
         dy = py - y0
         left, right = int(lefts[py - low]), int(rights[py - low])
         row_re, row_im = out_re[py], out_im[py]
-        start, z_r, s_r, z_l, s_l, steps = _row_walks(way == WALKED, A, B, C, amplitude, z_row, s_right, s_left,
-                                                      s_step, x0, dy, cx, -B.real / A.real, left, right)
+        start, z_r, s_r, z_l, s_l, steps = _row_walks(way == WALKED, A, B, C, D, F, tilted, amplitude, z_row, s_right,
+                                                      s_left, s_step, x0, dy, cx, -B.real / A.real, left, right)
         for i in range(steps):
             for px, z in ((start + i, z_r), (start - 1 - i, z_l)):
                 if left <= px <= right:
@@ -710,35 +765,38 @@ def _block_lanes(columns, channels, block):
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
-def _splat_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, out_re, out_im,
-               image_re, image_im, lefts, rights, spans, lanes, scratch):
+def _splat_one(n, position, conic, reach, chirp, form, color, phase, opacity, wavenumbers, mahalanobis, out_re,
+               out_im, image_re, image_im, lefts, rights, spans, lanes, scratch):
     channels = color.shape[1]
     height, width = out_re.shape[0], _image_width(out_re.shape[1], channels)
     way, x0, y0, a, b, c, r, low, high, first, last = _way(n, position, conic, reach, height, width, lefts, rights)
     if way == OFF_IMAGE:
         return
     if way != TABULATED:
+        tilted = _has_form(n, form)
         for ch in range(channels):
             A, B, C = _exponent_coefficients(a, b, c, wavenumbers[ch] * chirp[n, _chirp_slot(ch, chirp)],
                                              mahalanobis)
+            A, B, C, D, F = _with_form(A, B, C, wavenumbers[ch], n, form, tilted)
             amplitude = opacity[n] * color[n, ch] * cmath.exp(complex(0.0, phase[n, ch]))
-            _walked_rows(A, B, C, amplitude, way, x0, y0, low, high, lefts, rights, ch, channels, out_re, out_im)
+            _walked_rows(A, B, C, D, F, tilted, amplitude, way, x0, y0, low, high, lefts, rights, ch, channels,
+                         out_re, out_im)
         return
     columns, count = last + 1 - first, _block_lanes(last + 1 - first, channels, STRIP)
     box = (lanes[0][:count], lanes[1][:count], lanes[2][:count], lanes[3][:count])
     _lane_spans(lefts, rights, first, channels, high + 1 - low, spans)
     row_length, patterns = out_re.shape[1], scratch[4]
     start = low * row_length + first * channels
-    if _tabulate(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                 count, box, scratch, True):
+    if _tabulate(n, a, b, c, x0, y0, low, first, columns, chirp, form, color, phase, opacity, wavenumbers,
+                 mahalanobis, count, box, scratch, True):
         _add_real_strips(box, patterns, channels, count, spans, high + 1 - low, row_length, start, image_re, image_im)
     else:
         _add_strips(box, patterns, channels, count, spans, high + 1 - low, row_length, start, image_re, image_im)
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, **CALLED_BY_KERNELS_ONLY)
-def _splat_share(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                 out_re, out_im):
+def _splat_share(t, threads, order, position, conic, reach, chirp, form, color, phase, opacity, wavenumbers,
+                 mahalanobis, out_re, out_im):
     """out += the sum over primitives order[t], order[t+T], order[t+2T], ... (T = threads): one thread's
     share. Its work arrays are made here, for `_splat_loop`, which cannot allocate."""
     height, width = out_re.shape[0], out_re.shape[1]
@@ -746,8 +804,8 @@ def _splat_share(t, threads, order, position, conic, reach, chirp, color, phase,
                                                                 np.empty(height, np.float32))
     lanes = (np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
              np.empty(width, np.float32))
-    _splat_loop(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                out_re, out_im, out_re.reshape(out_re.size), out_im.reshape(out_im.size), lefts, rights, spans, lanes,
+    _splat_loop(t, threads, order, position, conic, reach, chirp, form, color, phase, opacity, wavenumbers,
+                mahalanobis, out_re, out_im, out_re.reshape(out_re.size), out_im.reshape(out_im.size), lefts, rights, spans, lanes,
                 _scratch(color.shape[1]))
 
 
@@ -760,15 +818,15 @@ WITHOUT_REFERENCE_COUNTS = {"_nrt": False}
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, **WITHOUT_REFERENCE_COUNTS, **CALLED_BY_KERNELS_ONLY)
-def _splat_loop(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                out_re, out_im, image_re, image_im, lefts, rights, spans, lanes, scratch):
+def _splat_loop(t, threads, order, position, conic, reach, chirp, form, color, phase, opacity, wavenumbers,
+                mahalanobis, out_re, out_im, image_re, image_im, lefts, rights, spans, lanes, scratch):
     """`_splat_share`'s loop: a plain loop into which each primitive's work is inlined (a call per
     primitive would hand over every array field by field, docs/performance.md, and Numba 0.68
     miscompiles that work inlined into the parallel loop). `image_re`, `image_im` are `out_re`,
     `out_im` as flat arrays, which the strips index: reshaped once here, not per primitive (a call
     into Numba's helper library each)."""
     for i in range(t, position.shape[0], threads):
-        _splat_one(order[i], position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
+        _splat_one(order[i], position, conic, reach, chirp, form, color, phase, opacity, wavenumbers, mahalanobis,
                    out_re, out_im, image_re, image_im, lefts, rights, spans, lanes, scratch)
 
 
@@ -778,7 +836,8 @@ def _splat_loop(t, threads, order, position, conic, reach, chirp, color, phase, 
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
-def splat_forward(order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis, partial):
+def splat_forward(order, position, conic, reach, chirp, form, color, phase, opacity, wavenumbers, mahalanobis,
+                  partial):
     """partial[t] += the sum over primitives order[t], order[t+T], order[t+2T], ... (T = partial.shape[0]).
 
     `partial` [T, 2, H, (W + STRIP)·C] (float32 lane images) starts at zero; `gather_partials` sums it
@@ -786,7 +845,7 @@ def splat_forward(order, position, conic, reach, chirp, color, phase, opacity, w
     """
     threads = partial.shape[0]
     for t in nb.prange(threads):
-        _splat_share(np.int64(t), threads, order, position, conic, reach, chirp, color, phase, opacity,
+        _splat_share(np.int64(t), threads, order, position, conic, reach, chirp, form, color, phase, opacity,
                      wavenumbers, mahalanobis, partial[t, 0], partial[t, 1])
 
 
@@ -822,11 +881,13 @@ def split_lanes(values, out):
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, **CALLED_BY_KERNELS_ONLY)
-def _walked_moments(grad_re, grad_im, A, B, C, rotation, way, x0, y0, low, high, lefts, rights, lane, channels):
+def _walked_moments(grad_re, grad_im, A, B, C, D, F, tilted, rotation, way, x0, y0, low, high, lefts, rights, lane,
+                    channels):
     """One channel's moments of t and u (see `splat_backward`) over the footprint, walking each row
-    outwards from its start by complex multiplication."""
+    outwards from its start by complex multiplication (E with D dx + F dy where `tilted`)."""
     cx = round(x0)
-    z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, cx - x0, low - y0)
+    z_row, v, v_step, s_right, s_left, s_row, s_row_left, s_step = _walk_start(A, B, C, D, F, tilted, cx - x0,
+                                                                               low - y0)
     z_row *= rotation
     t_moments = u_moments = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     for py in range(low, high + 1):
@@ -834,8 +895,8 @@ def _walked_moments(grad_re, grad_im, A, B, C, rotation, way, x0, y0, low, high,
         left, right = int(lefts[py - low]), int(rights[py - low])
         row_re, row_im = grad_re[py], grad_im[py]
         t0 = t1 = t2 = u0 = u1 = u2 = 0.0
-        start, z_r, s_r, z_l, s_l, steps = _row_walks(way == WALKED, A, B, C, rotation, z_row, s_right, s_left,
-                                                      s_step, x0, dy, cx, -B.real / A.real, left, right)
+        start, z_r, s_r, z_l, s_l, steps = _row_walks(way == WALKED, A, B, C, D, F, tilted, rotation, z_row, s_right,
+                                                      s_left, s_step, x0, dy, cx, -B.real / A.real, left, right)
         for i in range(steps):
             for px, z in ((start + i, z_r), (start - 1 - i, z_l)):
                 if left <= px <= right:
@@ -884,9 +945,9 @@ def _lane_moments(lanes, channels, columns, dx_first, moments):
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, inline="always")
-def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                      grad_re, grad_im, image_re, image_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity,
-                      lefts, rights, spans, lanes, scratch, moments):
+def _gradients_of_one(n, position, conic, reach, chirp, form, color, phase, opacity, wavenumbers, mahalanobis,
+                      grad_re, grad_im, image_re, image_im, g_position, g_conic, g_chirp, g_form, g_color, g_phase,
+                      g_opacity, lefts, rights, spans, lanes, scratch, moments):
     channels = color.shape[1]
     height, width = grad_re.shape[0], _image_width(grad_re.shape[1], channels)
     way, x0, y0, a, b, c, r, low, high, first, last = _way(n, position, conic, reach, height, width, lefts, rights)
@@ -900,7 +961,7 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
         _lane_spans(lefts, rights, first, channels, high + 1 - low, spans)
         row_length, patterns = grad_re.shape[1], scratch[4]
         start = low * row_length + first * channels
-        if _tabulate(n, a, b, c, x0, y0, low, first, columns, chirp, color, phase, opacity, wavenumbers,
+        if _tabulate(n, a, b, c, x0, y0, low, first, columns, chirp, form, color, phase, opacity, wavenumbers,
                      mahalanobis, count, box[:4], scratch, False):
             _accumulate_real_strips(box, patterns, channels, count, spans, high + 1 - low, row_length, start, low - y0,
                                     image_re, image_im)
@@ -910,6 +971,7 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
         _lane_moments(box, channels, columns, first - x0, moments)
     alpha = np.float64(opacity[n])
     g_alpha = ga = gb = gc = gx = gy = 0.0
+    tilted = _has_form(n, form)
     for ch in range(channels):
         k, color_c = wavenumbers[ch], np.float64(color[n, ch])
         slot = _chirp_slot(ch, chirp)
@@ -919,8 +981,10 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
             u_moments = moments[6, ch], moments[7, ch], moments[8, ch], moments[9, ch], moments[10, ch], moments[11, ch]
         else:
             A, B, C = _exponent_coefficients(a, b, c, k_chirp, mahalanobis)
-            t_moments, u_moments = _walked_moments(grad_re, grad_im, A, B, C, cmath.exp(complex(0.0, phase[n, ch])),
-                                                   way, x0, y0, low, high, lefts, rights, ch, channels)
+            A, B, C, D, F = _with_form(A, B, C, k, n, form, tilted)
+            t_moments, u_moments = _walked_moments(grad_re, grad_im, A, B, C, D, F, tilted,
+                                                   cmath.exp(complex(0.0, phase[n, ch])), way, x0, y0, low, high, lefts,
+                                                   rights, ch, channels)
         t00, t10, t20, t01, t11, t02 = t_moments
         u00, u10, u20, u01, u11, u02 = u_moments
         scale = alpha * color_c
@@ -944,14 +1008,25 @@ def _gradients_of_one(n, position, conic, reach, chirp, color, phase, opacity, w
         gc += m02
         gx -= 2.0 * (a * m10 + b * m01 + rx)
         gy -= 2.0 * (b * m10 + c * m01 + ry)
+        if form.shape[0]:  # the form's path k·(P_a dx² + 2P_b dx dy + P_c dy² + L·d), d = p − x, also where it is 0
+            q = scale * k
+            pa, pb, pc, lx, ly = (np.float64(form[n, 0]), np.float64(form[n, 1]), np.float64(form[n, 2]),
+                                  np.float64(form[n, 3]), np.float64(form[n, 4]))
+            g_form[n, 0] += q * u20
+            g_form[n, 1] += 2.0 * q * u11
+            g_form[n, 2] += q * u02
+            g_form[n, 3] += q * u10
+            g_form[n, 4] += q * u01
+            gx -= q * (2.0 * (pa * u10 + pb * u01) + lx * u00)
+            gy -= q * (2.0 * (pb * u10 + pc * u01) + ly * u00)
     g_opacity[n] = g_alpha
     g_conic[n, 0], g_conic[n, 1], g_conic[n, 2] = ga, gb, gc
     g_position[n, 0], g_position[n, 1] = gx, gy
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, **CALLED_BY_KERNELS_ONLY)
-def _gradients_share(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers,
-                     mahalanobis, grad_re, grad_im, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity):
+def _gradients_share(t, threads, order, position, conic, reach, chirp, form, color, phase, opacity, wavenumbers,
+                     mahalanobis, grad_re, grad_im, g_position, g_conic, g_chirp, g_form, g_color, g_phase, g_opacity):
     """The gradients of primitives order[t], order[t+T], ... (T = threads): one thread's share, with its
     work arrays for `_gradients_loop` (as in `_splat_share`)."""
     height, width = grad_re.shape[0], grad_re.shape[1]
@@ -961,33 +1036,34 @@ def _gradients_share(t, threads, order, position, conic, reach, chirp, color, ph
              np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
              np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32),
              np.empty(width, np.float32))
-    _gradients_loop(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                    grad_re, grad_im, grad_re.reshape(grad_re.size), grad_im.reshape(grad_im.size), g_position,
-                    g_conic, g_chirp, g_color, g_phase, g_opacity, lefts, rights, spans, lanes,
+    _gradients_loop(t, threads, order, position, conic, reach, chirp, form, color, phase, opacity, wavenumbers,
+                    mahalanobis, grad_re, grad_im, grad_re.reshape(grad_re.size), grad_im.reshape(grad_im.size),
+                    g_position, g_conic, g_chirp, g_form, g_color, g_phase, g_opacity, lefts, rights, spans, lanes,
                     _scratch(color.shape[1]), np.empty((12, _vector_channels(color.shape[1]))))
 
 
 @nb.njit(cache=True, nogil=True, fastmath=True, **WITHOUT_REFERENCE_COUNTS, **CALLED_BY_KERNELS_ONLY)
-def _gradients_loop(t, threads, order, position, conic, reach, chirp, color, phase, opacity, wavenumbers,
-                    mahalanobis, grad_re, grad_im, image_re, image_im, g_position, g_conic, g_chirp, g_color, g_phase,
-                    g_opacity, lefts, rights, spans, lanes, scratch, moments):
+def _gradients_loop(t, threads, order, position, conic, reach, chirp, form, color, phase, opacity, wavenumbers,
+                    mahalanobis, grad_re, grad_im, image_re, image_im, g_position, g_conic, g_chirp, g_form, g_color,
+                    g_phase, g_opacity, lefts, rights, spans, lanes, scratch, moments):
     """`_gradients_share`'s loop, with each primitive's work inlined and the gradient images also as
     flat arrays (as in `_splat_loop`)."""
     for i in range(t, position.shape[0], threads):
-        _gradients_of_one(order[i], position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                          grad_re, grad_im, image_re, image_im, g_position, g_conic, g_chirp, g_color, g_phase,
-                          g_opacity, lefts, rights, spans, lanes, scratch, moments)
+        _gradients_of_one(order[i], position, conic, reach, chirp, form, color, phase, opacity, wavenumbers,
+                          mahalanobis, grad_re, grad_im, image_re, image_im, g_position, g_conic, g_chirp, g_form,
+                          g_color, g_phase, g_opacity, lefts, rights, spans, lanes, scratch, moments)
 
 
 @nb.njit(parallel=True, cache=True, fastmath=True)
-def splat_backward(order, position, conic, reach, chirp, color, phase, opacity, wavenumbers, mahalanobis,
-                   grad, g_position, g_conic, g_chirp, g_color, g_phase, g_opacity, threads):
+def splat_backward(order, position, conic, reach, chirp, form, color, phase, opacity, wavenumbers, mahalanobis,
+                   grad, g_position, g_conic, g_chirp, g_form, g_color, g_phase, g_opacity, threads):
     """Gradients (float64, each row written by its own primitive only) from grad [2, H, (W + STRIP)·C]
     (a float32 lane image, zero in the padding columns).
 
     Thread t of `threads` takes primitives order[t], order[t+T], ..., as in the forward pass.
 
-    The gradient arrays start at zero: channels sharing a curvature add into the same `g_chirp` slot.
+    The gradient arrays start at zero: channels sharing a curvature add into the same `g_chirp` slot, and every
+    channel into `g_form`'s row (the phase terms' form, [N, 5] or [0, 5] for none, as `form`).
 
     With z = exp(E) (phase φ included) and g the incoming gradient, a pixel contributes
     t = Re(ḡz) = dL/dRe(E)/(αc) and u = −Im(ḡz) = dL/dIm(E)/(αc). Every parameter's gradient is a
@@ -996,6 +1072,6 @@ def splat_backward(order, position, conic, reach, chirp, color, phase, opacity, 
     not reproduced: it concerns values below e⁻⁵⁰.)
     """
     for t in nb.prange(threads):
-        _gradients_share(np.int64(t), threads, order, position, conic, reach, chirp, color, phase, opacity,
-                         wavenumbers, mahalanobis, grad[0], grad[1], g_position, g_conic, g_chirp, g_color, g_phase,
-                         g_opacity)
+        _gradients_share(np.int64(t), threads, order, position, conic, reach, chirp, form, color, phase, opacity,
+                         wavenumbers, mahalanobis, grad[0], grad[1], g_position, g_conic, g_chirp, g_form, g_color,
+                         g_phase, g_opacity)

@@ -6,7 +6,9 @@ beforehand in PyTorch: the weight `w_c = amplitude_c · opacity` and the phase r
 
     G_c(p) = w_c · exp(max(−½D², EXPONENT_FLOOR)) · e^{i(φ_c + κ_c·P)},   P = D² (Mahalanobis) or |p − x|²,
 
-inside its circle |p − x| ≤ reach (method.md §2), as the reference does.
+inside its circle |p − x| ≤ reach (method.md §2), as the reference does. With the phase terms beyond the
+curvature (`HAS_FORM`), the angle also carries k_c·(P_a dx² + 2P_b dx dy + P_c dy² + L_x dx + L_y dy), the
+terms' form [N, 5] (`reference.Splats.form`) times the wavenumbers [C]; without them the kernels compile as before.
 
 One program per primitive walks the pixels of its footprint's bounding box (clipped to the image)
 in blocks of BLOCK pixels, all channels at once. The forward pass adds its values to the complex
@@ -91,32 +93,50 @@ def _block_pixels(start, left, top, columns, pixels, cx, cy, a, b, c, phi, kappa
 
 
 @triton.jit
-def splat_forward(position, conic, reach, weight, phase, rate, out, height, width,
+def _form(form, wavenumber, n, CHANNELS: tl.constexpr, CHANNEL_BLOCK: tl.constexpr):
+    """Primitive n's form (P_a, P_b, P_c in m/px², L_x, L_y in m/px) and the wavenumbers (1/m) as a column."""
+    return (tl.load(form + 5 * n), tl.load(form + 5 * n + 1), tl.load(form + 5 * n + 2), tl.load(form + 5 * n + 3),
+            tl.load(form + 5 * n + 4), _channel_values(wavenumber, 0, CHANNELS, CHANNEL_BLOCK))
+
+
+@triton.jit
+def splat_forward(position, conic, reach, weight, phase, rate, form, wavenumber, out, height, width,
                   CHANNELS: tl.constexpr, CHANNEL_BLOCK: tl.constexpr, MAHALANOBIS: tl.constexpr,
-                  BLOCK: tl.constexpr):
+                  HAS_FORM: tl.constexpr, BLOCK: tl.constexpr):
     """Add primitive `program_id`'s values to `out` [C, H, W, 2] (zeroed by the caller)."""
     n = tl.program_id(0)
     cx, cy, reach2, left, top, columns, pixels = _box(position, reach, n, height, width)
     a, b, c, w, phi, kappa = _parameters(conic, weight, phase, rate, n, CHANNELS, CHANNEL_BLOCK)
+    if HAS_FORM:
+        pa, pb, pc, lx, ly, k = _form(form, wavenumber, n, CHANNELS, CHANNEL_BLOCK)
     for start in range(0, pixels, BLOCK):
-        _, _, _, envelope, _, angle, at, mask = _block_pixels(
+        dx, dy, _, envelope, _, angle, at, mask = _block_pixels(
             start, left, top, columns, pixels, cx, cy, a, b, c, phi, kappa, reach2, height, width, CHANNELS,
             CHANNEL_BLOCK, MAHALANOBIS, BLOCK)
+        if HAS_FORM:
+            angle += k * (pa * dx * dx + 2.0 * pb * dx * dy + pc * dy * dy + lx * dx + ly * dy)[None, :]
         magnitude = w * envelope[None, :]
         tl.atomic_add(out + at, magnitude * tl.cos(angle), mask=mask)
         tl.atomic_add(out + at + 1, magnitude * tl.sin(angle), mask=mask)
 
 
 @triton.jit
-def splat_backward(position, conic, reach, weight, phase, rate, grad, g_position, g_conic, g_weight, g_phase,
-                   g_rate, height, width, CHANNELS: tl.constexpr, CHANNEL_BLOCK: tl.constexpr,
-                   MAHALANOBIS: tl.constexpr, BLOCK: tl.constexpr):
+def splat_backward(position, conic, reach, weight, phase, rate, form, wavenumber, grad, g_position, g_conic, g_weight,
+                   g_phase, g_rate, g_form, height, width, CHANNELS: tl.constexpr, CHANNEL_BLOCK: tl.constexpr,
+                   MAHALANOBIS: tl.constexpr, HAS_FORM: tl.constexpr, BLOCK: tl.constexpr):
     """Primitive `program_id`'s gradients from the incoming gradient `grad` [C, H, W, 2]: position [N, 2],
-    conic [N, 3], weight, phase and rate [N, C]. With g = ∂L/∂Re G + i ∂L/∂Im G (PyTorch's convention),
-    a real parameter θ gets Σ Re(ḡ · ∂G/∂θ)."""
+    conic [N, 3], weight, phase and rate [N, C], and the form [N, 5] with `HAS_FORM`. With
+    g = ∂L/∂Re G + i ∂L/∂Im G (PyTorch's convention), a real parameter θ gets Σ Re(ḡ · ∂G/∂θ)."""
     n = tl.program_id(0)
     cx, cy, reach2, left, top, columns, pixels = _box(position, reach, n, height, width)
     a, b, c, w, phi, kappa = _parameters(conic, weight, phase, rate, n, CHANNELS, CHANNEL_BLOCK)
+    if HAS_FORM:
+        pa, pb, pc, lx, ly, k = _form(form, wavenumber, n, CHANNELS, CHANNEL_BLOCK)
+        sum_pa = tl.zeros((BLOCK,), tl.float32)
+        sum_pb = tl.zeros((BLOCK,), tl.float32)
+        sum_pc = tl.zeros((BLOCK,), tl.float32)
+        sum_lx = tl.zeros((BLOCK,), tl.float32)
+        sum_ly = tl.zeros((BLOCK,), tl.float32)
     # Per-pixel partial sums, reduced once after the loop.
     sum_weight = tl.zeros((CHANNEL_BLOCK, BLOCK), tl.float32)
     sum_phase = tl.zeros((CHANNEL_BLOCK, BLOCK), tl.float32)
@@ -130,6 +150,8 @@ def splat_backward(position, conic, reach, weight, phase, rate, grad, g_position
         dx, dy, path, envelope, unclamped, angle, at, mask = _block_pixels(
             start, left, top, columns, pixels, cx, cy, a, b, c, phi, kappa, reach2, height, width, CHANNELS,
             CHANNEL_BLOCK, MAHALANOBIS, BLOCK)
+        if HAS_FORM:
+            angle += k * (pa * dx * dx + 2.0 * pb * dx * dy + pc * dy * dy + lx * dx + ly * dy)[None, :]
         g_re = tl.load(grad + at, mask=mask, other=0.0)
         g_im = tl.load(grad + at + 1, mask=mask, other=0.0)
         cosine = tl.cos(angle)
@@ -156,6 +178,21 @@ def splat_backward(position, conic, reach, weight, phase, rate, grad, g_position
         # dx = p_x − x_n: the centre moves against the offsets.
         sum_x -= by_mahalanobis2 * (2.0 * a * dx + 2.0 * b * dy) + 2.0 * by_radius2 * dx
         sum_y -= by_mahalanobis2 * (2.0 * b * dx + 2.0 * c * dy) + 2.0 * by_radius2 * dy
+        if HAS_FORM:  # ∂L/∂(form's path): k_c times the phase's
+            by_form = tl.sum(k * turned, axis=0)
+            sum_pa += by_form * dx * dx
+            sum_pb += 2.0 * by_form * dx * dy
+            sum_pc += by_form * dy * dy
+            sum_lx += by_form * dx
+            sum_ly += by_form * dy
+            sum_x -= by_form * (2.0 * pa * dx + 2.0 * pb * dy + lx)
+            sum_y -= by_form * (2.0 * pb * dx + 2.0 * pc * dy + ly)
+    if HAS_FORM:
+        tl.store(g_form + 5 * n, tl.sum(sum_pa, axis=0))
+        tl.store(g_form + 5 * n + 1, tl.sum(sum_pb, axis=0))
+        tl.store(g_form + 5 * n + 2, tl.sum(sum_pc, axis=0))
+        tl.store(g_form + 5 * n + 3, tl.sum(sum_lx, axis=0))
+        tl.store(g_form + 5 * n + 4, tl.sum(sum_ly, axis=0))
     tl.store(g_position + 2 * n, tl.sum(sum_x, axis=0))
     tl.store(g_position + 2 * n + 1, tl.sum(sum_y, axis=0))
     tl.store(g_conic + 3 * n, tl.sum(sum_a, axis=0))
@@ -169,10 +206,11 @@ def splat_backward(position, conic, reach, weight, phase, rate, grad, g_position
 
 
 def launch(kernel: triton.JITFunction, position: Tensor, *arrays: Tensor, height: int, width: int,
-           mahalanobis: bool) -> None:
+           mahalanobis: bool, has_form: bool) -> None:
     """Run `splat_forward` or `splat_backward` over the N primitives, one program each; the grid
-    comes from the shapes alone."""
+    comes from the shapes alone. Without the form (`has_form` false) its arrays are placeholders."""
     count, channels = arrays[2].shape  # the weights [N, C]
     if count:
         kernel[(count,)](position, *arrays, height, width, CHANNELS=channels,
-                         CHANNEL_BLOCK=triton.next_power_of_2(channels), MAHALANOBIS=mahalanobis, BLOCK=BLOCK)
+                         CHANNEL_BLOCK=triton.next_power_of_2(channels), MAHALANOBIS=mahalanobis, HAS_FORM=has_form,
+                         BLOCK=BLOCK)

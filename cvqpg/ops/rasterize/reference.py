@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
+from ...phase import phase_form
 from ...primitives import Primitives, inverse_covariance, major_sigma_px
 
 Qpf = Literal["mahalanobis", "standard"]
@@ -29,7 +30,9 @@ MIN_PATCH_RADIUS_PX = 2
 
 @dataclass
 class Splats:
-    """What a backend needs per primitive; the phase is `φ_c + k_c·chirp·(D² or |p−x|²)`."""
+    """What a backend needs per primitive; the phase is `φ_c + k_c·(chirp·(D² or |p−x|²) + ψ_form)`, with
+    ψ_form = P_a dx² + 2P_b dx dy + P_c dy² + L_x dx + L_y dy the phase terms beyond the curvature (`phase.phase_form`),
+    absent (None) without them."""
 
     position_px: Tensor  # [N, 2]
     conic: Tensor  # [N, 3]: Σ⁻¹ entries (a, b, c) in 1/px²
@@ -39,13 +42,19 @@ class Splats:
     phase_rad: Tensor  # [N, C]
     opacity: Tensor  # [N]
     mahalanobis: bool  # QPF over D² (True) or over |p − x|² in px² (False)
+    form: Tensor | None = None  # [N, 5]: (P_a, P_b, P_c) in m/px², (L_x, L_y) in m/px, shared by the channels
 
     def tensors(self) -> tuple[Tensor, ...]:
-        return (self.position_px, self.conic, self.reach_px, self.chirp, self.amplitude, self.phase_rad,
-                self.opacity)
+        own = (self.position_px, self.conic, self.reach_px, self.chirp, self.amplitude, self.phase_rad, self.opacity)
+        return own if self.form is None else (*own, self.form)
+
+    @staticmethod
+    def of(tensors: tuple[Tensor, ...], mahalanobis: bool) -> "Splats":
+        """The splats of `tensors()`'s tuple."""
+        return Splats(*tensors[:7], mahalanobis, *tensors[7:])
 
     def select(self, index: Tensor) -> "Splats":
-        return Splats(*(t[index] for t in self.tensors()), self.mahalanobis)
+        return Splats.of(tuple(t[index] for t in self.tensors()), self.mahalanobis)
 
 
 def curvature_columns(curvature_per_m: Tensor) -> Tensor:
@@ -62,7 +71,7 @@ def splats(prims: Primitives, pixel_pitch: float, qpf: Qpf) -> Splats:
     mahalanobis = qpf == "mahalanobis"
     chirp = half_curvature * prims.scale_px.prod(dim=1, keepdim=True) if mahalanobis else half_curvature
     return Splats(prims.position_px, torch.stack([a, b, c], dim=1), reach, chirp, prims.amplitude,
-                  prims.phase_rad, prims.opacity, mahalanobis)
+                  prims.phase_rad, prims.opacity, mahalanobis, phase_form(prims.terms, prims.rotation_rad, pixel_pitch))
 
 
 def contributions(s: Splats, px: Tensor, py: Tensor, wavenumbers: Tensor) -> tuple[Tensor, Tensor]:
@@ -78,6 +87,9 @@ def contributions(s: Splats, px: Tensor, py: Tensor, wavenumbers: Tensor) -> tup
     envelope = torch.exp(torch.clamp(-0.5 * mahalanobis2, min=EXPONENT_FLOOR))
     envelope = envelope * (radius2 <= (s.reach_px * s.reach_px)[:, None])
     path_m = s.chirp.T[:, :, None] * (mahalanobis2 if s.mahalanobis else radius2)[None]  # [1 or C, K, P]
+    if s.form is not None:
+        pa, pb, pc, lx, ly = (s.form[:, i:i + 1] for i in range(5))
+        path_m = path_m + (pa * dx * dx + 2 * pb * dx * dy + pc * dy * dy + lx * dx + ly * dy)[None]
     amplitude = s.amplitude.T[:, :, None] * (s.opacity[:, None] * envelope)[None]  # [C, K, P]
     phase = s.phase_rad.T[:, :, None] + wavenumbers[:, None, None] * path_m
     return amplitude * torch.cos(phase), amplitude * torch.sin(phase)
@@ -121,7 +133,7 @@ def sum_patches(s: Splats, width: int, height: int, wavenumbers: Tensor) -> Tens
             pixel_index = torch.where(valid, py * width + px, 0).flatten()
 
             def evaluate(*tensors: Tensor, px=px, py=py, valid=valid, qpf=group.mahalanobis) -> Tensor:
-                real, imag = contributions(Splats(*tensors, qpf), px.to(real_dtype), py.to(real_dtype),
+                real, imag = contributions(Splats.of(tensors, qpf), px.to(real_dtype), py.to(real_dtype),
                                            wavenumbers)
                 return torch.stack([real, imag]).mul(valid).flatten(2)
 
