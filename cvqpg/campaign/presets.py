@@ -27,7 +27,10 @@ PAPER_TIME_STEPS = {"gray": 7745, "rgb": 4503}
 # How many steps of the per-pixel hologram take the time of one step of CVQPG at 10% through the DPAC display, at
 # 640×480 on our 2-core CPU (`python benchmarks/display_time.py`, docs/bench.md): the display grid's per-pixel fit at
 # the CVQPG fit's time runs this many times its steps.
-PIXEL_STEPS_PER_CVQPG_STEP = {"gray": 1.0, "rgb": 1.0}
+# Measured at 1.01 in both colours (results/pixel-screening/display_time.jsonl): through the display a step's
+# propagation and loss cost about as much as the whole step, whether Gaussians at 10% or the 307,200 pixels make the
+# hologram.
+PIXEL_STEPS_PER_CVQPG_STEP = {"gray": 1.01, "rgb": 1.01}
 
 
 @dataclass(frozen=True)
