@@ -44,6 +44,7 @@ def test_an_initialisation_of_the_other_representation_is_refused_in_one_line(in
 
 def test_the_initialisations_start_where_they_say():
     config = pixel_config()
+    assert config.optimisation.init == "uniform"  # the pixel recipe's
     scene = scene_from_source(SOURCE, config)
     small = initial_state(config, scene).gaussians
     assert small.phase_rad.shape == (1, 24, 32) and small.phase_rad.abs().max() <= SMALL_PHASE_HALF_RANGE_RAD

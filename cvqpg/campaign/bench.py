@@ -27,7 +27,7 @@ from ..app.encoding import encode_steps
 from ..app.executors import DONE, FAILED, INTERRUPTED, NOT_STARTED, SKIPPED, ExecutorOptions, Task, run_tasks
 from ..app.provenance import machine_record
 from ..app.runner import checkpoint_policy, fit_in_folder, resumed_state, write_fitted_run
-from ..config import BEYOND_RECIPE, FLAT_NAMES, FitConfig, RunOptions
+from ..config import BEYOND_RECIPE, FLAT_NAMES, RECIPES, FitConfig, RunOptions
 from ..control import SILENT, RunControl
 from ..defaults import RATE_FINETUNE_STEPS
 from ..errors import CvqpgError
@@ -223,13 +223,13 @@ def cell_config(base: FitConfig, scene: BenchScene, color: str, ratio: float, me
     primitives: Baseline⁺ 13/12 (RGB) or 9/8 (gray) of N, the chromatic comparisons 15/12 and 15/13. A method with
     its own recipe fits with it, one with its own step factors over that many times `base`'s steps."""
     spec = METHODS[method]
-    if spec.recipe is not None:
-        base = base.with_recipe(spec.recipe)
     if spec.display is not None:
         base = base.replace(display=Display.create(spec.display, aperture=spec.aperture))
     if spec.step_factors:
         base = base.with_steps(spec.steps_for(color, base.optimisation.steps))
-    config = base.replace(color=color, ratio=ratio, seed=seed, num_planes=scene.planes, **spec.changes)
+    # with the primitive: a recipe's start may fit only its own (the per-pixel hologram's)
+    recipe = {} if spec.recipe is None else {**RECIPES[spec.recipe].settings(), "recipe": spec.recipe}
+    config = base.replace(color=color, ratio=ratio, seed=seed, num_planes=scene.planes, **recipe, **spec.changes)
     params_of = METHODS[method].params_of
     if params_of is not None:
         other = config.replace(**params_of)
