@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import logging
 import math
@@ -21,8 +22,8 @@ from .app.signals import Terminated, terminated_on_sigterm
 from .app.threads import bad_thread_variable, cap_thread_variables
 from .bitdepths import BitDepths
 from .campaign.presets import METHODS, PRESETS
-from .config import (BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITIVES, QPFS, RECIPES, FitConfig,
-                     RunOptions, default_curvature_warmup)
+from .config import (BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PIXEL_RECIPE, PRIMITIVES, QPFS, RECIPES,
+                     FitConfig, RunOptions, default_curvature_warmup)
 from .control import RunControl
 from .defaults import (CHECKPOINT_SECONDS, DEFAULT_APERTURE, DEFAULT_LEVELS, DEFAULT_SWEEP, DEPTH_FILE, DEPTH_MODEL,
                        ENCODE_FINETUNE_STEPS, ENCODE_STEPS, ENCODINGS, EXECUTORS, PARTIAL_SUFFIX, RATE_FINETUNE_STEPS,
@@ -174,9 +175,11 @@ def _fit_options(p: argparse.ArgumentParser, steps: int = DEFAULTS.optimisation.
     p.add_argument("--color", choices=COLORS, help="colour mode: RGB at 639/532/473 nm or "
                    f"grayscale at 639 nm [default: {shown['color']}]")
     p.add_argument("--primitive", choices=PRIMITIVES, default=DEFAULTS.primitives.kind,
-                   help="flat-phase baseline or CVQPG with learnable curvature")
-    p.add_argument("--recipe", choices=tuple(RECIPES), default=DEFAULTS.recipe,
-                   help="how to fit: " + "; ".join(f"'{r.name}': {r.summary}" for r in RECIPES.values()))
+                   help="flat-phase baseline, CVQPG with learnable curvature, or the per-pixel hologram (the W×H "
+                   "hologram itself; a phase pattern with --display phase)")
+    p.add_argument("--recipe", choices=tuple(RECIPES),
+                   help="how to fit: " + "; ".join(f"'{r.name}': {r.summary}" for r in RECIPES.values())
+                   + f" [default: {DEFAULTS.recipe}; {PIXEL_RECIPE} with --primitive pixel]")
     p.add_argument("--steps", type=whole, help="optimisation steps (the loop runs indices 0..steps, as the "
                    f"reference) [default: {shown['steps']}]")
     p.add_argument("--curvature-warmup", type=whole, metavar="W", help="steps with curvature frozen at 0 (CVQPG "
@@ -451,6 +454,7 @@ def _batch_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+@functools.cache  # built once per process: tests and notebooks call `main` many times, 12 ms a build
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(prog="cvqpg", description="Holograms as complex-valued "
                                      "quadratic-phase Gaussian primitives (CVQPG).")

@@ -106,7 +106,7 @@ class BatchSettings:
     whether a depth map of another aspect ratio is stretched, and whether finished items are fitted again
     (`redo`), each replaced once its new output is finished."""
 
-    recipe: str = DEFAULT_RECIPE
+    recipe: str | None = DEFAULT_RECIPE  # None: `FitConfig.create`'s, by the item's primitive
     settings: dict[str, Any] = field(default_factory=dict)
     run: RunOptions = RunOptions()
     bpp: float | None = None

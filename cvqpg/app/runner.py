@@ -138,8 +138,10 @@ def timed_config(scene: Scene, config: FitConfig, minutes: float, run: RunOption
                                                  "compile_seconds": compile_seconds}
 
 
-def write_fitted_run(folder: Path, result: FitResult, scene: Scene, source: dict[str, Any]) -> Path:
-    """`write_run` with the run record of this process: code, machine, times and peak memory."""
+def write_fitted_run(folder: Path, result: FitResult, scene: Scene, source: dict[str, Any],
+                     extra: dict[str, Any] | None = None) -> Path:
+    """`write_run` with the run record of this process: code, machine, times and peak memory; `extra` goes into
+    `metrics.json` too."""
     record = run_record(torch.device(result.run.device), result.seconds, result.cpu_seconds,
                         result.compile_seconds, result.peak_memory)
-    return write_run(folder, result, scene, source, record)
+    return write_run(folder, result, scene, source, record, extra)

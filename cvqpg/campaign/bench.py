@@ -28,16 +28,17 @@ from ..app.encoding import encode_steps
 from ..app.executors import DONE, FAILED, INTERRUPTED, NOT_STARTED, SKIPPED, ExecutorOptions, Task, run_tasks
 from ..app.provenance import machine_record
 from ..app.runner import checkpoint_policy, fit_in_folder, resumed_state, write_fitted_run
-from ..config import BEYOND_RECIPE, FLAT_NAMES, FitConfig, RunOptions
+from ..config import BEYOND_RECIPE, FLAT_NAMES, RECIPES, FitConfig, RunOptions
 from ..control import SILENT, RunControl
 from ..defaults import RATE_FINETUNE_STEPS
 from ..errors import CvqpgError
-from ..fitting import FitInterrupted, FitState, estimated_peak_bytes
-from ..metrics import radial_error_spectrum
-from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, HISTORY_FILE, METRICS_FILE, MODEL_FILE, read_record, read_run,
-                    scene_from_source, start_run, write_atomic, write_json)
+from ..display import Display
+from ..fitting import FitInterrupted, FitResult, FitState, estimated_peak_bytes, render
+from ..metrics import evaluate, radial_error_spectrum
+from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, HISTORY_FILE, METRICS_FILE, MODEL_FILE, export_display, read_record,
+                    read_run, scene_from_source, start_run, write_atomic, write_json)
 from ..scenes import SCENES
-from ..targets import check_depth_geometry, load_picture
+from ..targets import Scene, check_depth_geometry, load_picture
 from .presets import COLORS, METHODS, PRESETS
 
 log = logging.getLogger("cvqpg")
@@ -48,6 +49,8 @@ RD_FILE = "rd.json"
 ENCODE_FILE = "encode.json"  # the `cvqpg encode` points of a rate grid's cell (`--preset encode`)
 ENCODE_PARTIAL_FILE = "encode.partial.json"  # its points so far, each a whole fit: kept in git between sessions
 ERROR_FILE = "error.log"
+# The metrics.json entry of what the display shows of a model exported after its fit (`Method.exported`).
+EXPORTED_KEY = "exported_display"
 SPECTRUM_BINS = 32
 FOLDER_SCENE_PLANES = 2
 
@@ -219,8 +222,16 @@ def _choose(kind: str, given: Sequence[str] | None, default: tuple[str, ...], kn
 
 def cell_config(base: FitConfig, scene: BenchScene, color: str, ratio: float, method: str, seed: int) -> FitConfig:
     """The fit of one cell. Methods matched to another's parameter count get N·params(other)/params(own)
-    primitives: Baseline⁺ 13/12 (RGB) or 9/8 (gray) of N, the chromatic comparisons 15/12 and 15/13."""
-    config = base.replace(color=color, ratio=ratio, seed=seed, num_planes=scene.planes, **METHODS[method].changes)
+    primitives: Baseline⁺ 13/12 (RGB) or 9/8 (gray) of N, the chromatic comparisons 15/12 and 15/13. A method with
+    its own recipe fits with it, one with its own step factors over that many times `base`'s steps."""
+    spec = METHODS[method]
+    if spec.display is not None:
+        base = base.replace(display=Display.create(spec.display, aperture=spec.aperture))
+    if spec.step_factors:
+        base = base.with_steps(spec.steps_for(color, base.optimisation.steps))
+    # with the primitive: a recipe's start may fit only its own (the per-pixel hologram's)
+    recipe = {} if spec.recipe is None else {**RECIPES[spec.recipe].settings(), "recipe": spec.recipe}
+    config = base.replace(color=color, ratio=ratio, seed=seed, num_planes=scene.planes, **recipe, **spec.changes)
     params_of = METHODS[method].params_of
     if params_of is not None:
         other = config.replace(**params_of)
@@ -365,8 +376,11 @@ def cell_status(folder: Path, done_file: str = METRICS_FILE) -> str:
 def config_differences(folder: Path, config: FitConfig) -> list[str]:
     """Settings in which the run recorded in `folder` differs from `config`."""
     recorded, _ = read_run(folder)
-    return [f"{name}={recorded.setting(name)!r} (plan: {config.setting(name)!r})" for name in FLAT_NAMES
-            if recorded.setting(name) != config.setting(name)]
+    differences = [f"{name}={recorded.setting(name)!r} (plan: {config.setting(name)!r})" for name in FLAT_NAMES
+                   if recorded.setting(name) != config.setting(name)]
+    if recorded.display != config.display:
+        differences.append(f"display={recorded.display.label()!r} (plan: {config.display.label()!r})")
+    return differences
 
 
 def describe_cells(plan: BenchPlan, cells: tuple[Cell, ...], reuse: Sequence[Path] = ()) -> list[str]:
@@ -498,8 +512,18 @@ def run_cell(cell: Cell, folder: Path, control: RunControl = SILENT, checkpoint_
         return INTERRUPTED
     recon = result.reconstructions
     write_json(folder / SPECTRUM_FILE, spectrum_record(recon, scene.targets.to(recon.device)))
-    write_fitted_run(folder, result, scene, cell.scene.source)
+    encoding = METHODS[cell.method].exported
+    extra = None if encoding is None else {EXPORTED_KEY: exported_display(result, scene, encoding)}
+    write_fitted_run(folder, result, scene, cell.scene.source, extra)
     return DONE
+
+
+def exported_display(result: FitResult, scene: Scene, encoding: str) -> dict[str, Any]:
+    """What the display of `encoding` shows of a fitted model, with the defaults `cvqpg export` shows it with
+    (`runs.export_display`): the display and its metrics against the scene's targets."""
+    display = export_display(result.config, encoding)
+    _, shown = render(result.primitives, result.config.replace(display=display), backend=result.run.backend)
+    return {"display": display.to_dict(), **evaluate(shown, scene.targets.to(shown.device)).to_dict()}
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from . import figures
-from .bench import (CELLS_DIR, DONE, ENCODE_FILE, METHODS, METRICS_FILE, PRESETS, RD_FILE, SPECTRUM_FILE, BenchPlan,
+from .bench import (CELLS_DIR, DONE, ENCODE_FILE, EXPORTED_KEY, METHODS, METRICS_FILE, PRESETS, RD_FILE, SPECTRUM_FILE, BenchPlan,
                     Cell, setting_label)
 from ..errors import InputError
 from ..runs import read_record, write_atomic
@@ -127,14 +127,18 @@ def rate_distortion_record(folder: Path) -> dict[str, Any] | None:
 
 
 def collect(plan: BenchPlan) -> list[CellResult]:
-    """Every cell of the plan with its status, and its metrics and spectrum once done."""
+    """Every cell of the plan with its status, and its metrics and spectrum once done. A cell whose method shows
+    its model on a display after the fit (`Method.exported`) has that display's metrics as its own."""
     results = []
     for cell in plan.cells:
         folder = plan.cell_dir(cell)
         status = plan.status(folder)
         fitted = (folder / METRICS_FILE).is_file()
-        results.append(CellResult(cell, status, read_cell_record(folder / METRICS_FILE) if fitted else None,
-                                  read_cell_record(folder / SPECTRUM_FILE) if fitted else None,
+        metrics = read_cell_record(folder / METRICS_FILE) if fitted else None
+        if metrics is not None and METHODS[cell.method].exported is not None:
+            metrics = {**metrics, **{key: metrics.get(EXPORTED_KEY, {}).get(key)
+                                     for key in ("mean", "per_plane", "unavailable")}}
+        results.append(CellResult(cell, status, metrics, read_cell_record(folder / SPECTRUM_FILE) if fitted else None,
                                   rate_distortion_record(folder) if status == DONE else None))
     return results
 
