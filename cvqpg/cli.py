@@ -9,21 +9,20 @@ import logging
 import math
 import os
 import re
-import shutil
 import signal
 import sys
-import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, NoReturn, Sequence
+from typing import TYPE_CHECKING, NoReturn, Sequence
 
 # Only light modules here: `cvqpg --version` and every `--help` answer without PyTorch or Numba; each command
 # imports what it runs.
 from . import __version__
+from .app.signals import Terminated, terminated_on_sigterm
+from .app.threads import bad_thread_variable, cap_thread_variables
 from .bitdepths import BitDepths
 from .campaign.presets import METHODS, PRESETS
 from .config import (BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITIVES, QPFS, RECIPES, FitConfig,
-                     RunOptions, check_distances, check_time_budget, default_curvature_warmup)
+                     RunOptions, default_curvature_warmup)
 from .control import RunControl
 from .defaults import (CHECKPOINT_SECONDS, DEFAULT_APERTURE, DEFAULT_LEVELS, DEFAULT_SWEEP, DEPTH_FILE, DEPTH_MODEL,
                        ENCODE_FINETUNE_STEPS, ENCODE_STEPS, ENCODINGS, EXECUTORS, PARTIAL_SUFFIX, RATE_FINETUNE_STEPS,
@@ -31,12 +30,8 @@ from .defaults import (CHECKPOINT_SECONDS, DEFAULT_APERTURE, DEFAULT_LEVELS, DEF
 from .errors import CvqpgError, allocation_failure, filesystem_refusal
 
 if TYPE_CHECKING:
-    from PIL import Image
-
-    from .app.executors import ExecutorOptions
-    from .fitting import FitState
-    from .search import CompressionSettings
-    from .targets import Scene
+    from .app.executors import ExecutorFlags
+    from .app.inputs import FitInputs
     from .view import ViewRecord
 
 DEFAULTS = FitConfig.create()  # the default recipe's
@@ -56,10 +51,6 @@ FLAGS = {"width": "--size", "height": "--size", "size": "--size", "num_planes": 
              "encoding", "distances", "out")},
          "finetune_steps": "--finetune", "prune_fraction": "--prune", "overwrite": "--overwrite", "bpp": "--bpp",
          "max_bytes": "--max-bytes", "time": "--time", "recipe": "--recipe", "canvas": "--slm", "lut": "--lut"}
-
-
-class UsageError(CvqpgError):
-    """Bad command-line input: printed as one line, exit code 2."""
 
 
 class DefaultsFormatter(argparse.HelpFormatter):
@@ -395,7 +386,7 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
 
 def _executor_arguments(p: argparse.ArgumentParser, tasks: str) -> None:
     """Where the `tasks` (cells, items) of `bench` and `batch` run: this machine or a Ray cluster
-    (`executor_options` reads them)."""
+    (`_executor_flags` reads them)."""
     p.add_argument("--executor", choices=EXECUTORS, default="local", help=f"local: the {tasks} run on this "
                    f"machine (--jobs at once); ray: each of the {tasks} is a task of a Ray cluster (--ray-address), "
                    'retried where its worker or node dies (the extra: pip install "cvqpg[ray]"; docs/scale.md)')
@@ -412,23 +403,6 @@ def _executor_arguments(p: argparse.ArgumentParser, tasks: str) -> None:
     p.add_argument("--checkpoint-every", type=whole, metavar="K", help="save each fit's checkpoint every K steps "
                    "(0: only when interrupted), from which a rerun or a Ray retry resumes [default: every "
                    f"{CHECKPOINT_SECONDS / 60:g} minutes of work]")
-
-
-def executor_options(args: argparse.Namespace) -> "ExecutorOptions":
-    """The executor that `_executor_arguments`' flags ask for, validated: a one-line usage error for a flag that
-    is not its executor's."""
-    from .app.executors import ExecutorOptions
-    ray = args.executor == "ray"
-    if ray and args.jobs is not None:
-        raise UsageError(f"--jobs is for --executor local; on Ray, the {args.command} runs as many fits at once as "
-                         "the cluster's CPUs (--threads each) and GPUs (--gpus-per-fit each) allow")
-    for flag, given in (("--ray-address", args.ray_address is not None), ("--gpus-per-fit",
-                                                                          args.gpus_per_fit is not None)):
-        if given and not ray:
-            raise UsageError(f"{flag} is for --executor ray")
-    gpus = args.gpus_per_fit if args.gpus_per_fit is not None else float(ray and args.device == "cuda")
-    return ExecutorOptions(args.executor, 1 if args.jobs is None else args.jobs, args.threads, args.ray_address, gpus,
-                           args.checkpoint_every).validate()
 
 
 BATCH_EXIT_CODES = ("Exit code: 0 when every item is finished; else 130 (128 + N for signal N) when a stop "
@@ -498,38 +472,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _config_and_source(args: argparse.Namespace) -> tuple[FitConfig, dict]:
-    from .scenes import SCENES
-    from .targets import check_file
-    if args.image is not None and args.scene is not None:
-        raise UsageError("give either an IMAGE or --scene, not both")
-    if args.image is None:
-        name = args.scene or "demo"
-        if args.depth is not None:
-            raise UsageError(f"--depth applies to an IMAGE; the built-in scene {name!r} has its own")
-        recipe = SCENES[name]
-        color = args.color or recipe.color
-        planes = recipe.planes if args.planes is None else args.planes
-        source, has_depth = {"scene": name}, recipe.planes > 1
-    else:
-        color, planes = args.color or "rgb", 2 if args.planes is None else args.planes
-        source = {"image": str(check_file(args.image, "image").resolve())}
-        if args.depth == "auto":
-            source["depth_model"] = DEPTH_MODEL
-        elif args.depth is not None:
-            source["depth"] = str(check_file(args.depth, "depth map").resolve())
-        has_depth = args.depth is not None
-    if planes > 1 and not has_depth:
-        raise UsageError(f"--planes {planes} needs a depth map (--depth PATH, or --depth auto to estimate one), "
-                         "or use --planes 1")
-    if args.resize_depth:
-        source["resize_depth"] = True
-    config = FitConfig.create(args.recipe, **{**_fit_settings(args), "color": color, "num_planes": planes,
-                                              "steps": DEFAULTS.optimisation.steps if args.steps is None
-                                              else args.steps})
-    return config.validate(), source
-
-
 def _fit_settings(args: argparse.Namespace) -> dict:
     """`FitConfig.create`'s settings that `_fit_options` and `_count_options` give; `color`, `num_planes` and
     `steps` None where not given (the input decides them)."""
@@ -541,14 +483,22 @@ def _fit_settings(args: argparse.Namespace) -> dict:
                 wavelengths_m=tuple(args.wavelengths) if args.wavelengths else None)
 
 
-def _run_options(args: argparse.Namespace) -> RunOptions:
-    """Where `fit` and `encode` run: `--device` and `--backend`."""
-    return RunOptions(args.device, args.backend).validate()
+def _fit_inputs_of(args: argparse.Namespace) -> FitInputs:
+    """What `fit` and `encode` are asked to fit (`_fit_inputs`, `_fit_options`)."""
+    from .app.inputs import FitInputs
+    return FitInputs(args.image, args.scene, args.depth, args.resize_depth, args.recipe, _fit_settings(args),
+                     args.device, args.backend)
 
 
-def _default_out(source: dict, config: FitConfig) -> Path:
-    label = source.get("scene") or Path(source["image"]).stem
-    return Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{label}-{config.targets.color}-{config.primitives.kind}"
+def _executor_flags(args: argparse.Namespace) -> ExecutorFlags:
+    """The flags of `_executor_arguments`."""
+    from .app.executors import ExecutorFlags
+    return ExecutorFlags(args.executor, args.jobs, args.threads, args.ray_address, args.gpus_per_fit,
+                         args.checkpoint_every)
+
+
+def _size(values: Sequence[int] | None) -> tuple[int, int] | None:
+    return tuple(values) if values else None
 
 
 def _summary(record: dict) -> str:
@@ -557,302 +507,45 @@ def _summary(record: dict) -> str:
     return f"{shown}  (N = {record['num_gaussians']}, {record['seconds']:.0f} s)"
 
 
-def available_memory_bytes() -> int | None:
-    """MemAvailable from /proc/meminfo, or None where there is no such file."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        return None
-    return None
-
-
-def device_memory_bytes(device: str) -> int | None:
-    """Memory a fit on `device` may take: the GPU's free memory (CUDA), else the host's MemAvailable."""
-    import torch
-    if torch.device(device).type == "cuda":
-        return torch.cuda.mem_get_info(torch.device(device))[0]
-    return available_memory_bytes()
-
-
-def check_memory(config: FitConfig, device: str, work: str = "fit", remedy: str = "reduce --size or --planes",
-                 size: tuple[int, int] | None = None, planes: int | None = None) -> None:
-    """Refuse a fit of `config`, or another `work` on its model at `size` (W, H) px and `planes` planes (default:
-    the config's), whose estimated peak on `device` (`estimated_peak_bytes`) exceeds the memory there
-    (`device_memory_bytes`; unknown: accepted), with the `remedy`."""
-    import torch
-    from .fitting import estimated_peak_bytes
-    needed, available = estimated_peak_bytes(config, device, size, planes), device_memory_bytes(device)
-    if available is not None and needed > available:
-        where = "free on the GPU" if torch.device(device).type == "cuda" else "available"
-        width, height = size or (config.targets.width, config.targets.height)
-        count = config.targets.num_planes if planes is None else planes
-        guard = (f" and a {config.optics.guard_band_px} px guard band"
-                 if config.optics.guard_band_px != DEFAULTS.optics.guard_band_px else "")
-        raise UsageError(f"a {width}×{height} {work} with {count} plane(s){guard} needs about "
-                         f"{needed / 2**30:.1f} GiB but {available / 2**30:.1f} GiB are {where}; {remedy}")
-
-
-def check_fits_at_once(peak: int, executor: "ExecutorOptions", device: str) -> None:
-    """Refuse to run as many fits at once on this machine as `executor` would (`fits_at_once`), each of `peak`
-    bytes, where their memory exceeds what `device` offers (unknown: accepted)."""
-    count = executor.fits_at_once(device)
-    needed, available = count * peak, device_memory_bytes(device) if count else None
-    if available is None or needed <= available:
-        return
-    given = (f"--jobs {executor.jobs}" if executor.kind == "local" else
-             f"{count} fits at once on this machine's Ray instance")
-    remedy = ("lower --jobs or --size" if executor.kind == "local" else
-              "raise --gpus-per-fit or --threads, or lower --size")
-    raise UsageError(f"{given} needs about {needed / 2**30:.1f} GiB but {available / 2**30:.1f} GiB are available "
-                     f"on {device}; {remedy}")
-
-
-class StopRequest:
-    """Ctrl-C or SIGTERM asks the fit to stop after its current step; a second Ctrl-C aborts."""
-
-    def __init__(self) -> None:
-        self.signals: list[int] = []
-        self._previous: dict[int, object] = {}
-
-    def __call__(self) -> bool:
-        return bool(self.signals)
-
-    def _receive(self, signum: int, _frame: object) -> None:
-        self.signals.append(signum)
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-
-    def __enter__(self) -> "StopRequest":
-        self._previous = {s: signal.signal(s, self._receive) for s in (signal.SIGINT, signal.SIGTERM)}
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for signum, handler in self._previous.items():
-            signal.signal(signum, handler)
-
-
-def check_device(device: str) -> None:
-    """A CUDA device needs a GPU that PyTorch sees; checked before anything is written."""
-    import torch
-    if torch.device(device).type == "cuda" and not torch.cuda.is_available():
-        raise UsageError(f"device {device}: no CUDA GPU is visible to PyTorch; use --device cpu")
-
-
-@dataclass
-class FitPlan:
-    """What `cvqpg fit` will do: fit in `work` (with the loop state `state`, when resuming), and put the
-    finished run at `final` (the same folder, or `work` renamed; an existing run there is replaced)."""
-
-    work: Path
-    final: Path
-    config: FitConfig
-    run: RunOptions
-    source: dict
-    scene: Scene
-    state: FitState | None = None
-    depth: Image.Image | None = None  # an estimated depth map, saved in the run once `work` exists
-    role: str = "`out`"  # how messages name `final`
-
-
-def check_fit_destination(final: Path, overwrite: bool, role: str = "`out`") -> Path:
-    """`--out` may be a new or empty folder, or a run that `--overwrite` replaces; never a file, a link or a
-    folder of other files (`app.outputs`' rule). `role` names the place in messages."""
-    from .app.outputs import RUN, check_output, is_run_folder
-    if is_run_folder(final) and not final.is_symlink() and not overwrite:
-        raise UsageError(f"{final} already holds a run; choose another --out, pass --overwrite to replace it "
-                         f"once the new fit succeeds, or --resume {final}")
-    return check_output(final, RUN, overwrite=overwrite, role=role, make_parents=True)
-
-
-def _resume_plan(args: argparse.Namespace) -> FitPlan:
-    from .app.encoding import BUDGET_FILE
-    from .app.outputs import is_run_folder
-    from .app.runner import resumed_state
-    from .runs import CHECKPOINT_FILE, CONFIG_FILE, read_run, read_run_options, scene_from_source
-    work = Path(os.path.abspath(args.resume))  # `--resume .` names the folder too
-    if not (work / CONFIG_FILE).is_file():
-        raise UsageError(f"--resume {work}: not a run folder (no {CONFIG_FILE})")
-    if (work / BUDGET_FILE).is_file():
-        raise UsageError(f"--resume {work} is an encode's folder; continue it with cvqpg encode --resume {work}")
-    if (work / CHECKPOINT_FILE).exists() and not (work / CHECKPOINT_FILE).is_file():
-        raise UsageError(f"--resume {work}: its {CHECKPOINT_FILE} is not a file; move it away to restart the run "
-                         "from step 0")
-    config, source = read_run(work)
-    run = read_run_options(work)
-    check_device(run.device)
-    final = work.with_name(work.name[:-len(PARTIAL_SUFFIX)]) if work.name.endswith(PARTIAL_SUFFIX) else work
-    role = f"--resume {work}: its run's folder"
-    if final != work:
-        if is_run_folder(final) and not args.overwrite:
-            raise UsageError(f"{final} holds a run that this fit replaces when it finishes; pass --overwrite to "
-                             "confirm")
-        check_fit_destination(final, args.overwrite, role)
-    check_memory(config, run.device, remedy=f"the run's {CONFIG_FILE} asks for it: resume it where more memory is "
-                 "free")
-    scene = scene_from_source(source, config)
-    return FitPlan(work, final, config, run, source, scene, resumed_state(work, config, run), role=role)
-
-
-def _new_plan(args: argparse.Namespace) -> FitPlan:
-    from .app.runner import timed_config
-    if args.checkpoint_every is not None and args.checkpoint_every < 0:
-        raise UsageError(f"--checkpoint-every {args.checkpoint_every}: give a number of steps ≥ 1, or 0 for "
-                         "checkpoints only when interrupted")
-    if args.time is not None and args.steps is not None:
-        raise UsageError("give --steps or --time, not both")
-    if args.time is not None:
-        check_time_budget(args.time)
-    config, source = _config_and_source(args)
-    run = _run_options(args)
-    check_device(run.device)
-    final = check_fit_destination(Path(args.out) if args.out else _default_out(source, config), args.overwrite)
-    work = final.with_name(final.name + PARTIAL_SUFFIX)
-    if work.exists():
-        raise UsageError(f"{work} holds an interrupted fit; continue it with cvqpg fit --resume {work}, or delete it")
-    check_memory(config, run.device)
-    scene, depth = _scene_and_depth(source, config)
-    if depth is not None:
-        source["depth"] = DEPTH_FILE  # kept in the run folder, wherever it moves
-    if args.time is not None:
-        config, source["time_budget"] = timed_config(scene, config, args.time, run, progress=not args.quiet)
-        if not args.quiet:
-            each_ms = source['time_budget']['seconds_per_step'] * 1e3
-            print(f"--time {args.time:g}: {config.optimisation.steps} steps at {each_ms:.0f} "
-                  "ms each, measured here", file=sys.stderr)
-    return FitPlan(work, final, config, run, source, scene, depth=depth)
-
-
-def _scene_and_depth(source: dict, config: FitConfig) -> tuple[Scene, Image.Image | None]:
-    """The scene of `_config_and_source`'s `source`, and the depth map estimated for it (`--depth auto`)."""
-    from .depth import estimate_depth, load_depth_model
-    from .runs import scene_from_source
-    from .targets import load_scene
-    if "depth_model" not in source:
-        return scene_from_source(source, config), None
-    depth = estimate_depth(source["image"], load_depth_model(source["depth_model"]))
-    return load_scene(source["image"], depth, config), depth
-
-
-def _resumable(work: Path, command: str, body: Callable[[Callable[[], bool]], None]) -> int:
-    """Run `body(stop_requested)`, which fits in `work` with checkpoints: 0 when it finishes. A stop request
-    (Ctrl-C, SIGTERM) keeps the checkpoint and returns the signal's exit code, with the line that resumes it; a
-    failure removes what this command made, unless a checkpoint holds work worth resuming."""
-    from .fitting import FitInterrupted
-    from .runs import CHECKPOINT_FILE
-    created = [folder for folder in (work, *work.parents) if not folder.exists()]
-    try:
-        with StopRequest() as stop_requested:
-            body(stop_requested)
-    except FitInterrupted as stop:
-        print(f"cvqpg {command}: {stop}; checkpoint saved. Continue with: "
-              f"cvqpg {command} --resume {work}", file=sys.stderr)
-        return 128 + stop_requested.signals[0]
-    except BaseException:
-        if (work / CHECKPOINT_FILE).is_file():
-            print(f"cvqpg {command}: failed; the fit's last checkpoint is kept: cvqpg {command} --resume {work}",
-                  file=sys.stderr)
-        else:
-            for folder in created:
-                shutil.rmtree(folder, ignore_errors=True)
-        raise
-    return 0
-
-
-def _fit(plan: FitPlan, args: argparse.Namespace) -> int:
-    """Fit in `plan.work` (`_resumable`) and put the run at `plan.final`."""
-    from .app.outputs import claimed
-    from .app.runner import checkpoint_policy, fit_in_folder, write_fitted_run
-    from .files import replace_folder
-    from .runs import start_run
-
-    def body(stop_requested: Callable[[], bool]) -> None:
-        if plan.state is None:
-            start_run(plan.work, plan.config, plan.source, plan.run)
-        if plan.depth is not None:
-            plan.depth.save(plan.work / DEPTH_FILE)
-        result = fit_in_folder(plan.work, plan.scene, plan.config, plan.run,
-                               RunControl(progress=not args.quiet, stop_requested=stop_requested), plan.state,
-                               **checkpoint_policy(args.checkpoint_every))
-        write_fitted_run(plan.work, result, plan.scene, plan.source)
-
-    with claimed(plan.final, plan.role):
-        if plan.final != plan.work:
-            check_fit_destination(plan.final, args.overwrite, plan.role)
-        code = _resumable(plan.work, "fit", body)
-        if not code and plan.final != plan.work:
-            try:  # the place is checked again: anything of the user's that appeared there meanwhile stays
-                check_fit_destination(plan.final, args.overwrite, plan.role)
-                replace_folder(plan.work, plan.final)
-            except CvqpgError as error:
-                raise UsageError(f"{error}; the finished run is kept in {plan.work}") from None
-    return code
+def _print_view(record: ViewRecord) -> None:
+    print(f"{record.path}: {record.frames} distances, {record.bytes / 2**20:.1f} MiB, {record.seconds:.0f} s; "
+          "open it in a browser")
 
 
 def run_fit(args: argparse.Namespace) -> int:
-    from .app.allocator import keep_freed_memory
-    from .app.outputs import PAGE, output
-    from .runs import METRICS_FILE
-    from .view import write_view
-    if args.resume and (Path(args.resume) / METRICS_FILE).is_file():
+    from .app.fitplan import fit_planned, new_plan, resume_plan, run_finished
+    from .app.runfolders import view_of_run
+    if args.resume and run_finished(args.resume):
         print(f"{args.resume}: this run is finished; nothing to resume")
         return 0
-    plan = _resume_plan(args) if args.resume else _new_plan(args)
-    keep_freed_memory()
-    code = _fit(plan, args)
+    if args.resume:
+        plan = resume_plan(args.resume, args.overwrite)
+    else:
+        plan = new_plan(_fit_inputs_of(args), args.out, args.overwrite, args.time, args.checkpoint_every,
+                        progress=not args.quiet)
+        if args.time is not None and not args.quiet:
+            print(f"--time {args.time:g}: {plan.config.optimisation.steps} steps at "
+                  f"{plan.source['time_budget']['seconds_per_step'] * 1e3:.0f} ms each, measured here",
+                  file=sys.stderr)
+    code, record = fit_planned(plan, args.checkpoint_every, progress=not args.quiet, overwrite=args.overwrite)
     if code:
         return code
     folder = plan.final
     if plan.depth is not None and not args.quiet:
         print(f"{folder / DEPTH_FILE}: depth estimated by {plan.source['depth_model']} (0 = near)")
     if not args.quiet:
-        record = json.loads((folder / METRICS_FILE).read_text())
         print(f"{folder}: {_summary(record)}")
     if args.view:
-        with output(folder / VIEW_FILE, PAGE, [folder], overwrite=True) as page:
-            view = write_view([folder], page, progress=not args.quiet)
+        view = view_of_run(folder, progress=not args.quiet)
         if not args.quiet:
             _print_view(view)
     return 0
 
 
-def finished_run(folder: Path) -> Path:
-    """A run folder that holds a model, or a UsageError saying what it is instead."""
-    from .runs import CONFIG_FILE, MODEL_FILE
-    if not (folder / CONFIG_FILE).is_file():
-        raise UsageError(f"{folder} is not a run folder (no {CONFIG_FILE}); give a folder written by "
-                         "`cvqpg fit`")
-    if not (folder / MODEL_FILE).is_file():
-        raise UsageError(f"{folder} holds no {MODEL_FILE}: the run has not finished (cvqpg fit --resume "
-                         f"{folder})")
-    return folder
-
-
-def run_and_model(target: Path) -> tuple[Path, Path | None]:
-    """A run folder and None (its own model), or the run folder that holds the model file `target`."""
-    from .runs import CONFIG_FILE
-    if not target.is_file():
-        return finished_run(target), None
-    if not (target.parent / CONFIG_FILE).is_file():
-        raise UsageError(f"{target}: a model file needs its run folder's {CONFIG_FILE} (the targets); "
-                         "keep it inside the run folder")
-    return target.parent, target
-
-
 def run_export(args: argparse.Namespace) -> int:
-    from .app.outputs import EXPORT, staged_output
-    from .runs import EXPORT_FOLDER, MODEL_FILE, export_run, read_run
-    check_device(args.device)
-    folder, model = run_and_model(Path(args.run_dir))
-    if not 0 <= args.aperture <= math.sqrt(2):
-        raise UsageError(f"--aperture {args.aperture:g}: give a radius in [0, √2] (a fraction of Nyquist; from √2 "
-                         "on it passes every frequency, as 0 does: no filter)")
-    out = Path(args.out) if args.out else folder / (EXPORT_FOLDER if model is None else f"{EXPORT_FOLDER}-{model.stem}")
-    check_memory(read_run(folder)[0], args.device, "export", "give a smaller --slm",
-                 size=tuple(args.slm) if args.slm else None)
-    with staged_output(out, EXPORT, [folder, model or folder / MODEL_FILE], args.overwrite) as staged:
-        record = export_run(folder, args.encoding, args.levels, tuple(args.slm) if args.slm else None,
-                            args.aperture or None, staged, model, args.device)
+    from .app.runfolders import export
+    out, record = export(args.run_dir, args.encoding, args.levels, _size(args.slm), args.aperture, args.out,
+                         args.overwrite, args.device)
     print(f"{out}: {len(record['files'])} files; mean PSNR against the targets:")
     for label, key in (("phase-only display", "phase_only_display"), ("complex field, same display", "complex_display"),
                        ("complex field, as fitted", "complex_field")):
@@ -861,19 +554,9 @@ def run_export(args: argparse.Namespace) -> int:
 
 
 def run_info(args: argparse.Namespace) -> int:
-    from .app.outputs import MODEL, output
+    from .app.runfolders import info as model_info
     from .codec import IMPORTANCE_VERSION, ROTATION_DEPTH_VERSION
-    from .runs import HALF_MODEL_FILE, MODEL_FILE, half_precision_model
-    from .storage import model_info
-    target = Path(args.target)
-    if args.half:
-        if target.is_file():
-            raise UsageError(f"--half stores a float16 copy beside a run's model: give the run folder, not {target}")
-        folder = finished_run(target)
-        with output(folder / HALF_MODEL_FILE, MODEL, [folder / MODEL_FILE], args.overwrite):
-            info = half_precision_model(folder)
-    else:
-        info = model_info(finished_run(target) / MODEL_FILE if target.is_dir() else target)
+    info = model_info(args.target, args.half, args.overwrite)
     if args.json:
         print(json.dumps(info, indent=2))
         return 0
@@ -901,65 +584,23 @@ def run_info(args: argparse.Namespace) -> int:
 
 
 def run_render(args: argparse.Namespace) -> int:
-    from .app.outputs import RENDER, staged_output
-    from .runs import RENDER_FOLDER, check_distinct_files, read_run, render_model
-    from .storage import load_model
-    check_device(args.device)
-    target = Path(args.target)
-    if target.is_dir():
-        finished_run(target)
-    elif not target.is_file():
-        raise UsageError(f"{target}: no such run folder or model file")
-    out = Path(args.out) if args.out else (target / RENDER_FOLDER if target.is_dir()
-                                           else target.with_name(target.stem + "-render"))
-    if args.distance is not None:
-        check_distances(args.distance, "`distance`", " (e.g. 0.001 for 1 mm)")
-        check_distinct_files(args.distance)
-    config = read_run(target)[0] if target.is_dir() else load_model(target)[1]
-    check_memory(config, args.device, "render", "give a smaller --size or fewer --distance values",
-                 size=tuple(args.size) if args.size else None,
-                 planes=None if args.distance is None else len(args.distance))
-    with staged_output(out, RENDER, [target], args.overwrite) as staged:
-        record = render_model(target, staged, tuple(args.size) if args.size else None, args.distance, args.device)
+    from .app.runfolders import render
+    out, record = render(args.target, _size(args.size), args.distance, args.out, args.overwrite, args.device)
     width, height = record["hologram_px"]
     print(f"{out}: {width}×{height} px at {record['pixel_pitch_m'] * 1e6:.3f} µm, planes at "
           + ", ".join(f"{d * 1e3:g} mm" for d in record["distances_m"]))
     return 0
 
 
-def _print_view(record: ViewRecord) -> None:
-    print(f"{record.path}: {record.frames} distances, {record.bytes / 2**20:.1f} MiB, {record.seconds:.0f} s; "
-          "open it in a browser")
-
-
 def run_view(args: argparse.Namespace) -> int:
-    from .app.outputs import PAGE, output
-    from .runs import read_run
-    from .view import SWEEP_BATCH, check_sweep, default_page, write_view
-    if len(args.run_dirs) > 2:
-        raise UsageError(f"{len(args.run_dirs)} run folders: give one or two")
-    folders = [finished_run(Path(folder)) for folder in args.run_dirs]
-    start, stop, count = args.distances
-    if not float(count).is_integer():
-        raise UsageError(f"--distances {start:g} {stop:g} {count:g}: COUNT is a whole number of distances")
-    check_sweep(start, stop, int(count))
-    for folder in folders:
-        check_memory(read_run(folder)[0], "cpu", "view", "give a smaller COUNT to --distances",
-                     planes=min(SWEEP_BATCH, int(count)))
-    with output(args.out or default_page(folders), PAGE, folders, args.overwrite) as out:
-        _print_view(write_view(folders, out, (start, stop, int(count)), progress=not args.quiet))
+    from .app.runfolders import view
+    _print_view(view(args.run_dirs, tuple(args.distances), args.out, args.overwrite, progress=not args.quiet))
     return 0
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    from .app.outputs import claimed_in_run
-    from .runs import CONFIG_FILE, evaluate_run, evaluation_file, read_run
-    check_device(args.device)
-    folder, model = run_and_model(Path(args.run_dir))
-    check_memory(read_run(folder)[0], args.device, "evaluation", f"the run's {CONFIG_FILE} asks for it: evaluate it "
-                 "where more memory is free")
-    with claimed_in_run(evaluation_file(folder, model), "the metrics record"):
-        record = evaluate_run(folder, model, args.device)
+    from .app.runfolders import evaluate
+    folder, record = evaluate(args.run_dir, args.device)
     print(f"{folder}: {_summary(record)}")
     for name, reason in record["unavailable"].items():
         print(f"  {name}: n/a ({reason})")
@@ -974,26 +615,12 @@ def run_compile(_args: argparse.Namespace) -> int:
 
 
 def run_compress(args: argparse.Namespace) -> int:
-    from .app.outputs import CVQ, output
-    from .runs import model_path
-    from .search import CompressionSettings
-    from .storage import is_compressed
+    from .app.compression import compress_to
+    from .search import ASSUMED_FIT_PSNR_DB, CompressionSettings
     settings = CompressionSettings(bits=BitDepths.parse(args.bits) if args.bits else None, max_drop=args.max_drop,
                                    bpp=args.bpp, max_bytes=args.max_bytes, finetune_steps=args.finetune,
                                    prune_fraction=args.prune)
-    model = model_path(args.target)
-    if not model.is_file() or is_compressed(model):  # compress_model says what the target is
-        return _compress(args, settings, args.out)
-    with output(args.out or model.with_suffix(SUFFIX), CVQ, [model], args.overwrite) as out:
-        return _compress(args, settings, out)
-
-
-def _compress(args: argparse.Namespace, settings: CompressionSettings, out: Path | None) -> int:
-    """`cvqpg compress` once its output is claimed."""
-    from .app.compression import compress_model
-    from .control import RunControl
-    from .search import ASSUMED_FIT_PSNR_DB
-    r = compress_model(Path(args.target), settings, out, RunControl())
+    r = compress_to(args.target, settings, args.out, args.overwrite, RunControl())
     if settings.budgeted:
         print(f"{r['file']}: {_rate_summary(r)}")
         return 0
@@ -1023,177 +650,68 @@ def _rate_summary(r: dict) -> str:
                if r["finetune_steps"] else "; not fine-tuned"))
 
 
-def _source_files(source: dict) -> list[Path]:
-    """The input files a run's `source` names, which no output may replace."""
-    return [Path(source[key]) for key in ("image", "depth") if key in source]
-
-
 def run_encode(args: argparse.Namespace) -> int:
-    from .app.allocator import keep_freed_memory
-    from .app.encoding import encode_budget, encode_config, encode_in_folder, encoding_record, read_encode, start_encode
-    from .app.outputs import CVQ, check_output, output
-    from .control import RunControl
-    from .runs import read_run_options, scene_from_source, write_atomic
-    from .search import CompressionSettings
-    depth, role = None, "`out`"
+    from .app.encoding import encode_plan, encode_planned, resumed_encode_plan
     if args.resume:
-        work = Path(os.path.abspath(args.resume))  # `--resume .` names the folder too
-        config, source, budget, finetune_steps = read_encode(work)
-        if not work.name.endswith(PARTIAL_SUFFIX):
-            raise UsageError(f"--resume {work}: an encode's folder is named after its file, FILE{PARTIAL_SUFFIX}")
-        run = read_run_options(work)
-        check_device(run.device)
-        role = f"--resume {work}: its file"
-        out = check_output(work.with_name(work.name[:-len(PARTIAL_SUFFIX)]), CVQ, _source_files(source),
-                           args.overwrite, role)
-        scene = scene_from_source(source, config)
+        plan = resumed_encode_plan(args.resume, args.overwrite)
     else:
-        if args.bpp is None and args.max_bytes is None:
-            raise UsageError("one of the arguments --bpp --max-bytes is required")
-        if args.out is None:
-            raise UsageError(f"give the {SUFFIX} file to write with --out FILE")
-        config, source = _config_and_source(args)
-        run = _run_options(args)
-        check_device(run.device)
-        settings = CompressionSettings(bpp=args.bpp, max_bytes=args.max_bytes, finetune_steps=args.finetune)
-        budget, finetune_steps = encode_budget(config, settings), settings.finetune_steps
-        out = check_output(args.out, CVQ, _source_files(source), args.overwrite)
-        work = out.with_name(out.name + PARTIAL_SUFFIX)
-        if work.exists():
-            raise UsageError(f"{work} holds an interrupted encode; continue it with cvqpg encode --resume {work}, "
-                             "or delete it")
-        config = encode_config(config, budget)
-        check_memory(config, run.device)
-        scene, depth = _scene_and_depth(source, config)
-        if depth is not None:
-            source["depth"] = DEPTH_FILE  # kept in the encode's folder until the file is written
-
-    keep_freed_memory()
-
-    def body(stop_requested: Callable[[], bool]) -> None:
-        if not args.resume:
-            start_encode(work, config, source, budget, finetune_steps, run)
-        if depth is not None:
-            depth.save(work / DEPTH_FILE)
-        encoded = encode_in_folder(work, scene, config, budget, finetune_steps, run,
-                                   RunControl(progress=not args.quiet, stop_requested=stop_requested))
-        write_atomic(out, encoded.rate.choice.data)
-        if not args.quiet:
-            print(f"{out}: {_rate_summary(encoding_record(encoded, out, budget))}")
-
-    with output(out, CVQ, _source_files(source), args.overwrite, role):
-        code = _resumable(work, "encode", body)
-    if not code:
-        shutil.rmtree(work)
+        plan = encode_plan(_fit_inputs_of(args), args.out, args.bpp, args.max_bytes, args.finetune, args.overwrite)
+    code, record = encode_planned(plan, args.overwrite, progress=not args.quiet)
+    if record is not None and not args.quiet:
+        print(f"{plan.out}: {_rate_summary(record)}")
     return code
 
 
 def run_decompress(args: argparse.Namespace) -> int:
-    from .app.compression import decompress_file
-    from .app.outputs import MODEL, output
-    source = Path(args.file)
-    out = args.out or source.with_name(f"{source.stem}.decoded.safetensors")
-    with output(out, MODEL, [source], args.overwrite) as out:
-        print(f"{decompress_file(source, out)}")
+    from .app.compression import decompress_to
+    print(f"{decompress_to(args.file, args.out, args.overwrite)}")
     return 0
 
 
 def run_bench(args: argparse.Namespace) -> int:
-    from .app.allocator import keep_freed_memory
-    from .app.outputs import BENCH, check_continued
-    from .campaign.bench import (CELLS_DIR, Overrides, RateDistortionOptions, check_cells_device, describe_cells,
-                                 folder_plan, make_plan, parse_shard, peak_bytes, run_plan)
-    from .campaign.report import write_summary
+    from .campaign.bench import Overrides
+    from .campaign.commands import BenchRequest, describe_bench, fit_bench, plan_bench, summarise_bench
     seeds = [args.seed] if args.seed is not None else args.seeds
     overrides = Overrides(scenes_dir=args.scenes, scene_names=args.scene_names, colors=args.colors,
                           ratios=args.ratios, methods=args.methods, seeds=seeds, size=args.size, steps=args.steps,
                           curvature_warmup=args.curvature_warmup, device=args.device, backend=args.backend)
-    if args.out is not None:
-        check_continued(args.out, BENCH)  # before the plan reads the records there
-    plan = make_plan(args.preset, args.out, overrides)
-    for option, given in (("--fits", bool(args.fits)), ("--finetune", args.finetune != 0)):
-        if given and (not PRESETS[args.preset].rate_distortion or PRESETS[args.preset].encode_fractions):
-            raise UsageError(f"{option} is for the rate–distortion grids of fitted models (--preset compression or "
-                             f"rate), not --preset {args.preset}")
-    if args.finetune < 0:
-        raise UsageError(f"--finetune {args.finetune}: give a number of steps ≥ 0")
-    for option, folders in (("--fits", args.fits), ("--reuse", args.reuse)):
-        for folder in folders:
-            if not (Path(folder) / CELLS_DIR).is_dir():
-                raise UsageError(f"{option} {folder}: not a bench folder (no {CELLS_DIR}/ in it)")
-    if args.summary_only and not (plan.folder / CELLS_DIR).is_dir():
-        raise UsageError(f"--summary-only: {plan.folder} holds no {CELLS_DIR}/ to summarise; fit the grid first, "
-                         "or give its --out")
-    check_continued(plan.folder, BENCH)
-    executor = executor_options(args)
-    cells = plan.shard(*parse_shard(args.shard)) if args.shard else plan.cells
+    request = BenchRequest(args.preset, args.out, overrides, _executor_flags(args), args.shard,
+                           tuple(Path(d) for d in args.reuse), tuple(Path(d) for d in args.fits), args.finetune,
+                           args.summary_only)
+    planned = plan_bench(request)
     if args.dry_run:
-        listing = describe_cells(plan, cells, [Path(d) for d in args.reuse])
-        print("\n".join(listing + [f"{len(cells)} of {len(plan.cells)} cells, in {plan.folder}"]))
+        print("\n".join(describe_bench(planned, request)))
         return 0
     code = 0
     if not args.summary_only:
-        keep_freed_memory()
-        device = plan.cells[0].run.device
-        check_cells_device(cells, executor)
-        check_fits_at_once(peak_bytes(cells, 1), executor, device)
-        with StopRequest() as stop_requested:
-            control = RunControl(progress=not args.quiet, stop_requested=stop_requested)
-            outcome = run_plan(plan, cells, control=control, reuse=[Path(d) for d in args.reuse],
-                               rate_distortion=RateDistortionOptions(tuple(Path(d) for d in args.fits), args.finetune),
-                               executor=executor)
+        outcome, stopped_by = fit_bench(planned, request, progress=not args.quiet)
         print(f"cvqpg bench: {outcome.describe()}")
         for name, error in outcome.failures.items():
             print(f"  {name}: {error}", file=sys.stderr)
-        code = 128 + stop_requested.signals[0] if stop_requested.signals else (1 if outcome.failures else 0)
-    print(f"cvqpg bench: {write_summary(folder_plan(args.preset, args.out, overrides, as_recorded=args.summary_only))}")
+        code = 128 + stopped_by if stopped_by else (1 if outcome.failures else 0)
+    print(f"cvqpg bench: {summarise_bench(request)}")
     return code
 
 
 def run_batch(args: argparse.Namespace) -> int:
-    from .app.allocator import keep_freed_memory
-    from .app.batch import (BUG, FILESYSTEM, INPUT, MEMORY, SUMMARY_MD, BatchSettings, check_settings, plan_batch,
-                            read_inputs)
-    from .app.batch import run_batch as run
-    from .app.outputs import BATCH, check_continued, claimed
-    from .fitting import estimated_peak_bytes
-    settings = BatchSettings(args.recipe, _fit_settings(args), _run_options(args), args.bpp, args.max_bytes,
-                             args.finetune, args.resize_depth, args.overwrite)
-    device = settings.run.device
-    check_device(device)
-    check_settings(settings)
-    executor = executor_options(args)
-    folder = check_continued(args.out, BATCH)
-    plan = plan_batch(read_inputs(args.inputs), folder, settings)
-    peaks = {item.name: estimated_peak_bytes(item.config, device) for item in plan.items}
-    if peaks:
-        largest = max(plan.items, key=lambda item: peaks[item.name])
-        check_memory(largest.config, device, remedy=f"reduce --size or --planes (item {largest.name})")
-        check_fits_at_once(peaks[largest.name], executor, device)
-    keep_freed_memory()
-    with claimed(folder), StopRequest() as stop_requested:
-        outcome = run(plan, executor, RunControl(progress=not args.quiet, stop_requested=stop_requested))
+    from .app.batch import BUG, FILESYSTEM, INPUT, MEMORY, SUMMARY_MD, BatchSettings, fit_batch
+    settings = BatchSettings(args.recipe, _fit_settings(args), RunOptions(args.device, args.backend).validate(),
+                             args.bpp, args.max_bytes, args.finetune, args.resize_depth, args.overwrite)
+    outcome, folder, stopped_by = fit_batch(args.inputs, args.out, settings, _executor_flags(args),
+                                            progress=not args.quiet)
     print(f"cvqpg batch: {outcome.describe()}; summary in {folder / SUMMARY_MD}")
     for name, error in outcome.failures.items():
         print(f"  {name}: {flag_message(error)}", file=sys.stderr)
-    if stop_requested.signals:
-        return 128 + stop_requested.signals[0]
+    if stopped_by:
+        return 128 + stopped_by
     kinds = set(outcome.kinds.values())
     return next((code for kind, code in ((BUG, EXIT_BUG), (FILESYSTEM, EXIT_FILESYSTEM), (MEMORY, EXIT_MEMORY),
                                          (INPUT, EXIT_USAGE)) if kind in kinds), 0)
 
 
 def run_results(args: argparse.Namespace) -> int:
-    from .app.outputs import DOCUMENT, output
-    from .campaign.results import check_recorded, document, write_figures
-    from .runs import write_atomic
-    if not Path(args.root).is_dir():
-        raise UsageError(f"--root {args.root} is not a folder of recorded bench folders (e.g. results)")
-    check_recorded(Path(args.root))
-    with output(args.out, DOCUMENT, [], args.overwrite) as out:
-        figures = write_figures(Path(args.root), out.parent, args.overwrite)
-        write_atomic(out, document(Path(args.root)))
-    print(f"cvqpg results: {', '.join(map(str, [out, *figures]))}")
+    from .campaign.commands import write_results
+    print(f"cvqpg results: {', '.join(map(str, write_results(args.root, args.out, args.overwrite)))}")
     return 0
 
 
@@ -1238,33 +756,9 @@ def _empty_argument(args: argparse.Namespace) -> str | None:
     return None
 
 
-# The thread counts that Numba, OpenMP (PyTorch) and MKL read from the environment as they load: 0 or garbage makes
-# Numba fail, or warn in several lines, before cvqpg could say anything. OpenMP also takes a list per nesting level.
-THREAD_VARIABLES = {"NUMBA_NUM_THREADS": False, "OMP_NUM_THREADS": True, "MKL_NUM_THREADS": False}
-
-
-def _bad_thread_variable() -> str | None:
-    """The first thread-count variable of the environment (`THREAD_VARIABLES`) set to something other than a
-    whole number ≥ 1 (or a list of them, where a list is taken); None where all are fine or unset."""
-    for name, listed in THREAD_VARIABLES.items():
-        value = os.environ.get(name)
-        if value is None:
-            continue
-        counts = value.split(",") if listed else [value]
-        if not all(count.strip().isdigit() and int(count) >= 1 for count in counts):
-            return name
-    return None
-
-
-def _cap_thread_variables() -> None:
-    """Lower a thread count of the environment (`THREAD_VARIABLES`, one number) above the cores this process may
-    use to their number, with a note: Numba starts as many threads as it is told (9999 took minutes for one step)."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    for name in THREAD_VARIABLES:
-        value = os.environ.get(name, "")
-        if value.isdigit() and int(value) > cores:
-            os.environ[name] = str(cores)
-            print(f"cvqpg: note: {name}={value} lowered to {cores}, the cores this process may use", file=sys.stderr)
+COMMANDS = {"fit": run_fit, "batch": run_batch, "eval": run_eval, "export": run_export, "info": run_info,
+            "render": run_render, "bench": run_bench, "results": run_results, "compile": run_compile,
+            "view": run_view, "compress": run_compress, "decompress": run_decompress, "encode": run_encode}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -1277,17 +771,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"cvqpg {args.command}: error: {empty} is empty; give a value (see cvqpg {args.command} --help)",
               file=sys.stderr)
         return EXIT_USAGE
-    if (variable := _bad_thread_variable()) is not None:
+    if (variable := bad_thread_variable()) is not None:
         print(f"cvqpg {args.command}: error: the environment variable {variable}={os.environ[variable]!r} is not a "
               f"thread count (a whole number ≥ 1); unset it, or set it to one", file=sys.stderr)
         return EXIT_USAGE
-    _cap_thread_variables()
-    previous = signal.signal(signal.SIGTERM, _terminate)
+    for note in cap_thread_variables():
+        print(f"cvqpg: note: {note}", file=sys.stderr)
     try:
-        return {"fit": run_fit, "batch": run_batch, "eval": run_eval, "export": run_export, "info": run_info,
-                "render": run_render, "bench": run_bench, "results": run_results,
-                "compile": run_compile, "view": run_view, "compress": run_compress,
-                "decompress": run_decompress, "encode": run_encode}[args.command](args)
+        with terminated_on_sigterm():
+            return COMMANDS[args.command](args)
     except Terminated:
         print(f"cvqpg {args.command}: terminated", file=sys.stderr)
         return 128 + signal.SIGTERM
@@ -1301,17 +793,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"cvqpg {args.command}: interrupted", file=sys.stderr)
         return 130
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
-class Terminated(BaseException):
-    """SIGTERM outside a fit's steps (which `StopRequest` ends cleanly): raised where the command is, so that it
-    removes what it half wrote, as after Ctrl-C, instead of dying with its staged folder and lock left behind."""
-
-
-def _terminate(_signum: int, _frame: object) -> None:
-    raise Terminated
 
 
 if __name__ == "__main__":

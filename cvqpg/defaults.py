@@ -32,6 +32,8 @@ DEFAULT_APERTURE = 0.5
 CHECKPOINT_SECONDS = 180.0
 # The folder of an unfinished fit or encode, beside the output it becomes: `OUT.partial`.
 PARTIAL_SUFFIX = ".partial"
+# An encode's folder (`app.encoding`): the budget and the fine-tuning steps, beside config.json.
+BUDGET_FILE = "budget.json"
 # `cvqpg batch` (`app.batch`): the folder of a batch folder's records, which marks it as one.
 BATCH_RECORDS = ".batch"
 

@@ -30,6 +30,11 @@ class ModelFileError(CvqpgError, ValueError):
     """A model file or checkpoint that this version cannot read, or that does not belong where it is."""
 
 
+class UsageError(CvqpgError):
+    """A command's options that cannot work as given, or together (named by their flags): the command line prints
+    it as one line and exits with code 2."""
+
+
 def choices_error(name: str, value: object, choices: tuple[str, ...]) -> ConfigError:
     """The error for an enumerated setting given a value outside its choices."""
     return ConfigError(f"`{name}` {value!r} is not one of {', '.join(map(repr, choices))}")

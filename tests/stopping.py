@@ -2,10 +2,10 @@
 
 import signal
 
-from cvqpg import cli
+from cvqpg.app import signals
 
 
-class CountedStop(cli.StopRequest):
+class CountedStop(signals.StopRequest):
     """A stop request that counts how often it is asked and, once `after` is set, stops after that many asks."""
 
     asked: list = []

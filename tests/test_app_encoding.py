@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from cvqpg import FitConfig, cli, search
+from cvqpg import FitConfig, search
+from cvqpg.app import signals
 from cvqpg.app.encoding import ENCODE_HEADROOM, encode_steps, primitives_for_budget, stand_in
 from cvqpg.cli import main
 from cvqpg.codec import BitDepths, encode
@@ -78,7 +79,7 @@ def whole(picture, tmp_path_factory):
     """The encode that the stopped ones resume to, run once without a stop: its file and how often it asked."""
     out = tmp_path_factory.mktemp("whole") / "ramp.cvq"
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(cli, "StopRequest", CountedStop)
+        patch.setattr(signals, "StopRequest", CountedStop)
         CountedStop.asked, CountedStop.after = [], None
         assert main([*STOPPED, str(picture), "--out", str(out)]) == 0
     # asked before each step, each rung and each round of finer depths, and before each tuning step
@@ -97,7 +98,7 @@ def whole(picture, tmp_path_factory):
 def test_a_stopped_encode_resumes_from_its_checkpoint_to_the_same_file(picture, whole, tmp_path, monkeypatch, capsys,
                                                                       asks, stopped):
     whole_file, whole_asks = whole
-    monkeypatch.setattr(cli, "StopRequest", CountedStop)
+    monkeypatch.setattr(signals, "StopRequest", CountedStop)
     monkeypatch.setattr(CountedStop, "asked", [])
     monkeypatch.setattr(CountedStop, "after", asks if asks >= 0 else whole_asks + asks)
     tried = []

@@ -12,7 +12,7 @@ import torch
 from PIL import Image
 
 from cvqpg import cli
-from cvqpg.app import batch, executors
+from cvqpg.app import batch, executors, signals
 from cvqpg.app.batch import BatchInput, BatchSettings, plan_item, read_inputs
 from cvqpg.app.encoding import start_encode
 from cvqpg.cli import main
@@ -232,7 +232,7 @@ def test_an_interrupted_batch_resumes_to_the_parameters_of_an_uninterrupted_one(
     steps = ["--steps", "8", "--checkpoint-every", "2"]
     assert main(["batch", str(scenes), "--out", str(tmp_path / "whole"), *TINY, *steps]) == 0
     monkeypatch.setattr(executors, "POLL_SECONDS", 0.0)  # every step asks: the stop comes at the same step each time
-    monkeypatch.setattr(cli, "StopRequest", CountedStop)
+    monkeypatch.setattr(signals, "StopRequest", CountedStop)
     monkeypatch.setattr(CountedStop, "asked", [])
     monkeypatch.setattr(CountedStop, "after", 5)  # a stops within its first steps, keeping a checkpoint
     out = tmp_path / "out"
@@ -289,7 +289,7 @@ def test_an_interrupted_cvq_item_resumes_from_its_checkpoint_to_the_same_file(tm
     started = []
     monkeypatch.setattr(batch, "start_encode", lambda *args: started.append(args) or start_encode(*args))
     monkeypatch.setattr(executors, "POLL_SECONDS", 0.0)  # every step asks: the stop comes at the same step each time
-    monkeypatch.setattr(cli, "StopRequest", CountedStop)
+    monkeypatch.setattr(signals, "StopRequest", CountedStop)
     monkeypatch.setattr(CountedStop, "asked", [])
     monkeypatch.setattr(CountedStop, "after", 5)
     out = tmp_path / "out"

@@ -84,8 +84,8 @@ def test_only_the_command_line_and_the_campaign_import_the_campaign():
 
 
 def test_the_codec_and_storage_sit_below_the_workflows():
-    assert GRAPH["cvqpg.codec"] <= {"cvqpg.bitdepths", "cvqpg.config", "cvqpg.defaults", "cvqpg.errors",
-                                    "cvqpg.primitives"}
+    assert GRAPH["cvqpg.codec"] <= {"cvqpg.bitdepths", "cvqpg.config", "cvqpg.defaults", "cvqpg.display",
+                                    "cvqpg.errors", "cvqpg.primitives"}
     assert GRAPH["cvqpg.storage"] <= {"cvqpg.codec", "cvqpg.config", "cvqpg.errors", "cvqpg.files",
                                       "cvqpg.primitives", "cvqpg.representation"}
     assert not any(name.startswith("cvqpg.app") or name in MODEL_FILE_LAYERS
@@ -129,3 +129,14 @@ def test_the_core_never_imports_the_application_layer_or_the_command_line():
     assert {name: sorted(m for m in GRAPH[name] if m.startswith((APP, "cvqpg.cli"))) for name in core
             if any(m.startswith((APP, "cvqpg.cli")) for m in GRAPH[name])} == {}
     assert {"cvqpg.fitting", "cvqpg.runs", "cvqpg.ops"} <= core
+
+
+def test_the_command_line_only_parses_calls_and_prints():
+    """`cli.py` refuses nothing itself beyond argparse's types (every check is the application's, which a caller
+    of the library meets too) and writes through nothing: its plans, checks and workflows live in `cvqpg.app`."""
+    tree = ast.parse(MODULES["cvqpg.cli"].read_text())
+    raising = {function.name for function in ast.walk(tree) if isinstance(function, ast.FunctionDef)
+               for node in ast.walk(function) if isinstance(node, ast.Raise) and node.exc is not None}
+    assert raising <= {"finite", "whole"}, "functions of cli.py that raise: move their checks to cvqpg.app"
+    writers = {"cvqpg.app.outputs", "cvqpg.files", "cvqpg.runs", "cvqpg.storage", "cvqpg.fitting"}
+    assert GRAPH["cvqpg.cli"] & writers == set()

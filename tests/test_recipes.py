@@ -117,7 +117,9 @@ def test_the_same_time_on_a_machine_twice_as_fast_runs_the_same_algorithm_with_t
     assert timed["fast"].recipe == timed["slow"].recipe == recipe
 
 
-def test_fit_records_the_recipe_and_the_time_budget_and_a_rerun_with_its_steps_is_exact(tmp_path):
+def test_fit_records_the_recipe_and_the_time_budget_and_a_rerun_with_its_steps_is_exact(tmp_path, monkeypatch):
+    # a step of 0.1 s: 11 steps in the budget, whatever this machine's speed (timing is the test above's)
+    monkeypatch.setattr(runner, "seconds_per_step", lambda scene, config, run: 0.1)
     out, rerun = tmp_path / "run", tmp_path / "rerun"
     small = ["fit", "--scene", "demo", "--size", "32", "24", "--num-gaussians", "30", "--recipe", "paper", "--quiet"]
     assert main([*small, "--time", "0.02", "--out", str(out)]) == 0
@@ -125,7 +127,7 @@ def test_fit_records_the_recipe_and_the_time_budget_and_a_rerun_with_its_steps_i
     assert FitConfig.from_dict(recorded).recipe == "paper"
     assert recorded["source"]["time_budget"]["minutes"] == 0.02
     steps = recorded["optimisation"]["steps"]
-    assert json.loads((out / "metrics.json").read_text())["steps"] == steps
+    assert steps == steps_within(1.2, 0.1) and json.loads((out / "metrics.json").read_text())["steps"] == steps
     assert main([*small, "--steps", str(steps), "--out", str(rerun)]) == 0
     timed, again = (load_model(folder / "model.safetensors")[0].tensors() for folder in (out, rerun))
     assert all(torch.equal(timed[name], again[name]) for name in timed)

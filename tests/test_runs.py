@@ -103,11 +103,10 @@ def test_the_history_keeps_every_kth_step_and_the_last_with_its_share_of_the_sec
 
 
 
-def test_a_model_records_its_fit_and_another_run_s_model_of_the_same_targets_is_refused(tmp_path):
+def test_a_model_records_its_fit_and_another_run_s_model_of_the_same_targets_is_refused(finished_run, tmp_path):
     """A model that `write_run` saves records the fit it came from: in a run folder of the same size and optics
     but other settings (another seed) it is refused; a model without the record (an earlier version's) is not."""
-    first = tmp_path / "first"
-    assert main(["fit", "--size", "32", "24", "--steps", "1", "--quiet", "--out", str(first)]) == 0
+    first = finished_run  # read only
     recorded = model_run(first / MODEL_FILE)
     assert same_fit(recorded, run_fit(first)) and recorded["source"] == {"scene": "demo"}
     twin = start_run(tmp_path / "twin", read_run(first)[0].replace(seed=7), {"scene": "demo"})
@@ -119,14 +118,14 @@ def test_a_model_records_its_fit_and_another_run_s_model_of_the_same_targets_is_
     assert load_run_model(twin)[0].count == primitives.count
 
 
-def test_a_compressed_model_carries_its_fit_s_fingerprint_and_another_run_refuses_it(tmp_path, capsys):
+def test_a_compressed_model_carries_its_fit_s_fingerprint_and_another_run_refuses_it(finished_run, tmp_path, capsys):
     """`cvqpg compress` writes the fit fingerprint of the model into the file; with a run folder of the same size and
     optics but another fit it is refused in one line (exit 2), with its own run it is read."""
     from cvqpg.codec import file_fingerprint
     from cvqpg.runs import fingerprint_digest
 
     first = tmp_path / "first"
-    assert main(["fit", "--size", "32", "24", "--steps", "1", "--quiet", "--out", str(first)]) == 0
+    shutil.copytree(finished_run, first)
     assert main(["compress", str(first), "--bits", "6"]) == 0
     packed = first / "model.cvq"
     assert file_fingerprint(packed.read_bytes()) == fingerprint_digest(run_fit(first)) is not None

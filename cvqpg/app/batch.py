@@ -40,7 +40,8 @@ from ..fitting import FitInterrupted
 from ..runs import CONFIG_FILE, METRICS_FILE, MODEL_FILE, read_run, scene_from_source, start_run, write_json
 from ..search import CompressionSettings
 from .encoding import encode_budget, encode_config, encode_in_folder, encoding_record, read_encode, start_encode
-from .executors import DONE, FAILED, INTERRUPTED, NOT_STARTED, SKIPPED, ExecutorOptions, Task, run_tasks
+from .executors import (DONE, FAILED, INTERRUPTED, NOT_STARTED, SKIPPED, ExecutorFlags, ExecutorOptions, Task,
+                        run_tasks)
 from .provenance import device_name
 from .runner import checkpoint_policy, fit_in_folder, resumed_state, write_fitted_run
 
@@ -589,3 +590,30 @@ def run_batch(plan: BatchPlan, options: ExecutorOptions = ExecutorOptions(), con
                                       "error": outcome.failures[name], "kind": BUG})
     update_summary(folder, now=True)
     return outcome
+
+
+def fit_batch(inputs: str | Path, out: str | Path, settings: BatchSettings, flags: ExecutorFlags = ExecutorFlags(),
+              progress: bool = True) -> tuple[BatchOutcome, Path, int | None]:
+    """`cvqpg batch`: every item of `inputs` (`read_inputs`) into the batch folder `out` (`run_batch`) by the
+    executor `flags` ask for, everything checked first (the settings, the device, the memory of the largest item
+    and of the fits at once); the outcome, the folder, and the signal that stopped it (None where none did)."""
+    from ..fitting import estimated_peak_bytes
+    from . import signals
+    from .allocator import keep_freed_memory
+    from .outputs import BATCH, check_continued, claimed
+    from .resources import check_device, check_fits_at_once, check_memory
+    device = settings.run.device
+    check_device(device)
+    check_settings(settings)
+    executor = flags.options(device, "batch")
+    folder = check_continued(out, BATCH)
+    plan = plan_batch(read_inputs(inputs), folder, settings)
+    peaks = {item.name: estimated_peak_bytes(item.config, device) for item in plan.items}
+    if peaks:
+        largest = max(plan.items, key=lambda item: peaks[item.name])
+        check_memory(largest.config, device, remedy=f"reduce --size or --planes (item {largest.name})")
+        check_fits_at_once(peaks[largest.name], executor, device)
+    keep_freed_memory()
+    with claimed(folder), signals.StopRequest() as stop_requested:
+        outcome = run_batch(plan, executor, RunControl(progress=progress, stop_requested=stop_requested))
+    return outcome, folder, stop_requested.signals[0] if stop_requested.signals else None

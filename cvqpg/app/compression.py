@@ -1,5 +1,6 @@
 """`cvqpg compress` and `cvqpg decompress` over run folders and model files: the float model read with its
-run's scene, the file chosen by the search (`cvqpg.search`) written atomically, and what the commands report."""
+run's scene, the file chosen by the search (`cvqpg.search`) written atomically, and what the commands report;
+`compress_to` and `decompress_to` write by the output rule (`app.outputs`)."""
 
 from __future__ import annotations
 
@@ -123,3 +124,25 @@ def decompress_file(path: str | Path, out: str | Path | None = None) -> Path:
     out = Path(out) if out is not None else path.with_name(f"{path.stem}.decoded.safetensors")
     save_model(out, compressed.primitives, compressed.config)
     return out
+
+
+def compress_to(target: str | Path, settings: CompressionSettings = CompressionSettings(),
+                out: str | Path | None = None, overwrite: bool = False, control: RunControl = SILENT
+                ) -> dict[str, Any]:
+    """`cvqpg compress`: `compress_model` into `out` (default: the model's path with `SUFFIX`) by the output rule
+    (`app.outputs`: an existing `.cvq` file replaced only with `overwrite`, never the model itself)."""
+    from .outputs import CVQ, output
+    model = model_path(target)
+    if not model.is_file() or is_compressed(model):  # compress_model says what the target is
+        return compress_model(target, settings, out, control)
+    with output(out or model.with_suffix(SUFFIX), CVQ, [model], overwrite) as checked:
+        return compress_model(target, settings, checked, control)
+
+
+def decompress_to(path: str | Path, out: str | Path | None = None, overwrite: bool = False) -> Path:
+    """`cvqpg decompress`: `decompress_file` into `out` (default: `<stem>.decoded.safetensors` beside the file) by
+    the output rule (`app.outputs`)."""
+    from .outputs import MODEL, output
+    path = Path(path)
+    with output(out or path.with_name(f"{path.stem}.decoded.safetensors"), MODEL, [path], overwrite) as checked:
+        return decompress_file(path, checked)

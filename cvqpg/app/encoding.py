@@ -2,15 +2,18 @@
 primitives as the budget holds at the default depths, with headroom (`encode_config`), then rate control
 (`search.rate_control`) chooses the primitives and depths of the file and fine-tunes them. In a folder
 (`start_encode`, `encode_in_folder`) the fit keeps checkpoints beside its budget, so that an interrupted encode
-resumes (`read_encode`)."""
+resumes (`read_encode`). The command itself: its plan, new or resumed, checked before anything is written
+(`encode_plan`, `resumed_encode_plan`), then run into its file (`encode_planned`)."""
 
 from __future__ import annotations
 
 import math
+import os
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Callable
 
 import torch
 
@@ -18,8 +21,9 @@ from ..bitdepths import BitDepths
 from ..codec import encode
 from ..config import FitConfig, RunOptions
 from ..control import SILENT, RunControl
-from ..defaults import CHECKPOINT_SECONDS, ENCODE_FINETUNE_STEPS, ENCODE_STEPS
-from ..errors import InputError
+from ..defaults import (BUDGET_FILE, CHECKPOINT_SECONDS, DEPTH_FILE, ENCODE_FINETUNE_STEPS, ENCODE_STEPS,
+                        PARTIAL_SUFFIX, SUFFIX)
+from ..errors import InputError, UsageError
 from ..fitting import FitResult, fit_scene
 from ..primitives import Primitives, activate, init_gaussians
 from ..representation import require_gaussians
@@ -27,12 +31,15 @@ from ..runs import read_record, read_run, start_run, write_json
 from ..search import Budget, CompressionSettings, RateChoice, Reference, rate_control, reference_for, smallest_file
 from ..targets import Scene
 from .compression import choice_record
+from .inputs import FitInputs
 from .runner import fit_in_folder, resumed_state
+
+if TYPE_CHECKING:
+    from PIL import Image
 
 # `cvqpg encode` fits more primitives than the budget holds at the default bit depths, so that the rate
 # search can choose between coarser depths for all of them and the default depths for the strongest.
 ENCODE_HEADROOM = 1.2
-BUDGET_FILE = "budget.json"  # an encode's folder: the budget and the fine-tuning steps, beside config.json
 
 
 def encode_steps(steps: int) -> tuple[int, int]:
@@ -182,3 +189,99 @@ def encode_in_folder(folder: Path, scene: Scene, config: FitConfig, budget: Budg
     fitted = fit_in_folder(folder, scene, config, run, control, resumed_state(folder, config, run),
                            checkpoint_every_steps, checkpoint_every_seconds, checkpoint_at_end=True)
     return encode_fitted(fitted, scene, budget, finetune_steps, control)
+
+
+@dataclass
+class EncodePlan:
+    """What `cvqpg encode` will do: fit and encode in `work` (`OUT.partial`, from its checkpoint when
+    `resumed`) into the file `out`, within `budget`."""
+
+    work: Path
+    out: Path
+    config: FitConfig
+    source: dict[str, Any]
+    budget: Budget
+    finetune_steps: int
+    run: RunOptions
+    scene: Scene
+    resumed: bool = False
+    depth: Image.Image | None = None  # an estimated depth map, saved in `work` once it exists
+    role: str = "`out`"  # how messages name `out`
+
+
+def resumed_encode_plan(folder: str | Path, overwrite: bool = False) -> EncodePlan:
+    """The plan that continues the interrupted encode in `folder` (`FILE.partial`) with its own settings and
+    budget; with `overwrite`, a file at `FILE` is replaced."""
+    from ..runs import read_run_options, scene_from_source
+    from .inputs import source_files
+    from .outputs import CVQ, check_output
+    from .resources import check_device
+    work = Path(os.path.abspath(folder))  # `--resume .` names the folder too
+    config, source, budget, finetune_steps = read_encode(work)
+    if not work.name.endswith(PARTIAL_SUFFIX):
+        raise UsageError(f"--resume {work}: an encode's folder is named after its file, FILE{PARTIAL_SUFFIX}")
+    run = read_run_options(work)
+    check_device(run.device)
+    role = f"--resume {work}: its file"
+    out = check_output(work.with_name(work.name[:-len(PARTIAL_SUFFIX)]), CVQ, source_files(source), overwrite, role)
+    return EncodePlan(work, out, config, source, budget, finetune_steps, run, scene_from_source(source, config),
+                      resumed=True, role=role)
+
+
+def encode_plan(inputs: FitInputs, out: str | None, bpp: float | None = None, max_bytes: int | None = None,
+                finetune_steps: int = ENCODE_FINETUNE_STEPS, overwrite: bool = False) -> EncodePlan:
+    """The plan of a new encode of `inputs` into the file `out` of at most `bpp` bits per pixel or `max_bytes`
+    bytes (`encode_budget`), with `encode_config`'s primitive count, in its work folder `OUT.partial`."""
+    from .inputs import config_and_source, scene_and_depth, source_files
+    from .outputs import CVQ, check_output
+    from .resources import check_device, check_memory
+    if bpp is None and max_bytes is None:
+        raise UsageError("one of the arguments --bpp --max-bytes is required")
+    if out is None:
+        raise UsageError(f"give the {SUFFIX} file to write with --out FILE")
+    config, source = config_and_source(inputs)
+    run = inputs.run_options()
+    check_device(run.device)
+    settings = CompressionSettings(bpp=bpp, max_bytes=max_bytes, finetune_steps=finetune_steps)
+    budget = encode_budget(config, settings)
+    checked = check_output(out, CVQ, source_files(source), overwrite)
+    work = checked.with_name(checked.name + PARTIAL_SUFFIX)
+    if work.exists():
+        raise UsageError(f"{work} holds an interrupted encode; continue it with cvqpg encode --resume {work}, "
+                         "or delete it")
+    config = encode_config(config, budget)
+    check_memory(config, run.device)
+    scene, depth = scene_and_depth(source, config)
+    if depth is not None:
+        source["depth"] = DEPTH_FILE  # kept in the encode's folder until the file is written
+    return EncodePlan(work, checked, config, source, budget, settings.finetune_steps, run, scene, depth=depth)
+
+
+def encode_planned(plan: EncodePlan, overwrite: bool = False, progress: bool = True
+                   ) -> tuple[int, dict[str, Any] | None]:
+    """Fit and encode in `plan.work` (`fitplan.resumable`) and write the file `plan.out`, then remove the work
+    folder: 0 and the file's record (`encoding_record`), or the exit code of the signal that stopped it and None."""
+    from ..files import write_atomic
+    from .allocator import keep_freed_memory
+    from .fitplan import resumable
+    from .inputs import source_files
+    from .outputs import CVQ, output
+    records = []
+    keep_freed_memory()
+
+    def body(stop_requested: Callable[[], bool]) -> None:
+        if not plan.resumed:
+            start_encode(plan.work, plan.config, plan.source, plan.budget, plan.finetune_steps, plan.run)
+        if plan.depth is not None:
+            plan.depth.save(plan.work / DEPTH_FILE)
+        encoded = encode_in_folder(plan.work, plan.scene, plan.config, plan.budget, plan.finetune_steps, plan.run,
+                                   RunControl(progress=progress, stop_requested=stop_requested))
+        write_atomic(plan.out, encoded.rate.choice.data)
+        records.append(encoding_record(encoded, plan.out, plan.budget))
+
+    with output(plan.out, CVQ, source_files(plan.source), overwrite, plan.role):
+        code = resumable(plan.work, "encode", body)
+    if code:
+        return code, None
+    shutil.rmtree(plan.work)
+    return 0, records[0]

@@ -32,7 +32,7 @@ from tqdm.auto import tqdm
 
 from ..control import RunControl
 from ..defaults import EXECUTORS
-from ..errors import CvqpgError
+from ..errors import CvqpgError, UsageError
 from .allocator import keep_freed_memory
 from .provenance import available_cores
 
@@ -123,6 +123,34 @@ class ExecutorOptions:
         if torch.device(device).type == "cuda" and self.gpus_per_fit:
             return max(1, math.floor(1 / self.gpus_per_fit))
         return max(1, available_cores() // self.task_threads())
+
+
+@dataclass(frozen=True)
+class ExecutorFlags:
+    """The executor flags of `cvqpg bench` and `batch` as given (None where not given), which `options` turns
+    into `ExecutorOptions`."""
+
+    executor: str = "local"
+    jobs: int | None = None
+    threads: int | None = None
+    ray_address: str | None = None
+    gpus_per_fit: float | None = None
+    checkpoint_every: int | None = None
+
+    def options(self, device: str | None, command: str) -> ExecutorOptions:
+        """The executor the flags ask for, its fits on `device`, validated: a one-line `UsageError` for a flag
+        that is not its executor's (`command` names the command's tasks in it)."""
+        ray = self.executor == "ray"
+        if ray and self.jobs is not None:
+            raise UsageError(f"--jobs is for --executor local; on Ray, the {command} runs as many fits at once as "
+                             "the cluster's CPUs (--threads each) and GPUs (--gpus-per-fit each) allow")
+        for flag, given in (("--ray-address", self.ray_address is not None),
+                            ("--gpus-per-fit", self.gpus_per_fit is not None)):
+            if given and not ray:
+                raise UsageError(f"{flag} is for --executor ray")
+        gpus = self.gpus_per_fit if self.gpus_per_fit is not None else float(ray and device == "cuda")
+        return ExecutorOptions(self.executor, 1 if self.jobs is None else self.jobs, self.threads, self.ray_address,
+                               gpus, self.checkpoint_every).validate()
 
 
 @dataclass(frozen=True)
