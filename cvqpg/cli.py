@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import logging
 import math
@@ -447,6 +448,7 @@ def _batch_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+@functools.cache  # built once per process: tests and notebooks call `main` many times, 12 ms a build
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(prog="cvqpg", description="Holograms as complex-valued "
                                      "quadratic-phase Gaussian primitives (CVQPG).")
