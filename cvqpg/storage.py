@@ -36,7 +36,7 @@ def model_metadata(primitives: Primitives | TensorFields, config: FitConfig, dty
             "width_px": str(config.targets.width), "height_px": str(config.targets.height),
             "pixel_pitch_m": repr(config.optics.pixel_pitch), "wavelengths_m": json.dumps(config.wavelengths),
             "plane_distances_m": json.dumps(config.plane_distances), "qpf": config.primitives.qpf,
-            "units": json.dumps({**representation(config).units, **{term.physical: f"{term.unit} ({term.summary})"
+            "units": json.dumps({**representation(config).units(config), **{term.physical: f"{term.unit} ({term.summary})"
                                                               for term in config.phase.extra_terms}})}
 
 
@@ -119,7 +119,7 @@ def _read_safetensors(path: Path, device: str | torch.device = "cpu"
     except ConfigError as error:
         raise ModelFileError(f"{path}: its settings cannot work ({error}); {REWRITE_MODEL}") from None
     kind = representation(config)
-    missing = [name for name in kind.units if name not in tensors]
+    missing = [name for name in kind.units(config) if name not in tensors]
     if missing:
         raise ModelFileError(f"{path}: missing tensors {', '.join(missing)}")
     primitives = kind.from_tensors({name: t.float() for name, t in tensors.items()}, config)
