@@ -198,9 +198,10 @@ def read_run_options(folder: str | Path) -> RunOptions:
 
 
 def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[str, Any],
-              run: dict[str, Any] | None = None) -> Path:
+              run: dict[str, Any] | None = None, extra: dict[str, Any] | None = None) -> Path:
     """Save config, metrics, model, per-plane targets and reconstructions, hologram, curve and history; `run`
-    is what `metrics.json` records about the code and machine (`cvqpg.app.provenance.run_record`).
+    is what `metrics.json` records about the code and machine (`cvqpg.app.provenance.run_record`), `extra` what
+    else it records (a bench cell's own numbers).
 
     The checkpoint goes only once `metrics.json`, the mark of a finished run, is written: a run
     killed while its files are written resumes from the checkpoint instead of starting over."""
@@ -219,7 +220,7 @@ def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[
         {**complex_field_metrics(result.primitives, config, scene, result.run.backend),
          "updates": len(history), "initial_psnr": history[0] if history else None,
          "skipped_steps": result.skipped_steps, "sanitised_steps": result.sanitised_steps,
-         **({} if run is None else {"run": run})}))
+         **(extra or {}), **({} if run is None else {"run": run})}))
     (folder / CHECKPOINT_FILE).unlink(missing_ok=True)
     return folder
 

@@ -2,6 +2,7 @@
 
 import gc
 import os
+import sys
 
 import numpy as np
 import pytest
@@ -18,11 +19,26 @@ from cvqpg import FitConfig  # noqa: E402
 torch.set_num_threads(2)
 
 
+# What the session imported lives as long as the session: frozen, the full garbage collections that each fit's
+# peak-memory reset runs skip its objects (0.2 s each, with what a first fit imports: matplotlib, transformers, ...).
+# Collected first, so that no garbage is kept; again whenever a test imported many more modules.
+_modules_frozen = 0
+
+
+def _freeze_imports() -> None:
+    global _modules_frozen
+    if len(sys.modules) > _modules_frozen + 50:
+        gc.collect()
+        gc.freeze()
+        _modules_frozen = len(sys.modules)
+
+
 def pytest_collection_finish(session: pytest.Session) -> None:
-    """What the collection imported lives as long as the session: frozen, a full garbage collection (each fit's
-    peak-memory reset runs one) skips its objects, 0.2 s each. (Collected first, so that no garbage is kept.)"""
-    gc.collect()
-    gc.freeze()
+    _freeze_imports()
+
+
+def pytest_runtest_logfinish(nodeid: str, location: tuple) -> None:
+    _freeze_imports()
 
 
 def pytest_sessionfinish(session: pytest.Session) -> None:
