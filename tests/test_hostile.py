@@ -1189,7 +1189,7 @@ def test_a_lock_or_a_file_that_is_a_pipe_is_refused_not_waited_on(argv, lock, sh
     """A named pipe where a command keeps its lock or writes a file: one line, no wait (a guard ends a hang)."""
     hostile_environment(monkeypatch, shared.folder)
     pipe = shared.folder / lock
-    kept = (pipe.read_bytes(), os.lstat(pipe).st_mode) if pipe.exists() else None  # a lock file the batch left
+    kept = (pipe.read_bytes(), os.lstat(pipe)) if pipe.exists() else None  # a lock file the batch left
     pipe.unlink(missing_ok=True)
     os.mkfifo(pipe)
     try:
@@ -1203,7 +1203,8 @@ def test_a_lock_or_a_file_that_is_a_pipe_is_refused_not_waited_on(argv, lock, sh
         pipe.unlink()
         if kept is not None:
             pipe.write_bytes(kept[0])
-            pipe.chmod(stat.S_IMODE(kept[1]))
+            pipe.chmod(stat.S_IMODE(kept[1].st_mode))
+            os.utime(pipe, ns=(kept[1].st_atime_ns, kept[1].st_mtime_ns))
     assert not problems, "; ".join(problems) + f"\n  stderr: {err.strip()[-800:]}"
 
 
