@@ -47,13 +47,9 @@ from ..files import replace_folder, write_atomic
 from ..fitting import FitInterrupted
 from ..runs import CONFIG_FILE, METRICS_FILE, MODEL_FILE, read_run, scene_from_source, start_run, write_json
 from ..search import CompressionSettings
-<<<<<<< HEAD
 from ..targets import EXIF_ORIENTATION, depth_geometry_note, other_aspect
-from .encoding import encode_budget, encode_config, encode_in_folder, encoding_record, read_encode, start_encode
-=======
 from .encoding import (encode_budget, encode_config, encode_fit, encode_in_folder, encoding_record, read_encode,
                        start_encode)
->>>>>>> main
 from .executors import (DONE, FAILED, INTERRUPTED, NOT_STARTED, SKIPPED, ExecutorFlags, ExecutorOptions, Task,
                         ready, run_tasks)
 from .outputs import open_lock
@@ -532,16 +528,10 @@ def _encode_item(item: BatchItem, control: RunControl) -> str:
                      and encode_fit(work) == fit)
     except CvqpgError:
         resumable = False
-<<<<<<< HEAD
     if not resumable:  # an empty folder, or an unfinished fit of other settings (`item_problem`)
         if work.is_dir():
             shutil.rmtree(work)
-        start_encode(work, config, item.source, budget, finetune_steps, item.run)
-=======
-    if not resumable:
-        shutil.rmtree(work, ignore_errors=True)
         start_encode(work, config, item.source, budget, finetune_steps, item.run, fit)
->>>>>>> main
     try:
         encoded = encode_in_folder(work, scene, config, budget, finetune_steps, item.run, control,
                                    **checkpoint_policy(item.checkpoint_every), fit=fit)
