@@ -51,7 +51,7 @@ FLAGS = {"width": "--size", "height": "--size", "size": "--size", "num_planes": 
              "depth", "image", "max_drop", "bits", "prune", "finetune", "levels", "aperture", "slm", "distance",
              "encoding", "distances", "out")},
          "finetune_steps": "--finetune", "prune_fraction": "--prune", "overwrite": "--overwrite", "bpp": "--bpp",
-         "max_bytes": "--max-bytes", "time": "--time", "recipe": "--recipe", "canvas": "--slm", "lut": "--lut"}
+         "max_bytes": "--max-bytes", "rate_loss": "--rate-loss", "time": "--time", "recipe": "--recipe", "canvas": "--slm", "lut": "--lut"}
 
 
 class DefaultsFormatter(argparse.HelpFormatter):
@@ -301,6 +301,7 @@ def _compression_parsers(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--prune", type=finite, default=0.0, metavar="FRACTION", help="with --finetune: first remove "
                    "this fraction (0 ≤ FRACTION < 1) of the primitives, those of least field energy, and let the "
                    "fine-tuning make up for them")
+    _rate_loss_argument(c, "with --bpp or --max-bytes: the fine-tuning also weighs the file's bits")
     e = sub.add_parser("encode", help=f"fit an image straight into a {SUFFIX} file of a given size",
                        description=f"Fit an image (or a built-in --scene) with as many primitives as the budget "
                        "holds at the default bit depths (bytes per primitive measured with the codec, plus headroom), "
@@ -312,6 +313,8 @@ def _compression_parsers(sub: argparse._SubParsersAction) -> None:
     _fit_options(e, steps=ENCODE_STEPS)
     _rate_arguments(e.add_mutually_exclusive_group())
     _encode_finetune_argument(e)
+    _rate_loss_argument(e, "fit with the file's bits in the loss, quantisation-aware from the first step, and tune "
+                        "with them")
     e.add_argument("--out", metavar="FILE", help=f"the {SUFFIX} file (required, but with --resume)")
     e.add_argument("--resume", metavar=f"FILE{PARTIAL_SUFFIX}", help="continue an interrupted encode from the "
                    "checkpoint in its folder, with its own settings and budget (other options are ignored)")
@@ -330,6 +333,11 @@ def _encode_finetune_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("--finetune", type=whole, default=ENCODE_FINETUNE_STEPS, metavar="STEPS",
                    help="quantisation-aware fine-tuning steps after the fit's --steps, at the chosen bit depths; "
                    "kept only if it pays")
+
+
+def _rate_loss_argument(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--rate-loss", action="store_true", help=f"{what}: distortion + λ·rate, λ steered to the budget "
+                   "(docs/compression.md, \"The rate in the fit\") [default: off]")
 
 
 def _rate_arguments(group: argparse._MutuallyExclusiveGroup) -> None:
@@ -439,6 +447,7 @@ def _batch_parser(sub: argparse._SubParsersAction) -> None:
     _count_options(p)
     _rate_arguments(p.add_mutually_exclusive_group())
     _encode_finetune_argument(p)
+    _rate_loss_argument(p, "with --bpp or --max-bytes: each item's fit has the file's bits in its loss")
     _executor_arguments(p, "items")
     p.add_argument("--overwrite", action="store_true", help="fit finished items again, each replaced once its new "
                    "output is finished (never anything in DIR that is not one of the batch's)")
@@ -623,7 +632,7 @@ def run_compress(args: argparse.Namespace) -> int:
     from .search import ASSUMED_FIT_PSNR_DB, CompressionSettings
     settings = CompressionSettings(bits=BitDepths.parse(args.bits) if args.bits else None, max_drop=args.max_drop,
                                    bpp=args.bpp, max_bytes=args.max_bytes, finetune_steps=args.finetune,
-                                   prune_fraction=args.prune)
+                                   prune_fraction=args.prune, rate_loss=args.rate_loss)
     r = compress_to(args.target, settings, args.out, args.overwrite, RunControl())
     if settings.budgeted:
         print(f"{r['file']}: {_rate_summary(r)}")
@@ -659,7 +668,8 @@ def run_encode(args: argparse.Namespace) -> int:
     if args.resume:
         plan = resumed_encode_plan(args.resume, args.overwrite)
     else:
-        plan = encode_plan(_fit_inputs_of(args), args.out, args.bpp, args.max_bytes, args.finetune, args.overwrite)
+        plan = encode_plan(_fit_inputs_of(args), args.out, args.bpp, args.max_bytes, args.finetune, args.overwrite,
+                           args.rate_loss)
     code, record = encode_planned(plan, args.overwrite, progress=not args.quiet)
     if record is not None and not args.quiet:
         print(f"{plan.out}: {_rate_summary(record)}")
@@ -700,7 +710,8 @@ def run_bench(args: argparse.Namespace) -> int:
 def run_batch(args: argparse.Namespace) -> int:
     from .app.batch import BUG, FILESYSTEM, INPUT, MEMORY, SUMMARY_MD, BatchSettings, fit_batch
     settings = BatchSettings(args.recipe, _fit_settings(args), RunOptions(args.device, args.backend).validate(),
-                             args.bpp, args.max_bytes, args.finetune, args.resize_depth, args.overwrite)
+                             args.bpp, args.max_bytes, args.finetune, args.resize_depth, args.overwrite,
+                             args.rate_loss)
     outcome, folder, stopped_by = fit_batch(args.inputs, args.out, settings, _executor_flags(args),
                                             progress=not args.quiet)
     print(f"cvqpg batch: {outcome.describe()}; summary in {folder / SUMMARY_MD}")

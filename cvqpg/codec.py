@@ -890,12 +890,19 @@ def _file(primitives: Primitives, config: FitConfig, bits: BitDepths, fingerprin
         descriptor, data = encode_stream(values, encoded.widths.get(name), TURN in tools and name in PERIODIC)
         descriptors.append({"name": name, **descriptor})
         payload.append(data)
-    shown = {} if config.display.ideal else {"display": config.display.to_dict()}
-    header = deflated({"optics": optics(config), **shown, "num_primitives": primitives.count, "bits": asdict(bits),
-                       "ranges": encoded.ranges, "tools": sorted(tools), "streams": descriptors})
+    header = deflated(file_header(config, primitives.count, bits, encoded.ranges, tools, descriptors))
     body = PREFIX.pack(MAGIC, FORMAT_VERSION, len(header)) + FINGERPRINT.pack(fingerprint) + header \
         + b"".join(payload)
     return body + CHECKSUM.pack(zlib.crc32(body))
+
+
+def file_header(config: FitConfig, count: int, bits: BitDepths, ranges: dict[str, list[float]], tools: frozenset[str],
+                streams: list[dict[str, Any]]) -> dict[str, Any]:
+    """The header (JSON-able, docs/format.md) of a file of `count` primitives of `config` at `bits` with `ranges`,
+    using `tools`, whose streams `streams` describe."""
+    shown = {} if config.display.ideal else {"display": config.display.to_dict()}
+    return {"optics": optics(config), **shown, "num_primitives": count, "bits": asdict(bits), "ranges": ranges,
+            "tools": sorted(tools), "streams": streams}
 
 
 def deflated(header: Any, version: int = FORMAT_VERSION) -> bytes:

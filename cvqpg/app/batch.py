@@ -39,7 +39,8 @@ from ..files import replace_folder, write_atomic
 from ..fitting import FitInterrupted
 from ..runs import CONFIG_FILE, METRICS_FILE, MODEL_FILE, read_run, scene_from_source, start_run, write_json
 from ..search import CompressionSettings
-from .encoding import encode_budget, encode_config, encode_in_folder, encoding_record, read_encode, start_encode
+from .encoding import (encode_budget, encode_config, encode_fit, encode_in_folder, encoding_record, read_encode,
+                       start_encode)
 from .executors import (DONE, FAILED, INTERRUPTED, NOT_STARTED, SKIPPED, ExecutorFlags, ExecutorOptions, Task,
                         run_tasks)
 from .provenance import device_name
@@ -100,7 +101,8 @@ class BatchInput:
 class BatchSettings:
     """The command's options for every item: the `recipe` and the `FitConfig.create` settings given
     (`settings`; `color`, `num_planes` and `steps` left out or None take the item's defaults), where the fits
-    run, the budget of a `.cvq` item (`bpp` or `max_bytes`; neither: a run folder) and its fine-tuning steps,
+    run, the budget of a `.cvq` item (`bpp` or `max_bytes`; neither: a run folder), its fine-tuning steps and
+    whether its fit has the rate in its loss (`rate_loss`, `search.CompressionSettings`),
     whether a depth map of another aspect ratio is stretched, and whether finished items are fitted again
     (`redo`), each replaced once its new output is finished."""
 
@@ -112,6 +114,7 @@ class BatchSettings:
     finetune_steps: int = ENCODE_FINETUNE_STEPS
     resize_depth: bool = False
     redo: bool = False
+    rate_loss: bool = False
 
 
 @dataclass(frozen=True)
@@ -286,7 +289,8 @@ def item_settings(settings: BatchSettings, options: dict[str, Any], has_depth: b
     own_budget = "bpp" in options or "max_bytes" in options
     bpp, max_bytes = ((options.get("bpp"), options.get("max_bytes")) if own_budget
                       else (settings.bpp, settings.max_bytes))
-    budget = CompressionSettings(bpp=bpp, max_bytes=max_bytes, finetune_steps=settings.finetune_steps)
+    budget = CompressionSettings(bpp=bpp, max_bytes=max_bytes, finetune_steps=settings.finetune_steps,
+                                 rate_loss=settings.rate_loss and (bpp is not None or max_bytes is not None))
     if flat.get("steps") is None:
         flat["steps"] = ENCODE_STEPS if budget.budgeted else FitConfig().optimisation.steps
     flat["color"] = flat.get("color") or "rgb"
@@ -375,19 +379,20 @@ def _encode_item(item: BatchItem, control: RunControl) -> str:
     """Encode `item` into its `.cvq` file (`app.encoding`'s workflow), resuming the checkpoint in `item.work`."""
     budget = encode_budget(item.config, item.budget)  # checked when planned; the budget in bytes
     config = encode_config(item.config, budget)
-    finetune_steps = item.budget.finetune_steps
+    finetune_steps, fit = item.budget.finetune_steps, item.budget.rate_fit(budget)
     scene = scene_from_source(item.source, config)
     work = item.work
     try:
-        resumable = read_encode(work) == (config, item.source, budget, finetune_steps)
+        resumable = (read_encode(work) == (config, item.source, budget, finetune_steps)
+                     and encode_fit(work) == fit)
     except CvqpgError:
         resumable = False
     if not resumable:
         shutil.rmtree(work, ignore_errors=True)
-        start_encode(work, config, item.source, budget, finetune_steps, item.run)
+        start_encode(work, config, item.source, budget, finetune_steps, item.run, fit)
     try:
         encoded = encode_in_folder(work, scene, config, budget, finetune_steps, item.run, control,
-                                   **checkpoint_policy(item.checkpoint_every))
+                                   **checkpoint_policy(item.checkpoint_every), fit=fit)
     except FitInterrupted:
         return INTERRUPTED
     record = encoding_record(encoded, item.output, budget)

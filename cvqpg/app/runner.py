@@ -17,6 +17,7 @@ from ..defaults import CHECKPOINT_SECONDS
 from ..errors import CvqpgError, ModelFileError
 from ..fitting import (CheckpointPolicy, FitResult, FitState, fit_scene, initial_state, seconds_per_step,
                        state_from_payload, steps_within)
+from ..ratefit import RateObjective
 from ..runs import CHECKPOINT_FILE, CONFIG_FILE, RESTORE_RUN, fit_fingerprint, read_record, same_fit, write_run
 from ..storage import load_checkpoint, save_checkpoint
 from ..targets import Scene
@@ -91,13 +92,14 @@ def fit_in_folder(folder: Path, scene: Scene, config: FitConfig, run: RunOptions
                   control: RunControl = RunControl(), state: FitState | None = None,
                   checkpoint_every_steps: int | None = None,
                   checkpoint_every_seconds: float | None = CHECKPOINT_SECONDS, source: dict[str, Any] | None = None,
-                  checkpoint_at_end: bool = False) -> FitResult:
+                  checkpoint_at_end: bool = False, objective: RateObjective | None = None) -> FitResult:
     """`fit_scene` on `run` under `control` with the folder's checkpoint policy, after compiling the CPU kernels
     (a status line when `control.progress`); the state records the compile time and the peak memory of every
     segment, so a resumed fit reports the whole run's, and checkpoints record the run's fingerprint
     (`fit_fingerprint` of `config` and `source`, default: as the folder's `config.json` records it). Raises
     `FitInterrupted` after saving on a stop request. `checkpoint_at_end` saves the finished loop too, for work
-    that follows the fit in the same folder: resumed from it, the fit returns at once with the same result."""
+    that follows the fit in the same folder: resumed from it, the fit returns at once with the same result. An
+    `objective` puts the rate in the fit's loss (`fitting.fit_scene`)."""
     folder = Path(folder)
     fingerprint = fit_fingerprint(config, recorded_source(folder, source))
     device = torch.device(run.device)
@@ -113,7 +115,7 @@ def fit_in_folder(folder: Path, scene: Scene, config: FitConfig, run: RunOptions
         save_checkpoint(folder / CHECKPOINT_FILE, {**current.to_payload(), FINGERPRINT_KEY: fingerprint})
 
     policy = CheckpointPolicy(save=save, every_steps=checkpoint_every_steps, every_seconds=checkpoint_every_seconds)
-    result = fit_scene(scene, config, run, control, state=state, checkpoint=policy)
+    result = fit_scene(scene, config, run, control, state=state, checkpoint=policy, objective=objective)
     if checkpoint_at_end:
         save(state)
     state.note_peak_memory(peak_memory(device))

@@ -19,6 +19,10 @@ BUDGET_FRACTIONS = (0.7, 0.5, 0.36, 0.26, 0.19, 0.14)
 # does: all of `BUDGET_FRACTIONS`, since its files lose less per halving of the rate than pruning does and only
 # its lowest budgets reach fit − 3 dB (at 0.26, every grayscale cell was 1.7 to 2.9 dB below its fit).
 ENCODE_FRACTIONS = BUDGET_FRACTIONS
+# The budgets of the rate-in-the-fit comparison (`--preset rate-fit`): three of the rate grid's, from about 1 dB
+# below the fit to below fit − 3 dB, so that a cell takes about half an hour on 2 cores at its 600 steps.
+RATE_FIT_FRACTIONS = (0.5, 0.36, 0.26)
+RATE_FIT_STEPS = 600
 # The paper's training time for grayscale and RGB 10% (8.7 and 17.0 min, its runtime table) as steps of the new
 # recipe on our 2-core CPU with 2 threads and the machine to itself, measured once (docs/beyond.md).
 PAPER_TIME_STEPS = {"gray": 7745, "rgb": 4503}
@@ -105,6 +109,8 @@ class Preset:
     steps_by_color: tuple[tuple[str, int], ...] = ()  # where a colour has its own step count
     budget_fractions: tuple[float, ...] = ()  # R-D grids: also the codec at `--bpp` budgets (`RateDistortionOptions`)
     encode_fractions: tuple[float, ...] = ()  # the rate grid's cells encoded afresh at these (`run_encode_cell`)
+    encode_rate_losses: tuple[bool, ...] = (False,)  # each budget encoded without / with the rate in the fit
+    fits_first: bool = False  # an encode grid whose cells make their own rate grid record (`rd.json`) first
 
     def steps_for(self, color: str) -> int:
         return dict(self.steps_by_color).get(color, self.steps)
@@ -131,6 +137,12 @@ PRESETS = {
                      "budget's primitive count rate-controlled into it; run into the rate grid's folder after "
                      "`--preset rate`, whose tables then show both", COLORS, (0.1,), ("cvqpg",), rate_distortion=True,
                      budget_fractions=BUDGET_FRACTIONS, encode_fractions=ENCODE_FRACTIONS),
+    "rate-fit": Preset("`cvqpg encode --bpp` as today (a float fit) and with the rate in the fit (`--rate-loss`) at "
+                       "three budgets per cell, beside JPEG 2000 and JPEG XL on the field of the cell's own fit, made "
+                       f"first; {RATE_FIT_STEPS} steps, so that a grid of three scenes (`--scene-names`) takes an "
+                       "afternoon", COLORS, (0.1,), ("cvqpg",), steps=RATE_FIT_STEPS, rate_distortion=True,
+                       budget_fractions=RATE_FIT_FRACTIONS, encode_fractions=RATE_FIT_FRACTIONS,
+                       encode_rate_losses=(False, True), fits_first=True),
     "beyond": Preset("the beyond recipe at 2000 steps, {rgb, gray} 10% × {baseline, cvqpg}, beside the "
                      "paper grid's cells", COLORS, (0.1,), ("baseline", "cvqpg"), recipe=BEYOND_RECIPE),
     "beyond-time": Preset("CVQPG with the beyond recipe for the paper's own training time (8.7 min gray, "
