@@ -29,6 +29,7 @@ from .defaults import (CHECKPOINT_SECONDS, DEFAULT_APERTURE, DEFAULT_LEVELS, DEF
                        ENCODE_FINETUNE_STEPS, ENCODE_STEPS, ENCODINGS, EXECUTORS, PARTIAL_SUFFIX, RATE_FINETUNE_STEPS,
                        SCENE_NAMES, SUFFIX, VIEW_FILE)
 from .errors import CvqpgError, allocation_failure, filesystem_refusal
+from .phase import PHASES
 
 if TYPE_CHECKING:
     from .app.executors import ExecutorFlags
@@ -47,7 +48,7 @@ FLAGS = {"width": "--size", "height": "--size", "size": "--size", "num_planes": 
          "wavelengths_m": "--wavelengths", "num_gaussians": "--num-gaussians", "curvature_warmup": "--curvature-warmup",
          "plane_center": "--plane-center", "plane_span": "--plane-span", "resize_depth": "--resize-depth",
          **{name: f"--{name.replace('_', '-')}" for name in (
-             "color", "primitive", "ratio", "steps", "seed", "bound", "qpf", "curvature", "device", "backend",
+             "color", "primitive", "ratio", "steps", "seed", "bound", "qpf", "curvature", "phase", "device", "backend",
              "depth", "image", "max_drop", "bits", "prune", "finetune", "levels", "aperture", "slm", "distance",
              "encoding", "distances", "out")},
          "finetune_steps": "--finetune", "prune_fraction": "--prune", "overwrite": "--overwrite", "bpp": "--bpp",
@@ -202,6 +203,10 @@ def _fit_options(p: argparse.ArgumentParser, steps: int = DEFAULTS.optimisation.
                    help="CVQPG curvature in colour: one γ for all channels bounded by the shortest "
                    "wavelength (the paper), one γ_c per channel bounded by its own λ_c (15 parameters "
                    "per RGB primitive), or one shared raw value scaled by each channel's own bound")
+    p.add_argument("--phase", choices=PHASES, help="a primitive's phase as a sum of terms: constant (the flat "
+                   "primitive, as --primitive flat), quadratic (CVQPG's curvature), tilt (a carrier frequency per "
+                   "primitive), axes (two curvatures along the ellipse's axes), or their sums [default: "
+                   "--primitive's, quadratic for cvqpg]")
     p.add_argument("--pitch", type=finite, default=DEFAULTS.optics.pixel_pitch, metavar="M",
                    help="SLM pixel pitch in m")
     p.add_argument("--wavelengths", type=finite, nargs="+", metavar="M",
@@ -492,7 +497,7 @@ def _fit_settings(args: argparse.Namespace) -> dict:
     return dict(width=width, height=height, color=args.color, primitive=args.primitive, ratio=args.ratio,
                 num_gaussians=args.num_gaussians, steps=args.steps, curvature_warmup=args.curvature_warmup,
                 seed=args.seed, num_planes=args.planes, bound=args.bound, qpf=args.qpf, curvature=args.curvature,
-                pixel_pitch=args.pitch, plane_center=args.plane_center, plane_span=args.plane_span,
+                phase=args.phase, pixel_pitch=args.pitch, plane_center=args.plane_center, plane_span=args.plane_span,
                 wavelengths_m=tuple(args.wavelengths) if args.wavelengths else None)
 
 
@@ -576,7 +581,8 @@ def run_info(args: argparse.Namespace) -> int:
     width, height = info["hologram_px"]
     print(f"{info['file']}\n"
           f"  primitives       {info['num_primitives']} ({info['primitive']}, {info['channels']} channel(s))\n"
-          f"  parameters       {info['learnable_params']} learnable, {info['stored_values']} stored "
+          f"  parameters       {info['learnable_params']} learnable ({info['params_per_primitive']} per primitive"
+          f"{', phase ' + info['phase'] if info.get('phase') else ''}), {info['stored_values']} stored "
           f"({info['dtype']})\n"
           f"  file             {info['file_bytes'] / 2**10:.1f} KiB\n"
           f"  bits per pixel   {info['bits_per_pixel']:.3f} (of the {width}×{height} hologram, all channels)")

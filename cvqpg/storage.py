@@ -161,7 +161,8 @@ def model_info(path: str | Path) -> dict[str, Any]:
         dtype = metadata.get("dtype", "float32")
     file_bytes = path.stat().st_size
     return {"file": str(path), "num_primitives": primitives.count, "primitive": config.primitives.kind,
-            "phase": config.phase.name, "params_per_primitive": config.params_per_primitive,
+            "phase": config.phase.name if config.primitives.kind != "pixel" else None,
+            "params_per_primitive": config.params_per_primitive,
             "learnable_params": primitives.count * config.params_per_primitive,
             "stored_values": sum(t.numel() for t in primitives.tensors().values()), "dtype": dtype,
             "file_bytes": file_bytes, "hologram_px": [config.targets.width, config.targets.height],
