@@ -288,19 +288,40 @@ def fit_fingerprint(config: FitConfig, source: dict[str, Any]) -> dict[str, Any]
     return {"schema": FINGERPRINT_SCHEMA, "config": config.to_dict(), "source": source}
 
 
-# The `config_schema` before the display, and what it added: a fit through the complex display hashes as that
-# schema recorded it, so that the files written before it keep their fingerprints.
+# The settings that `config_schema` 2 (cvqpg 0.3.0) recorded, section by section. A fit that the settings added
+# since leave as they were (their defaults) hashes that record, as 0.3.0 did, so that the `.cvq` files written
+# before them keep binding to their runs.
 PRE_DISPLAY_SCHEMA = 2
+PRE_DISPLAY_LAYOUT: dict[str, Any] = {
+    "targets": ("width", "height", "color", "num_planes", "plane_center", "plane_span", "defocus_sigma_px",
+                "depth_exponent"),
+    "optics": ("pixel_pitch", "wavelengths_m", "guard_band_px", "pad_multiple_px"),
+    "primitives": ("kind", "ratio", "count", "bound", "global_bound", "eta", "qpf", "curvature"),
+    "optimisation": {"steps": None, "curvature_warmup": None, "seed": None, "betas": None, "adan_eps": None,
+                     "grad_clip_norm": None, "init": None,
+                     "lr": ("position", "position_final", "scale", "amplitude", "phase", "opacity", "rotation",
+                            "curvature")},
+    "loss": ("ssim_weight", "focus_weight", "product_weight", "target_noise"),
+    "recipe": None,
+}
+
+
+def _within(record: dict[str, Any], layout: dict[str, Any] | tuple[str, ...]) -> dict[str, Any]:
+    """The part of `record` that `layout` names (nested sections as dicts, plain fields as names or None)."""
+    if isinstance(layout, tuple):
+        return {name: record[name] for name in layout}
+    return {name: record[name] if inner is None else _within(record[name], inner) for name, inner in layout.items()}
 
 
 def canonical_config(config: FitConfig) -> dict[str, Any]:
-    """The record of `config` that fingerprints hash: `to_dict`'s, but for the complex display, which records
-    nothing (and `PRE_DISPLAY_SCHEMA`): every fit before displays had it."""
+    """The record of `config` that fingerprints hash: `to_dict`'s, or, where every setting added since
+    `PRE_DISPLAY_SCHEMA` keeps its default, the record that schema kept (`PRE_DISPLAY_LAYOUT`)."""
     record = config.to_dict()
-    if config.display.ideal:
-        del record["display"]
-        record["config_schema"] = PRE_DISPLAY_SCHEMA
-    return record
+    earlier = {"config_schema": PRE_DISPLAY_SCHEMA, **_within(record, PRE_DISPLAY_LAYOUT)}
+    try:
+        return earlier if FitConfig.from_dict(earlier) == config else record
+    except CvqpgError:  # a setting of the earlier layout that only a later one allows (a per-pixel init)
+        return record
 
 
 def fingerprint_digest(fingerprint: object) -> bytes | None:
