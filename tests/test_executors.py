@@ -5,10 +5,12 @@ import csv
 import functools
 import json
 import os
+import socket
 import subprocess
 import sys
 import threading
 import time
+import types
 from pathlib import Path
 
 import pytest
@@ -312,3 +314,19 @@ def test_the_bar_shows_a_fits_last_step_as_its_step_count(monkeypatch):
     for step in range(21):
         control.report(step, 0.0, 0.0)
     assert reported[-1] == 20
+
+
+def test_a_cluster_that_accepts_and_never_answers_is_one_line_within_the_bound(monkeypatch):
+    """Something listens at the address but Ray's connection never completes (Ray would retry for minutes): one
+    line once the bound has passed, and the command is free to exit (the connecting thread is a daemon)."""
+    from cvqpg.app import executors
+
+    monkeypatch.setattr(executors, "RAY_CONNECT_SECONDS", 0.2)
+    never = types.SimpleNamespace(init=lambda **settings: time.sleep(60))
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        address = f"127.0.0.1:{server.getsockname()[1]}"
+        started = time.monotonic()
+        with pytest.raises(ExecutorError, match=f"--ray-address {address}: Ray did not connect within 0.2 s"):
+            executors._connect(never, ExecutorOptions("ray", ray_address=address))
+    assert time.monotonic() - started < 10
+    assert all(thread.daemon for thread in threading.enumerate() if thread.name == "ray-connect")

@@ -11,7 +11,7 @@ import torch
 from cvqpg import FitConfig, load_model
 from cvqpg.app import runner
 from cvqpg.app.runner import timed_config
-from cvqpg.campaign.bench import PRESETS, make_plan
+from cvqpg.campaign.bench import METHODS, PRESETS, make_plan
 from cvqpg.campaign.results import CAMPAIGN, campaign_plan
 from cvqpg.cli import main
 from cvqpg.config import (BEYOND_RECIPE, BEYOND_SHORT_RECIPE, DEFAULT_RECIPE, LONG_RUN_BETAS, PAPER_BETAS,
@@ -66,10 +66,11 @@ def test_a_flat_record_s_unset_recipe_settings_resolve_by_its_own_steps(steps, r
 
 def test_every_grid_that_compares_with_the_paper_pins_its_recipe():
     for name, preset in PRESETS.items():
-        assert preset.recipe == (BEYOND_RECIPE if name.startswith("beyond") else "paper"), name
+        assert preset.recipe == (BEYOND_RECIPE if name.startswith("beyond") or name == "display" else "paper"), name
     for grid in CAMPAIGN:
         recipe = PRESETS[grid.preset].recipe
-        assert {cell.config.recipe for cell in campaign_plan(grid, Path("results")).cells} == {recipe}
+        for cell in campaign_plan(grid, Path("results")).cells:  # a per-pixel row fits with its own recipe
+            assert cell.config.recipe == (METHODS[cell.method].recipe or recipe), cell.name
     assert {c.config.recipe for c in make_plan("quick").cells} == {"paper"}
 
 
@@ -98,6 +99,18 @@ def test_a_time_budget_is_timed_and_recorded_with_the_compile_time_it_spent(monk
     assert record["compile_seconds"] == 7.5
     with pytest.raises(ConfigError, match="`time`"):
         timed_config(builtin_scene("demo", config), config, 0.0, progress=False)
+
+
+@pytest.mark.parametrize("warmup, noted", [(None, False), (1000, True)])
+def test_a_warm_up_given_with_a_time_budget_keeps_its_share_with_a_note(warmup, noted, monkeypatch, caplog):
+    monkeypatch.setattr(runner, "prepare_kernels", lambda config, run, show_status=True: 0.0)
+    monkeypatch.setattr(runner, "seconds_per_step", lambda scene, config, run: 0.1)
+    config = FitConfig.create(width=32, height=24, num_gaussians=30, color="gray", curvature_warmup=warmup)
+    with caplog.at_level("WARNING", logger="cvqpg"):
+        timed = timed_config(builtin_scene("demo", config), config, 0.1, progress=False)[0]
+    assert timed.optimisation.steps == 59 and timed.optimisation.curvature_warmup == (30 if noted else 12)
+    assert ("the curvature warm-up of 1000 of 2000 steps keeps its share of the 59 steps the time allows: 30"
+            in caplog.text) == noted
 
 
 @pytest.mark.parametrize("recipe", [BEYOND_RECIPE, PAPER_RECIPE])

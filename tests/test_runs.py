@@ -11,7 +11,7 @@ from cvqpg import FitConfig
 from cvqpg.cli import main
 from cvqpg.errors import InputError, ModelFileError
 from cvqpg.primitives import Primitives, activate, init_gaussians
-from cvqpg.runs import MODEL_FILE, load_run_model, read_run, run_fit, same_fit, start_run
+from cvqpg.runs import MODEL_FILE, fit_fingerprint, load_run_model, read_run, run_fit, same_fit, start_run
 from cvqpg.storage import model_run, save_model
 
 RUN = FitConfig.create(width=64, height=48, num_gaussians=30, steps=2, guard_band_px=32)
@@ -145,3 +145,17 @@ def test_a_run_s_own_model_must_hold_the_n_of_its_metrics(tmp_path):
         load_run_model(folder)
     (folder / "metrics.json").write_text(json.dumps({"num_gaussians": 30}))
     assert load_run_model(folder)[0].count == 30
+
+
+def test_fits_that_later_settings_leave_as_they_were_keep_the_fingerprints_0_3_0_gave_them():
+    """`tests/data/fit_digests_0.3.0.json`: configurations (and the records of every earlier schema) with the
+    `.cvq` fingerprint digests cvqpg 0.3.0 computed of them, so that its files keep binding to their runs."""
+    from cvqpg.runs import fingerprint_digest
+    cases = json.loads((Path(__file__).parent / "data" / "fit_digests_0.3.0.json").read_text())
+    for name, case in cases.items():
+        config = FitConfig.from_dict(case["config"])
+        assert fingerprint_digest(fit_fingerprint(config, case["source"])).hex() == case["digest"], name
+    from cvqpg.display import Display
+    dpac = FitConfig.from_dict(cases["default"]["config"]).replace(display=Display.create("dpac"))
+    assert fingerprint_digest(fit_fingerprint(dpac, {})) != fingerprint_digest(
+        fit_fingerprint(FitConfig.from_dict(cases["default"]["config"]), {}))
