@@ -776,7 +776,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     for note in cap_thread_variables():
         print(f"cvqpg: note: {note}", file=sys.stderr)
-    signals.forget()
     try:
         with signals.handled():
             code = COMMANDS[args.command](args)

@@ -31,26 +31,25 @@ def names(folder: Path) -> list[str]:
 
 @pytest.mark.parametrize("signum", ENDED)
 def test_a_swallowed_signal_is_recorded_and_raised_again_by_the_output_rule(signum):
-    signals.forget()
     with signals.handled():
         swallowed(signum)
         assert signals.received() == signum
         with pytest.raises(KeyboardInterrupt if signum == signal.SIGINT else signals.Terminated):
             signals.check_not_stopped()
-    signals.forget()
-    signals.check_not_stopped()  # a new command starts unstopped
+    signals.check_not_stopped()  # the record is the command's: outside one, nothing is held back
+    with signals.handled():
+        assert signals.received() is None  # and the next command starts unstopped
 
 
 def test_within_a_fit_the_first_ctrl_c_asks_and_the_second_raises():
-    signals.forget()
-    with signals.handled(), signals.StopRequest() as stop_requested:
-        signal.raise_signal(signal.SIGINT)
-        assert stop_requested() and signals.received() == signal.SIGINT
-        with pytest.raises(KeyboardInterrupt):
+    with signals.handled():
+        with signals.StopRequest() as stop_requested:
             signal.raise_signal(signal.SIGINT)
-    with signals.handled(), signals.StopRequest() as stop_requested:
-        assert stop_requested()  # a signal received before the fit began stops it at once
-    signals.forget()
+            assert stop_requested() and signals.received() == signal.SIGINT
+            with pytest.raises(KeyboardInterrupt):
+                signal.raise_signal(signal.SIGINT)
+        with signals.StopRequest() as stop_requested:
+            assert stop_requested()  # a signal received before the fit began stops it at once
 
 
 @pytest.mark.parametrize("signum", ENDED)

@@ -17,7 +17,8 @@ from contextlib import contextmanager
 from typing import Iterator
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-_received: list[int] = []  # the signals of `STOP_SIGNALS` received since the command began (`forget`)
+# The signals of `STOP_SIGNALS` received since the command began; None outside a command (`handled`).
+_received: list[int] | None = None
 
 
 class Terminated(BaseException):
@@ -30,13 +31,13 @@ class Terminated(BaseException):
 
 
 def received() -> int | None:
-    """The first stop signal received since `forget`, or None."""
+    """The first stop signal the command received (`handled`), or None."""
     return _received[0] if _received else None
 
 
-def forget() -> None:
-    """Start a command: no stop signal received yet."""
-    _received.clear()
+def _record(signum: int) -> None:
+    if _received is not None:
+        _received.append(signum)
 
 
 def stop_error(signum: int) -> BaseException:
@@ -53,20 +54,23 @@ def check_not_stopped() -> None:
 
 
 def _raise_where_the_command_is(signum: int, _frame: object) -> None:
-    _received.append(signum)
+    _record(signum)
     raise stop_error(signum)
 
 
 @contextmanager
 def handled() -> Iterator[None]:
-    """Within the block, Ctrl-C and SIGTERM are recorded and raise where the command is (`stop_error`), except
-    within a fit's steps (`StopRequest`)."""
+    """A command: within the block, Ctrl-C and SIGTERM are recorded (`received`) and raise where the command is
+    (`stop_error`), except within a fit's steps (`StopRequest`)."""
+    global _received
+    outer, _received = _received, []
     previous = {signum: signal.signal(signum, _raise_where_the_command_is) for signum in STOP_SIGNALS}
     try:
         yield
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
+        _received = outer
 
 
 class StopRequest:
@@ -81,12 +85,12 @@ class StopRequest:
         return bool(self.signals)
 
     def _receive(self, signum: int, _frame: object) -> None:
-        _received.append(signum)
+        _record(signum)
         self.signals.append(signum)
         signal.signal(signal.SIGINT, _raise_where_the_command_is)
 
     def __enter__(self) -> "StopRequest":
-        self.signals = list(_received)
+        self.signals = list(_received or ())
         self._previous = {s: signal.signal(s, self._receive) for s in STOP_SIGNALS}
         if self.signals:  # asked before the fit began: the next Ctrl-C is the second
             signal.signal(signal.SIGINT, _raise_where_the_command_is)
