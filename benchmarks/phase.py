@@ -43,8 +43,22 @@ VARIANTS = {
     "quadratic+tilt, no tilt warm-up": {"phase": "quadratic+tilt", "terms_warmup": 0},
     "axes, axes lr ×5": {"phase": "axes", "lr": rates(axes=5)},
     "axes, no warm-up": {"phase": "axes", "terms_warmup": 0},
-    "quadratic, equal parameters as quadratic+tilt": {"ratio": 0.1 * 15 / 13},
+    "quadratic, equal parameters as quadratic+tilt": {"params_of": "quadratic+tilt"},
+    "quadratic, equal parameters as axes+tilt": {"params_of": "axes+tilt"},
 }
+
+
+def variant_config(base: FitConfig, name: str) -> FitConfig:
+    """The fit of variant `name`; `params_of` a phase: CVQPG with that phase's parameter count, as the bench's
+    `cvqpg@PHASE` methods."""
+    changes = dict(VARIANTS[name])
+    other = changes.pop("params_of", None)
+    config = base.replace(**changes)
+    if other is not None:
+        matched = config.replace(phase=other)
+        config = config.replace(num_gaussians=round(
+            matched.primitive_count * matched.params_per_primitive / config.params_per_primitive))
+    return config
 
 
 def main() -> None:
@@ -68,7 +82,7 @@ def main() -> None:
             for name in dict.fromkeys(["quadratic", *args.variants]):
                 key = (folder.name, color, name)
                 if key not in done:
-                    config = base.replace(**VARIANTS[name]).validate()
+                    config = variant_config(base, name)
                     started = time.perf_counter()
                     result = fit_scene(scene, config, control=SILENT)
                     done[key] = {"variant": name, "scene": folder.name, "color": color, "size": list(args.size),

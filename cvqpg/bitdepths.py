@@ -72,3 +72,9 @@ class BitDepths:
                 raise ConfigError(f"`bits` {name}={values[name]} and {item}: give each attribute once")
             values[name] = int(value)
         return cls(**values).validate()
+
+
+# The depths every search tries (`cvqpg.search`): the defaults shifted together, from 3 bits coarser up to every
+# attribute's finest depth, so that a budget the whole model fits in at the finest default-shaped depths still has
+# rungs.
+LADDER = tuple(dict.fromkeys(BitDepths().shifted(delta) for delta in range(-3, MAX_BITS)))

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import logging
 import math
@@ -20,13 +21,14 @@ from .app import signals
 from .app.threads import bad_thread_variable, cap_thread_variables
 from .bitdepths import BitDepths
 from .campaign.presets import METHODS, PRESETS
-from .config import (BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PRIMITIVES, QPFS, RECIPES, FitConfig,
-                     RunOptions, default_curvature_warmup)
+from .config import (BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PIXEL_RECIPE, PRIMITIVES, QPFS, RECIPES,
+                     FitConfig, RunOptions, default_curvature_warmup)
 from .control import RunControl
 from .defaults import (CHECKPOINT_SECONDS, DEFAULT_APERTURE, DEFAULT_LEVELS, DEFAULT_SWEEP, DEPTH_FILE, DEPTH_MODEL,
                        ENCODE_FINETUNE_STEPS, ENCODE_STEPS, ENCODINGS, EXECUTORS, PARTIAL_SUFFIX, RATE_FINETUNE_STEPS,
                        SCENE_NAMES, SUFFIX, VIEW_FILE)
 from .errors import CvqpgError, allocation_failure, filesystem_refusal
+from .phase import PHASES
 
 if TYPE_CHECKING:
     from .app.executors import ExecutorFlags
@@ -45,11 +47,11 @@ FLAGS = {"width": "--size", "height": "--size", "size": "--size", "num_planes": 
          "wavelengths_m": "--wavelengths", "num_gaussians": "--num-gaussians", "curvature_warmup": "--curvature-warmup",
          "plane_center": "--plane-center", "plane_span": "--plane-span", "resize_depth": "--resize-depth",
          **{name: f"--{name.replace('_', '-')}" for name in (
-             "color", "primitive", "ratio", "steps", "seed", "bound", "qpf", "curvature", "device", "backend",
+             "color", "primitive", "ratio", "steps", "seed", "bound", "qpf", "curvature", "phase", "device", "backend",
              "depth", "image", "max_drop", "bits", "prune", "finetune", "levels", "aperture", "slm", "distance",
              "encoding", "distances", "out")},
          "finetune_steps": "--finetune", "prune_fraction": "--prune", "overwrite": "--overwrite", "bpp": "--bpp",
-         "max_bytes": "--max-bytes", "time": "--time", "recipe": "--recipe", "canvas": "--slm", "lut": "--lut"}
+         "max_bytes": "--max-bytes", "rate_loss": "--rate-loss", "time": "--time", "recipe": "--recipe", "canvas": "--slm", "lut": "--lut"}
 
 
 class DefaultsFormatter(argparse.HelpFormatter):
@@ -173,9 +175,11 @@ def _fit_options(p: argparse.ArgumentParser, steps: int = DEFAULTS.optimisation.
     p.add_argument("--color", choices=COLORS, help="colour mode: RGB at 639/532/473 nm or "
                    f"grayscale at 639 nm [default: {shown['color']}]")
     p.add_argument("--primitive", choices=PRIMITIVES, default=DEFAULTS.primitives.kind,
-                   help="flat-phase baseline or CVQPG with learnable curvature")
-    p.add_argument("--recipe", choices=tuple(RECIPES), default=DEFAULTS.recipe,
-                   help="how to fit: " + "; ".join(f"'{r.name}': {r.summary}" for r in RECIPES.values()))
+                   help="flat-phase baseline, CVQPG with learnable curvature, or the per-pixel hologram (the W×H "
+                   "hologram itself; a phase pattern with --display phase)")
+    p.add_argument("--recipe", choices=tuple(RECIPES),
+                   help="how to fit: " + "; ".join(f"'{r.name}': {r.summary}" for r in RECIPES.values())
+                   + f" [default: {DEFAULTS.recipe}; {PIXEL_RECIPE} with --primitive pixel]")
     p.add_argument("--steps", type=whole, help="optimisation steps (the loop runs indices 0..steps, as the "
                    f"reference) [default: {shown['steps']}]")
     p.add_argument("--curvature-warmup", type=whole, metavar="W", help="steps with curvature frozen at 0 (CVQPG "
@@ -198,6 +202,10 @@ def _fit_options(p: argparse.ArgumentParser, steps: int = DEFAULTS.optimisation.
                    help="CVQPG curvature in colour: one γ for all channels bounded by the shortest "
                    "wavelength (the paper), one γ_c per channel bounded by its own λ_c (15 parameters "
                    "per RGB primitive), or one shared raw value scaled by each channel's own bound")
+    p.add_argument("--phase", choices=PHASES, help="a primitive's phase as a sum of terms: constant (the flat "
+                   "primitive, as --primitive flat), quadratic (CVQPG's curvature), tilt (a carrier frequency per "
+                   "primitive), axes (two curvatures along the ellipse's axes), or their sums [default: "
+                   "--primitive's, quadratic for cvqpg]")
     p.add_argument("--pitch", type=finite, default=DEFAULTS.optics.pixel_pitch, metavar="M",
                    help="SLM pixel pitch in m")
     p.add_argument("--wavelengths", type=finite, nargs="+", metavar="M",
@@ -297,6 +305,7 @@ def _compression_parsers(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--prune", type=finite, default=0.0, metavar="FRACTION", help="with --finetune: first remove "
                    "this fraction (0 ≤ FRACTION < 1) of the primitives, those of least field energy, and let the "
                    "fine-tuning make up for them")
+    _rate_loss_argument(c, "with --bpp or --max-bytes: the fine-tuning also weighs the file's bits")
     e = sub.add_parser("encode", help=f"fit an image straight into a {SUFFIX} file of a given size",
                        description=f"Fit an image (or a built-in --scene) with as many primitives as the budget "
                        "holds at the default bit depths (bytes per primitive measured with the codec, plus headroom), "
@@ -308,6 +317,8 @@ def _compression_parsers(sub: argparse._SubParsersAction) -> None:
     _fit_options(e, steps=ENCODE_STEPS)
     _rate_arguments(e.add_mutually_exclusive_group())
     _encode_finetune_argument(e)
+    _rate_loss_argument(e, "fit with the file's bits in the loss, quantisation-aware from the first step, and tune "
+                        "with them")
     e.add_argument("--out", metavar="FILE", help=f"the {SUFFIX} file (required, but with --resume)")
     e.add_argument("--resume", metavar=f"FILE{PARTIAL_SUFFIX}", help="continue an interrupted encode from the "
                    "checkpoint in its folder, with its own settings and budget (other options are ignored)")
@@ -326,6 +337,11 @@ def _encode_finetune_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("--finetune", type=whole, default=ENCODE_FINETUNE_STEPS, metavar="STEPS",
                    help="quantisation-aware fine-tuning steps after the fit's --steps, at the chosen bit depths; "
                    "kept only if it pays")
+
+
+def _rate_loss_argument(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--rate-loss", action="store_true", help=f"{what}: distortion + λ·rate, λ steered to the budget "
+                   "(docs/compression.md, \"The rate in the fit\") [default: off]")
 
 
 def _rate_arguments(group: argparse._MutuallyExclusiveGroup) -> None:
@@ -435,12 +451,14 @@ def _batch_parser(sub: argparse._SubParsersAction) -> None:
     _count_options(p)
     _rate_arguments(p.add_mutually_exclusive_group())
     _encode_finetune_argument(p)
+    _rate_loss_argument(p, "with --bpp or --max-bytes: each item's fit has the file's bits in its loss")
     _executor_arguments(p, "items")
     p.add_argument("--overwrite", action="store_true", help="fit finished items again, each replaced once its new "
                    "output is finished (never anything in DIR that is not one of the batch's)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+@functools.cache  # built once per process: tests and notebooks call `main` many times, 12 ms a build
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(prog="cvqpg", description="Holograms as complex-valued "
                                      "quadratic-phase Gaussian primitives (CVQPG).")
@@ -478,7 +496,7 @@ def _fit_settings(args: argparse.Namespace) -> dict:
     return dict(width=width, height=height, color=args.color, primitive=args.primitive, ratio=args.ratio,
                 num_gaussians=args.num_gaussians, steps=args.steps, curvature_warmup=args.curvature_warmup,
                 seed=args.seed, num_planes=args.planes, bound=args.bound, qpf=args.qpf, curvature=args.curvature,
-                pixel_pitch=args.pitch, plane_center=args.plane_center, plane_span=args.plane_span,
+                phase=args.phase, pixel_pitch=args.pitch, plane_center=args.plane_center, plane_span=args.plane_span,
                 wavelengths_m=tuple(args.wavelengths) if args.wavelengths else None)
 
 
@@ -512,10 +530,10 @@ def _print_view(record: ViewRecord) -> None:
 
 
 def run_fit(args: argparse.Namespace) -> int:
-    from .app.fitplan import fit_planned, new_plan, resume_plan, run_finished
+    from .app.fitplan import finished_note, fit_planned, new_plan, resume_plan, run_finished
     from .app.runfolders import view_of_run
     if args.resume and run_finished(args.resume):
-        print(f"{args.resume}: this run is finished; nothing to resume")
+        print(finished_note(args.resume))
         return 0
     if args.resume:
         plan = resume_plan(args.resume, args.overwrite)
@@ -562,7 +580,8 @@ def run_info(args: argparse.Namespace) -> int:
     width, height = info["hologram_px"]
     print(f"{info['file']}\n"
           f"  primitives       {info['num_primitives']} ({info['primitive']}, {info['channels']} channel(s))\n"
-          f"  parameters       {info['learnable_params']} learnable, {info['stored_values']} stored "
+          f"  parameters       {info['learnable_params']} learnable ({info['params_per_primitive']} per primitive"
+          f"{', phase ' + info['phase'] if info.get('phase') else ''}), {info['stored_values']} stored "
           f"({info['dtype']})\n"
           f"  file             {info['file_bytes'] / 2**10:.1f} KiB\n"
           f"  bits per pixel   {info['bits_per_pixel']:.3f} (of the {width}×{height} hologram, all channels)")
@@ -618,7 +637,7 @@ def run_compress(args: argparse.Namespace) -> int:
     from .search import ASSUMED_FIT_PSNR_DB, CompressionSettings
     settings = CompressionSettings(bits=BitDepths.parse(args.bits) if args.bits else None, max_drop=args.max_drop,
                                    bpp=args.bpp, max_bytes=args.max_bytes, finetune_steps=args.finetune,
-                                   prune_fraction=args.prune)
+                                   prune_fraction=args.prune, rate_loss=args.rate_loss)
     r = compress_to(args.target, settings, args.out, args.overwrite, RunControl())
     if settings.budgeted:
         print(f"{r['file']}: {_rate_summary(r)}")
@@ -654,7 +673,8 @@ def run_encode(args: argparse.Namespace) -> int:
     if args.resume:
         plan = resumed_encode_plan(args.resume, args.overwrite)
     else:
-        plan = encode_plan(_fit_inputs_of(args), args.out, args.bpp, args.max_bytes, args.finetune, args.overwrite)
+        plan = encode_plan(_fit_inputs_of(args), args.out, args.bpp, args.max_bytes, args.finetune, args.overwrite,
+                           args.rate_loss)
     code, record = encode_planned(plan, args.overwrite, progress=not args.quiet)
     if record is not None and not args.quiet:
         print(f"{plan.out}: {_rate_summary(record)}")
@@ -695,7 +715,8 @@ def run_bench(args: argparse.Namespace) -> int:
 def run_batch(args: argparse.Namespace) -> int:
     from .app.batch import BUG, FILESYSTEM, INPUT, MEMORY, SUMMARY_MD, BatchSettings, fit_batch
     settings = BatchSettings(args.recipe, _fit_settings(args), RunOptions(args.device, args.backend).validate(),
-                             args.bpp, args.max_bytes, args.finetune, args.resize_depth, args.overwrite)
+                             args.bpp, args.max_bytes, args.finetune, args.resize_depth, args.overwrite,
+                             args.rate_loss)
     outcome, folder, stopped_by = fit_batch(args.inputs, args.out, settings, _executor_flags(args),
                                             progress=not args.quiet)
     print(f"cvqpg batch: {outcome.describe()}; summary in {folder / SUMMARY_MD}")
@@ -743,7 +764,7 @@ def _machine_or_bug(command: str, error: Exception) -> int:
 
 
 POSITIONALS = {"image": "IMAGE", "run_dir": "RUN_DIR", "run_dirs": "RUN_DIR", "target": "RUN_DIR|MODEL",
-               "file": "FILE"}
+               "file": "FILE", "inputs": "INPUTS"}
 
 
 def _empty_argument(args: argparse.Namespace) -> str | None:

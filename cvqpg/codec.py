@@ -60,6 +60,7 @@ PREFIX = struct.Struct("<8sHI")  # magic, format version, header length (bytes)
 FINGERPRINT = struct.Struct("<16s")  # format 5 on, after the prefix: the fit's (`runs.fingerprint_digest`)
 NO_FINGERPRINT = bytes(FINGERPRINT.size)  # a model whose fit is not known
 CHECKSUM = struct.Struct("<I")
+ZLIB_FDICT = 0x20  # the flag of a zlib stream's second byte that says it was deflated with a preset dictionary
 # Each depth of a file is a stream of its own in the header (`grouped`): the few values far from the median weight
 # share the depths ±MAX_OFFSET bits from it.
 MAX_OFFSET = 2
@@ -890,12 +891,19 @@ def _file(primitives: Primitives, config: FitConfig, bits: BitDepths, fingerprin
         descriptor, data = encode_stream(values, encoded.widths.get(name), TURN in tools and name in PERIODIC)
         descriptors.append({"name": name, **descriptor})
         payload.append(data)
-    shown = {} if config.display.ideal else {"display": config.display.to_dict()}
-    header = deflated({"optics": optics(config), **shown, "num_primitives": primitives.count, "bits": asdict(bits),
-                       "ranges": encoded.ranges, "tools": sorted(tools), "streams": descriptors})
+    header = deflated(file_header(config, primitives.count, bits, encoded.ranges, tools, descriptors))
     body = PREFIX.pack(MAGIC, FORMAT_VERSION, len(header)) + FINGERPRINT.pack(fingerprint) + header \
         + b"".join(payload)
     return body + CHECKSUM.pack(zlib.crc32(body))
+
+
+def file_header(config: FitConfig, count: int, bits: BitDepths, ranges: dict[str, list[float]], tools: frozenset[str],
+                streams: list[dict[str, Any]]) -> dict[str, Any]:
+    """The header (JSON-able, docs/format.md) of a file of `count` primitives of `config` at `bits` with `ranges`,
+    using `tools`, whose streams `streams` describe."""
+    shown = {} if config.display.ideal else {"display": config.display.to_dict()}
+    return {"optics": optics(config), **shown, "num_primitives": count, "bits": asdict(bits), "ranges": ranges,
+            "tools": sorted(tools), "streams": streams}
 
 
 def deflated(header: Any, version: int = FORMAT_VERSION) -> bytes:
@@ -907,12 +915,21 @@ def deflated(header: Any, version: int = FORMAT_VERSION) -> bytes:
 
 def inflated(data: bytes, version: int) -> bytes:
     """A file of `version`'s header bytes inflated (JSON text); `zlib.error` where they do not inflate, `ValueError`
-    where they inflate to more than `MAX_HEADER_BYTES`."""
-    inflater = zlib.decompressobj(**({"zdict": HEADER_DICTIONARY} if version >= TOOLS_VERSION else {}))
+    where they inflate to more than `MAX_HEADER_BYTES`, or from format 5 on, were deflated without
+    `HEADER_DICTIONARY`."""
+    dictionary = version >= TOOLS_VERSION
+    if dictionary and not with_dictionary(data):  # zlib would inflate it all the same
+        raise ValueError("its header is deflated without the format's preset dictionary")
+    inflater = zlib.decompressobj(**({"zdict": HEADER_DICTIONARY} if dictionary else {}))
     text = inflater.decompress(data, MAX_HEADER_BYTES)
     if inflater.unconsumed_tail:
         raise ValueError(f"its header inflates to more than {MAX_HEADER_BYTES} bytes")
     return text
+
+
+def with_dictionary(data: bytes) -> bool:
+    """Whether the zlib stream `data` says it was deflated with a preset dictionary (RFC 1950's FDICT flag)."""
+    return len(data) > 1 and bool(data[1] & ZLIB_FDICT)
 
 
 def header_start(version: int) -> int:
@@ -1085,18 +1102,26 @@ def decode(data: bytes, name: str = "file") -> Compressed:
     if len(data) < start + header_length + CHECKSUM.size:
         raise ModelFileError(f"{name}: truncated ({len(data)} bytes)")
     body, (stored,) = data[:-CHECKSUM.size], CHECKSUM.unpack(data[-CHECKSUM.size:])
+    header_bytes = body[start:start + header_length]
+    problem = "its header is not one cvqpg writes"
+    if version >= TOOLS_VERSION and not with_dictionary(header_bytes):
+        problem = "its header is deflated without the format's preset dictionary"
     try:
-        header = json.loads(inflated(body[start:start + header_length], version))
+        header = json.loads(inflated(header_bytes, version))
         payload_bytes = sum(s["bytes"] for s in header["streams"] if _integer(s["bytes"], 0, len(data)))
     except (zlib.error, ValueError, KeyError, TypeError, AttributeError, RecursionError):
         header, payload_bytes = None, 0
-    if header is not None and len(body) < start + header_length + payload_bytes:
+    announced = start + header_length + payload_bytes
+    if header is not None and len(body) < announced:
         raise ModelFileError(f"{name}: truncated ({len(data)} bytes, the header announces "
-                             f"{start + header_length + payload_bytes + CHECKSUM.size})")
+                             f"{announced + CHECKSUM.size})")
     if zlib.crc32(body) != stored:
         raise ModelFileError(f"{name}: corrupted (CRC32 checksum mismatch)")
     if header is None:
-        raise ModelFileError(f"{name}: its header is not one cvqpg writes; {REWRITE_MODEL}")
+        raise ModelFileError(f"{name}: {problem}; {REWRITE_MODEL}")
+    if len(body) > announced:
+        raise ModelFileError(f"{name}: {len(body) - announced} bytes after its end (the header announces "
+                             f"{announced + CHECKSUM.size}); {REWRITE_MODEL}")
     config, bits, tools = _checked_header(header, name, version)
     offset, located = start + header_length, {}
     for descriptor in header["streams"]:
@@ -1107,15 +1132,17 @@ def decode(data: bytes, name: str = "file") -> Compressed:
         descriptor, payload = located[stream]
         try:
             return decode_stream(descriptor, payload, widths, turned(stream, version, tools))
-        except (KeyError, TypeError, ValueError, IndexError, zlib.error) as error:
+        except (KeyError, TypeError, ValueError, IndexError, ArithmeticError, zlib.error) as error:
             raise ModelFileError(f"{name}: stream {stream!r} does not decode ({error}); {REWRITE_MODEL}") from None
 
     try:
-        primitives = read_primitives(symbols, header["num_primitives"], header["ranges"], config, bits, version,
-                                     tools)
+        # NumPy's overflow or invalid value from a file's numbers is the file's fault: one error, not a warning
+        with np.errstate(over="raise", invalid="raise", divide="raise"):
+            primitives = read_primitives(symbols, header["num_primitives"], header["ranges"], config, bits,
+                                         version, tools)
     except ModelFileError:
         raise
-    except (KeyError, TypeError, IndexError, ValueError, OverflowError) as error:
+    except (KeyError, TypeError, IndexError, ValueError, ArithmeticError) as error:
         raise ModelFileError(f"{name}: its ranges or symbols are malformed ({type(error).__name__}: {error}); "
                              f"{REWRITE_MODEL}") from None
     check_tensors(primitives, config, name)

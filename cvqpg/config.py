@@ -274,9 +274,9 @@ BEYOND_SHORT_RECIPE = register_recipe(Recipe(
 # The per-pixel hologram's (`primitive` pixel): its optimiser, learning rate and start screened (docs/beyond.md).
 PIXEL_LEARNING_RATE = 0.01
 PIXEL_RECIPE = register_recipe(Recipe(
-    "pixel", "for the per-pixel hologram: Adam at 0.01, a small random phase to start, the paper's loss "
-    "(docs/beyond.md)", LearningRates(amplitude=PIXEL_LEARNING_RATE, phase=PIXEL_LEARNING_RATE),
-    ADAM_BETAS, "uniform", 1.0, 1.0, "adam")).name
+    "pixel", "for the per-pixel hologram: Adam at 0.01 from a small random phase, the paper's loss "
+    "(docs/beyond.md)", LearningRates(amplitude=PIXEL_LEARNING_RATE, phase=PIXEL_LEARNING_RATE), ADAM_BETAS,
+    "uniform", 1.0, 1.0, "adam")).name
 DEFAULT_RECIPE = BEYOND_RECIPE  # measured better than the paper's on every scene (docs/beyond.md)
 CUSTOM_RECIPE = "custom"  # what `FitConfig.recipe` says where a setting differs from its recipe's
 
@@ -348,12 +348,14 @@ class FitConfig:
         `custom` where a given setting differs from it."""
         if recipe is None:
             recipe = PIXEL_RECIPE if settings.get("primitive") == "pixel" else DEFAULT_RECIPE
-        config = cls().with_recipe(recipe)
+        if recipe not in RECIPES:
+            raise choices_error("recipe", recipe, tuple(RECIPES))
         own = {k: v for k, v in settings.items() if not (k == "curvature_warmup" and v is None)}
         own.update(phase_settings(own.get("primitive"), own.get("phase")) if "phase" in own else {})
-        steps = own.get("steps", config.optimisation.steps)
+        steps = own.get("steps", OptimisationSettings.steps)
         warmup = default_curvature_warmup(steps) if _is_integer(steps) else 0  # `validate` names bad steps
-        made = config.replace(**{"curvature_warmup": warmup, **own})
+        # one change: a recipe's start may fit only the primitive given with it (the per-pixel hologram's)
+        made = cls().replace(**{**RECIPES[recipe].settings(), "recipe": recipe, "curvature_warmup": warmup, **own})
         return made if made.with_recipe(recipe) == made else made.replace(recipe=CUSTOM_RECIPE)
 
     def replace(self, **changes: Any) -> "FitConfig":
@@ -445,7 +447,7 @@ class FitConfig:
     def phase_only_pixels(self) -> bool:
         """Whether a per-pixel hologram of this configuration is a phase pattern (one phase per pixel and channel)
         rather than a complex hologram: where its display shows the bare phase."""
-        return False
+        return self.display.encoding == "phase"
 
     @property
     def plane_distances(self) -> tuple[float, ...]:

@@ -10,9 +10,13 @@ cache afterwards; nothing else is downloaded.
 
 from __future__ import annotations
 
+import socket
+import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
+from urllib.parse import urlsplit
 
 import numpy as np
 import torch
@@ -24,6 +28,7 @@ from .errors import InputError
 from .targets import load_picture
 
 DEPTH_LEVELS = 65535  # 16-bit map
+HUB_TIMEOUT_SECONDS = 5.0  # how long a download waits for the Hugging Face Hub to answer
 
 
 class DepthModelError(InputError):
@@ -54,14 +59,57 @@ def load_depth_model(name: str = DEPTH_MODEL) -> DepthModel:
     except ImportError:
         raise DepthModelError("depth estimation needs transformers: pip install 'cvqpg[depth]', or give "
                               "a `depth` map") from None
-    try:
-        processor = AutoImageProcessor.from_pretrained(name, use_fast=False)
-        network = AutoModelForDepthEstimation.from_pretrained(name)
-    except OSError:
-        raise DepthModelError(f"depth estimation: the weights of {name} are not in the Hugging Face cache "
+    missing = DepthModelError(f"depth estimation: the weights of {name} are not in the Hugging Face cache "
                               f"({hub_cache()}) and could not be downloaded; run once online with the depth "
-                              "extra (pip install 'cvqpg[depth]'), or give a `depth` map") from None
-    return DepthModel(network.eval(), processor, name)
+                              "extra (pip install 'cvqpg[depth]'), or give a `depth` map")
+    # The cache first, without a word on the network; a download only where the Hub answers, since offline the
+    # Hub's client retries for minutes, warning as it goes
+    for cached in (True, False):
+        if not cached and not hub_reachable():
+            raise missing
+        try:
+            with _hub_quiet():
+                processor = AutoImageProcessor.from_pretrained(name, use_fast=False, local_files_only=cached)
+                network = AutoModelForDepthEstimation.from_pretrained(name, local_files_only=cached)
+        except OSError:
+            continue
+        return DepthModel(network.eval(), processor, name)
+    raise missing
+
+
+def hub_reachable(timeout: float = HUB_TIMEOUT_SECONDS) -> bool:
+    """Whether the Hugging Face Hub (its endpoint, `HF_ENDPOINT`) answers within `timeout` seconds; never where
+    the Hub is switched off (`HF_HUB_OFFLINE`)."""
+    from huggingface_hub import constants
+
+    if constants.HF_HUB_OFFLINE:
+        return False
+    address = urlsplit(constants.ENDPOINT)
+    try:
+        socket.create_connection((address.hostname, address.port or (443 if address.scheme == "https" else 80)),
+                                 timeout=timeout).close()
+    except (OSError, ValueError, TypeError):
+        return False
+    return True
+
+
+@contextmanager
+def _hub_quiet() -> Iterator[None]:
+    """transformers' and the Hub client's warnings (each retry, each missing file) held back for the block: what
+    fails is said once, by the caller."""
+    from huggingface_hub.utils import logging as hub_logging
+    from transformers.utils import logging as transformers_logging
+
+    levels = transformers_logging.get_verbosity(), hub_logging.get_verbosity()
+    transformers_logging.set_verbosity_error()
+    hub_logging.set_verbosity_error()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            yield
+    finally:
+        transformers_logging.set_verbosity(levels[0])
+        hub_logging.set_verbosity(levels[1])
 
 
 def depth_from_disparity(disparity: torch.Tensor) -> torch.Tensor:

@@ -17,6 +17,7 @@ from .config import FitConfig
 from .control import SILENT, RunControl
 from .fitting import FitInterrupted, hologram, hologram_loss, psnr_from_mse
 from .primitives import Primitives
+from .ratefit import RateObjective
 from .targets import Scene
 
 # Adam's first steps move every value by about its learning rate whatever its gradient, and every value
@@ -55,7 +56,8 @@ def quantised(values: dict[str, Tensor], ranges: dict[str, list[float]], config:
 
 
 def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitDepths, steps: int,
-             seed: int | None = None, control: RunControl = SILENT) -> Primitives:
+             seed: int | None = None, control: RunControl = SILENT, objective: RateObjective | None = None
+             ) -> Primitives:
     """`steps` Adam steps on the coded attributes (position px, log scale, rotation, signed
     amplitude·opacity, phase, curvature as a share of γ_max) through their quantisers at `bits`.
 
@@ -66,7 +68,8 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
     the entries at their extremes are held fixed and the others kept within them: the file's ranges,
     and its bins, are then those the loop trained against. `control.on_step(step, loss, psnr)` is told each
     step's loss and the PSNR (dB, mean over planes) of the quantised render it trains on; a stop request
-    (`control`) raises `FitInterrupted` before the next step.
+    (`control`) raises `FitInterrupted` before the next step. An `objective` (`ratefit.RateObjective`, without
+    noise: the quantisers already round) adds its rate term, the file's bits at `bits` weighed by its λ.
     """
     coded = coding(primitives, config, bits)
     device = primitives.position_px.device  # where the primitives were fitted or loaded
@@ -89,6 +92,11 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
             raise FitInterrupted(config.optimisation.steps + 1, during="fine-tuning")
         loss, mse = hologram_loss(hologram(quantised(params, coded.ranges, config, bits), config), scene,
                                   config, generator)
+        if objective is not None:
+            _, term = objective.step(primitives_from(params, torch.exp(params["scale"]).float(), config), steps,
+                                     steps, generator)
+            if term is not None:
+                loss = loss + term
         if control.on_step is not None:  # reads the device back: only for a caller that shows progress
             control.report(step, float(loss.detach()), float(psnr_from_mse(mse.detach())))
         optimizer.zero_grad(set_to_none=True)

@@ -29,6 +29,9 @@ from .targets import Scene, load_scene
 if TYPE_CHECKING:
     from pytorch_optimizer import Adan
 
+    from .ratefit import RateObjective
+
+
 @dataclass
 class FitResult:
     """A fitted model with its settings, final metrics and per-step history."""
@@ -246,9 +249,13 @@ class StepOutcome:
     fresh_state: tuple[Tensor, ...] = ()  # parameters whose optimiser state this update created
 
 
-def update(state: FitState, scene: Scene, config: FitConfig, backend: str = "auto") -> StepOutcome:
+def update(state: FitState, scene: Scene, config: FitConfig, backend: str = "auto",
+           objective: RateObjective | None = None) -> StepOutcome:
     """One update of method.md §6: render, propagate, loss, sanitise and clip gradients, Adan, without
-    reading anything back to the host (on CUDA the step is queued, not waited for).
+    reading anything back to the host (on CUDA the step is queued, not waited for). With an `objective`
+    (`ratefit.RateObjective`), the primitives render as it gives them and its rate term adds to the loss (the
+    rate model runs on the host, so that such a step waits for the device); its λ enters the history
+    (`rate_lambda`).
 
     A step whose loss is not finite, or whose update would leave a parameter non-finite, is undone
     on the device (`apply_gradients`); `FitState.settle` counts it and rolls back what Adan keeps on
@@ -256,7 +263,17 @@ def update(state: FitState, scene: Scene, config: FitConfig, backend: str = "aut
     """
     gaussians, step = state.gaussians, state.step
     representation(config).before_update(gaussians, config, step)
-    loss, mse = hologram_loss(render_hologram(gaussians, config, backend), scene, config, state.generator, backend)
+    if objective is None:
+        loss, mse = hologram_loss(render_hologram(gaussians, config, backend), scene, config, state.generator,
+                                  backend)
+    else:
+        shown, term = objective.step(representation(config).activate(gaussians, config), step,
+                                     config.optimisation.steps, state.generator)
+        loss, mse = hologram_loss(hologram(shown, config, backend), scene, config, state.generator, backend)
+        if term is not None:
+            loss = loss + term
+        state.history.setdefault("rate_lambda", []).append(objective.weight)
+        state.history.setdefault("rate_bytes", []).append(objective.last_bytes)
     optimizer = state.optimizer
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
@@ -420,7 +437,7 @@ def fit(image: str | Path | Image.Image | Tensor, depth: str | Path | Image.Imag
 
 def fit_scene(scene: Scene, config: FitConfig | None = None, run: RunOptions = RunOptions(),
               control: RunControl = RunControl(), state: FitState | None = None,
-              checkpoint: CheckpointPolicy | None = None) -> FitResult:
+              checkpoint: CheckpointPolicy | None = None, objective: RateObjective | None = None) -> FitResult:
     """Fit N primitives to a scene's targets on `run` (device and kernels); returns the fitted model and its
     final metrics. `config` defaults to `FitConfig.create()` (the default recipe).
 
@@ -433,7 +450,8 @@ def fit_scene(scene: Scene, config: FitConfig | None = None, run: RunOptions = R
 
     The steps run without host synchronisations; the loop reads their losses back (`readback_due`:
     after every step on the CPU, every `READBACK_SECONDS` on CUDA, and before a checkpoint and at
-    the end), and reports each step to `control` as it reads it back.
+    the end), and reports each step to `control` as it reads it back. An `objective` (`ratefit.RateObjective`)
+    puts the file's quantisers and rate in the loss (`update`); a resumed fit takes up its λ where it was.
     """
     config = (FitConfig.create() if config is None else config).validate()
     run.validate()
@@ -445,6 +463,8 @@ def fit_scene(scene: Scene, config: FitConfig | None = None, run: RunOptions = R
     device = torch.device(run.device)
     scene = scene.to(device)
     state = state or initial_state(config, scene, run)
+    if objective is not None and state.history.get("rate_lambda"):
+        objective.resume(state.history["rate_lambda"][-1])
     last_save, clock, cpu_clock = time.perf_counter(), time.perf_counter(), time.process_time()
     bar = tqdm(range(state.step, steps + 1), initial=state.step, total=steps + 1, disable=not control.progress,
                desc=f"fit {config.primitives.kind}", unit="step", dynamic_ncols=True)
@@ -470,7 +490,7 @@ def fit_scene(scene: Scene, config: FitConfig | None = None, run: RunOptions = R
             if checkpoint is not None:
                 checkpoint.save(state)
             raise FitInterrupted(step)
-        pending.append(update(state, scene, config, run.backend))
+        pending.append(update(state, scene, config, run.backend, objective))
         state.step = step + 1
         now = time.perf_counter()
         saving = checkpoint is not None and state.step <= steps and checkpoint.due(state.step, now - last_save)

@@ -21,12 +21,12 @@ quadratic-plus-linear path (`phase_form`). A new term of at most second order is
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
-
-import torch
-from torch import Tensor
+from typing import TYPE_CHECKING, Callable
 
 from .errors import ConfigError, choices_error
+
+if TYPE_CHECKING:  # the configuration imports this module, and the command line's parser it, without PyTorch
+    from torch import Tensor
 
 COVARIANCE_REGULARISER_PX2 = 0.1  # Σ = R S² Rᵀ + 0.1·I (method.md §2), as in `primitives`
 NYQUIST_CYCLES_PER_PX = 0.5
@@ -73,19 +73,21 @@ class PhaseTerm:
 
 def axis_sigmas_px(scale_px: Tensor) -> Tensor:
     """σ along the ellipse's two axes (px) [N, 2]: √(s² + 0.1), Σ's eigenvalues' roots."""
-    return torch.sqrt(scale_px * scale_px + COVARIANCE_REGULARISER_PX2)
+    return (scale_px * scale_px + COVARIANCE_REGULARISER_PX2).sqrt()
 
 
 def _activate_axes(raw: Tensor, scale_px: Tensor, bounds: Bounds) -> Tensor:
     """γ_u, γ_v (1/m) = γ_max·tanh(raw), γ_max = f·λ_min / (3σ Δx²) per axis (f: `Bounds.frequency`): the chirp
     Δx²γ·u/λ reaches f at the ellipse's edge u = 3σ_u."""
     limit = bounds.frequency * bounds.shortest_wavelength_m / (FOOTPRINT_SIGMAS * bounds.pixel_pitch_m**2)
-    return limit / axis_sigmas_px(scale_px) * torch.tanh(raw)
+    return limit / axis_sigmas_px(scale_px) * raw.tanh()
 
 
 def _axes_form(curvature_per_m: Tensor, rotation_rad: Tensor, pixel_pitch_m: float) -> Tensor:
     """½Δx²·R diag(γ_u, γ_v) Rᵀ as (P_a, P_b, P_c); no linear part."""
-    cos, sin = torch.cos(rotation_rad), torch.sin(rotation_rad)
+    import torch
+
+    cos, sin = rotation_rad.cos(), rotation_rad.sin()
     half = 0.5 * pixel_pitch_m**2
     along, across = half * curvature_per_m[:, 0], half * curvature_per_m[:, 1]
     zero = torch.zeros_like(along)
@@ -97,11 +99,13 @@ def _activate_tilt(raw: Tensor, scale_px: Tensor, bounds: Bounds) -> Tensor:
     """t (rad) = t_max · r / √(1 + |r|²), t_max = f·λ_min/Δx (f: `Bounds.frequency`): its frequency tΔx/λ stays
     under f in every direction; the squash is smooth at 0, with slope 1 there as tanh's."""
     limit = bounds.frequency * bounds.shortest_wavelength_m / bounds.pixel_pitch_m
-    return limit * raw * torch.rsqrt(1 + (raw * raw).sum(dim=1, keepdim=True))
+    return limit * raw * (1 + (raw * raw).sum(dim=1, keepdim=True)).rsqrt()
 
 
 def _tilt_form(tilt_rad: Tensor, rotation_rad: Tensor, pixel_pitch_m: float) -> Tensor:
     """Δx·t as (L_x, L_y): the path (m) per px of offset; no quadratic part."""
+    import torch
+
     zero = torch.zeros_like(tilt_rad[:, :1])
     return torch.cat([zero, zero, zero, pixel_pitch_m * tilt_rad], dim=1)
 
@@ -172,7 +176,7 @@ def phase_form(terms: dict[str, Tensor], rotation_rad: Tensor, pixel_pitch_m: fl
     if not terms:
         return None
     forms = [TERMS[name].form(values, rotation_rad, pixel_pitch_m) for name, values in terms.items()]
-    return forms[0] if len(forms) == 1 else torch.stack(forms).sum(dim=0)
+    return sum(forms[1:], forms[0])
 
 
 def check_phase_settings(phase: Phase, curvature: str, bound: str) -> None:

@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 import math
 import zlib
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -31,8 +31,8 @@ from torch import Tensor
 from .bitdepths import BitDepths
 from .codec import (AXES, BIT_LENGTH, CATEGORICAL, CHANGED, CHANNELS, CHECKSUM, FINGERPRINT, GAUSSIAN, GROUPED,
                     LAPLACE, MAX_ANS_TOP, MAX_CATEGORICAL_TOP, PERIODIC, PREFIX, RAW, TOOLS, TURN, WIDTHS, Quantiser,
-                    attribute_shapes, centring_turn, chained_quantisers, coded_values, coding, deflated, file_order,
-                    folded, optics, primitives_from, quantise, _bit_lengths, _short, _varints)
+                    attribute_shapes, centring_turn, chained_quantisers, coded_values, coding, deflated, file_header,
+                    file_order, folded, primitives_from, quantise, _bit_lengths, _short, _varints)
 from .config import FitConfig
 from .primitives import Primitives
 
@@ -213,7 +213,7 @@ def _group_bytes(group: StreamRate, extra: dict) -> int:
 
 
 def _wrapped(codes: Tensor, levels: Tensor | float) -> Tensor:
-    """Periodic codes in units of bins taken into −½ ≤ code < levels − ½, the bins of the symbols 0..levels − 1."""
+    """Periodic codes in units of bins taken into −½ ≤ code < levels − ½, the bins of symbols 0..levels − 1."""
     return torch.remainder(codes + 0.5, levels) - 0.5
 
 
@@ -343,8 +343,7 @@ def _rate(encoded, config: FitConfig, bits: BitDepths, tools: frozenset[str],
         streams[name] = rate
         per_primitive = per_primitive + rate.bits.to(device).reshape(count, -1).sum(dim=1)
     descriptors = [{"name": name, **rate.descriptor} for name, rate in streams.items()]
-    header = len(deflated({"optics": optics(config), "num_primitives": count, "bits": asdict(bits),
-                           "ranges": encoded.ranges, "tools": sorted(tools), "streams": descriptors}))
+    header = len(deflated(file_header(config, count, bits, encoded.ranges, tools, descriptors)))
     size = PREFIX.size + FINGERPRINT.size + header + sum(rate.bytes for rate in streams.values()) + CHECKSUM.size
     if order is not None:  # back from the file's order to the primitives'
         per_primitive = torch.zeros_like(per_primitive).index_put((order,), per_primitive)

@@ -14,7 +14,7 @@ from .config import FitConfig, LearningRates
 from .errors import ConfigError
 from .initialisation import initial_gaussians
 from .ops.rasterize import rasterize
-from .pixels import PIXEL_UNITS, PixelFields, check_pixel_tensors, initial_pixels, pixel_class, wrapped
+from .pixels import PIXEL_UNITS, PixelFields, check_pixel_tensors, initial_pixels, pixel_class, pixel_shapes, wrapped
 from .primitives import Gaussians, Primitives, TensorFields, activate, check_tensors
 from .targets import Scene
 
@@ -29,7 +29,9 @@ class Representation(Protocol):
     the renderer turns into the W×H SLM hologram."""
 
     name: str
-    units: dict[str, str]  # the physical tensors by name, with their units (a model file's `units`)
+
+    def units(self, config: FitConfig) -> dict[str, str]:
+        """The physical tensors of a model of `config` by name, with their units (a model file's `units`)."""
 
     def initial(self, config: FitConfig, scene: Scene | None, device: torch.device | str) -> TensorFields:
         """The raw parameters a fit of `config` starts from (`optimisation.init`), on `device`."""
@@ -57,7 +59,9 @@ class GaussianRepresentation:
     """N complex-valued 2D Gaussians (method.md §2), flat or with CVQPG's quadratic phase."""
 
     name = "gaussians"
-    units = GAUSSIAN_UNITS
+
+    def units(self, config: FitConfig) -> dict[str, str]:
+        return GAUSSIAN_UNITS
 
     def initial(self, config: FitConfig, scene: Scene | None, device: torch.device | str) -> Gaussians:
         return initial_gaussians(config, scene, device)
@@ -92,7 +96,9 @@ class PixelRepresentation:
     """The W×H hologram itself, one complex value (or one phase) per SLM pixel and channel (`cvqpg.pixels`)."""
 
     name = "pixels"
-    units = PIXEL_UNITS
+
+    def units(self, config: FitConfig) -> dict[str, str]:
+        return {name: PIXEL_UNITS[name] for name in pixel_shapes(config)}
 
     def initial(self, config: FitConfig, scene: Scene | None, device: torch.device | str) -> PixelFields:
         return initial_pixels(config, scene, device)

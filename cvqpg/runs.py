@@ -198,9 +198,10 @@ def read_run_options(folder: str | Path) -> RunOptions:
 
 
 def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[str, Any],
-              run: dict[str, Any] | None = None) -> Path:
+              run: dict[str, Any] | None = None, extra: dict[str, Any] | None = None) -> Path:
     """Save config, metrics, model, per-plane targets and reconstructions, hologram, curve and history; `run`
-    is what `metrics.json` records about the code and machine (`cvqpg.app.provenance.run_record`).
+    is what `metrics.json` records about the code and machine (`cvqpg.app.provenance.run_record`), `extra` what
+    else it records (a bench cell's own numbers).
 
     The checkpoint goes only once `metrics.json`, the mark of a finished run, is written: a run
     killed while its files are written resumes from the checkpoint instead of starting over."""
@@ -219,7 +220,7 @@ def write_run(folder: str | Path, result: FitResult, scene: Scene, source: dict[
         {**complex_field_metrics(result.primitives, config, scene, result.run.backend),
          "updates": len(history), "initial_psnr": history[0] if history else None,
          "skipped_steps": result.skipped_steps, "sanitised_steps": result.sanitised_steps,
-         **({} if run is None else {"run": run})}))
+         **(extra or {}), **({} if run is None else {"run": run})}))
     (folder / CHECKPOINT_FILE).unlink(missing_ok=True)
     return folder
 
@@ -287,19 +288,40 @@ def fit_fingerprint(config: FitConfig, source: dict[str, Any]) -> dict[str, Any]
     return {"schema": FINGERPRINT_SCHEMA, "config": config.to_dict(), "source": source}
 
 
-# The `config_schema` before the display, and what it added: a fit through the complex display hashes as that
-# schema recorded it, so that the files written before it keep their fingerprints.
+# The settings that `config_schema` 2 (cvqpg 0.3.0) recorded, section by section. A fit that the settings added
+# since leave as they were (their defaults) hashes that record, as 0.3.0 did, so that the `.cvq` files written
+# before them keep binding to their runs.
 PRE_DISPLAY_SCHEMA = 2
+PRE_DISPLAY_LAYOUT: dict[str, Any] = {
+    "targets": ("width", "height", "color", "num_planes", "plane_center", "plane_span", "defocus_sigma_px",
+                "depth_exponent"),
+    "optics": ("pixel_pitch", "wavelengths_m", "guard_band_px", "pad_multiple_px"),
+    "primitives": ("kind", "ratio", "count", "bound", "global_bound", "eta", "qpf", "curvature"),
+    "optimisation": {"steps": None, "curvature_warmup": None, "seed": None, "betas": None, "adan_eps": None,
+                     "grad_clip_norm": None, "init": None,
+                     "lr": ("position", "position_final", "scale", "amplitude", "phase", "opacity", "rotation",
+                            "curvature")},
+    "loss": ("ssim_weight", "focus_weight", "product_weight", "target_noise"),
+    "recipe": None,
+}
+
+
+def _within(record: dict[str, Any], layout: dict[str, Any] | tuple[str, ...]) -> dict[str, Any]:
+    """The part of `record` that `layout` names (nested sections as dicts, plain fields as names or None)."""
+    if isinstance(layout, tuple):
+        return {name: record[name] for name in layout}
+    return {name: record[name] if inner is None else _within(record[name], inner) for name, inner in layout.items()}
 
 
 def canonical_config(config: FitConfig) -> dict[str, Any]:
-    """The record of `config` that fingerprints hash: `to_dict`'s, but for the complex display, which records
-    nothing (and `PRE_DISPLAY_SCHEMA`): every fit before displays had it."""
+    """The record of `config` that fingerprints hash: `to_dict`'s, or, where every setting added since
+    `PRE_DISPLAY_SCHEMA` keeps its default, the record that schema kept (`PRE_DISPLAY_LAYOUT`)."""
     record = config.to_dict()
-    if config.display.ideal:
-        del record["display"]
-        record["config_schema"] = PRE_DISPLAY_SCHEMA
-    return record
+    earlier = {"config_schema": PRE_DISPLAY_SCHEMA, **_within(record, PRE_DISPLAY_LAYOUT)}
+    try:
+        return earlier if FitConfig.from_dict(earlier) == config else record
+    except CvqpgError:  # a setting of the earlier layout that only a later one allows (a per-pixel init)
+        return record
 
 
 def fingerprint_digest(fingerprint: object) -> bytes | None:

@@ -32,13 +32,13 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, ClassVar, Sequence
 
 import torch
 from tqdm.auto import tqdm
 
-from .bitdepths import MAX_BITS, BitDepths
+from .bitdepths import LADDER, BitDepths
 from .codec import bits_per_pixel, decode, encode, range_holders
 from .config import FitConfig
 from .control import SILENT, RunControl
@@ -47,11 +47,10 @@ from .finetune import finetune
 from .fitting import FitInterrupted, render
 from .metrics import mean_psnr
 from .primitives import Primitives, field_energy
+from .ratefit import FULL, PLAIN, RateFit, RateObjective
 from .targets import Scene
 
-# The depths every search tries: the defaults shifted together, from 3 bits coarser up to every attribute's
-# finest depth, so that a budget the whole model fits in at the finest default-shaped depths still has rungs.
-LADDER = tuple(dict.fromkeys(BitDepths().shifted(delta) for delta in range(-3, MAX_BITS)))
+# The depths every search tries are `LADDER`'s (`bitdepths`), coarsest first.
 COARSEST = LADDER[0]
 # The drop `cvqpg compress` aims at where it is given no goal.
 DEFAULT_MAX_DROP_DB = 0.1
@@ -374,12 +373,15 @@ class RateChoice:
 
 
 def rate_control(primitives: Primitives, config: FitConfig, reference: Reference, budget: Budget,
-                 scene: Scene | None = None, finetune_steps: int = 0, control: RunControl = SILENT) -> RateChoice:
+                 scene: Scene | None = None, finetune_steps: int = 0, control: RunControl = SILENT,
+                 rate_loss: RateFit | None = None, rate_weight: float | None = None) -> RateChoice:
     """The best-scoring `.cvq` file of `primitives` within `budget` (`search`), fine-tuned for `finetune_steps`
     on `scene`'s targets where a scene is given. `ConfigError` where the budget is below `smallest_file`. A
     progress bar (`control.progress`) shows the rate (bpp) and PSNR (dB) of each rung and, while fine-tuning,
     the PSNR of the quantised render. A stop request (`control`) ends it before its next rung or tuning step
-    with `FitInterrupted` (after the fit of `primitives`, whose checkpoint the caller keeps)."""
+    with `FitInterrupted` (after the fit of `primitives`, whose checkpoint the caller keeps). With `rate_loss`
+    (`ratefit.RateFit`), the tuning's loss also weighs the file's bits at the chosen depths by a λ that a
+    controller steers to the budget, from `rate_weight` (a rate-aware fit's last λ; None: the controller's start)."""
     budget.check(smallest_file(primitives, config), config)
     steps = finetune_steps if scene is not None else 0
     with tqdm(total=len(LADDER) + steps, disable=not control.progress, desc="rate", unit="step",
@@ -406,8 +408,11 @@ def rate_control(primitives: Primitives, config: FitConfig, reference: Reference
         order = strongest_first(primitives)
         start = largest_fitting(file_sizes(primitives, order, config, best.bits),
                                 math.floor(budget.max_bytes * (1 + TUNING_HEADROOM)), primitives.count)
+        objective = None if rate_loss is None else RateObjective(
+            replace(rate_loss, noise=False, bits=best.bits, target_bytes=budget.max_bytes), config, rate_weight)
         tuned = finetune(kept(primitives, order, start), config, scene, best.bits, steps,
-                         control=RunControl(progress=False, stop_requested=control.stop_requested, on_step=tuning))
+                         control=RunControl(progress=False, stop_requested=control.stop_requested, on_step=tuning),
+                         objective=objective)
         tuned_order = strongest_first(tuned, first=range_holders(tuned))
         count = budget.count(tuned, tuned_order, config, best.bits)
         candidate = trial(kept(tuned, tuned_order, count), config, best.bits, reference) if count else best
@@ -451,7 +456,8 @@ class CompressionSettings:
     pixel or `max_bytes` bytes; with none, a drop of `DEFAULT_MAX_DROP_DB`. `finetune_steps` of
     quantisation-aware fine-tuning (None: the workflow's default), after removing the `prune_fraction`
     (0 ≤ fraction < 1) of the primitives of least field energy, which needs fine-tuning and, within a
-    budget, is the rate control's to choose."""
+    budget, is the rate control's to choose. `rate_loss` (a budget's only) puts the file's bits in the loss
+    (`ratefit`): of `cvqpg encode`'s fit, quantisation-aware, and of every fine-tuning within the budget."""
 
     bits: BitDepths | None = None
     max_drop: float | None = None
@@ -459,6 +465,7 @@ class CompressionSettings:
     max_bytes: int | None = None
     finetune_steps: int | None = None
     prune_fraction: float = 0.0
+    rate_loss: bool = False
 
     def __post_init__(self) -> None:
         goals = [f"`{name}`" for name in ("bits", "max_drop", "bpp", "max_bytes") if getattr(self, name) is not None]
@@ -482,6 +489,8 @@ class CompressionSettings:
                               "primitives cost PSNR that only fine-tuning regains")
         if self.bpp is not None and not (_number(self.bpp) and self.bpp > 0):
             raise ConfigError(f"`bpp` {_shown(self.bpp)}: give a positive, finite number of bits per hologram pixel")
+        if self.rate_loss and not self.budgeted:
+            raise ConfigError("`rate_loss` steers the file's bits to a budget: give `bpp` or `max_bytes` with it")
         if self.max_bytes is not None and not (isinstance(self.max_bytes, int) and not isinstance(self.max_bytes, bool)
                                                and 0 < self.max_bytes <= MAX_BUDGET_BYTES):
             raise ConfigError(f"`max_bytes` {self.max_bytes}: give a positive whole number of bytes, at most "
@@ -497,6 +506,11 @@ class CompressionSettings:
         if not self.budgeted:
             raise ConfigError("give one budget: `bpp` or `max_bytes`")
         return Budget.of(config, self.bpp, self.max_bytes)
+
+    def rate_fit(self, budget: Budget) -> RateFit:
+        """What `cvqpg encode`'s fit pulls for these settings within `budget`: every lever of `ratefit` with
+        `rate_loss`, none without (today's float fit)."""
+        return RateFit(**FULL, target_bytes=budget.max_bytes) if self.rate_loss else PLAIN
 
     def goal(self, config: FitConfig) -> Goal:
         """What the search looks for with a model of `config`'s size."""

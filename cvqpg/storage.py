@@ -36,7 +36,7 @@ def model_metadata(primitives: Primitives | TensorFields, config: FitConfig, dty
             "width_px": str(config.targets.width), "height_px": str(config.targets.height),
             "pixel_pitch_m": repr(config.optics.pixel_pitch), "wavelengths_m": json.dumps(config.wavelengths),
             "plane_distances_m": json.dumps(config.plane_distances), "qpf": config.primitives.qpf,
-            "units": json.dumps({**representation(config).units, **{term.physical: f"{term.unit} ({term.summary})"
+            "units": json.dumps({**representation(config).units(config), **{term.physical: f"{term.unit} ({term.summary})"
                                                               for term in config.phase.extra_terms}})}
 
 
@@ -93,6 +93,8 @@ def read_compressed(path: str | Path) -> Compressed:
 
 def _model_file(path: str | Path) -> Path:
     path = Path(path)
+    if path.is_dir():
+        raise ModelFileError(f"{path} is a folder, not a model file; move it away, or give the model file")
     if not path.is_file():
         raise ModelFileError(f"{path}: no such model file")
     return path
@@ -119,7 +121,7 @@ def _read_safetensors(path: Path, device: str | torch.device = "cpu"
     except ConfigError as error:
         raise ModelFileError(f"{path}: its settings cannot work ({error}); {REWRITE_MODEL}") from None
     kind = representation(config)
-    missing = [name for name in kind.units if name not in tensors]
+    missing = [name for name in kind.units(config) if name not in tensors]
     if missing:
         raise ModelFileError(f"{path}: missing tensors {', '.join(missing)}")
     primitives = kind.from_tensors({name: t.float() for name, t in tensors.items()}, config)
@@ -161,7 +163,8 @@ def model_info(path: str | Path) -> dict[str, Any]:
         dtype = metadata.get("dtype", "float32")
     file_bytes = path.stat().st_size
     return {"file": str(path), "num_primitives": primitives.count, "primitive": config.primitives.kind,
-            "phase": config.phase.name, "params_per_primitive": config.params_per_primitive,
+            "phase": config.phase.name if config.primitives.kind != "pixel" else None,
+            "params_per_primitive": config.params_per_primitive,
             "learnable_params": primitives.count * config.params_per_primitive,
             "stored_values": sum(t.numel() for t in primitives.tensors().values()), "dtype": dtype,
             "file_bytes": file_bytes, "hologram_px": [config.targets.width, config.targets.height],

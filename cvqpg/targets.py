@@ -56,6 +56,7 @@ def prepare_image(picture: Image.Image, width: int, height: int, color: str) -> 
     float picture (one channel) is scaled from its range as `unit_values` says, with a note, and resized in float."""
     if picture.mode in ALPHA_MODES or "transparency" in picture.info:
         log.warning("the image has an alpha channel; it is ignored (only colour is fitted)")
+    note_upscaled(picture, "image", width, height)
     if picture.mode in HIGH_DEPTH_MODES:
         gray = unit_values(picture, "image", width, height)[None]
         return gray.expand(3 if color == "rgb" else 1, -1, -1).contiguous()
@@ -66,11 +67,22 @@ def prepare_image(picture: Image.Image, width: int, height: int, color: str) -> 
 def prepare_depth(picture: Image.Image, width: int, height: int) -> Tensor:
     """Depth map → [H, W] in [0, 1], 0 near, Lanczos-resized to W×H px.
 
-    8-bit maps follow method.md §5 (L, /255); 16-bit and float maps are scaled as `unit_values` says.
+    8-bit maps follow method.md §5 (L, /255); 16-bit and float maps are scaled as `unit_values` says. An alpha
+    channel is dropped, with a note.
     """
+    if picture.mode in ALPHA_MODES or "transparency" in picture.info:
+        log.warning("the depth map has an alpha channel; it is ignored (only its gray levels are depths)")
     if picture.mode not in HIGH_DEPTH_MODES:
         return to_tensor(picture.convert("L").resize((width, height), Image.LANCZOS))[0]
     return unit_values(picture, "depth map", width, height)
+
+
+def note_upscaled(picture: Image.Image, role: str, width: int, height: int) -> None:
+    """A note where `picture` is smaller than the fit's W×H px on either side: it is upscaled, and holds no detail
+    finer than its own pixels (a 1×1 image fits a constant)."""
+    if picture.size[0] < width or picture.size[1] < height:
+        log.warning(f"the {role} is {picture.size[0]}×{picture.size[1]} px, upscaled to {width}×{height} px: it "
+                    "holds no detail finer than its own pixels")
 
 
 def unit_values(picture: Image.Image, role: str, width: int, height: int) -> Tensor:
@@ -147,16 +159,30 @@ def load_picture(path: str | Path, role: str = "image", remedy: str = "re-export
 
 
 def check_depth_geometry(image: Image.Image, depth: Image.Image, resize_depth: bool) -> None:
-    """A depth map of another size is resized (with a note); of another aspect ratio, refused."""
+    """A depth map of another size is resized (with a note); of another aspect ratio, refused unless
+    `resize_depth` (then stretched, with a note)."""
     if depth.size == image.size:
         return
-    image_aspect, depth_aspect = image.size[0] / image.size[1], depth.size[0] / depth.size[1]
-    if abs(image_aspect - depth_aspect) > ASPECT_TOLERANCE * image_aspect and not resize_depth:
+    if other_aspect(image.size, depth.size) and not resize_depth:
         raise InputError(f"depth map is {depth.size[0]}×{depth.size[1]} but the image is "
                          f"{image.size[0]}×{image.size[1]}: another aspect ratio, so the depth would be "
                          "distorted; set `resize_depth` to stretch it anyway")
-    log.warning(f"depth map is {depth.size[0]}×{depth.size[1]}, the image {image.size[0]}×{image.size[1]}; "
-                "the depth map is resized to match")
+    log.warning(depth_geometry_note(image.size, depth.size))
+
+
+def other_aspect(image_size: tuple[int, int], depth_size: tuple[int, int]) -> bool:
+    """Whether a depth map of `depth_size` (W, H px) has another aspect ratio than an image of `image_size`."""
+    image_aspect, depth_aspect = image_size[0] / image_size[1], depth_size[0] / depth_size[1]
+    return abs(image_aspect - depth_aspect) > ASPECT_TOLERANCE * image_aspect
+
+
+def depth_geometry_note(image_size: tuple[int, int], depth_size: tuple[int, int]) -> str:
+    """What resizing a depth map of `depth_size` to an image of `image_size` (W, H px) does to it: resized, or,
+    of another aspect ratio, stretched."""
+    what = "stretched to the image (another aspect ratio)" if other_aspect(image_size, depth_size) else \
+        "resized to match"
+    return (f"depth map is {depth_size[0]}×{depth_size[1]}, the image {image_size[0]}×{image_size[1]}; the depth "
+            f"map is {what}")
 
 
 def plane_masks(depth: Tensor | None, num_planes: int, exponent: float = 1.0,

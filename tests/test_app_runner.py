@@ -95,7 +95,7 @@ def test_a_resumed_fit_adds_its_cpu_seconds_to_the_checkpoints_and_an_unmeasured
 
 def test_a_fit_measures_its_cpu_seconds_beside_its_wall_seconds(run):
     """Both over the same spans: a fit alone on its threads spends CPU time of the order of its wall time."""
-    result = fit_in_folder(run, scene_from_source(SOURCE, CONFIG), CONFIG.replace(steps=30), control=SILENT)
+    result = fit_in_folder(run, scene_from_source(SOURCE, CONFIG), CONFIG.replace(steps=10), control=SILENT)
     assert 0 < result.cpu_seconds < 1.5 * torch.get_num_threads() * result.seconds + 0.05
 
 

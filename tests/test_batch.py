@@ -300,3 +300,35 @@ def test_an_interrupted_cvq_item_resumes_from_its_checkpoint_to_the_same_file(tm
     assert len(started) == 1  # the rerun resumed the encode's folder instead of starting it again
     assert (out / "a.cvq").read_bytes() == (tmp_path / "whole" / "a.cvq").read_bytes()
     assert not (out / "a.cvq.partial").exists() and summary(out)["a"]["status"] == "done"
+
+
+def test_an_item_owns_only_the_output_its_record_names(tmp_path):
+    """The batch takes an output for an item's only where the item's record names it by its fingerprint (or, for a
+    record of cvqpg 0.3, which has none, where it says the item is done); a copy put in its place is not."""
+    item = plan_item(BatchInput("a", picture(tmp_path / "a.png")), tmp_path / "out", BatchSettings())
+    output = item.output
+    (item.folder / ".batch").mkdir(parents=True)
+    output.mkdir()
+    for name, text in (("config.json", "{}"), ("model.safetensors", "model"), ("metrics.json", "{}")):
+        (output / name).write_text(text)
+    assert not item.owned() and not item.finished()
+    batch.write_record(item.folder, {"name": "a", "status": "failed", "output": "a",
+                                     "fingerprint": batch.fingerprint(output)})
+    assert item.owned() and not item.finished()
+    batch.write_record(item.folder, {"name": "a", "status": "done", "output": "a"})  # the fingerprint is kept
+    assert item.finished() and batch.item_problem(item) is None
+    (output / "metrics.json").write_text('{"rewritten": "by eval"}')
+    assert item.finished()
+    (output / "model.safetensors").write_text("another fit's model")
+    assert not item.owned() and "not a run folder this batch wrote" in batch.item_problem(item)
+    batch.write_json(batch._record_path(item.folder, "a"), {"name": "a", "status": "done", "output": "a"})
+    assert item.finished()  # cvqpg 0.3's record
+
+
+@pytest.mark.parametrize("name, message", [
+    ("n" * 235, "235 bytes long"), ("é" * 118, "236 bytes long"), ("a\x00b", "U+0000"), ("a\nb", "U+000A"),
+    ("a\x7fb", "U+007F"), ("a\udcffb", "not valid UTF-8")])
+def test_a_name_the_batch_cannot_write_beside_is_refused_where_it_is_read(name, message):
+    with pytest.raises(InputError, match=message.replace("+", r"\+")):
+        batch.check_name(name, "here")
+    assert batch.check_name("n" * (batch.NAME_BYTES - batch.ADDED_NAME_BYTES), "here")

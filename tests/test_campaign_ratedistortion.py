@@ -137,6 +137,32 @@ def test_an_encode_cell_fits_afresh_at_the_rate_grids_budgets_and_its_tables_sho
     assert len(again["points"]) + len(again["skipped_bpp"]) == len(ENCODE_FRACTIONS)
 
 
+@pytest.mark.slow
+def test_the_rate_fit_grid_makes_its_cells_record_then_both_encoders_files_at_each_budget(module_scenes_dir, tmp_path,
+                                                                                       capsys):
+    """`--preset rate-fit` on a tiny grid: each cell fits and records its anchors first, then encodes each budget
+    with today's fit and with the rate in the fit, and its tables set the two side by side."""
+    from cvqpg.campaign.presets import RATE_FIT_FRACTIONS
+
+    out = tmp_path / "rate-fit"
+    assert main(["bench", "--preset", "rate-fit", "--scenes", str(module_scenes_dir), "--out", str(out), *TINY,
+                 "--size", "128", "96"]) == 0
+    cell = out / "cells" / CELL
+    record = json.loads((cell / "encode.json").read_text())
+    assert (cell / "rd.json").is_file() and record["rate_losses"] == [False, True]
+    assert record["fractions"] == list(RATE_FIT_FRACTIONS)
+    points = {(p["codec"], round(p["budget_bpp"], 6)) for p in record["points"]}
+    budgets = {round(p["budget_bpp"], 6) for p in record["points"]}
+    assert points == {(codec, b) for codec in ("cvqpg encode", "cvqpg encode --rate-loss") for b in budgets}
+    assert all(0 < budget_fill(p) <= 1 for p in record["points"])
+    summary = (out / "summary.md").read_text()
+    assert "The rate in the fit against today's encode" in summary and "| cvqpg encode --rate-loss |" in summary
+    capsys.readouterr()
+    assert main(["bench", "--preset", "rate-fit", "--scenes", str(module_scenes_dir), "--out", str(out), *TINY,
+                 "--size", "128", "96"]) == 0
+    assert "0 done, 1 skipped" in capsys.readouterr().out
+
+
 def test_an_encode_grid_needs_the_rate_grid_first(module_scenes_dir, tmp_path, capsys):
     assert main(["bench", "--preset", "encode", "--scenes", str(module_scenes_dir), "--out", str(tmp_path / "b"),
                  *TINY]) == 2

@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import warnings
 import zlib
 from pathlib import Path
 
@@ -139,3 +140,15 @@ def test_a_stream_descriptor_the_coder_cannot_take_is_refused_in_one_line(change
     change(header["streams"][1])
     with pytest.raises(ModelFileError, match="^model.cvq: [^\n]*$"):
         decode(packed(version, header, payload), "model.cvq")
+
+
+@pytest.mark.parametrize("span", [[-1e308, 1e308], [0.0, 1e308], [-1e300, -1e300]])
+def test_ranges_that_overflow_are_refused_in_one_line_without_numpy_s_warnings(span):
+    version, header, payload = parts(FILES[1])
+    header["ranges"]["scale"] = span
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # NumPy's RuntimeWarning would be an exception here
+        try:
+            decode(packed(version, header, payload), "model.cvq")
+        except ModelFileError as error:
+            assert "\n" not in str(error) and str(error).startswith("model.cvq: ")

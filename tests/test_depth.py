@@ -101,3 +101,10 @@ def test_offline_without_cached_weights_fails_in_one_line_and_writes_nothing(pho
     assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
     assert "cvqpg[depth]" in done.stderr and str(tmp_path / "hf" / "hub") in done.stderr
     assert not out.exists()
+
+
+def test_weights_neither_cached_nor_downloadable_are_one_error_at_once(monkeypatch):
+    """Offline (the Hub does not answer), a model not in the cache is one error, and nothing is downloaded."""
+    monkeypatch.setattr(cvqpg.depth, "hub_reachable", lambda: False)
+    with pytest.raises(DepthModelError, match="not in the Hugging Face cache"):
+        load_depth_model("cvqpg-tests/no-such-model")

@@ -314,20 +314,6 @@ def test_export_of_a_display_fit_writes_the_patterns_it_optimised_and_reproduces
     assert np.array_equal(np.asarray(Image.open(tmp_path / "export" / "phase_gray_639nm.png")), gray)
 
 
-def test_a_fit_through_the_complex_display_keeps_the_fingerprint_of_the_schema_before_displays():
-    import hashlib
-
-    from cvqpg.runs import FINGERPRINT_SCHEMA, fingerprint_digest, fit_fingerprint
-
-    source = {"scene": "demo"}
-    before = {**{k: v for k, v in small_config().to_dict().items() if k != "display"}, "config_schema": 2}
-    text = json.dumps({"schema": FINGERPRINT_SCHEMA, "config": before, "source": source}, sort_keys=True,
-                      separators=(",", ":"))
-    assert fingerprint_digest(fit_fingerprint(small_config(), source)) == hashlib.sha256(text.encode()).digest()[:16]
-    through_dpac = fit_fingerprint(small_config(display=Display.create("dpac")), source)
-    assert fingerprint_digest(through_dpac) not in (None, fingerprint_digest(fit_fingerprint(small_config(), source)))
-
-
 def test_a_cvq_file_keeps_the_display_and_refuses_one_that_cannot_work():
     import zlib
 

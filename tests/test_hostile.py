@@ -24,7 +24,7 @@ second writer of one output is refused, and refused resumes keep their interrupt
 
 from __future__ import annotations
 
-import hashlib
+import faulthandler
 import json
 import math
 import os
@@ -36,6 +36,7 @@ import stat
 import subprocess
 import sys
 import time
+import zlib
 from pathlib import Path
 from typing import NamedTuple
 
@@ -46,7 +47,8 @@ from PIL import Image
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from cvqpg import FitConfig, fit
+from cvqpg import FitConfig, codec, fit
+from cvqpg.app.batch import BatchInput, BatchSettings, plan_item
 from cvqpg.app.compilation import probe_planes
 from cvqpg.app.outputs import claimed
 from cvqpg.cli import main
@@ -55,6 +57,7 @@ from cvqpg.fitting import blank_state
 from cvqpg.ops.propagation import FUSED_PLANES_AT_ONCE, plane_groups
 from cvqpg.runs import read_run
 from cvqpg.storage import save_checkpoint
+from cvqpg.targets import check_depth_geometry, prepare_depth, prepare_image
 
 ROOT = Path(__file__).resolve().parents[1]
 RECORDED_CELL = ROOT / "results" / "paper" / "cells" / "bento_gray-10_baseline_s100"
@@ -111,6 +114,11 @@ PLACES = {
     "linked": "linked",                    # -> notarun; linked.partial an interrupted run that would finish there
     "encoded": "enc.cvq.partial",          # an interrupted encode's folder
     "foreigncvq": "foreign.cvq",           # a user's text file named .cvq; foreign.cvq.partial an interrupted encode
+    "tampered": "tampered.cvq.partial",    # an interrupted encode whose budget.json was changed to 1 byte
+    "modelfolder": "model_folder",         # run_a's files with a folder at model.safetensors
+    "modelless": "modelless",              # run_a's files but model.safetensors: finished, its model gone
+    "stranded": "stranded",                # stranded.partial: a finished run (run_b) never moved into place
+    "filedwork": "filed_work",             # filed_work.partial: a file
     "lost": "lost",                        # a finished run whose image is gone
     "linkdir": "linkdir",                  # -> notarun
     "linkrender": "linkrender",            # -> run_a/render
@@ -118,6 +126,25 @@ PLACES = {
     "linkcvq": "linkcvq.cvq",              # -> run_a/model.cvq
     "linkpage": "linkpage.html",           # -> page.html
     "dangling": "dangling.safetensors",    # -> nowhere
+    "trailing": "run_a/trailing.cvq",      # model.cvq with bytes after its end (the checksum made to hold)
+    "nodict": "run_a/nodict.cvq",          # model.cvq whose header is deflated without its preset dictionary
+    "lockdir": "locked.cvq",               # a folder at the lock's path beside it: .locked.cvq.cvqpg-lock/
+    "bdone": "b_done",                     # a finished batch folder of one item, `tiny` of {scenes}
+    # Copies of it, each with something that is not the batch's in its way:
+    "bforeign": "b_foreign",               # tiny/: a user's run (run_b), where the batch's finished one was
+    "bfailed": "b_failed",                 # tiny/: a user's run, where the item failed
+    "bcvq": "b_cvq",                       # tiny.cvq: a user's file (no record names it)
+    "blink": "b_link",                     # tiny.partial, tiny.cvq.partial: links to a user's folder (notarun)
+    "bwork": "b_work",                     # tiny.partial: a user's folder of other files
+    "bdotbatch": "b_dot_batch",            # .batch: a file
+    "bsummary": "b_summary",               # summary.csv: a folder
+    "block": "b_lock",                     # .batch/summary.lock: a folder
+    "blog": "b_log",                       # tiny.error.log: a folder
+    "brecord": "b_record",                 # .batch/tiny.json: a folder
+    "longname": "long_name.csv",           # a manifest naming its item in 240 bytes
+    "nulname": "nul_name.csv",             # a manifest whose name holds a NUL byte
+    "tabname": "tab_name.csv",             # a manifest whose name holds a tab
+    "twocolumns": "two_columns.csv",       # a manifest naming its image column twice
 }
 
 FIT = "--size 32 24 --steps 1 --quiet --out new_run"  # a fit that is wrongly accepted ends soon
@@ -389,6 +416,7 @@ USAGE = cases(
     ("fit-out-empty", f"fit {FIT} --out ''", "--out is empty"),
     ("fit-resume-empty", "fit --resume '' --quiet", "--resume is empty"),
     ("fit-image-empty", f"fit '' {FIT}", "IMAGE is empty"),
+    ("batch-inputs-empty", "batch '' --size 32 24 --steps 1 --quiet --out new_batch", "INPUTS is empty"),
     ("fit-depth-empty", f"fit {{image}} --depth '' {FIT}", "--depth is empty"),
     ("compress-out-empty", "compress {run} --bits 8 --out ''", "--out is empty"),
     ("render-target-empty", "render '' --out new_render", "RUN_DIR|MODEL is empty"),
@@ -403,6 +431,17 @@ USAGE = cases(
     ("batch-no-out", "batch {scenes} --size 32 24 --steps 1 --quiet", "--out"),
     ("batch-depth", f"{BATCH} --depth {{depth}} --out new_batch", "--depth"),
     ("batch-gpus-per-fit-local", f"{BATCH} --gpus-per-fit 0.5 --out new_batch", "--gpus-per-fit"),
+    # A check that can refuse runs before anything is written, and a cluster that does not answer is no wait.
+    ("batch-ray-address-nothing-listens", f"{BATCH} --executor ray --ray-address 127.0.0.1:1 --out new_batch",
+     "--ray-address 127.0.0.1:1"),
+    ("batch-ray-address-unknown-host", f"{BATCH} --executor ray --ray-address nowhere.invalid:6379 --out new_batch",
+     "not known"),
+    ("batch-ray-address-malformed", f"{BATCH} --executor ray --ray-address 127.0.0.1:port --out new_batch",
+     "HOST:PORT"),
+    ("batch-ray-gpus-per-fit-beyond-the-cluster", f"{BATCH} --executor ray --gpus-per-fit 1e9 --out new_batch",
+     "--gpus-per-fit", SLOW),
+    ("batch-ray-gpus-per-fit-without-a-gpu", f"{BATCH} --executor ray --gpus-per-fit 0.5 --out new_batch",
+     "--gpus-per-fit", SLOW),
 )
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -443,6 +482,9 @@ INPUTS = cases(
     ("render-run-holding-a-twin-run-model", "render {twin} --out new_render", "was fitted in another run"),
     ("export-model-of-a-twin-run", "export {twin}/foreign.safetensors --out new_export", "was fitted in another run"),
     ("eval-damaged-model", "eval {damaged}", "not a readable safetensors file"),
+    ("eval-model-a-folder", "eval {modelfolder}", "is a folder, not the run's model file"),
+    ("render-model-a-folder", "render {modelfolder}/model.safetensors --out new_render", "is a folder"),
+    ("eval-finished-run-without-its-model", "eval {modelless}", "finished run whose model.safetensors is gone"),
     ("eval-model-of-format-0", "eval {oldformat}", "format version"),
     ("eval-model-missing-a-tensor", "eval {lacking}", "missing tensors curvature_per_m"),
     ("eval-model-of-another-shape", "eval {misshapen}", "has shape"),
@@ -518,6 +560,19 @@ INPUTS = cases(
      "missing_scenes"),
     ("batch-inputs-empty-folder", "batch {folder} --size 32 24 --steps 1 --quiet --out new_batch", "folder"),
     ("batch-manifest-of-text", "batch {text} --size 32 24 --steps 1 --quiet --out new_batch", "unknown column"),
+    # Names are checked where the items are read: their length with what the batch adds, their characters.
+    ("batch-name-of-240-bytes", "batch {longname} --size 32 24 --steps 1 --quiet --planes 1 --out new_batch",
+     "240 bytes long"),
+    ("batch-name-with-a-nul", "batch {nulname} --size 32 24 --steps 1 --quiet --planes 1 --out new_batch",
+     "control character (U+0000)"),
+    ("batch-name-with-a-tab", "batch {tabname} --size 32 24 --steps 1 --quiet --planes 1 --out new_batch",
+     "control character (U+0009)"),
+    ("batch-manifest-column-twice", "batch {twocolumns} --size 32 24 --steps 1 --quiet --planes 1 --out new_batch",
+     "named twice"),
+    # A .cvq file is exactly what the format says: nothing after its end, a format-5 header with its dictionary.
+    ("eval-cvq-with-trailing-bytes", "eval {trailing}", "after its end"),
+    ("decompress-cvq-with-trailing-bytes", "decompress {trailing} --out new.safetensors", "after its end"),
+    ("info-cvq-header-without-its-dictionary", "info {nodict}", "preset dictionary"),
 )
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -608,6 +663,23 @@ OUTPUTS = cases(
     ("batch-out-a-file", f"{BATCH} --out {{text}}", "notes.txt"),
     ("batch-out-the-inputs", f"{BATCH} --out {{scenes}}", "scenes"),
     ("batch-out-unwritable", f"{BATCH} --out /proc/cvqpg-hostile-batch", "/proc/cvqpg-hostile-batch"),
+    # A batch owns only what its records say it made, writes through no link, and checks each path's kind first.
+    ("batch-a-users-run-at-a-finished-items-output", f"{BATCH} --out {{bforeign}}", "not a run folder this batch"),
+    ("batch-overwrite-a-users-run-at-an-items-output", f"{BATCH} --out {{bforeign}} --overwrite",
+     "not a run folder this batch"),
+    ("batch-a-users-run-where-an-item-failed", f"{BATCH} --out {{bfailed}}", "not a run folder this batch"),
+    ("batch-a-users-file-at-an-items-cvq", f"{BATCH} --bpp 8 --out {{bcvq}}", "not a .cvq file this batch"),
+    ("batch-overwrite-a-users-file-at-an-items-cvq", f"{BATCH} --bpp 8 --out {{bcvq}} --overwrite",
+     "not a .cvq file this batch"),
+    ("batch-an-items-work-a-link", f"{BATCH} --out {{blink}}", "tiny.partial is a symbolic link"),
+    ("batch-a-cvq-items-work-a-link", f"{BATCH} --bpp 8 --out {{blink}}", "tiny.cvq.partial is a symbolic link"),
+    ("batch-an-items-work-a-users-folder", f"{BATCH} --out {{bwork}}", "not an unfinished fit's"),
+    ("batch-records-a-file", f"{BATCH} --out {{bdotbatch}}", ".batch is a file"),
+    ("batch-summary-a-folder", f"{BATCH} --out {{bsummary}} --overwrite", "summary.csv is a folder"),
+    ("batch-summary-lock-a-folder", f"{BATCH} --out {{block}} --overwrite", "summary.lock is a folder"),
+    ("batch-error-log-a-folder", f"{BATCH} --out {{blog}} --overwrite", "tiny.error.log is a folder"),
+    ("batch-record-a-folder", f"{BATCH} --out {{brecord}} --overwrite", "tiny.json is a folder"),
+    ("compress-lock-a-folder", "compress {run} --bits 8 --out {lockdir}", "is a folder, not a regular file"),
     ("render-overwrite-another-run", "render {run} --out {run2} --overwrite", "run_b"),
     ("render-overwrite-an-export-folder", "render {run} --out {run}/export --overwrite", "export"),
     ("export-overwrite-a-users-folder", "export {run} --out {notarun} --overwrite", "notarun"),
@@ -649,7 +721,12 @@ OUTPUTS = cases(
     ("fit-resume-into-a-file", "fit --resume {filed}.partial --quiet --overwrite", "filed"),
     ("fit-resume-into-a-link", "fit --resume {linked}.partial --quiet --overwrite", "linked"),
     ("fit-resume-an-encode", "fit --resume {encoded} --quiet", "encode"),
+    ("fit-out-beside-a-finished-fit-never-moved", "fit --size 32 24 --steps 1 --quiet --out {stranded}",
+     "never moved into place; rename it to stranded"),
+    ("fit-out-beside-a-file-where-its-work-goes", "fit --size 32 24 --steps 1 --quiet --out {filedwork}",
+     "filed_work.partial is in the way"),
     ("encode-resume-into-a-users-file", "encode --resume {foreigncvq}.partial --quiet --overwrite", "foreign.cvq"),
+    ("encode-resume-a-changed-budget", "encode --resume {tampered} --quiet", "the budget of 1 bytes in"),
     # A failure writes nothing.
     ("info-half-of-a-run-whose-image-is-gone", "info {lost} --half", "lost_photo.png"),
     # Names and paths longer than the file system takes, with what cvqpg keeps beside an output.
@@ -688,20 +765,22 @@ def cli(argv: list[str], capsys) -> tuple[int, str, str]:
     return code, captured.out, captured.err
 
 
-def tree_state(root: Path) -> dict[str, tuple[int, str | None]]:
-    """Every path under `root` (not following links): its mode, and its bytes' SHA-256 or its link's target."""
+def tree_state(root: Path) -> dict[str, tuple[int, object]]:
+    """Every path under `root` (not following links): its mode, and for a file its size and modification time (any
+    write changes it), for a link its target. Strings, not `Path`s: it runs before and after every case."""
     state = {}
+    start = len(str(root)) + 1
     for folder, folders, files in os.walk(root):
         for name in folders + files:
-            path = Path(folder) / name
+            path = os.path.join(folder, name)
             info = os.lstat(path)
             if stat.S_ISREG(info.st_mode):
-                content = hashlib.sha256(path.read_bytes()).hexdigest()
+                content = (info.st_size, info.st_mtime_ns)
             elif stat.S_ISLNK(info.st_mode):
                 content = "-> " + os.readlink(path)
             else:
                 content = None
-            state[path.relative_to(root).as_posix()] = (info.st_mode, content)
+            state[path[start:]] = (info.st_mode, content)
     return state
 
 
@@ -769,12 +848,18 @@ def output_traps(t: Path) -> None:
         (t / f"{name}.partial").mkdir()
         shutil.copy(t / "unfinished" / "config.json", t / f"{name}.partial" / "config.json")
     (t / "linked").symlink_to("notarun")
-    for name in ("enc.cvq.partial", "foreign.cvq.partial"):
+    for name, max_bytes in (("enc.cvq.partial", 900), ("foreign.cvq.partial", 900), ("tampered.cvq.partial", 1)):
         (t / name).mkdir()
         shutil.copy(t / "unfinished" / "config.json", t / name / "config.json")
-        (t / name / "budget.json").write_text(json.dumps({"max_bytes": 900, "given": "--bpp 8",
+        (t / name / "budget.json").write_text(json.dumps({"max_bytes": max_bytes, "given": "--bpp 8",
                                                            "finetune_steps": 1}))
     (t / "foreign.cvq").write_text("a user's notes, named .cvq\n")
+    for name in ("model_folder", "modelless"):
+        shutil.copytree(t / "run_b", t / name)
+        (t / name / "model.safetensors").unlink()
+    (t / "model_folder" / "model.safetensors").mkdir()
+    shutil.copytree(t / "run_b", t / "stranded.partial")
+    (t / "filed_work.partial").write_text("a user's file\n")
     lost_image = shutil.copy(t / "photo.png", t / "lost_photo.png")
     assert main(["fit", str(lost_image), "--depth", str(t / "depth.png"), "--size", "32", "24", "--num-gaussians", "20",
                  "--steps", "1", "--quiet", "--out", str(t / "lost")]) == 0
@@ -783,6 +868,70 @@ def output_traps(t: Path) -> None:
                          ("linkcvq.cvq", "run_a/model.cvq"), ("linkpage.html", "page.html"),
                          ("dangling.safetensors", "nowhere/model.safetensors")):
         (t / link).symlink_to(target)
+
+
+def codec_traps(t: Path) -> None:
+    """`.cvq` files whose checksum holds but whose bytes are not what the format says: bytes after the end, a
+    format-5 header deflated without its preset dictionary."""
+    data = (t / "run_a" / "model.cvq").read_bytes()
+    (t / "run_a" / "trailing.cvq").write_bytes(with_checksum(data[:-4] + b"trailing bytes"))
+    _magic, version, length = codec.PREFIX.unpack_from(data)
+    start = codec.header_start(version)
+    header = zlib.decompressobj(zdict=codec.HEADER_DICTIONARY).decompress(data[start:start + length])
+    plain = zlib.compress(header, 9)
+    body = codec.PREFIX.pack(codec.MAGIC, version, len(plain)) + data[codec.PREFIX.size:start] + plain \
+        + data[start + length:-4]
+    (t / "run_a" / "nodict.cvq").write_bytes(with_checksum(body))
+
+
+def with_checksum(body: bytes) -> bytes:
+    return body + codec.CHECKSUM.pack(zlib.crc32(body))
+
+
+def batch_traps(t: Path) -> None:
+    """A finished batch folder of one item (`tiny`), copied with something in the way of the batch in each copy;
+    manifests whose names or columns cannot work; a folder where a lock file goes."""
+    batched = t / "b_done"
+    assert main(["batch", str(t / "scenes"), "--size", "32", "24", "--steps", "1", "--quiet", "--out",
+                 str(batched)]) == 0
+
+    def copy(name: str) -> Path:
+        return Path(shutil.copytree(batched, t / name))
+
+    for name in ("b_foreign", "b_failed"):
+        shutil.rmtree(copy(name) / "tiny")
+        shutil.copytree(t / "run_b", t / name / "tiny")
+    record = t / "b_failed" / ".batch" / "tiny.json"
+    record.write_text(json.dumps({"name": "tiny", "status": "failed", "output": "tiny", "error": "bad",
+                                  "kind": "input"}))
+    (copy("b_cvq") / "tiny.cvq").write_text("a user's notes, named .cvq\n")
+    link = copy("b_link")
+    shutil.rmtree(link / "tiny")
+    (link / ".batch" / "tiny.json").unlink()
+    for name in ("tiny.partial", "tiny.cvq.partial"):
+        (link / name).symlink_to("../notarun")
+    work = copy("b_work")
+    shutil.rmtree(work / "tiny")
+    (work / ".batch" / "tiny.json").unlink()
+    (work / "tiny.partial").mkdir()
+    (work / "tiny.partial" / "thesis.tex").write_text("years of work\n")
+    (t / "b_dot_batch").mkdir()
+    (t / "b_dot_batch" / ".batch").write_text("a user's file named .batch\n")
+    summary = copy("b_summary") / "summary.csv"
+    summary.unlink()
+    summary.mkdir()
+    lock = copy("b_lock") / ".batch" / "summary.lock"
+    lock.unlink(missing_ok=True)
+    lock.mkdir()
+    (copy("b_log") / "tiny.error.log").mkdir()
+    record = copy("b_record") / ".batch" / "tiny.json"
+    record.unlink()
+    record.mkdir()
+    for name, rows in (("long_name.csv", f"photo.png,{'n' * 240}"), ("nul_name.csv", "photo.png,a\x00b"),
+                       ("tab_name.csv", "photo.png,a\tb")):
+        (t / name).write_text(f"image,name\n{rows}\n")
+    (t / "two_columns.csv").write_text("image,image\nphoto.png,notes.png\n")
+    (t / ".locked.cvq.cvqpg-lock").mkdir()
 
 
 class Template(NamedTuple):
@@ -874,6 +1023,8 @@ def template(finished_run, tmp_path_factory) -> Template:
     (t / "readonly").mkdir()
     (t / "readonly").chmod(0o555)
     output_traps(t)
+    codec_traps(t)
+    batch_traps(t)
     return Template(t, fresh)
 
 
@@ -1024,6 +1175,37 @@ def test_a_pipe_or_a_device_is_never_an_output(argv, shared, template, tmp_path,
     problems = refusal_problems(argv, code, err, "is neither a file nor a folder",
                                 tree_changes(shared.state, tree_state(shared.root)))
     assert not problems and stat.S_ISFIFO(os.lstat(pipe).st_mode), problems
+
+
+@pytest.mark.parametrize("argv, lock", [
+    ("compress {run} --bits 8 --out new.cvq", ".new.cvq.cvqpg-lock"),
+    ("decompress {cvq} --out new.safetensors", ".new.safetensors.cvqpg-lock"),
+    (f"{BATCH} --out new_batch", ".new_batch.cvqpg-lock"),
+    (f"{BATCH} --out {{bdone}}", "b_done/.batch/summary.lock"),
+    (f"{BATCH} --out {{bdone}}", "b_done/tiny.error.log"),
+])
+def test_a_lock_or_a_file_that_is_a_pipe_is_refused_not_waited_on(argv, lock, shared, template, tmp_path,
+                                                                   monkeypatch, capsys):
+    """A named pipe where a command keeps its lock or writes a file: one line, no wait (a guard ends a hang)."""
+    hostile_environment(monkeypatch, shared.folder)
+    pipe = shared.folder / lock
+    kept = (pipe.read_bytes(), os.lstat(pipe)) if pipe.exists() else None  # a lock file the batch left
+    pipe.unlink(missing_ok=True)
+    os.mkfifo(pipe)
+    try:
+        state = tree_state(shared.root)
+        faulthandler.dump_traceback_later(120, exit=True, file=sys.__stderr__)
+        argv = expand(argv, shared.folder)
+        code, _out, err = cli(argv, capsys)
+        faulthandler.cancel_dump_traceback_later()
+        problems = refusal_problems(argv, code, err, pipe.name, tree_changes(state, tree_state(shared.root)))
+    finally:
+        pipe.unlink()
+        if kept is not None:
+            pipe.write_bytes(kept[0])
+            pipe.chmod(stat.S_IMODE(kept[1].st_mode))
+            os.utime(pipe, ns=(kept[1].st_atime_ns, kept[1].st_mtime_ns))
+    assert not problems, "; ".join(problems) + f"\n  stderr: {err.strip()[-800:]}"
 
 
 @pytest.mark.parametrize("variable, value", [("NUMBA_NUM_THREADS", "0"), ("NUMBA_NUM_THREADS", "abc"),
@@ -1206,3 +1388,22 @@ def test_a_render_at_more_distances_than_the_kernels_once_took_finishes(work, ca
     code, _out, err = cli(expand("render {run} --out many --distance", work) + distances, capsys)
     assert code == 0, err
     assert len(list((work / "many").glob("recon_*.png"))) == 101
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda: prepare_image(Image.new("RGB", (1, 1), (200, 10, 10)), 32, 24, "rgb"), "1×1 px, upscaled to 32×24"),
+    (lambda: prepare_depth(Image.new("RGBA", (32, 24), (90, 90, 90, 0)), 32, 24), "depth map has an alpha channel"),
+    (lambda: check_depth_geometry(Image.new("RGB", (32, 24)), Image.new("L", (24, 24)), resize_depth=True),
+     "stretched to the image (another aspect ratio)"),
+])
+def test_what_is_done_to_an_input_beyond_resizing_it_is_noted(make, message, caplog):
+    with caplog.at_level("WARNING", logger="cvqpg"):
+        make()
+    assert message in caplog.text
+
+
+def test_a_batch_notes_a_depth_map_it_stretches_in_the_items_summary_row(template):
+    item = BatchInput("tiny", template.folder / "photo.png", template.folder / "square_depth.png")
+    planned = plan_item(item, template.folder / "new_batch", BatchSettings(resize_depth=True))
+    assert "stretched to the image" in planned.note
+    assert plan_item(item, template.folder / "new_batch", BatchSettings()).note is None

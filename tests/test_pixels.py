@@ -13,7 +13,8 @@ from cvqpg.control import SILENT, RunControl
 from cvqpg.errors import ConfigError, CvqpgError
 from cvqpg.fitting import FitInterrupted, fit_scene, hologram, initial_state, render
 from cvqpg.initialisation import implied_slm_field
-from cvqpg.pixels import SMALL_PHASE_HALF_RANGE_RAD, PixelHologram
+from cvqpg.display import Display
+from cvqpg.pixels import SMALL_PHASE_HALF_RANGE_RAD, PixelHologram, PixelPhase
 from cvqpg.representation import PIXELS, representation
 from cvqpg.runs import CHECKPOINT_FILE, MODEL_FILE, evaluate_run, render_model, scene_from_source, start_run
 from cvqpg.storage import load_model, model_info, save_model
@@ -43,6 +44,7 @@ def test_an_initialisation_of_the_other_representation_is_refused_in_one_line(in
 
 def test_the_initialisations_start_where_they_say():
     config = pixel_config()
+    assert config.optimisation.init == "uniform"  # the pixel recipe's
     scene = scene_from_source(SOURCE, config)
     small = initial_state(config, scene).gaussians
     assert small.phase_rad.shape == (1, 24, 32) and small.phase_rad.abs().max() <= SMALL_PHASE_HALF_RANGE_RAD
@@ -117,3 +119,15 @@ def test_a_pixel_run_evaluates_and_renders_and_refuses_the_codec_and_another_siz
         encode_budget(config, CompressionSettings())
     with pytest.raises(CvqpgError, match="render it at its own 32×24 px"):
         render_model(folder, tmp_path / "bigger", size=(64, 48))
+
+
+def test_under_a_phase_only_display_the_pixels_are_a_phase_pattern_and_its_file_holds_the_phases(tmp_path):
+    config = pixel_config().replace(display=Display.create("phase"))
+    assert config.phase_only_pixels and config.params_per_primitive == 1
+    pattern = initial_state(config, scene_from_source(SOURCE, config)).gaussians
+    assert isinstance(pattern, PixelPhase) and set(representation(config).groups(config)) == {"phase_rad"}
+    assert torch.allclose(hologram(pattern, config).abs(), torch.ones(1, 24, 32))
+    save_model(tmp_path / "model.safetensors", representation(config).activate(pattern, config), config)
+    loaded, _ = load_model(tmp_path / "model.safetensors")
+    assert isinstance(loaded, PixelPhase) and set(loaded.tensors()) == {"phase_rad"}
+    assert model_info(tmp_path / "model.safetensors")["learnable_params"] == 32 * 24

@@ -102,7 +102,7 @@ def test_noise_moves_the_render_by_at_most_half_a_bin(models):
     rounded = coded(primitives, config, BitDepths()).primitives
     noisy = coded(primitives, config, BitDepths(), noise=1.0, generator=generator).primitives
     gap = (noisy.position_px - primitives.position_px).abs()
-    assert bool((gap <= 2.0 ** -(BitDepths().position - 2) + 1e-6).all())  # within half a bin of the finest-offset depth
+    assert bool((gap <= 2.0 ** -(BitDepths().position - 2) + 1e-6).all())  # half a bin at the finest depth
     assert not torch.equal(noisy.position_px, rounded.position_px)
 
 

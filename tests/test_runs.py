@@ -11,7 +11,7 @@ from cvqpg import FitConfig
 from cvqpg.cli import main
 from cvqpg.errors import InputError, ModelFileError
 from cvqpg.primitives import Primitives, activate, init_gaussians
-from cvqpg.runs import MODEL_FILE, load_run_model, read_run, run_fit, same_fit, start_run
+from cvqpg.runs import MODEL_FILE, fit_fingerprint, load_run_model, read_run, run_fit, same_fit, start_run
 from cvqpg.storage import model_run, save_model
 
 RUN = FitConfig.create(width=64, height=48, num_gaussians=30, steps=2, guard_band_px=32)
@@ -103,11 +103,10 @@ def test_the_history_keeps_every_kth_step_and_the_last_with_its_share_of_the_sec
 
 
 
-def test_a_model_records_its_fit_and_another_run_s_model_of_the_same_targets_is_refused(tmp_path):
+def test_a_model_records_its_fit_and_another_run_s_model_of_the_same_targets_is_refused(finished_run, tmp_path):
     """A model that `write_run` saves records the fit it came from: in a run folder of the same size and optics
     but other settings (another seed) it is refused; a model without the record (an earlier version's) is not."""
-    first = tmp_path / "first"
-    assert main(["fit", "--size", "32", "24", "--steps", "1", "--quiet", "--out", str(first)]) == 0
+    first = finished_run  # read only
     recorded = model_run(first / MODEL_FILE)
     assert same_fit(recorded, run_fit(first)) and recorded["source"] == {"scene": "demo"}
     twin = start_run(tmp_path / "twin", read_run(first)[0].replace(seed=7), {"scene": "demo"})
@@ -119,14 +118,14 @@ def test_a_model_records_its_fit_and_another_run_s_model_of_the_same_targets_is_
     assert load_run_model(twin)[0].count == primitives.count
 
 
-def test_a_compressed_model_carries_its_fit_s_fingerprint_and_another_run_refuses_it(tmp_path, capsys):
+def test_a_compressed_model_carries_its_fit_s_fingerprint_and_another_run_refuses_it(finished_run, tmp_path, capsys):
     """`cvqpg compress` writes the fit fingerprint of the model into the file; with a run folder of the same size and
     optics but another fit it is refused in one line (exit 2), with its own run it is read."""
     from cvqpg.codec import file_fingerprint
     from cvqpg.runs import fingerprint_digest
 
     first = tmp_path / "first"
-    assert main(["fit", "--size", "32", "24", "--steps", "1", "--quiet", "--out", str(first)]) == 0
+    shutil.copytree(finished_run, first)
     assert main(["compress", str(first), "--bits", "6"]) == 0
     packed = first / "model.cvq"
     assert file_fingerprint(packed.read_bytes()) == fingerprint_digest(run_fit(first)) is not None
@@ -146,3 +145,17 @@ def test_a_run_s_own_model_must_hold_the_n_of_its_metrics(tmp_path):
         load_run_model(folder)
     (folder / "metrics.json").write_text(json.dumps({"num_gaussians": 30}))
     assert load_run_model(folder)[0].count == 30
+
+
+def test_fits_that_later_settings_leave_as_they_were_keep_the_fingerprints_0_3_0_gave_them():
+    """`tests/data/fit_digests_0.3.0.json`: configurations (and the records of every earlier schema) with the
+    `.cvq` fingerprint digests cvqpg 0.3.0 computed of them, so that its files keep binding to their runs."""
+    from cvqpg.runs import fingerprint_digest
+    cases = json.loads((Path(__file__).parent / "data" / "fit_digests_0.3.0.json").read_text())
+    for name, case in cases.items():
+        config = FitConfig.from_dict(case["config"])
+        assert fingerprint_digest(fit_fingerprint(config, case["source"])).hex() == case["digest"], name
+    from cvqpg.display import Display
+    dpac = FitConfig.from_dict(cases["default"]["config"]).replace(display=Display.create("dpac"))
+    assert fingerprint_digest(fit_fingerprint(dpac, {})) != fingerprint_digest(
+        fit_fingerprint(FitConfig.from_dict(cases["default"]["config"]), {}))

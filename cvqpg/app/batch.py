@@ -8,8 +8,12 @@ item that failed on a bug leaves its traceback in `NAME.error.log`. `summary.csv
 item; `BATCH_RECORDS/` holds the items in order and one record per item, which the summaries are made of
 and which mark the folder as a batch folder.
 
-An item is finished once its output exists. Each item is one task (`run_item`) that may run again at any
-point, as a retried task does: it skips a finished item, resumes an unfinished one from its checkpoint and
+The batch owns only what its records say it made: an item's record names the output the batch wrote for it by
+its fingerprint (`fingerprint`), so that a folder or file that someone else put at `NAME` or `NAME.cvq` is never
+taken for the item's output, nor replaced; it never writes through a symbolic link, and everything at the paths it
+writes is checked for its kind before the first byte is written (`check_places`). An item is finished once its
+record says so and its output is the one the record names. Each item is one task (`run_item`) that may run again
+at any point, as a retried task does: it skips a finished item, resumes an unfinished one from its checkpoint and
 tries a failed one again, and whatever stops it leaves the output whole or absent.
 """
 
@@ -17,19 +21,23 @@ from __future__ import annotations
 
 import csv
 import fcntl
+import hashlib
 import io
 import json
 import math
 import os
 import shutil
+import stat
 import time
 import traceback
+import unicodedata
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import torch
+from PIL import Image
 
 from ..config import DEFAULT_RECIPE, FitConfig, RunOptions
 from ..control import RunControl
@@ -39,9 +47,12 @@ from ..files import replace_folder, write_atomic
 from ..fitting import FitInterrupted
 from ..runs import CONFIG_FILE, METRICS_FILE, MODEL_FILE, read_run, scene_from_source, start_run, write_json
 from ..search import CompressionSettings
-from .encoding import encode_budget, encode_config, encode_in_folder, encoding_record, read_encode, start_encode
+from ..targets import EXIF_ORIENTATION, depth_geometry_note, other_aspect
+from .encoding import (encode_budget, encode_config, encode_fit, encode_in_folder, encoding_record, read_encode,
+                       start_encode)
 from .executors import (DONE, FAILED, INTERRUPTED, NOT_STARTED, SKIPPED, ExecutorFlags, ExecutorOptions, Task,
-                        run_tasks)
+                        ready, run_tasks)
+from .outputs import open_lock
 from .provenance import device_name
 from .runner import checkpoint_policy, fit_in_folder, resumed_state, write_fitted_run
 
@@ -57,6 +68,10 @@ INPUT, FILESYSTEM, MEMORY, BUG = "input", "file system", "memory", "bug"
 SUMMARY_COLUMNS = ("name", "status", "output", "psnr_db", "bytes", "bpp", "steps", "seconds", "device", "note",
                    "error")
 NO_DEPTH_NOTE = "no depth map: fitted at one plane"
+NAME_BYTES = 255  # the longest file name of the usual file systems
+# The most bytes the batch adds to an item's name: its record's atomic write, `.batch/NAME.json.PID.partial` (a
+# PID of up to 7 digits); `NAME.cvq.PID.partial` and `.NAME.replaced-PID` are shorter.
+ADDED_NAME_BYTES = len(".json") + len(".1234567") + len(PARTIAL_SUFFIX)
 
 
 def _whole(text: str) -> int:
@@ -100,11 +115,12 @@ class BatchInput:
 class BatchSettings:
     """The command's options for every item: the `recipe` and the `FitConfig.create` settings given
     (`settings`; `color`, `num_planes` and `steps` left out or None take the item's defaults), where the fits
-    run, the budget of a `.cvq` item (`bpp` or `max_bytes`; neither: a run folder) and its fine-tuning steps,
+    run, the budget of a `.cvq` item (`bpp` or `max_bytes`; neither: a run folder), its fine-tuning steps and
+    whether its fit has the rate in its loss (`rate_loss`, `search.CompressionSettings`),
     whether a depth map of another aspect ratio is stretched, and whether finished items are fitted again
     (`redo`), each replaced once its new output is finished."""
 
-    recipe: str = DEFAULT_RECIPE
+    recipe: str | None = DEFAULT_RECIPE  # None: `FitConfig.create`'s, by the item's primitive
     settings: dict[str, Any] = field(default_factory=dict)
     run: RunOptions = RunOptions()
     bpp: float | None = None
@@ -112,6 +128,7 @@ class BatchSettings:
     finetune_steps: int = ENCODE_FINETUNE_STEPS
     resize_depth: bool = False
     redo: bool = False
+    rate_loss: bool = False
 
 
 @dataclass(frozen=True)
@@ -139,8 +156,23 @@ class BatchItem:
         """Where the unfinished item lies, with its checkpoint."""
         return self.output.with_name(self.output.name + PARTIAL_SUFFIX)
 
+    @property
+    def log(self) -> Path:
+        """Where a bug's traceback goes."""
+        return self.folder / f"{self.name}{ERROR_SUFFIX}"
+
+    def owned(self) -> bool:
+        """Whether what lies at the output is the one that the item's record names: its fingerprint, or for a
+        record of cvqpg 0.3 (which has none), a finished item's output."""
+        record = read_item_record(self.folder, self.name) or {}
+        if "fingerprint" in record:
+            return record["fingerprint"] == fingerprint(self.output)
+        return (record.get("status") == DONE and record.get("output") == self.output.name
+                and (self.output.is_file() if self.budget is not None else (self.output / METRICS_FILE).is_file()))
+
     def finished(self) -> bool:
-        return self.output.is_file() if self.budget is not None else (self.output / METRICS_FILE).is_file()
+        """The item's record says it is done, and its output is the one the record names."""
+        return (read_item_record(self.folder, self.name) or {}).get("status") == DONE and self.owned()
 
 
 @dataclass
@@ -162,12 +194,24 @@ class BatchOutcome:
 # The inputs.
 
 def check_name(name: str, origin: str) -> str:
-    """An item's name: one path component that names none of the batch's own files and no other item's work."""
+    """An item's name: one path component that names none of the batch's own files and no other item's work, in
+    UTF-8 without control characters, short enough for what the batch keeps beside it (`ADDED_NAME_BYTES`)."""
     if (not name or name != name.strip() or "/" in name or "\\" in name or name.startswith(".")
             or name.endswith((PARTIAL_SUFFIX, SUFFIX, ERROR_SUFFIX)) or name in (SUMMARY_CSV, SUMMARY_MD)):
         raise InputError(f"{origin}: {name!r} cannot name an item (its output's file or folder name); give a name "
                          f"without a slash or a leading dot, not ending in {PARTIAL_SUFFIX}, {SUFFIX} or "
                          f"{ERROR_SUFFIX}")
+    control = next((c for c in name if unicodedata.category(c) == "Cc"), None)
+    if control is not None:
+        raise InputError(f"{origin}: the name {name!r} holds a control character (U+{ord(control):04X}); give a "
+                         "name of printable characters")
+    try:
+        size = len(name.encode("utf-8"))
+    except UnicodeEncodeError:
+        raise InputError(f"{origin}: the name {name!r} is not valid UTF-8; rename it") from None
+    if size + ADDED_NAME_BYTES > NAME_BYTES:
+        raise InputError(f"{origin}: the name {name[:24]}… is {size} bytes long, and the batch's files beside its "
+                         f"output take at most {NAME_BYTES - ADDED_NAME_BYTES}; give a shorter name")
     return name
 
 
@@ -220,9 +264,18 @@ def read_manifest(path: Path) -> tuple[BatchInput, ...]:
         text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as error:
         raise InputError(f"manifest {path} cannot be read as a UTF-8 CSV file ({error})") from None
-    reader = csv.DictReader(io.StringIO(text))
+    try:
+        return _manifest_items(path, csv.DictReader(io.StringIO(text)))
+    except csv.Error as error:
+        raise InputError(f"manifest {path} is not a CSV file cvqpg reads ({error})") from None
+
+
+def _manifest_items(path: Path, reader: csv.DictReader) -> tuple[BatchInput, ...]:
     columns = [c.strip() for c in reader.fieldnames or []]
     known = (*MANIFEST_FILES, *ROW_OPTIONS)
+    twice = next((c for i, c in enumerate(columns) if c in columns[:i]), None)
+    if twice is not None:
+        raise InputError(f"manifest {path}: the column {twice!r} is named twice in the header; keep one")
     unknown = [c for c in columns if c not in known]
     if unknown:
         raise InputError(f"manifest {path}: unknown column {unknown[0]!r}; the columns are {', '.join(known)}")
@@ -286,7 +339,8 @@ def item_settings(settings: BatchSettings, options: dict[str, Any], has_depth: b
     own_budget = "bpp" in options or "max_bytes" in options
     bpp, max_bytes = ((options.get("bpp"), options.get("max_bytes")) if own_budget
                       else (settings.bpp, settings.max_bytes))
-    budget = CompressionSettings(bpp=bpp, max_bytes=max_bytes, finetune_steps=settings.finetune_steps)
+    budget = CompressionSettings(bpp=bpp, max_bytes=max_bytes, finetune_steps=settings.finetune_steps,
+                                 rate_loss=settings.rate_loss and (bpp is not None or max_bytes is not None))
     if flat.get("steps") is None:
         flat["steps"] = ENCODE_STEPS if budget.budgeted else FitConfig().optimisation.steps
     flat["color"] = flat.get("color") or "rgb"
@@ -314,18 +368,109 @@ def plan_item(item: BatchInput, folder: Path, settings: BatchSettings) -> BatchI
         source["depth"] = str(item.depth.resolve())
     if settings.resize_depth:
         source["resize_depth"] = True
+        stretched = _stretched_depth(item)
+        note = "; ".join(filter(None, (note, stretched)))
     return BatchItem(item.name, Path(folder), config, source, settings.run, budget, note, settings.redo)
+
+
+def _stretched_depth(item: BatchInput) -> str | None:
+    """The note of an item whose depth map has another aspect ratio than its image (stretched with
+    `resize_depth`), read from the files' headers; None where it has the image's, or a file does not open (the
+    item's fit says why)."""
+    if item.depth is None:
+        return None
+    sizes = []
+    try:
+        for path in (item.image, item.depth):
+            with Image.open(path) as picture:
+                turned = picture.getexif().get(EXIF_ORIENTATION, 1) in (5, 6, 7, 8)  # shown turned by 90°
+                sizes.append(picture.size[::-1] if turned else picture.size)
+    except Exception:  # any file Pillow cannot open fails the item's fit, with its own line
+        return None
+    return depth_geometry_note(*sizes) if other_aspect(*sizes) else None
+
+
+# What the batch owns, and what lies at the paths it writes.
+
+def fingerprint(output: Path) -> str | None:
+    """What identifies an item's output: the SHA-256 of a `.cvq` file's bytes, or of a run folder's settings and
+    model (`config.json`, `model.safetensors`, which `eval`, `export` or `compress` in it leave as they are);
+    None where there is none, or it cannot be read."""
+    digest = hashlib.sha256()
+    try:
+        if output.is_symlink():
+            return None
+        if output.is_file():
+            digest.update(output.read_bytes())
+        elif output.is_dir():
+            for name in (CONFIG_FILE, MODEL_FILE):
+                digest.update((output / name).read_bytes())
+        else:
+            return None
+    except OSError:
+        return None
+    return digest.hexdigest()
+
+
+def place_problem(path: Path, folder: bool) -> str | None:
+    """What keeps the batch from writing a folder (`folder`) or a file at `path`: a symbolic link (never written
+    through), or something of another kind; None where nothing is there, or a folder or file as asked."""
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return None
+    except OSError as error:
+        return f"{path} cannot be looked at ({error.strerror})"
+    if stat.S_ISLNK(mode):
+        return f"{path} is a symbolic link, which the batch does not write through"
+    if folder and not stat.S_ISDIR(mode):
+        return f"{path} is {'a file' if stat.S_ISREG(mode) else 'not a folder'}, where the batch keeps a folder"
+    if not folder and not stat.S_ISREG(mode):
+        return (f"{path} is {'a folder' if stat.S_ISDIR(mode) else 'neither a file nor a folder'}, where the batch "
+                "writes a file")
+    return None
+
+
+def item_problem(item: BatchItem) -> str | None:
+    """What lies in the way of `item`'s work: at its output, something that is not the output its record names
+    (a folder or file someone else put there, which the batch neither takes for the item's nor replaces); at its
+    unfinished work, anything but an empty or a run folder; a link or another kind at its record or its log."""
+    folder = item.budget is None
+    problem = (place_problem(item.output, folder) or place_problem(item.work, True)
+               or place_problem(item.log, False) or place_problem(_record_path(item.folder, item.name), False))
+    if problem is not None:
+        return problem
+    if item.output.exists() and not item.owned():
+        what = "run folder" if folder else f"{SUFFIX} file"
+        return (f"{item.output} is not a {what} this batch wrote for the item {item.name} (its records name no such "
+                "output); the batch neither counts it as done nor replaces it")
+    if item.work.is_dir() and any(item.work.iterdir()) and not (item.work / CONFIG_FILE).is_file():
+        return f"{item.work} holds files that are not an unfinished fit's"
+    return None
+
+
+def check_places(plan: "BatchPlan") -> None:
+    """Everything at the paths the batch writes is the batch's, or absent, and of the kind the batch writes there
+    (`place_problem`, `item_problem`): else an `InputError` naming the first path in the way, before anything is
+    written."""
+    folder = plan.folder
+    records = folder / BATCH_RECORDS
+    problems = [place_problem(records, True), *(place_problem(path, False) for path in (
+        records / ITEMS_FILE, records / SUMMARY_LOCK, folder / SUMMARY_CSV, folder / SUMMARY_MD))]
+    problems += [place_problem(_record_path(folder, name), False) for name in plan.refused]
+    problems += [item_problem(item) for item in plan.items]
+    problem = next((problem for problem in problems if problem is not None), None)
+    if problem is not None:
+        raise InputError(f"{problem}; move it away, or choose another batch folder")
 
 
 # One item's work.
 
 def _check_place(item: BatchItem) -> None:
-    """What lies at the item's output is the batch's own: a run folder, or a file (a `.cvq` item's)."""
-    output = item.output
-    if output.is_symlink() or (output.exists() and (output.is_dir() if item.budget is not None
-                                                    else not (output / CONFIG_FILE).is_file())):
-        raise InputError(f"{output} is in the way of the item's output and is not one of this batch's; move it "
-                         "away")
+    """`item_problem`, as an `InputError`: what appeared in the item's way since the batch began."""
+    problem = item_problem(item)
+    if problem is not None:
+        raise InputError(f"{problem}; move it away and run the batch again")
 
 
 def _same_fit(work: Path, config: FitConfig, source: dict[str, Any]) -> bool:
@@ -368,34 +513,38 @@ def _run_record(item: BatchItem, folder: Path) -> dict[str, Any]:
     return {"name": item.name, "status": DONE, "output": item.output.name, "psnr_db": metrics["mean"]["psnr"],
             "bytes": size, "bpp": 8 * size / (item.config.targets.width * item.config.targets.height),
             "steps": metrics["steps"], "seconds": metrics["seconds"],
-            "device": (metrics.get("run") or {}).get("device"), "note": item.note}
+            "device": (metrics.get("run") or {}).get("device"), "note": item.note, "fingerprint": fingerprint(folder)}
 
 
 def _encode_item(item: BatchItem, control: RunControl) -> str:
     """Encode `item` into its `.cvq` file (`app.encoding`'s workflow), resuming the checkpoint in `item.work`."""
     budget = encode_budget(item.config, item.budget)  # checked when planned; the budget in bytes
     config = encode_config(item.config, budget)
-    finetune_steps = item.budget.finetune_steps
+    finetune_steps, fit = item.budget.finetune_steps, item.budget.rate_fit(budget)
     scene = scene_from_source(item.source, config)
     work = item.work
     try:
-        resumable = read_encode(work) == (config, item.source, budget, finetune_steps)
+        resumable = (read_encode(work) == (config, item.source, budget, finetune_steps)
+                     and encode_fit(work) == fit)
     except CvqpgError:
         resumable = False
-    if not resumable:
-        shutil.rmtree(work, ignore_errors=True)
-        start_encode(work, config, item.source, budget, finetune_steps, item.run)
+    if not resumable:  # an empty folder, or an unfinished fit of other settings (`item_problem`)
+        if work.is_dir():
+            shutil.rmtree(work)
+        start_encode(work, config, item.source, budget, finetune_steps, item.run, fit)
     try:
         encoded = encode_in_folder(work, scene, config, budget, finetune_steps, item.run, control,
-                                   **checkpoint_policy(item.checkpoint_every))
+                                   **checkpoint_policy(item.checkpoint_every), fit=fit)
     except FitInterrupted:
         return INTERRUPTED
     record = encoding_record(encoded, item.output, budget)
+    data = encoded.rate.choice.data
     write_record(item.folder, {
         "name": item.name, "status": DONE, "output": item.output.name, "psnr_db": record["psnr"],
         "bytes": record["bytes"], "bpp": record["bits_per_pixel"], "steps": config.optimisation.steps,
-        "seconds": encoded.seconds, "device": device_name(torch.device(item.run.device)), "note": item.note})
-    write_atomic(item.output, encoded.rate.choice.data)
+        "seconds": encoded.seconds, "device": device_name(torch.device(item.run.device)), "note": item.note,
+        "fingerprint": hashlib.sha256(data).hexdigest()})
+    write_atomic(item.output, data)
     shutil.rmtree(work)
     return DONE
 
@@ -420,14 +569,14 @@ def run_item(item: BatchItem, control: RunControl) -> tuple[str, str | None]:
         return SKIPPED, None
     if control.should_stop():
         return NOT_STARTED, None
-    log = item.folder / f"{item.name}{ERROR_SUFFIX}"
-    log.unlink(missing_ok=True)
+    log = item.log
     try:
         _check_place(item)
+        log.unlink(missing_ok=True)
         status = (_encode_item if item.budget is not None else _fit_item)(item, control)
     except Exception as error:  # one item's failure must not cost the others; it is recorded
         kind, line = failure(error)
-        if kind == BUG:
+        if kind == BUG and place_problem(log, False) is None:
             log.write_text(traceback.format_exc())
             line += f"; traceback in {log}"
         write_record(item.folder, {"name": item.name, "status": FAILED, "output": item.output.name,
@@ -448,6 +597,12 @@ def _record_path(folder: Path, name: str) -> Path:
 
 
 def write_record(folder: Path, record: dict[str, Any]) -> None:
+    """The item's record, keeping the fingerprint of the output the batch last wrote for it (`fingerprint`)
+    unless `record` gives a new one: until a new output replaces it, that one is the batch's."""
+    if "fingerprint" not in record:
+        kept = (read_item_record(folder, record["name"]) or {}).get("fingerprint")
+        if kept is not None:
+            record = {**record, "fingerprint": kept}
     write_json(_record_path(folder, record["name"]), record)
 
 
@@ -462,14 +617,15 @@ def read_item_record(folder: Path, name: str) -> dict[str, Any] | None:
 
 def summary_rows(folder: Path) -> list[dict[str, Any]]:
     """One row per item of the batch (`SUMMARY_COLUMNS`), in the items' order: its record, or where it has none
-    its state as the folder shows it (its output: done; its unfinished work: interrupted; else not started)."""
+    its state as the folder shows it (its unfinished work: interrupted; else not started: an output without a
+    record is not the batch's)."""
     folder = Path(folder)
     rows = []
     for item in json.loads((folder / BATCH_RECORDS / ITEMS_FILE).read_text()):
         record = read_item_record(folder, item["name"])
         if record is None:
             output, work = folder / item["output"], folder / (item["output"] + PARTIAL_SUFFIX)
-            status = DONE if output.exists() else INTERRUPTED if work.exists() else NOT_STARTED
+            status = INTERRUPTED if work.exists() else NOT_STARTED
             record = {"name": item["name"], "status": status, "note": item["note"],
                       "output": (work if status == INTERRUPTED else output).name}
         rows.append({column: record.get(column) for column in SUMMARY_COLUMNS})
@@ -511,7 +667,8 @@ def update_summary(folder: Path, now: bool = False) -> None:
     unless `now`, only where the summary is older than `SUMMARY_SECONDS` (a summary of N items reads N records,
     and thousands of items finishing one after another would otherwise wait on each other)."""
     folder = Path(folder)
-    with open(folder / BATCH_RECORDS / SUMMARY_LOCK, "a") as lock:
+    lock = open_lock(folder / BATCH_RECORDS / SUMMARY_LOCK, f"the batch folder {folder}")
+    try:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
             fresh = time.time() - (folder / SUMMARY_CSV).stat().st_mtime < SUMMARY_SECONDS
@@ -519,6 +676,8 @@ def update_summary(folder: Path, now: bool = False) -> None:
             fresh = False
         if now or not fresh:
             write_summary(folder)
+    finally:
+        os.close(lock)
 
 
 # The batch.
@@ -565,21 +724,30 @@ def run_batch(plan: BatchPlan, options: ExecutorOptions = ExecutorOptions(), con
     executor, with its fits' checkpoints every `options.checkpoint_every` steps): `BatchOutcome`. A refused item
     fails at once. The summaries are written before the first task, as each finishes, and at the end."""
     folder, outcome = plan.folder, BatchOutcome()
-    start_batch(folder, plan.inputs, {given.name: plan.output(given.name) for given in plan.inputs},
-                {item.name: item.note for item in plan.items})
-    for name, error in plan.refused.items():
-        outcome.statuses[name], outcome.failures[name], outcome.kinds[name] = FAILED, error, INPUT
-        write_record(folder, {"name": name, "status": FAILED, "output": name, "error": error, "kind": INPUT})
-    todo = []
-    for item in plan.items:
-        if item.finished() and not item.redo:
-            outcome.statuses[item.name] = SKIPPED
-        else:
-            _record_path(folder, item.name).unlink(missing_ok=True)
-            todo.append(replace(item, checkpoint_every=options.checkpoint_every))
-    update_summary(folder, now=True)
-    tasks = [Task(item.name, partial(run_item, item), item.config.optimisation.steps) for item in todo]
-    for name, (status, error) in run_tasks(tasks, options, control, "batch", folder, "item").items():
+    check_places(plan)
+    todo = [replace(item, checkpoint_every=options.checkpoint_every) for item in plan.items
+            if item.redo or not item.finished()]
+    with ready(options if todo else ExecutorOptions(), folder):  # Ray, connected and checked before any write
+        start_batch(folder, plan.inputs, {given.name: plan.output(given.name) for given in plan.inputs},
+                    {item.name: item.note for item in plan.items})
+        for name, error in plan.refused.items():
+            outcome.statuses[name], outcome.failures[name], outcome.kinds[name] = FAILED, error, INPUT
+            write_record(folder, {"name": name, "status": FAILED, "output": name, "error": error, "kind": INPUT})
+        pending = {item.name for item in todo}
+        for item in plan.items:
+            if item.name not in pending:
+                outcome.statuses[item.name] = SKIPPED
+        for item in todo:  # its state as the folder shows it until the item says more; its output (`check_places`:
+            work = item.work.exists()  # the batch's) named by its fingerprint
+            record = {"name": item.name, "status": INTERRUPTED if work else NOT_STARTED,
+                      "output": (item.work if work else item.output).name, "note": item.note}
+            if item.output.exists():
+                record["fingerprint"] = fingerprint(item.output)
+            write_record(folder, record)
+        update_summary(folder, now=True)
+        tasks = [Task(item.name, partial(run_item, item), item.config.optimisation.steps) for item in todo]
+        statuses = run_tasks(tasks, options, control, "batch", folder, "item")
+    for name, (status, error) in statuses.items():
         outcome.statuses[name] = status
         if status == FAILED:
             record = read_item_record(folder, name) or {}

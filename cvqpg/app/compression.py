@@ -98,7 +98,8 @@ def compress_model(target: str | Path, settings: CompressionSettings = Compressi
     if settings.budgeted:
         steps = settings.finetune_steps
         steps = steps if steps is not None else RATE_FINETUNE_STEPS if scene is not None else 0
-        chosen = rate_control(primitives, config, reference, goal, scene, steps, control)
+        chosen = rate_control(primitives, config, reference, goal, scene, steps, control,
+                              settings.rate_fit(goal) if settings.rate_loss else None)
         choice, recorded = chosen.choice, chosen.record(goal)
     else:
         steps = settings.finetune_steps or 0

@@ -23,9 +23,10 @@ from ..config import FitConfig, RunOptions
 from ..control import SILENT, RunControl
 from ..defaults import (BUDGET_FILE, CHECKPOINT_SECONDS, DEPTH_FILE, ENCODE_FINETUNE_STEPS, ENCODE_STEPS,
                         PARTIAL_SUFFIX, SUFFIX)
-from ..errors import InputError, UsageError
+from ..errors import ConfigError, InputError, UsageError
 from ..fitting import FitResult, fit_scene
 from ..primitives import Primitives, activate, init_gaussians
+from ..ratefit import PLAIN, RateFit, RateObjective, silent_removed
 from ..representation import require_gaussians
 from ..runs import read_record, read_run, start_run, write_json
 from ..search import Budget, CompressionSettings, RateChoice, Reference, rate_control, reference_for, smallest_file
@@ -104,6 +105,7 @@ class Encoding:
     rate: RateChoice
     rate_seconds: float
     rate_cpu_seconds: float
+    fit_levers: RateFit = PLAIN  # the rate in the fit's loss (`ratefit`), none by default
 
     @property
     def seconds(self) -> float:
@@ -117,15 +119,21 @@ class Encoding:
 
 
 def encode_fitted(fitted: FitResult, scene: Scene, budget: Budget, finetune_steps: int = ENCODE_FINETUNE_STEPS,
-                  control: RunControl = SILENT) -> Encoding:
-    """Rate-control a fit of `scene` (of `encode_config`'s settings) into a file within `budget`, fine-tuned for
-    `finetune_steps` on the scene's targets; a progress bar (`control.progress`) shows the search's bpp and PSNR.
-    A stop request (`control`) ends it between two rungs or tuning steps with `fitting.FitInterrupted`."""
+                  control: RunControl = SILENT, fit: RateFit = PLAIN) -> Encoding:
+    """Rate-control a fit of `scene` (of `encode_config`'s settings, made with `fit`'s levers) into a file within
+    `budget`, fine-tuned for `finetune_steps` on the scene's targets (with the fit's rate term and last λ where it
+    had one); where the fit pruned by rate, the primitives whose weight codes to 0 go first
+    (`ratefit.silent_removed`). A progress bar (`control.progress`) shows the search's bpp and PSNR. A stop
+    request (`control`) ends it between two rungs or tuning steps with `fitting.FitInterrupted`."""
     started, cpu_started = time.perf_counter(), time.process_time()
     primitives = fitted.primitives  # activated once: `FitResult.primitives` activates on every access
+    if fit.prune:
+        primitives = silent_removed(primitives, fitted.config, fit.bits)
     reference = reference_for(primitives, fitted.config, scene.targets, "the scene's targets")
-    rate = rate_control(primitives, fitted.config, reference, budget, scene, finetune_steps, control)
-    return Encoding(fitted, reference, rate, time.perf_counter() - started, time.process_time() - cpu_started)
+    weights = fitted.history.get("rate_lambda")
+    rate = rate_control(primitives, fitted.config, reference, budget, scene, finetune_steps, control,
+                        fit if fit.rate else None, weights[-1] if weights else None)
+    return Encoding(fitted, reference, rate, time.perf_counter() - started, time.process_time() - cpu_started, fit)
 
 
 def encode_scene(scene: Scene, config: FitConfig, settings: CompressionSettings, control: RunControl = SILENT
@@ -138,8 +146,14 @@ def encode_scene(scene: Scene, config: FitConfig, settings: CompressionSettings,
     (`fitting.FitInterrupted`); `encode_in_folder` runs the same with checkpoints."""
     budget = encode_budget(config, settings)
     steps = ENCODE_FINETUNE_STEPS if settings.finetune_steps is None else settings.finetune_steps
-    fitted = fit_scene(scene, encode_config(config, budget), control=control)
-    return encode_fitted(fitted, scene, budget, steps, control)
+    fit, config = settings.rate_fit(budget), encode_config(config, budget)
+    fitted = fit_scene(scene, config, control=control, objective=objective_for(fit, config))
+    return encode_fitted(fitted, scene, budget, steps, control, fit)
+
+
+def objective_for(fit: RateFit, config: FitConfig) -> RateObjective | None:
+    """The fit's rate term for `fit`'s levers (None: today's float fit)."""
+    return RateObjective(fit, config) if fit.active else None
 
 
 def encoding_record(encoded: Encoding, out: str | Path, budget: Budget) -> dict[str, Any]:
@@ -147,17 +161,32 @@ def encoding_record(encoded: Encoding, out: str | Path, budget: Budget) -> dict[
     of the fit: the primitives it fitted and its seconds."""
     return {"file": str(out), **choice_record(encoded.rate.choice, encoded.reference, encoded.fit.config),
             **encoded.rate.record(budget), "fitted_primitives": encoded.fit.config.primitive_count,
-            "fit_seconds": encoded.fit.seconds, "fit_cpu_seconds": encoded.fit.cpu_seconds}
+            "fit_seconds": encoded.fit.seconds, "fit_cpu_seconds": encoded.fit.cpu_seconds,
+            **({"rate_fit": encoded.fit_levers.record(),
+                "rate_lambda": encoded.fit.history.get("rate_lambda", [None])[-1]} if encoded.fit_levers.active
+               else {})}
 
 
 def start_encode(folder: Path, config: FitConfig, source: dict[str, Any], budget: Budget, finetune_steps: int,
-                 run: RunOptions = RunOptions()) -> Path:
+                 run: RunOptions = RunOptions(), fit: RateFit = PLAIN) -> Path:
     """A folder for an encode of `config` (`encode_config`'s) into `budget` on `run`: a run folder
-    (`runs.start_run`) that also records the budget and the fine-tuning steps (`BUDGET_FILE`)."""
+    (`runs.start_run`) that also records the budget, the fine-tuning steps and, where the fit has the rate in its
+    loss, its levers (`BUDGET_FILE`)."""
     start_run(folder, config, source, run)
     write_json(Path(folder) / BUDGET_FILE, {"max_bytes": budget.max_bytes, "given": budget.given,
-                                            "finetune_steps": finetune_steps})
+                                            "finetune_steps": finetune_steps,
+                                            **({"rate_fit": fit.record()} if fit.active else {})})
     return Path(folder)
+
+
+def encode_fit(folder: Path) -> RateFit:
+    """The levers an encode's folder records for its fit (`start_encode`; none: today's float fit)."""
+    recorded = read_record(Path(folder) / BUDGET_FILE, "delete the folder and encode again")
+    try:
+        return RateFit.from_record(recorded["rate_fit"]) if "rate_fit" in recorded else PLAIN
+    except (KeyError, TypeError, ValueError):
+        raise InputError(f"{Path(folder) / BUDGET_FILE} holds a malformed `rate_fit`; delete the folder and "
+                         "encode again") from None
 
 
 def read_encode(folder: Path) -> tuple[FitConfig, dict[str, Any], Budget, int]:
@@ -175,20 +204,27 @@ def read_encode(folder: Path) -> tuple[FitConfig, dict[str, Any], Budget, int]:
     except (KeyError, TypeError, ValueError):
         raise InputError(f"{path} lacks the budget or the fine-tuning steps; delete the folder and encode "
                          "again") from None
+    try:  # as `encode_budget` checked it before the fit, so that a changed file stops the resume before its steps
+        Budget(budget.max_bytes, f"the budget of {budget.max_bytes} bytes in {path}").check(
+            smallest_file(stand_in(config, 1), config), config)
+    except ConfigError as error:
+        raise InputError(f"{error}; delete the folder and encode again") from None
     return config, source, budget, settings.finetune_steps
 
 
 def encode_in_folder(folder: Path, scene: Scene, config: FitConfig, budget: Budget, finetune_steps: int,
                      run: RunOptions = RunOptions(), control: RunControl = SILENT,
                      checkpoint_every_steps: int | None = None,
-                     checkpoint_every_seconds: float | None = CHECKPOINT_SECONDS) -> Encoding:
+                     checkpoint_every_seconds: float | None = CHECKPOINT_SECONDS, fit: RateFit = PLAIN) -> Encoding:
     """`encode_fitted` of a fit of `config` on `run` in `folder` (made by `start_encode`), from the folder's
     checkpoint where it has one. The fit checkpoints as `runner.fit_in_folder` (by default every
     `CHECKPOINT_SECONDS`) and at its end, and a stop request (`control`) raises `FitInterrupted`: within the fit
-    after saving, within rate control with the finished fit saved, which a resume then rate-controls again."""
+    after saving, within rate control with the finished fit saved, which a resume then rate-controls again. `fit`
+    (`start_encode`'s, `encode_fit`) says which levers of the rate the fit pulls."""
     fitted = fit_in_folder(folder, scene, config, run, control, resumed_state(folder, config, run),
-                           checkpoint_every_steps, checkpoint_every_seconds, checkpoint_at_end=True)
-    return encode_fitted(fitted, scene, budget, finetune_steps, control)
+                           checkpoint_every_steps, checkpoint_every_seconds, checkpoint_at_end=True,
+                           objective=objective_for(fit, config))
+    return encode_fitted(fitted, scene, budget, finetune_steps, control, fit)
 
 
 @dataclass
@@ -207,6 +243,7 @@ class EncodePlan:
     resumed: bool = False
     depth: Image.Image | None = None  # an estimated depth map, saved in `work` once it exists
     role: str = "`out`"  # how messages name `out`
+    fit: RateFit = PLAIN  # the rate in the fit's loss (`ratefit`; `--rate-loss`)
 
 
 def resumed_encode_plan(folder: str | Path, overwrite: bool = False) -> EncodePlan:
@@ -225,13 +262,15 @@ def resumed_encode_plan(folder: str | Path, overwrite: bool = False) -> EncodePl
     role = f"--resume {work}: its file"
     out = check_output(work.with_name(work.name[:-len(PARTIAL_SUFFIX)]), CVQ, source_files(source), overwrite, role)
     return EncodePlan(work, out, config, source, budget, finetune_steps, run, scene_from_source(source, config),
-                      resumed=True, role=role)
+                      resumed=True, role=role, fit=encode_fit(work))
 
 
 def encode_plan(inputs: FitInputs, out: str | None, bpp: float | None = None, max_bytes: int | None = None,
-                finetune_steps: int = ENCODE_FINETUNE_STEPS, overwrite: bool = False) -> EncodePlan:
+                finetune_steps: int = ENCODE_FINETUNE_STEPS, overwrite: bool = False, rate_loss: bool = False
+                ) -> EncodePlan:
     """The plan of a new encode of `inputs` into the file `out` of at most `bpp` bits per pixel or `max_bytes`
-    bytes (`encode_budget`), with `encode_config`'s primitive count, in its work folder `OUT.partial`."""
+    bytes (`encode_budget`), with `encode_config`'s primitive count, in its work folder `OUT.partial`; with
+    `rate_loss`, the rate in the fit's loss (`CompressionSettings.rate_fit`)."""
     from .inputs import config_and_source, scene_and_depth, source_files
     from .outputs import CVQ, check_output
     from .resources import check_device, check_memory
@@ -242,7 +281,7 @@ def encode_plan(inputs: FitInputs, out: str | None, bpp: float | None = None, ma
     config, source = config_and_source(inputs)
     run = inputs.run_options()
     check_device(run.device)
-    settings = CompressionSettings(bpp=bpp, max_bytes=max_bytes, finetune_steps=finetune_steps)
+    settings = CompressionSettings(bpp=bpp, max_bytes=max_bytes, finetune_steps=finetune_steps, rate_loss=rate_loss)
     budget = encode_budget(config, settings)
     checked = check_output(out, CVQ, source_files(source), overwrite)
     work = checked.with_name(checked.name + PARTIAL_SUFFIX)
@@ -254,7 +293,8 @@ def encode_plan(inputs: FitInputs, out: str | None, bpp: float | None = None, ma
     scene, depth = scene_and_depth(source, config)
     if depth is not None:
         source["depth"] = DEPTH_FILE  # kept in the encode's folder until the file is written
-    return EncodePlan(work, checked, config, source, budget, settings.finetune_steps, run, scene, depth=depth)
+    return EncodePlan(work, checked, config, source, budget, settings.finetune_steps, run, scene, depth=depth,
+                      fit=settings.rate_fit(budget))
 
 
 def encode_planned(plan: EncodePlan, overwrite: bool = False, progress: bool = True
@@ -271,11 +311,11 @@ def encode_planned(plan: EncodePlan, overwrite: bool = False, progress: bool = T
 
     def body(stop_requested: Callable[[], bool]) -> None:
         if not plan.resumed:
-            start_encode(plan.work, plan.config, plan.source, plan.budget, plan.finetune_steps, plan.run)
+            start_encode(plan.work, plan.config, plan.source, plan.budget, plan.finetune_steps, plan.run, plan.fit)
         if plan.depth is not None:
             plan.depth.save(plan.work / DEPTH_FILE)
         encoded = encode_in_folder(plan.work, plan.scene, plan.config, plan.budget, plan.finetune_steps, plan.run,
-                                   RunControl(progress=progress, stop_requested=stop_requested))
+                                   RunControl(progress=progress, stop_requested=stop_requested), fit=plan.fit)
         write_atomic(plan.out, encoded.rate.choice.data)
         records.append(encoding_record(encoded, plan.out, plan.budget))
 

@@ -16,6 +16,7 @@ import os
 import queue
 import signal
 import socket
+import sys
 import threading
 import time
 import uuid
@@ -46,6 +47,8 @@ RAY_RETRIES = 3  # reruns of a Ray task whose worker process or node died (not o
 STOP_GRACE_SECONDS = 120.0  # how long an aborted command waits for its Ray tasks to save their checkpoints
 RAY_EXTRA = 'pip install "cvqpg[ray]"'
 PROBE_PREFIX = ".cvqpg-probe-"
+RAY_CONNECT_SECONDS = 30.0  # the longest a command waits for a Ray cluster to answer
+RAY_CLIENT_PORT = 10001  # Ray Client's port, where a ray:// address gives none
 
 
 class ExecutorError(CvqpgError):
@@ -389,28 +392,7 @@ def _work_on_ray(task: Task, threads: int, monitor: Any) -> tuple[str, str | Non
 
 def _run_ray(tasks: Sequence[Task], options: ExecutorOptions, threads: int, control: RunControl, board: _Board,
              shared_folder: Path) -> None:
-    ray = _import_ray()
-    connected_here = not ray.is_initialized()
-    if connected_here:
-        # Ray's own start-up lines and notes would break the one bar; its errors and the tasks' notes still show
-        settings: dict[str, Any] = {"logging_level": logging.ERROR, "include_dashboard": False}
-        if options.ray_address is None:
-            settings["num_cpus"] = available_cores()
-        sigterm = signal.getsignal(signal.SIGTERM)
-        try:
-            ray.init(address=options.ray_address, **settings)
-        # Ray exits (SystemExit) where no cluster answers at the address
-        except (ConnectionError, RuntimeError, ValueError, SystemExit) as error:
-            where = f"--ray-address {options.ray_address}" if options.ray_address else "a Ray instance of this machine"
-            reason = "no Ray cluster answered there" if isinstance(error, SystemExit) else one_line(error)
-            raise ExecutorError(f"{where}: Ray did not start or connect ({reason})") from None
-        if sigterm is not None and threading.current_thread() is threading.main_thread():
-            # A Ray instance of this process takes SIGTERM to kill its tasks at once: the command's own stop
-            # request (its tasks checkpoint) comes back.
-            signal.signal(signal.SIGTERM, sigterm)
-    try:
-        check_cluster(ray, threads, options.gpus_per_fit)
-        ray_probe(ray, shared_folder)
+    with _ray_session(options, threads, shared_folder) as ray:
         from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
         here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
         monitor = ray.remote(_Monitor).options(num_cpus=0, scheduling_strategy=here).remote()
@@ -434,9 +416,146 @@ def _run_ray(tasks: Sequence[Task], options: ExecutorOptions, threads: int, cont
             if pending:  # also on a second Ctrl-C: running fits save their checkpoints before Ray goes
                 monitor.stop.remote()
                 ray.wait(pending, num_returns=len(pending), timeout=STOP_GRACE_SECONDS)
+
+
+# The checks of a Ray session already made in this process: (threads, GPUs, folder) (`ready`).
+_checked_sessions: set[tuple[int, float, str]] = set()
+
+
+@contextmanager
+def ready(options: ExecutorOptions, shared_folder: Path) -> Iterator[None]:
+    """For the block, the executor of `options` ready to run tasks that write into `shared_folder`: on Ray,
+    connected (unless this process is already) and checked (`check_cluster`, `ray_probe`, on the folder's nearest
+    existing one where it is still to be made), so that a command refuses before it writes anything; `run_tasks`
+    in the block runs on this connection. Nothing to do for the local executor."""
+    options = options.validate()
+    if options.kind != "ray":
+        yield
+        return
+    with _ray_session(options, options.task_threads(), Path(shared_folder)):
+        yield
+
+
+@contextmanager
+def _ray_session(options: ExecutorOptions, threads: int, shared_folder: Path) -> Iterator[Any]:
+    """Ray, connected and checked for tasks of `threads` CPUs and `options.gpus_per_fit` GPUs that write into
+    `shared_folder`; the connection ends with the block where the block made it."""
+    ray = _import_ray()
+    connected_here = not ray.is_initialized()
+    if connected_here:
+        _connect(ray, options)
+    key = (threads, options.gpus_per_fit, os.path.abspath(shared_folder))
+    try:
+        if key not in _checked_sessions:
+            check_cluster(ray, threads, options.gpus_per_fit)
+            ray_probe(ray, shared_folder)
+        if connected_here:
+            _checked_sessions.add(key)
+        yield ray
     finally:
         if connected_here:
+            _checked_sessions.discard(key)
             ray.shutdown()
+
+
+def _ended_within(work: Callable[[], None], seconds: float) -> bool:
+    """Run `work` in a thread of its own (a daemon, which ends with the command where `work` never does, as
+    Ray connecting to a cluster that accepts and never answers), its standard error sent nowhere (Ray's core warns
+    there, a line every few seconds, while it retries an address): whether it ended within `seconds`."""
+    thread = threading.Thread(target=work, name="ray-connect", daemon=True)
+    with _quiet_stderr():
+        thread.start()
+        thread.join(seconds)
+    return not thread.is_alive()
+
+
+@contextmanager
+def _quiet_stderr() -> Iterator[None]:
+    """The process's standard error (its file descriptor, which Ray's C++ core writes to) sent nowhere for the
+    block."""
+    try:
+        sys.stderr.flush()
+        kept = os.dup(2)
+    except (OSError, ValueError, AttributeError):  # no descriptor 2 to redirect
+        yield
+        return
+    try:
+        with open(os.devnull, "w") as nowhere:
+            os.dup2(nowhere.fileno(), 2)
+        yield
+    finally:
+        os.dup2(kept, 2)
+        os.close(kept)
+
+
+def _where(options: ExecutorOptions) -> str:
+    return f"--ray-address {options.ray_address}" if options.ray_address else "a Ray instance of this machine"
+
+
+def check_reachable(address: str, timeout: float = RAY_CONNECT_SECONDS) -> None:
+    """A one-line `ExecutorError` unless something answers at the Ray cluster's `address` (`auto`, `HOST:PORT`,
+    `ray://HOST:PORT`) within `timeout` seconds: Ray itself would retry for minutes, warning as it goes."""
+    target = address
+    if address == "auto":
+        try:  # where `ray start` recorded this machine's cluster
+            from ray._private.services import canonicalize_bootstrap_address
+            target = canonicalize_bootstrap_address(address) or ""
+        except ConnectionError:
+            raise ExecutorError(f"--ray-address auto: no Ray cluster runs on this machine (start one with `ray "
+                                "start --head`, or give its HOST:PORT)") from None
+        except Exception:  # Ray's own lookup moved: ray.init tells
+            return
+    client = target.startswith("ray://")
+    host, _, port = target.removeprefix("ray://").rpartition(":")
+    if not host and client:
+        host, port = port, str(RAY_CLIENT_PORT)
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
+    except ValueError:
+        raise ExecutorError(f"--ray-address {address}: give auto, HOST:PORT or ray://HOST:PORT") from None
+    except OSError as error:
+        reason = error.strerror or type(error).__name__
+        if isinstance(error, socket.gaierror):
+            reason = f"the host {host} is not known"
+        elif isinstance(error, TimeoutError):
+            reason = f"no answer within {timeout:g} s"
+        raise ExecutorError(f"--ray-address {address}: no Ray cluster answered there ({reason}); start one (`ray "
+                            "start --head`), or give the address it printed") from None
+
+
+def _connect(ray: Any, options: ExecutorOptions) -> None:
+    """`ray.init` for `options`, within `RAY_CONNECT_SECONDS` (else a one-line `ExecutorError`), with Ray's own
+    start-up lines kept off the terminal."""
+    if options.ray_address is not None:
+        check_reachable(options.ray_address)
+    # Ray's own start-up lines and notes would break the one bar; its errors and the tasks' notes still show
+    settings: dict[str, Any] = {"logging_level": logging.ERROR, "include_dashboard": False}
+    if options.ray_address is None:
+        settings["num_cpus"] = available_cores()
+    sigterm = signal.getsignal(signal.SIGTERM)
+    outcome: dict[str, BaseException] = {}
+
+    def init() -> None:
+        try:
+            ray.init(address=options.ray_address, **settings)
+        except BaseException as error:  # Ray exits (SystemExit) where no cluster answers at the address
+            outcome["error"] = error
+
+    if options.ray_address is None:  # a Ray instance of this machine, started here: no address to wait on
+        init()
+    elif not _ended_within(init, RAY_CONNECT_SECONDS):
+        raise ExecutorError(f"{_where(options)}: Ray did not connect within {RAY_CONNECT_SECONDS:g} s; check that "
+                            "the address is a Ray cluster's (`ray status` there)")
+    error = outcome.get("error")
+    if error is not None:
+        if not isinstance(error, (ConnectionError, RuntimeError, ValueError, SystemExit)):
+            raise error
+        reason = "no Ray cluster answered there" if isinstance(error, SystemExit) else one_line(error)
+        raise ExecutorError(f"{_where(options)}: Ray did not start or connect ({reason})")
+    if sigterm is not None and threading.current_thread() is threading.main_thread():
+        # A Ray instance of this process takes SIGTERM to kill its tasks at once: the command's own stop
+        # request (its tasks checkpoint) comes back.
+        signal.signal(signal.SIGTERM, sigterm)
 
 
 def _ray_outcome(ray: Any, reference: Any) -> tuple[str, str | None]:
@@ -479,10 +598,12 @@ def _sees(path: Path, token: str) -> bool:
 
 def ray_probe(ray: Any, folder: Path) -> None:
     """Check that the driver sees a file that a task on each live node writes into `folder` (the tasks' results go
-    there); a one-line `ExecutorError` otherwise. The probe files are removed either way."""
+    there), or where it is still to be made, into its nearest existing folder; a one-line `ExecutorError`
+    otherwise. The probe files are removed either way."""
     from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy as strategy
 
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = Path(os.path.abspath(folder))
+    folder = next(place for place in (folder, *folder.parents) if place.is_dir())
     token = uuid.uuid4().hex
     write, remove = ray.remote(_probe_write), ray.remote(_probe_remove)
     nodes = [node["NodeID"] for node in ray.nodes() if node["Alive"]]

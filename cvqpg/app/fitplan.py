@@ -59,6 +59,16 @@ def run_finished(folder: str | Path) -> bool:
     return (Path(folder) / METRICS_FILE).is_file()
 
 
+def finished_note(folder: str | Path) -> str:
+    """What `fit --resume` says of a finished run: nothing to resume, and where it is a work folder `RUN.partial`
+    that was never moved into place, what to do with it."""
+    name = Path(os.path.abspath(folder)).name
+    if name.endswith(PARTIAL_SUFFIX):
+        return (f"{folder}: this fit is finished, nothing to resume; it was never moved into place: rename it to "
+                f"{name[:-len(PARTIAL_SUFFIX)]}")
+    return f"{folder}: this run is finished; nothing to resume"
+
+
 def resume_plan(folder: str | Path, overwrite: bool) -> FitPlan:
     """The plan that continues the interrupted run in `folder` from its checkpoint, with its own settings; with
     `overwrite`, a run where the folder's finished run goes (`RUN` of `RUN.partial`) is replaced."""
@@ -89,6 +99,20 @@ def resume_plan(folder: str | Path, overwrite: bool) -> FitPlan:
     return FitPlan(work, final, config, run, source, scene, resumed_state(work, config, run), role=role)
 
 
+def stranded_work(work: Path) -> str:
+    """What lies at a new fit's work folder `OUT.partial`, which the fit does not take over, and what to do."""
+    from ..runs import CONFIG_FILE, METRICS_FILE
+    if work.is_symlink() or not work.is_dir():
+        return f"{work} is in the way of the fit's work folder (not a folder); move it away"
+    if not (work / CONFIG_FILE).is_file():
+        return f"{work} is in the way of the fit's work folder (it holds no fit's {CONFIG_FILE}); move it away"
+    if run_finished(work):
+        final = work.with_name(work.name[:-len(PARTIAL_SUFFIX)])
+        return (f"{work} holds a finished fit that was never moved into place; rename it to {final.name}, or "
+                "delete it")
+    return f"{work} holds an interrupted fit; continue it with cvqpg fit --resume {work}, or delete it"
+
+
 def default_out(source: dict[str, Any], config: FitConfig) -> Path:
     """`runs/<time>-<input>-<color>-<primitive>`."""
     label = source.get("scene") or Path(source["image"]).stem
@@ -113,8 +137,8 @@ def new_plan(inputs: FitInputs, out: str | None, overwrite: bool, minutes: float
     check_device(run.device)
     final = check_fit_destination(Path(out) if out else default_out(source, config), overwrite)
     work = final.with_name(final.name + PARTIAL_SUFFIX)
-    if work.exists():
-        raise UsageError(f"{work} holds an interrupted fit; continue it with cvqpg fit --resume {work}, or delete it")
+    if work.exists() or work.is_symlink():
+        raise UsageError(stranded_work(work))
     check_memory(config, run.device)
     scene, depth = scene_and_depth(source, config)
     if depth is not None:

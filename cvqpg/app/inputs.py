@@ -22,14 +22,14 @@ if TYPE_CHECKING:
 class FitInputs:
     """A fit as the command line asks for it: `image` (a path) or the built-in `scene` (neither: `demo`), its
     `depth` (a path, `auto`, or None), `resize_depth` (a depth map of another aspect is stretched), the `recipe`
-    and `FitConfig.create`'s `settings` (`color`, `num_planes` and `steps` None where not given: the input decides
+    (None: `FitConfig.create`'s, by the primitive) and `FitConfig.create`'s `settings` (`color`, `num_planes` and `steps` None where not given: the input decides
     them), and where it runs (`device`, `backend`)."""
 
     image: str | None
     scene: str | None
     depth: str | None
     resize_depth: bool
-    recipe: str
+    recipe: str | None
     settings: dict[str, Any]
     device: str
     backend: str

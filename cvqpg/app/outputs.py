@@ -284,14 +284,45 @@ def claimed(path: str | Path, role: str = "`out`", shared: bool = False) -> Iter
     _release(lock, handle)
 
 
+def open_lock(lock: Path, role: str) -> int:
+    """A descriptor of the lock file `lock`, created where it is missing; an `InputError` naming `role` where
+    something else is there (a folder, a pipe, a link, ...), which no command waits on, or it cannot be made."""
+    def refused(what: str) -> InputError:
+        return InputError(f"{role}: its lock file {lock} {what}; remove it (cvqpg makes it again), or choose "
+                          "another place")
+
+    try:
+        existing = os.lstat(lock).st_mode
+    except FileNotFoundError:
+        existing = None
+    except OSError as error:
+        raise refused(f"cannot be looked at ({error.strerror})") from None
+    if existing is not None and not stat.S_ISREG(existing):
+        raise refused(f"is {_kind_name(existing)}, not a regular file")
+    try:
+        handle = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o666)
+    except OSError as error:
+        raise InputError(f"{role}: cannot write its lock file {lock} ({error.strerror}); choose another place") \
+            from None
+    if not stat.S_ISREG(os.fstat(handle).st_mode):  # put there since the look
+        os.close(handle)
+        raise refused("is not a regular file")
+    return handle
+
+
+def _kind_name(mode: int) -> str:
+    """What a file of `mode` is, with its article."""
+    for test, name in ((stat.S_ISDIR, "a folder"), (stat.S_ISLNK, "a symbolic link"), (stat.S_ISFIFO, "a pipe"),
+                       (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a device"), (stat.S_ISBLK, "a device")):
+        if test(mode):
+            return name
+    return "a file"
+
+
 def _locked(lock: Path, path: Path, role: str, shared: bool) -> int:
     """A descriptor of `lock` holding its `flock`; retried where another command removed the file meanwhile."""
     while True:
-        try:
-            handle = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o666)
-        except OSError as error:
-            raise InputError(f"{role} {path}: cannot write beside it ({error.strerror}); choose another place") \
-                from None
+        handle = open_lock(lock, f"{role} {path}")
         try:
             fcntl.flock(handle, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
         except OSError as error:

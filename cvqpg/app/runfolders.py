@@ -17,11 +17,20 @@ if TYPE_CHECKING:
 
 def finished_run(folder: Path) -> Path:
     """A run folder that holds a model, or a UsageError saying what it is instead."""
-    from ..runs import CONFIG_FILE, MODEL_FILE
+    from ..runs import CONFIG_FILE, METRICS_FILE, MODEL_FILE
+    if folder.is_dir() and not (folder / CONFIG_FILE).is_file() and (folder.parent / CONFIG_FILE).is_file():
+        raise UsageError(f"{folder} is a folder, not a model file of the run {folder.parent}; give the run folder "
+                         "or one of its model files")
     if not (folder / CONFIG_FILE).is_file():
         raise UsageError(f"{folder} is not a run folder (no {CONFIG_FILE}); give a folder written by "
                          "`cvqpg fit`")
-    if not (folder / MODEL_FILE).is_file():
+    model = folder / MODEL_FILE
+    if model.is_dir():
+        raise UsageError(f"{model} is a folder, not the run's model file; move it away, or fit the run again")
+    if not model.is_file() and (folder / METRICS_FILE).is_file():
+        raise UsageError(f"{folder} is a finished run whose {MODEL_FILE} is gone; fit it again (cvqpg fit "
+                         "--overwrite)")
+    if not model.is_file():
         raise UsageError(f"{folder} holds no {MODEL_FILE}: the run has not finished (cvqpg fit --resume "
                          f"{folder})")
     return folder

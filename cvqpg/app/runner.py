@@ -6,22 +6,26 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from ..config import FitConfig, RunOptions, check_time_budget
+from ..config import FitConfig, RunOptions, check_time_budget, default_curvature_warmup
 from ..control import RunControl
 from ..defaults import CHECKPOINT_SECONDS
 from ..errors import CvqpgError, ModelFileError
-from ..fitting import (CheckpointPolicy, FitInterrupted, FitResult, FitState, fit_scene, initial_state, seconds_per_step,
-                       state_from_payload, steps_within)
+from ..fitting import (CheckpointPolicy, FitInterrupted, FitResult, FitState, fit_scene, initial_state,
+                       seconds_per_step, state_from_payload, steps_within)
+from ..ratefit import RateObjective
 from ..runs import CHECKPOINT_FILE, CONFIG_FILE, RESTORE_RUN, fit_fingerprint, read_record, same_fit, write_run
 from ..storage import load_checkpoint, save_checkpoint
 from ..targets import Scene
 from .compilation import prepare_kernels
 from .provenance import code_commit, peak_memory, reset_peak_memory, run_record
+
+log = logging.getLogger("cvqpg")
 
 FINGERPRINT_KEY = "run_fingerprint"
 # Checkpoints of earlier versions hold a SHA-256 of their config.json's settings (`legacy_fingerprint`): all but
@@ -91,13 +95,15 @@ def fit_in_folder(folder: Path, scene: Scene, config: FitConfig, run: RunOptions
                   control: RunControl = RunControl(), state: FitState | None = None,
                   checkpoint_every_steps: int | None = None,
                   checkpoint_every_seconds: float | None = CHECKPOINT_SECONDS, source: dict[str, Any] | None = None,
-                  checkpoint_at_end: bool = False) -> FitResult:
+                  checkpoint_at_end: bool = False, objective: RateObjective | None = None) -> FitResult:
     """`fit_scene` on `run` under `control` with the folder's checkpoint policy, after compiling the CPU kernels
     (a status line when `control.progress`); the state records the compile time and the peak memory of every
     segment, so a resumed fit reports the whole run's, and checkpoints record the run's fingerprint
     (`fit_fingerprint` of `config` and `source`, default: as the folder's `config.json` records it). Raises
-    `FitInterrupted` after saving on a stop request, also on one asked during the last step or the final render. `checkpoint_at_end` saves the finished loop too, for work
-    that follows the fit in the same folder: resumed from it, the fit returns at once with the same result."""
+    `FitInterrupted` after saving on a stop request, also on one asked during the last step or the final render.
+    `checkpoint_at_end` saves the finished loop too, for work that follows the fit in the same folder: resumed
+    from it, the fit returns at once with the same result. An `objective` puts the rate in the fit's loss
+    (`fitting.fit_scene`)."""
     folder = Path(folder)
     fingerprint = fit_fingerprint(config, recorded_source(folder, source))
     device = torch.device(run.device)
@@ -113,7 +119,7 @@ def fit_in_folder(folder: Path, scene: Scene, config: FitConfig, run: RunOptions
         save_checkpoint(folder / CHECKPOINT_FILE, {**current.to_payload(), FINGERPRINT_KEY: fingerprint})
 
     policy = CheckpointPolicy(save=save, every_steps=checkpoint_every_steps, every_seconds=checkpoint_every_seconds)
-    result = fit_scene(scene, config, run, control, state=state, checkpoint=policy)
+    result = fit_scene(scene, config, run, control, state=state, checkpoint=policy, objective=objective)
     stopped = not checkpoint_at_end and control.should_stop()  # asked during the last step or the final render
     if checkpoint_at_end or stopped:
         save(state)
@@ -135,12 +141,18 @@ def timed_config(scene: Scene, config: FitConfig, minutes: float, run: RunOption
     compile_seconds = prepare_kernels(config, run, show_status=progress)
     seconds_each = seconds_per_step(scene, config, run)
     steps = steps_within(60 * minutes, seconds_each)
-    return config.with_steps(steps).validate(), {"minutes": minutes, "seconds_per_step": seconds_each,
-                                                 "compile_seconds": compile_seconds}
+    timed = config.with_steps(steps).validate()
+    given = config.optimisation
+    if given.curvature_warmup != default_curvature_warmup(given.steps):  # a warm-up of the caller's, not the share
+        log.warning(f"the curvature warm-up of {given.curvature_warmup} of {given.steps} steps keeps its share of "
+                    f"the {steps} steps the time allows: {timed.optimisation.curvature_warmup}")
+    return timed, {"minutes": minutes, "seconds_per_step": seconds_each, "compile_seconds": compile_seconds}
 
 
-def write_fitted_run(folder: Path, result: FitResult, scene: Scene, source: dict[str, Any]) -> Path:
-    """`write_run` with the run record of this process: code, machine, times and peak memory."""
+def write_fitted_run(folder: Path, result: FitResult, scene: Scene, source: dict[str, Any],
+                     extra: dict[str, Any] | None = None) -> Path:
+    """`write_run` with the run record of this process: code, machine, times and peak memory; `extra` goes into
+    `metrics.json` too."""
     record = run_record(torch.device(result.run.device), result.seconds, result.cpu_seconds,
                         result.compile_seconds, result.peak_memory)
-    return write_run(folder, result, scene, source, record)
+    return write_run(folder, result, scene, source, record, extra)

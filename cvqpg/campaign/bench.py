@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 import logging
 import math
 import traceback
@@ -27,16 +28,17 @@ from ..app.encoding import encode_steps
 from ..app.executors import DONE, FAILED, INTERRUPTED, NOT_STARTED, SKIPPED, ExecutorOptions, Task, run_tasks
 from ..app.provenance import machine_record
 from ..app.runner import checkpoint_policy, fit_in_folder, resumed_state, write_fitted_run
-from ..config import BEYOND_RECIPE, FLAT_NAMES, FitConfig, RunOptions
+from ..config import BEYOND_RECIPE, FLAT_NAMES, RECIPES, FitConfig, RunOptions
 from ..control import SILENT, RunControl
 from ..defaults import RATE_FINETUNE_STEPS
 from ..errors import CvqpgError
-from ..fitting import FitInterrupted, FitState, estimated_peak_bytes
-from ..metrics import radial_error_spectrum
-from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, HISTORY_FILE, METRICS_FILE, MODEL_FILE, read_record, read_run,
-                    scene_from_source, start_run, write_atomic, write_json)
+from ..display import Display
+from ..fitting import FitInterrupted, FitResult, FitState, estimated_peak_bytes, render
+from ..metrics import evaluate, radial_error_spectrum
+from ..runs import (CHECKPOINT_FILE, CONFIG_FILE, HISTORY_FILE, METRICS_FILE, MODEL_FILE, export_display, read_record,
+                    read_run, scene_from_source, start_run, write_atomic, write_json)
 from ..scenes import SCENES
-from ..targets import check_depth_geometry, load_picture
+from ..targets import Scene, check_depth_geometry, load_picture
 from .presets import COLORS, METHODS, PRESETS
 
 log = logging.getLogger("cvqpg")
@@ -47,6 +49,8 @@ RD_FILE = "rd.json"
 ENCODE_FILE = "encode.json"  # the `cvqpg encode` points of a rate grid's cell (`--preset encode`)
 ENCODE_PARTIAL_FILE = "encode.partial.json"  # its points so far, each a whole fit: kept in git between sessions
 ERROR_FILE = "error.log"
+# The metrics.json entry of what the display shows of a model exported after its fit (`Method.exported`).
+EXPORTED_KEY = "exported_display"
 SPECTRUM_BINS = 32
 FOLDER_SCENE_PLANES = 2
 
@@ -134,7 +138,8 @@ class BenchPlan:
         whose `encode.json` lacks some of the preset's budgets is `fitted`: it runs again for those."""
         status = cell_status(folder, self.done_file)
         fractions = PRESETS[self.preset].encode_fractions
-        if status == DONE and fractions and untried(read_record(folder / ENCODE_FILE, RESTORE_ENCODE), fractions):
+        if status == DONE and fractions and untried(read_record(folder / ENCODE_FILE, RESTORE_ENCODE), fractions,
+                                                    PRESETS[self.preset].encode_rate_losses):
             return FITTED
         return status
 
@@ -217,8 +222,16 @@ def _choose(kind: str, given: Sequence[str] | None, default: tuple[str, ...], kn
 
 def cell_config(base: FitConfig, scene: BenchScene, color: str, ratio: float, method: str, seed: int) -> FitConfig:
     """The fit of one cell. Methods matched to another's parameter count get N·params(other)/params(own)
-    primitives: Baseline⁺ 13/12 (RGB) or 9/8 (gray) of N, the chromatic comparisons 15/12 and 15/13."""
-    config = base.replace(color=color, ratio=ratio, seed=seed, num_planes=scene.planes, **METHODS[method].changes)
+    primitives: Baseline⁺ 13/12 (RGB) or 9/8 (gray) of N, the chromatic comparisons 15/12 and 15/13. A method with
+    its own recipe fits with it, one with its own step factors over that many times `base`'s steps."""
+    spec = METHODS[method]
+    if spec.display is not None:
+        base = base.replace(display=Display.create(spec.display, aperture=spec.aperture))
+    if spec.step_factors:
+        base = base.with_steps(spec.steps_for(color, base.optimisation.steps))
+    # with the primitive: a recipe's start may fit only its own (the per-pixel hologram's)
+    recipe = {} if spec.recipe is None else {**RECIPES[spec.recipe].settings(), "recipe": spec.recipe}
+    config = base.replace(color=color, ratio=ratio, seed=seed, num_planes=scene.planes, **recipe, **spec.changes)
     params_of = METHODS[method].params_of
     if params_of is not None:
         other = config.replace(**params_of)
@@ -319,7 +332,8 @@ def recorded_overrides(preset: str, folder: Path, overrides: Overrides) -> Overr
 
 def default_folder(preset: str, folder: str | Path | None) -> Path:
     """`folder`, else `runs/bench-<preset>`; the encode grid works in the rate grid's folder."""
-    return Path(folder) if folder else Path("runs") / f"bench-{'rate' if PRESETS[preset].encode_fractions else preset}"
+    shared = PRESETS[preset].encode_fractions and not PRESETS[preset].fits_first
+    return Path(folder) if folder else Path("runs") / f"bench-{'rate' if shared else preset}"
 
 
 def _recorded_runs(folder: Path) -> list[tuple[str, FitConfig, dict[str, Any]]]:
@@ -362,8 +376,11 @@ def cell_status(folder: Path, done_file: str = METRICS_FILE) -> str:
 def config_differences(folder: Path, config: FitConfig) -> list[str]:
     """Settings in which the run recorded in `folder` differs from `config`."""
     recorded, _ = read_run(folder)
-    return [f"{name}={recorded.setting(name)!r} (plan: {config.setting(name)!r})" for name in FLAT_NAMES
-            if recorded.setting(name) != config.setting(name)]
+    differences = [f"{name}={recorded.setting(name)!r} (plan: {config.setting(name)!r})" for name in FLAT_NAMES
+                   if recorded.setting(name) != config.setting(name)]
+    if recorded.display != config.display:
+        differences.append(f"display={recorded.display.label()!r} (plan: {config.display.label()!r})")
+    return differences
 
 
 def describe_cells(plan: BenchPlan, cells: tuple[Cell, ...], reuse: Sequence[Path] = ()) -> list[str]:
@@ -397,7 +414,7 @@ def check_inputs(plan: BenchPlan, cells: tuple[Cell, ...]) -> None:
         if "image" in scene.source:
             check_depth_geometry(load_picture(scene.source["image"]),
                                  load_picture(scene.source["depth"], "depth map"), resize_depth=False)
-    if PRESETS[plan.preset].encode_fractions:
+    if PRESETS[plan.preset].encode_fractions and not PRESETS[plan.preset].fits_first:
         unrated = [c.name for c in todo if not (plan.cell_dir(c) / RD_FILE).is_file()]
         if unrated:
             raise BenchError(f"{plan.folder} is not a finished rate grid ({len(unrated)} cells without {RD_FILE}, "
@@ -495,8 +512,18 @@ def run_cell(cell: Cell, folder: Path, control: RunControl = SILENT, checkpoint_
         return INTERRUPTED
     recon = result.reconstructions
     write_json(folder / SPECTRUM_FILE, spectrum_record(recon, scene.targets.to(recon.device)))
-    write_fitted_run(folder, result, scene, cell.scene.source)
+    encoding = METHODS[cell.method].exported
+    extra = None if encoding is None else {EXPORTED_KEY: exported_display(result, scene, encoding)}
+    write_fitted_run(folder, result, scene, cell.scene.source, extra)
     return DONE
+
+
+def exported_display(result: FitResult, scene: Scene, encoding: str) -> dict[str, Any]:
+    """What the display of `encoding` shows of a fitted model, with the defaults `cvqpg export` shows it with
+    (`runs.export_display`): the display and its metrics against the scene's targets."""
+    display = export_display(result.config, encoding)
+    _, shown = render(result.primitives, result.config.replace(display=display), backend=result.run.backend)
+    return {"display": display.to_dict(), **evaluate(shown, scene.targets.to(shown.device)).to_dict()}
 
 
 @dataclass(frozen=True)
@@ -505,12 +532,16 @@ class RateDistortionOptions:
     they take; `finetune_steps`, the steps of quantisation-aware fine-tuning at some of the codec's
     budgets (0: none; see `ratedistortion.finetuned_points`); `budget_fractions`, the preset's `--bpp` budgets
     (`ratedistortion.budget_points`, each fine-tuned for `RATE_FINETUNE_STEPS` as `cvqpg compress --bpp` is);
-    `encode_fractions`, those of the encode grid (`run_encode_cell`)."""
+    `encode_fractions`, those of the encode grid (`run_encode_cell`), each encoded with each of
+    `encode_rate_losses` (without and with the rate in the fit), after the cell's own rate grid record where
+    `fits_first`."""
 
     fits: tuple[Path, ...] = ()
     finetune_steps: int = 0
     budget_fractions: tuple[float, ...] = ()
     encode_fractions: tuple[float, ...] = ()
+    encode_rate_losses: tuple[bool, ...] = (False,)
+    fits_first: bool = False
 
 
 def fitted_model(cell: Cell, fits: Sequence[Path]) -> Path | None:
@@ -557,25 +588,30 @@ def run_rate_distortion_cell(cell: Cell, folder: Path, options: RateDistortionOp
     return DONE
 
 
-def encode_work_folder(bpp: float) -> str:
-    """The folder, in an encode cell's, of the fit at `bpp` while it runs: its checkpoint, kept when the cell stops
-    (not in git, which keeps the finished points only)."""
-    return f"encode-{bpp:.4f}bpp.partial"
+def encode_work_folder(bpp: float, rate_loss: bool = False) -> str:
+    """The folder, in an encode cell's, of the fit at `bpp` (with the rate in its loss: `rate_loss`) while it runs:
+    its checkpoint, kept when the cell stops (not in git, which keeps the finished points only)."""
+    return f"encode-{bpp:.4f}bpp{'-rate' if rate_loss else ''}.partial"
 
 
-def untried(record: dict[str, Any], fractions: Sequence[float]) -> list[float]:
-    """Those of `fractions` that a finished encode cell's record (`encode.json`) did not try."""
-    return [f for f in fractions if not any(math.isclose(f, tried) for tried in record.get("fractions", []))]
+def untried(record: dict[str, Any], fractions: Sequence[float], rate_losses: Sequence[bool] = (False,)) -> list[float]:
+    """Those of `fractions` that a finished encode cell's record (`encode.json`) did not try with each of
+    `rate_losses` (a record without `rate_losses` tried without the rate in the fit)."""
+    tried_losses = record.get("rate_losses", [False])
+    return [f for f in fractions if not any(math.isclose(f, tried) for tried in record.get("fractions", []))
+            or not set(rate_losses) <= set(tried_losses)]
 
 
-def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float], control: RunControl = SILENT) -> str:
+def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float], control: RunControl = SILENT,
+                    rate_losses: Sequence[bool] = (False,)) -> str:
     """An encode grid's cell: `cvqpg encode --bpp` of the cell's scene (`ratedistortion.encode_point`, the default
     recipe, `encode_steps` in the place of the cell's steps) at `fractions` of the rate its rate grid cell's
     budgets are fractions of, into `encode.json`. Each point is a whole fit; the finished ones are kept in
     `encode.partial.json`, so a stopped cell resumes at its first budget without a point, whose fit continues
     from the checkpoint in its folder (`encode_work_folder`). A finished cell whose `encode.json` lacks some of
-    `fractions` (the grid gained a budget) is skipped no longer: it fits the budgets it lacks and keeps its points."""
-    from .ratedistortion import encode_point, rate_base
+    `fractions` (the grid gained a budget) is skipped no longer: it fits the budgets it lacks and keeps its points.
+    Each budget is encoded with each of `rate_losses` (`ratedistortion.encode_point`'s `rate_loss`)."""
+    from .ratedistortion import ENCODER, ENCODER_RATE, encode_point, rate_base
 
     base = rate_base(read_record(folder / RD_FILE, RESTORE_ENCODE))
     partial, finished_file = folder / ENCODE_PARTIAL_FILE, folder / ENCODE_FILE
@@ -586,25 +622,29 @@ def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float], contro
     else:
         record = {"fractions": [], "base_bpp": base, "points": [], "skipped_bpp": []}
 
-    def lacks(fraction: float) -> bool:
-        finished = [point["budget_bpp"] for point in record["points"]] + record["skipped_bpp"]
+    def lacks(fraction: float, rate_loss: bool) -> bool:
+        label = ENCODER_RATE if rate_loss else ENCODER
+        finished = [point["budget_bpp"] for point in record["points"]
+                    if point["codec"] == label] + record["skipped_bpp"]
         return not any(math.isclose(fraction * base, done) for done in finished)
 
-    if finished_file.is_file() and not partial.is_file() and not untried(record, fractions):
+    if finished_file.is_file() and not partial.is_file() and not untried(record, fractions, rate_losses):
         return SKIPPED
     record["fractions"] = sorted({*record["fractions"], *fractions}, reverse=True)
+    if any(rate_losses):  # a record without them encoded without the rate in the fit, as every older one
+        record["rate_losses"] = sorted({*record.get("rate_losses", [False]), *rate_losses})
     fit_steps, finetune_steps = encode_steps(cell.config.optimisation.steps)
     config = cell.config.with_recipe(BEYOND_RECIPE).with_steps(fit_steps).validate()
     scene = scene_from_source(cell.scene.source, config)
-    for fraction in fractions:
+    for fraction, rate_loss in itertools.product(fractions, rate_losses):
         bpp = fraction * base
-        if not lacks(fraction):
+        if not lacks(fraction, rate_loss):
             continue
         if control.should_stop():
             return INTERRUPTED
         try:
-            point = encode_point(scene, config, cell.scene.source, bpp, folder / encode_work_folder(bpp),
-                                 finetune_steps, cell.run, control)
+            point = encode_point(scene, config, cell.scene.source, bpp, folder / encode_work_folder(bpp, rate_loss),
+                                 finetune_steps, cell.run, control, rate_loss)
         except FitInterrupted:
             return INTERRUPTED
         if point is None:
@@ -623,7 +663,12 @@ def _attempt(cell: Cell, folder: Path, rate_distortion: RateDistortionOptions | 
     given, with a failure turned into a status, its traceback kept in the cell's `error.log`."""
     try:
         if rate_distortion is not None and rate_distortion.encode_fractions:
-            return run_encode_cell(cell, folder, rate_distortion.encode_fractions, control), None
+            if rate_distortion.fits_first:
+                status = run_rate_distortion_cell(cell, folder, rate_distortion, control, checkpoint_every)
+                if status not in (DONE, SKIPPED):
+                    return status, None
+            return run_encode_cell(cell, folder, rate_distortion.encode_fractions, control,
+                                   rate_distortion.encode_rate_losses), None
         if rate_distortion is not None:
             return run_rate_distortion_cell(cell, folder, rate_distortion, control, checkpoint_every), None
         return run_cell(cell, folder, control, checkpoint_every), None
@@ -664,7 +709,8 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
             todo.append(cell)
     preset = PRESETS[plan.preset]
     rd_options = (dataclasses.replace(rate_distortion, budget_fractions=preset.budget_fractions,
-                                      encode_fractions=preset.encode_fractions)
+                                      encode_fractions=preset.encode_fractions,
+                                      encode_rate_losses=preset.encode_rate_losses, fits_first=preset.fits_first)
                   if preset.rate_distortion else None)
     tasks = [Task(cell.name, functools.partial(_attempt, cell, plan.cell_dir(cell), rd_options,
                                                executor.checkpoint_every), cell.config.optimisation.steps)

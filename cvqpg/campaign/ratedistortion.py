@@ -55,6 +55,8 @@ PRUNE_FRACTIONS = (0.05, 0.1, 0.2)
 WIDE_RANGE_DB = (3.0, 0.1)
 CODEC, FLOAT32, FLOAT16 = "cvqpg", "model float32", "model float16"
 ENCODER = "cvqpg encode"  # `.cvq` files of a fit at the budget's primitive count, not of the cell's fit
+ENCODER_RATE = "cvqpg encode --rate-loss"  # the same with the rate in the fit's loss (`ratefit`)
+ENCODERS = (ENCODER, ENCODER_RATE)
 ANCHORS = ("JPEG 2000", "JPEG XL")
 
 
@@ -172,23 +174,26 @@ def budget_points(primitives: Primitives, config: FitConfig, scene: Scene, fit_p
 
 def encode_point(scene: Scene, config: FitConfig, source: dict[str, Any], bpp: float, work: Path,
                  finetune_steps: int = ENCODE_FINETUNE_STEPS, run: RunOptions = RunOptions(),
-                 control: RunControl = SILENT) -> Point | None:
-    """The file `cvqpg encode --bpp` writes of `scene` (its inputs `source`) with `config`'s settings: a fit at the
+                 control: RunControl = SILENT, rate_loss: bool = False) -> Point | None:
+    """The file `cvqpg encode --bpp` (with `rate_loss`, `--rate-loss`: labelled `ENCODER_RATE`) writes of `scene`
+    (its inputs `source`) with `config`'s settings: a fit at the
     budget's primitive count in the folder `work` (`app.encoding.encode_in_folder`), rate control and
     `finetune_steps` of fine-tuning; None where the budget is below the smallest file of a model of the fit's
     shape. The fit (on `run`), or its rate control, raises `fitting.FitInterrupted` once `control` asks to stop, with
     a checkpoint saved, from which the same call resumes; `work` is removed once the point is made. Its encode time is
     the fit's, over every segment, and the rate control's (`app.encoding.Encoding.seconds`), wall and CPU."""
+    settings = CompressionSettings(bpp=bpp, rate_loss=rate_loss)
     try:
-        budget = encode_budget(config, CompressionSettings(bpp=bpp))
+        budget = encode_budget(config, settings)
     except ConfigError:
         return None
-    fit_config = encode_config(config, budget)
+    fit_config, fit = encode_config(config, budget), settings.rate_fit(budget)
     if not (work / CONFIG_FILE).is_file():
-        start_encode(work, fit_config, source, budget, finetune_steps, run)
-    encoded = encode_in_folder(work, scene, fit_config, budget, finetune_steps, run, control.quiet())
+        start_encode(work, fit_config, source, budget, finetune_steps, run, fit)
+    encoded = encode_in_folder(work, scene, fit_config, budget, finetune_steps, run, control.quiet(), fit=fit)
     chosen = encoded.rate.choice
-    point = _decoded_point(ENCODER, f"--bpp {bpp:.3f}: {fit_config.primitive_count} fitted, {_describe(chosen.bits)}",
+    point = _decoded_point(ENCODER_RATE if rate_loss else ENCODER,
+                           f"--bpp {bpp:.3f}: {fit_config.primitive_count} fitted, {_describe(chosen.bits)}",
                            chosen.data, config, scene.targets, encoded.seconds)
     point.budget_bpp, point.encode_cpu_s = bpp, encoded.cpu_seconds
     shutil.rmtree(work)

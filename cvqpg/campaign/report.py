@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from . import figures
-from .bench import (CELLS_DIR, DONE, ENCODE_FILE, METHODS, METRICS_FILE, PRESETS, RD_FILE, SPECTRUM_FILE, BenchPlan,
+from .bench import (CELLS_DIR, DONE, ENCODE_FILE, EXPORTED_KEY, METHODS, METRICS_FILE, PRESETS, RD_FILE, SPECTRUM_FILE, BenchPlan,
                     Cell, setting_label)
 from ..errors import InputError
 from ..runs import read_record, write_atomic
@@ -127,14 +127,18 @@ def rate_distortion_record(folder: Path) -> dict[str, Any] | None:
 
 
 def collect(plan: BenchPlan) -> list[CellResult]:
-    """Every cell of the plan with its status, and its metrics and spectrum once done."""
+    """Every cell of the plan with its status, and its metrics and spectrum once done. A cell whose method shows
+    its model on a display after the fit (`Method.exported`) has that display's metrics as its own."""
     results = []
     for cell in plan.cells:
         folder = plan.cell_dir(cell)
         status = plan.status(folder)
         fitted = (folder / METRICS_FILE).is_file()
-        results.append(CellResult(cell, status, read_cell_record(folder / METRICS_FILE) if fitted else None,
-                                  read_cell_record(folder / SPECTRUM_FILE) if fitted else None,
+        metrics = read_cell_record(folder / METRICS_FILE) if fitted else None
+        if metrics is not None and METHODS[cell.method].exported is not None:
+            metrics = {**metrics, **{key: metrics.get(EXPORTED_KEY, {}).get(key)
+                                     for key in ("mean", "per_plane", "unavailable")}}
+        results.append(CellResult(cell, status, metrics, read_cell_record(folder / SPECTRUM_FILE) if fitted else None,
                                   rate_distortion_record(folder) if status == DONE else None))
     return results
 
@@ -466,8 +470,9 @@ def rate_distortion_table(plan: BenchPlan, results: list[CellResult]) -> tuple[l
         return [table], rows
     wide, wide_rows = wide_range_table(plan, results)
     by_cell = {row["cell"]: row for row in wide_rows}
-    encoded = encode_points_table(plan, results)
-    return [table, wide, *([encoded] if encoded.rows else [])], [{**row, **by_cell.get(row["cell"], {})}
+    encoded, encoders = encode_points_table(plan, results), encoder_bd_table(plan, results)
+    return [table, wide, *([encoded] if encoded.rows else []), *([encoders] if encoders.rows else [])], \
+        [{**row, **by_cell.get(row["cell"], {})}
                                                                  for row in rows]
 
 
@@ -475,17 +480,18 @@ def encode_points_table(plan: BenchPlan, results: list[CellResult]) -> Table:
     """In a rate grid with the encode grid's points (`--preset encode`), one row per `cvqpg encode` file: its budget,
     primitives, rate and PSNR, beside the PSNR of the codec's front from the cell's fit (pruned and fine-tuned by
     `--bpp`) and of JPEG XL's front at the file's rate."""
-    from .ratedistortion import CODEC, ENCODER, psnr_at_rate
+    from .ratedistortion import CODEC, ENCODERS, psnr_at_rate
 
     table = Table("cvqpg encode's files against the Table 1 fit's codec front and JPEG XL at the same rate",
-                  ["Scene", "Setting", "budget bpp", "file bpp", "primitives", "PSNR", "below the fit",
+                  ["Scene", "Setting", "encoder", "budget bpp", "file bpp", "primitives", "PSNR", "below the fit",
                    "from the Table 1 fit", "JPEG XL", "above JPEG XL", "encode s", "CPU s"],
                   note="PSNR in dB, mean over the planes against the targets. From the Table 1 fit and JPEG XL: "
                   "the Pareto front of the cell's `.cvq` files of its own fit (ladder, searched, `--bpp`) and "
                   "JPEG XL's at the file's rate, linear in log bpp between their points (– outside them). "
                   "Primitives: those in the file; encode s: the fit and its rate control, wall time; CPU s: the "
                   "process's CPU time over it, all threads (below encode s × threads where other work shared the "
-                  "cores; – for points recorded without it).")
+                  "cores; – for points recorded without it). Encoder: `cvqpg encode` as it fits by default, or with "
+                  "the rate in the fit (`--rate-loss`).")
     for setting in plan.settings:
         for r in results:
             if r.rd is None or r.cell.setting != setting:
@@ -493,15 +499,50 @@ def encode_points_table(plan: BenchPlan, results: list[CellResult]) -> Table:
             top = r.rd["fit_psnr"]
             fitted = [p for p in r.rd["points"] if p["codec"] == CODEC]
             jpeg_xl = [p for p in r.rd["points"] if p["codec"] == "JPEG XL"]
-            for point in sorted((p for p in r.rd["points"] if p["codec"] == ENCODER), key=lambda p: -p["bpp"]):
+            for point in sorted((p for p in r.rd["points"] if p["codec"] in ENCODERS),
+                                key=lambda p: (ENCODERS.index(p["codec"]), -p["bpp"])):
                 own, anchor = psnr_at_rate(fitted, point["bpp"]), psnr_at_rate(jpeg_xl, point["bpp"])
-                table.rows.append([r.cell.scene.name, setting_label(setting), f"{point['budget_bpp']:.3f}",
+                table.rows.append([r.cell.scene.name, setting_label(setting), point["codec"],
+                                   f"{point['budget_bpp']:.3f}",
                                    f"{point['bpp']:.3f}", f"{point['primitives']:,}", f"{point['psnr']:.3f}",
                                    f"{point['psnr'] - top:+.2f}", MISSING if own is None else f"{own:.2f}",
                                    MISSING if anchor is None else f"{anchor:.2f}",
                                    MISSING if anchor is None else f"{point['psnr'] - anchor:+.2f}",
                                    f"{point['encode_s']:.0f}",
                                    MISSING if point.get("encode_cpu_s") is None else f"{point['encode_cpu_s']:.0f}"])
+    return table
+
+
+def encoder_bd_table(plan: BenchPlan, results: list[CellResult]) -> Table:
+    """In a grid with points of both encoders (`--preset rate-fit`), per cell: the BD-rate of each encoder's files
+    against JPEG XL and JPEG 2000 over [fit − 3, fit − 0.1] dB, and the PSNR of the rate in the fit above
+    today's encode at each budget (equal bytes, within rate control's 5%)."""
+    from .ratedistortion import ANCHORS, ENCODER, ENCODER_RATE, WIDE_RANGE_DB, _against_anchors, _by_codec
+
+    deepest, shallowest = WIDE_RANGE_DB
+    table = Table(f"The rate in the fit against today's encode: BD-rate over [fit − {deepest:g}, fit − "
+                  f"{shallowest:g}] dB and the PSNR gain at each budget",
+                  ["Scene", "Setting", *(f"{encoder} vs {anchor}" for encoder in (ENCODER, ENCODER_RATE)
+                                         for anchor in ANCHORS), "gain at each budget (dB)"],
+                  note="BD-rate: negative where the encoder's files take fewer bytes than the anchor's at equal "
+                  "PSNR; gain: the `--rate-loss` file's PSNR less today's at the same budget, largest budget first.")
+    for setting in plan.settings:
+        for r in results:
+            if r.rd is None or r.cell.setting != setting:
+                continue
+            by_codec = _by_codec(r.rd)
+            if not by_codec.get(ENCODER_RATE):
+                continue
+            top = r.rd["fit_psnr"]
+            cells = []
+            for encoder in (ENCODER, ENCODER_RATE):
+                rates, _ = _against_anchors(by_codec, top - shallowest, deepest - shallowest, (encoder,))
+                cells += [MISSING if rates[anchor] is None else f"{rates[anchor].percent:+.1f}%" for anchor in ANCHORS]
+            today = {round(p["budget_bpp"], 6): p["psnr"] for p in by_codec.get(ENCODER, [])}
+            gains = [f"{p['psnr'] - today[round(p['budget_bpp'], 6)]:+.2f}"
+                     for p in sorted(by_codec[ENCODER_RATE], key=lambda p: -p["budget_bpp"])
+                     if round(p["budget_bpp"], 6) in today]
+            table.rows.append([r.cell.scene.name, setting_label(setting), *cells, ", ".join(gains) or MISSING])
     return table
 
 
