@@ -158,7 +158,7 @@ def stage_actions(config: FitConfig, run: RunOptions, primitives: Primitives | N
     whole steps too."""
     scene = demo_scene(config, run)
     backend = run.backend
-    config = config.replace(curvature_warmup=0 if curved else 10**9)
+    config = config.replace(curvature_warmup=0 if curved else config.optimisation.steps + 1)
     state = initial_state(config, scene, run)
     if primitives is not None:
         load_raw_parameters(state.gaussians, primitives, config)

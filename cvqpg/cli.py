@@ -25,6 +25,7 @@ from .config import (BACKENDS, BOUNDS, COLORS, CURVATURES, DEVICE_TYPES, PIXEL_R
                      FitConfig, RunOptions, default_curvature_warmup)
 from .control import RunControl
 from .defaults import (CHECKPOINT_SECONDS, DEFAULT_APERTURE, DEFAULT_LEVELS, DEFAULT_SWEEP, DEPTH_FILE, DEPTH_MODEL,
+                       DISPLAY_ENCODINGS,
                        ENCODE_FINETUNE_STEPS, ENCODE_STEPS, ENCODINGS, EXECUTORS, PARTIAL_SUFFIX, RATE_FINETUNE_STEPS,
                        SCENE_NAMES, SUFFIX, VIEW_FILE)
 from .errors import CvqpgError, allocation_failure, filesystem_refusal
@@ -51,7 +52,8 @@ FLAGS = {"width": "--size", "height": "--size", "size": "--size", "num_planes": 
              "depth", "image", "max_drop", "bits", "prune", "finetune", "levels", "aperture", "slm", "distance",
              "encoding", "distances", "out")},
          "finetune_steps": "--finetune", "prune_fraction": "--prune", "overwrite": "--overwrite", "bpp": "--bpp",
-         "max_bytes": "--max-bytes", "rate_loss": "--rate-loss", "time": "--time", "recipe": "--recipe", "canvas": "--slm", "lut": "--lut"}
+         "max_bytes": "--max-bytes", "rate_loss": "--rate-loss", "time": "--time", "recipe": "--recipe", "canvas": "--slm",
+         "lut": "--lut", "display": "--display"}
 
 
 class DefaultsFormatter(argparse.HelpFormatter):
@@ -216,6 +218,26 @@ def _fit_options(p: argparse.ArgumentParser, steps: int = DEFAULTS.optimisation.
                    help="plane range V in m")
     p.add_argument("--resize-depth", action="store_true",
                    help="accept a depth map whose aspect ratio differs from the image's (it is stretched)")
+    _display_options(p, "what the fit's loss sees (method.md §8): an ideal complex SLM (the paper's fit), "
+                     "double-phase amplitude coding on a phase-only SLM, or the field's bare phase on one",
+                     "complex")
+
+
+def _display_options(p: argparse.ArgumentParser, what: str, default: str | None,
+                     choices: tuple[str, ...] = DISPLAY_ENCODINGS, flag: str = "--display") -> None:
+    """The display a hologram is shown on (`display.Display.from_options` reads them): `fit`, `encode` and
+    `batch` fit through it, `export` writes its patterns."""
+    p.add_argument(flag, choices=choices, default=default, help=what)
+    p.add_argument("--levels", type=whole, help="a phase-only SLM's phase levels, gray level g showing 2πg/LEVELS "
+                   f"[default: {DEFAULT_LEVELS}, or the --lut's]")
+    p.add_argument("--lut", metavar="FILE", help="a phase-only SLM's measured lookup table: the phase in rad that "
+                   "each gray level shows, one row per level from 0 (the phase, or `gray, phase`; CSV or text) "
+                   "[default: uniform levels]")
+    p.add_argument("--aperture", type=finite, help="radius of the 4f filter's circular Fourier aperture as a "
+                   f"fraction of the Nyquist frequency, 0 for none [default: {DEFAULT_APERTURE:g} for dpac, none "
+                   "otherwise]")
+    p.add_argument("--slm", type=whole, nargs=2, metavar=("W", "H"), help="SLM size in px: the hologram is "
+                   "centred on it, the rest at gray level 0 (e.g. 4096 2400) [default: the hologram's size]")
 
 
 def _count_options(p: argparse.ArgumentParser) -> None:
@@ -237,13 +259,9 @@ def _display_parsers(sub: argparse._SubParsersAction) -> None:
                        "then simulate showing them through a 4f system and compare with the complex field.")
     x.add_argument("run_dir", metavar="RUN_DIR|MODEL", help="folder written by `cvqpg fit`, or a model file "
                    f"(.safetensors or {SUFFIX}) inside one")
-    x.add_argument("--encoding", choices=ENCODINGS, default="dpac", help="double-phase amplitude coding, "
-                   "or the bare phase of the field (drops the amplitude; for comparison)")
-    x.add_argument("--levels", type=whole, default=DEFAULT_LEVELS, help="phase levels of the SLM")
-    x.add_argument("--slm", type=whole, nargs=2, metavar=("W", "H"), help="SLM size in px: the pattern is "
-                   "centred on it, the rest at phase 0 (e.g. 4096 2400) [default: the hologram's size]")
-    x.add_argument("--aperture", type=finite, default=DEFAULT_APERTURE, help="radius of the 4f filter's "
-                   "circular Fourier aperture as a fraction of the Nyquist frequency (0 disables the filter)")
+    _display_options(x, "double-phase amplitude coding, or the bare phase of the field (drops the amplitude; for "
+                     "comparison); each option not given is the display's the run was fitted through, if phase-only "
+                     "[default: the run's display, else dpac]", None, ENCODINGS, "--encoding")
     x.add_argument("--out", metavar="DIR", help="output folder [default: RUN_DIR/export]")
     _overwrite_argument(x, "the output folder")
     _device_argument(x)
@@ -492,12 +510,14 @@ def build_parser() -> argparse.ArgumentParser:
 def _fit_settings(args: argparse.Namespace) -> dict:
     """`FitConfig.create`'s settings that `_fit_options` and `_count_options` give; `color`, `num_planes` and
     `steps` None where not given (the input decides them)."""
+    from .display import Display
     width, height = args.size
     return dict(width=width, height=height, color=args.color, primitive=args.primitive, ratio=args.ratio,
                 num_gaussians=args.num_gaussians, steps=args.steps, curvature_warmup=args.curvature_warmup,
                 seed=args.seed, num_planes=args.planes, bound=args.bound, qpf=args.qpf, curvature=args.curvature,
                 phase=args.phase, pixel_pitch=args.pitch, plane_center=args.plane_center, plane_span=args.plane_span,
-                wavelengths_m=tuple(args.wavelengths) if args.wavelengths else None)
+                wavelengths_m=tuple(args.wavelengths) if args.wavelengths else None,
+                display=Display.from_options(args.display, args.levels, args.lut, args.aperture, _size(args.slm)))
 
 
 def _fit_inputs_of(args: argparse.Namespace) -> FitInputs:
@@ -562,7 +582,7 @@ def run_fit(args: argparse.Namespace) -> int:
 def run_export(args: argparse.Namespace) -> int:
     from .app.runfolders import export
     out, record = export(args.run_dir, args.encoding, args.levels, _size(args.slm), args.aperture, args.out,
-                         args.overwrite, args.device)
+                         args.overwrite, args.device, args.lut)
     print(f"{out}: {len(record['files'])} files; mean PSNR against the targets:")
     for label, key in (("phase-only display", "phase_only_display"), ("complex field, same display", "complex_display"),
                        ("complex field, as fitted", "complex_field")):

@@ -89,6 +89,14 @@ class Display:
             aperture = DEFAULT_APERTURE if encoding == "dpac" else None
         return cls(encoding, levels, lut, aperture, None if canvas is None else tuple(canvas))
 
+    @classmethod
+    def from_options(cls, encoding: Encoding = "complex", levels: int | None = None, lut: str | Path | None = None,
+                     aperture: float | None = None, slm: tuple[int, int] | None = None) -> "Display":
+        """The display that the command line's options describe (`create`'s defaults where None): `lut` a file
+        (`read_lut`), `aperture` 0 for no filter, `slm` the SLM's (W, H) px."""
+        return cls.create(encoding, levels, None if lut is None else read_lut(lut),
+                          "auto" if aperture is None else aperture or None, None if slm is None else (slm[1], slm[0]))
+
     @property
     def ideal(self) -> bool:
         """Whether this is the default display, the complex hologram of method.md §3 (guard band and all)."""

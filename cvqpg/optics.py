@@ -9,8 +9,8 @@ from typing import Sequence
 from torch import Tensor
 
 from .config import FitConfig, padded_size
-from .display import canvas_offset, displayed_field
-from .ops.field import Grid, clamped_intensity, guarded_field, slm_field
+from .ops.display import shown_field
+from .ops.field import Grid, clamped_intensity, guarded_field
 from .ops.propagation import propagate_planes
 
 
@@ -20,8 +20,8 @@ def reconstruct(hologram: Tensor, config: FitConfig, distances_m: Sequence[float
     `config`'s planes or at `distances_m` (m), with the kernels of `backend` (`config.resolve_backend`).
 
     The default display, the ideal complex SLM, is method.md §3's: the hologram with its guard band. Any other
-    shows its canvas (`display.displayed_field` of the clamped SLM field) in a dark zero-padded array, behind the
-    4f aperture, which the propagation's transfer functions carry (method.md §8). Differentiable either way: the
+    shows its canvas (`ops.display.shown_field`) in a dark zero-padded array, behind the 4f aperture, which the
+    propagation's transfer functions carry (method.md §8). Differentiable either way: the
     fit's loss sees what the display shows.
     """
     display = config.display
@@ -31,7 +31,7 @@ def reconstruct(hologram: Tensor, config: FitConfig, distances_m: Sequence[float
         field = guarded_field(hologram, grid, backend)
     else:
         grid = display_grid(config)
-        field = on_display_grid(displayed_field(slm_field(hologram), display), grid, config)
+        field = shown_field(hologram, grid, display, backend)
     planes = propagate_planes(field, grid, distances, config.wavelengths, config.optics.pixel_pitch, backend,
                               display.aperture)
     return clamped_intensity(planes, backend)
@@ -45,14 +45,3 @@ def display_grid(config: FitConfig) -> Grid:
     return Grid(config.targets.height, config.targets.width,
                 padded_size(height, optics.guard_band_px, optics.pad_multiple_px),
                 padded_size(width, optics.guard_band_px, optics.pad_multiple_px))
-
-
-def on_display_grid(canvas_field: Tensor, grid: Grid, config: FitConfig) -> Tensor:
-    """A canvas field [C, canvas H, canvas W] in the dark array [C, P_H, P_W] of `display_grid`, placed so that
-    the hologram on it sits where `grid` crops the planes (differentiable)."""
-    canvas_h, canvas_w = canvas_field.shape[-2:]
-    inner_top, inner_left = canvas_offset((canvas_h, canvas_w), (config.targets.height, config.targets.width))
-    top, left = grid.top - inner_top, grid.left - inner_left
-    padded = canvas_field.new_zeros(canvas_field.shape[0], grid.padded_height, grid.padded_width)
-    padded[:, top:top + canvas_h, left:left + canvas_w] = canvas_field
-    return padded

@@ -130,12 +130,13 @@ def metrics_record(report: MetricReport, config: FitConfig, seconds: float,
 
 def complex_field_metrics(primitives: Primitives, config: FitConfig, scene: Scene, backend: str = "auto"
                           ) -> dict[str, Any]:
-    """For a model fitted through a display other than the complex one: `complex_field`, the metrics of its
-    complex field as method.md §3 reconstructs it, beside those of what the display shows; else nothing."""
+    """For a model fitted through a display other than the complex one: the display (`display`, its label) and
+    `complex_field`, the metrics of its complex field as method.md §3 reconstructs it, beside those of what the
+    display shows; else nothing."""
     if config.display.ideal:
         return {}
     _, recon = render(primitives, config.replace(display=Display()), backend=backend)
-    return {"complex_field": evaluate(recon, scene.targets).to_dict()}
+    return {"display": config.display.label(), "complex_field": evaluate(recon, scene.targets).to_dict()}
 
 
 def start_run(folder: str | Path, config: FitConfig, source: dict[str, Any], run: RunOptions = RunOptions(),
@@ -381,7 +382,8 @@ def evaluate_run(folder: str | Path, model: str | Path | None = None, device: st
     if (folder / METRICS_FILE).is_file():
         previous = read_record(folder / METRICS_FILE, "delete it and evaluate again (the fit's time and run "
                                "record go with it)")
-    kept = {k: v for k, v in previous.items() if k not in ("mean", "per_plane", "unavailable", "complex_field")}
+    kept = {k: v for k, v in previous.items()
+            if k not in ("mean", "per_plane", "unavailable", "display", "complex_field")}
     record = {**metrics_record(evaluate(recon, scene.targets), config, previous.get("seconds", 0.0),
                                complex_field_metrics(primitives, config, scene, backend)), **kept}
     write_json(metrics_file, record)

@@ -215,7 +215,7 @@ def settings_rows(run: Run) -> dict[str, str]:
             "steps (warm-up)": f"{config.optimisation.steps} ({config.optimisation.curvature_warmup})",
             "curvature": f"{config.primitives.curvature}, {config.primitives.bound} bound, {config.primitives.qpf} QPF"
             if config.primitives.kind == "cvqpg" else "–",
-            "seed": str(config.optimisation.seed)}
+            "seed": str(config.optimisation.seed), "display": config.display.label()}
     rows.update({name.upper(): _value(mean.get(name), 4 if name in ("ssim", "flip", "lpips") else 3)
                  for name in METRIC_NAMES})
     rows["PSNR per plane (dB)"] = " / ".join(_value(v, 3) for v in per_plane.get("psnr", [])) or "–"

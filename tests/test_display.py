@@ -20,7 +20,9 @@ from cvqpg.errors import ConfigError, InputError
 from cvqpg.ops.field import Grid, slm_field
 from cvqpg.ops.propagation import TransferBank, propagate, propagate_content
 from cvqpg.ops.propagation import reference as propagation_reference
-from cvqpg.optics import display_grid, on_display_grid, reconstruct
+from cvqpg.ops.display import shown_field
+from cvqpg.ops.display.reference import shown_field as shown_reference
+from cvqpg.optics import display_grid, reconstruct
 
 CPU = torch.device("cpu")
 PITCH = 3.74e-6
@@ -268,9 +270,39 @@ def test_the_display_path_is_held_to_a_plain_reference_values_and_gradients(enco
 def test_the_complex_display_on_a_canvas_is_the_field_itself_in_the_dark():
     config = small_config(display=Display(canvas=(36, 44)))
     hologram = random_hologram(1, 32, 40, seed=8)
-    padded = on_display_grid(displayed_field(slm_field(hologram), config.display), display_grid(config), config)
+    padded = shown_reference(hologram, display_grid(config), config.display)
     assert padded.shape[-2:] == (padded_size(36, 16, 16), padded_size(44, 16, 16))
     assert torch.equal(padded.abs().sum(), slm_field(hologram).abs().sum())
+
+
+@pytest.mark.parametrize("display", [Display.create("dpac", levels=2**16), Display.create("phase", levels=2**16),
+                                     Display.create("dpac", lut=tuple(0.3 + 2 * math.pi * k / 5000 for k in range(5000)),
+                                                    canvas=(36, 46))])
+def test_the_shown_field_kernels_match_the_reference_and_its_gradient(display):
+    config = small_config(color="rgb", display=display)
+    grid = display_grid(config)
+    hologram = random_hologram(3, 32, 40, seed=9, top=1.2)
+    incoming = torch.randn(3, grid.padded_height, grid.padded_width, dtype=torch.complex64,
+                           generator=torch.Generator().manual_seed(10))
+    shown = {}
+    for backend in ("numba", "torch"):
+        leaf = hologram.clone().requires_grad_(True)
+        field = shown_field(leaf, grid, display, backend)
+        torch.view_as_real(field).mul(torch.view_as_real(incoming)).sum().backward()
+        shown[backend] = field.detach(), leaf.grad
+    (fast, fast_grad), (plain, plain_grad) = shown["numba"], shown["torch"]
+    assert torch.allclose(fast, plain, atol=2e-3)  # fine levels: a phase on a level's boundary may round either way
+    assert torch.allclose(fast_grad, plain_grad, rtol=1e-3, atol=1e-3 * plain_grad.abs().max())
+
+
+def test_the_shown_field_kernel_picks_the_reference_s_gray_levels():
+    display = Display.create("dpac")
+    config = small_config(display=display)
+    grid = display_grid(config)
+    hologram = random_hologram(1, 32, 40, seed=11)
+    fast, plain = (shown_field(hologram, grid, display, backend) for backend in ("numba", "torch"))
+    differ = (fast - plain).abs() > 1e-5
+    assert differ.sum() <= 2  # a phase on a level's boundary may round either way in another float32 order
 
 
 # A fit through the display, and its export.
@@ -335,3 +367,12 @@ def test_a_cvq_file_keeps_the_display_and_refuses_one_that_cannot_work():
     body = PREFIX.pack(data[:8], version, len(packed)) + data[PREFIX.size:start] + packed + data[start + length:-4]
     with pytest.raises(ModelFileError, match="phase levels"):
         decode(body + CHECKSUM.pack(zlib.crc32(body)))
+
+
+def test_the_command_line_s_options_make_the_display(tmp_path):
+    (tmp_path / "lut.txt").write_text("0.0\n2.0\n4.0\n")
+    assert Display.from_options() == Display()
+    assert Display.from_options("dpac") == Display.create("dpac")
+    made = Display.from_options("phase", lut=tmp_path / "lut.txt", aperture=0.0, slm=(48, 40))
+    assert made == Display("phase", 3, (0.0, 2.0, 4.0), None, (40, 48))
+    assert Display.from_options("dpac", levels=16, aperture=0.7).aperture == 0.7

@@ -60,23 +60,26 @@ def evaluate(target: str | Path, device: str = "cpu") -> tuple[Path, dict[str, A
         return folder, evaluate_run(folder, model, device)
 
 
-def export(target: str | Path, encoding: str, levels: int, slm: tuple[int, int] | None, aperture: float,
-           out: str | Path | None = None, overwrite: bool = False, device: str = "cpu"
-           ) -> tuple[Path, dict[str, Any]]:
+def export(target: str | Path, encoding: str | None, levels: int | None, slm: tuple[int, int] | None,
+           aperture: float | None, out: str | Path | None = None, overwrite: bool = False, device: str = "cpu",
+           lut: str | Path | None = None) -> tuple[Path, dict[str, Any]]:
     """`cvqpg export`: the phase-only patterns of `target`'s model and their simulated display (`runs.export_run`)
     in the folder `out` (default: the run's `export`, or `export-<model stem>` for a model file); the folder and
-    the export's record."""
+    the export's record. A setting None is the run's display's (`runs.export_display`); `aperture` 0 is none,
+    `lut` a lookup table's file (`display.read_lut`)."""
+    from ..display import read_lut
     from ..runs import EXPORT_FOLDER, MODEL_FILE, export_run, read_run
     from .outputs import EXPORT, staged_output
     check_device(device)
     folder, model = run_and_model(Path(target))
-    if not 0 <= aperture <= math.sqrt(2):
+    if aperture is not None and not 0 <= aperture <= math.sqrt(2):
         raise UsageError(f"--aperture {aperture:g}: give a radius in [0, √2] (a fraction of Nyquist; from √2 "
                          "on it passes every frequency, as 0 does: no filter)")
     out = Path(out) if out else folder / (EXPORT_FOLDER if model is None else f"{EXPORT_FOLDER}-{model.stem}")
     check_memory(read_run(folder)[0], device, "export", "give a smaller --slm", size=slm)
     with staged_output(out, EXPORT, [folder, model or folder / MODEL_FILE], overwrite) as staged:
-        record = export_run(folder, encoding, levels, slm, aperture or None, staged, model, device)
+        record = export_run(folder, encoding, levels, slm, "auto" if aperture is None else aperture or None, staged,
+                            model, device, None if lut is None else read_lut(lut))
     return out, record
 
 

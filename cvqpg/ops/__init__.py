@@ -5,6 +5,7 @@ kernels (`cpu.py`, Numba) and its GPU kernels (`gpu.py`, Triton) side by side, u
 |---------------|--------------------------------------------------------|--------------|--------|--------|
 | `rasterize`   | `rasterize`                                            | yes          | yes    | yes    |
 | `field`       | `guarded_field`, `clamped_intensity`                   | yes          | yes    | —      |
+| `display`     | `shown_field`                                          | yes          | yes    | —      |
 | `propagation` | `propagate_planes`, `propagate_content`                | yes          | yes    | —      |
 | `loss`        | `multiplane_loss`, `ssim_per_plane`, `standard_normal` | yes          | yes    | —      |
 
