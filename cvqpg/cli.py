@@ -10,7 +10,6 @@ import logging
 import math
 import os
 import re
-import signal
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn, Sequence
@@ -18,7 +17,7 @@ from typing import TYPE_CHECKING, NoReturn, Sequence
 # Only light modules here: `cvqpg --version` and every `--help` answer without PyTorch or Numba; each command
 # imports what it runs.
 from . import __version__
-from .app.signals import Terminated, terminated_on_sigterm
+from .app import signals
 from .app.threads import bad_thread_variable, cap_thread_variables
 from .bitdepths import BitDepths
 from .campaign.presets import METHODS, PRESETS
@@ -819,11 +818,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     for note in cap_thread_variables():
         print(f"cvqpg: note: {note}", file=sys.stderr)
     try:
-        with terminated_on_sigterm():
-            return COMMANDS[args.command](args)
-    except Terminated:
+        with signals.handled():
+            code = COMMANDS[args.command](args)
+            if code == 0:  # a stop whose exception a callback swallowed ends the command here
+                signals.check_not_stopped()
+        return code
+    except signals.Terminated as stop:
         print(f"cvqpg {args.command}: terminated", file=sys.stderr)
-        return 128 + signal.SIGTERM
+        return 128 + stop.signum
     except CvqpgError as error:
         print(f"cvqpg {args.command}: error: {flag_message(str(error))}", file=sys.stderr)
         return EXIT_USAGE

@@ -4,6 +4,9 @@ Each write goes to a temporary sibling that replaces the target once it is whole
 temporary file is created with `open`, so it gets the mode every other file of a run gets
 (0666 less the umask); a file from `mkstemp`, or from a library that creates its files 0600 (the
 safetensors writer does), would keep that mode through the rename.
+
+A caller may hold back what is moved into place at a path (`gated`): a check runs before the rename, and
+whatever it raises keeps the path as it was (the command line's outputs, once a command was told to stop).
 """
 
 from __future__ import annotations
@@ -11,10 +14,31 @@ from __future__ import annotations
 import os
 import shutil
 from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
-from typing import BinaryIO, Iterator
+from typing import BinaryIO, Callable, Iterator
 
 from .errors import InputError
+
+_GATES: ContextVar[tuple[tuple[Path, Callable[[], None]], ...]] = ContextVar("cvqpg_gates", default=())
+
+
+@contextmanager
+def gated(path: str | Path, check: Callable[[], None]) -> Iterator[None]:
+    """Within the block (and this thread), `check()` runs before anything is moved into place at `path` (an
+    atomic write of it, a folder replacing it); what it raises leaves `path` as it was."""
+    token = _GATES.set((*_GATES.get(), (Path(os.path.abspath(path)), check)))
+    try:
+        yield
+    finally:
+        _GATES.reset(token)
+
+
+def _before_moving_into(path: Path) -> None:
+    target = Path(os.path.abspath(path))
+    for gate, check in _GATES.get():
+        if gate == target:
+            check()
 
 
 @contextmanager
@@ -32,6 +56,7 @@ def atomic_file(path: str | Path) -> Iterator[BinaryIO]:
             yield handle
             handle.flush()
             os.fsync(handle.fileno())
+        _before_moving_into(path)
         os.replace(partial, path)
     except OSError as error:
         if error.filename is None:  # a full disk fails a write or a flush, which name no file
@@ -57,6 +82,7 @@ def replace_folder(staged: Path, final: Path) -> None:
         what = "a symbolic link" if final.is_symlink() else "a file"
         raise InputError(f"{final} ({what}) appeared while the command ran; it is left as it is: move it away and "
                          "run the command again")
+    _before_moving_into(final)
     if not final.exists():
         os.replace(staged, final)
         return

@@ -162,9 +162,10 @@ def resumable(work: Path, command: str, body: Callable[[Callable[[], bool]], Non
         print(f"cvqpg {command}: {stop}; checkpoint saved. Continue with: "
               f"cvqpg {command} --resume {work}", file=sys.stderr)
         return 128 + stop_requested.signals[0]
-    except BaseException:
+    except BaseException as error:
         if (work / CHECKPOINT_FILE).is_file():
-            print(f"cvqpg {command}: failed; the fit's last checkpoint is kept: cvqpg {command} --resume {work}",
+            ended = "stopped" if isinstance(error, (KeyboardInterrupt, signals.Terminated)) else "failed"
+            print(f"cvqpg {command}: {ended}; the fit's last checkpoint is kept: cvqpg {command} --resume {work}",
                   file=sys.stderr)
         else:
             for folder in created:
@@ -178,7 +179,7 @@ def fit_planned(plan: FitPlan, checkpoint_every: int | None = None, progress: bo
     """Fit in `plan.work` (`resumable`, checkpoints every `checkpoint_every` steps: `runner.checkpoint_policy`)
     and put the run at `plan.final`: 0 and the run's metrics record, or the exit code of the signal that stopped
     it and None."""
-    from ..files import replace_folder
+    from ..files import gated, replace_folder
     from ..runs import METRICS_FILE, read_record, start_run
     from .allocator import keep_freed_memory
     from .outputs import claimed
@@ -192,10 +193,12 @@ def fit_planned(plan: FitPlan, checkpoint_every: int | None = None, progress: bo
         result = fit_in_folder(plan.work, plan.scene, plan.config, plan.run,
                                RunControl(progress=progress, stop_requested=stop_requested), plan.state,
                                **checkpoint_policy(checkpoint_every))
+        signals.check_not_stopped()  # asked after the last step: the run is not marked finished
         write_fitted_run(plan.work, result, plan.scene, plan.source)
 
     keep_freed_memory()
-    with claimed(plan.final, plan.role):
+    # in place (a resumed folder not named RUN.partial), metrics.json marks the run finished: it is the output
+    with claimed(plan.final, plan.role), gated(plan.final / METRICS_FILE, signals.check_not_stopped):
         if plan.final != plan.work:
             check_fit_destination(plan.final, overwrite, plan.role)
         code = resumable(plan.work, "fit", body)

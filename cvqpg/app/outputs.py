@@ -9,6 +9,9 @@ The rule:
 - Never, even with `overwrite`: the command's own input, a folder that holds it, a run's own files (those `fit`
   writes), the current folder or one that holds it, or a symbolic link (which would send the output where the
   user did not name).
+- Nothing is moved into place at an output once the command was told to stop (Ctrl-C, SIGTERM), even where the
+  signal's exception was swallowed: `claimed` gates the output's path (`files.gated`) with
+  `signals.check_not_stopped`.
 - One writer at a time: `claimed` holds an exclusive lock beside the output while the command works, so that a
   second command writing the same output stops with a one-line error instead of both succeeding. An output
   inside a run folder (a `.cvq` file, `export/`, `metrics.json` that `eval` rewrites, ...) also holds the run
@@ -32,8 +35,9 @@ from typing import Callable, Iterable, Iterator
 
 from ..defaults import BATCH_RECORDS
 from ..errors import InputError
-from ..files import staged_folder
+from ..files import gated, staged_folder
 from ..runs import CHECKPOINT_FILE, CONFIG_FILE, HISTORY_FILE, METRICS_FILE, MODEL_FILE, PLANE_IMAGES
+from .signals import check_not_stopped
 
 # What `fit` writes in a run folder (and an estimated depth map): no other command writes over them.
 RUN_FILES = (CONFIG_FILE, METRICS_FILE, MODEL_FILE, CHECKPOINT_FILE, HISTORY_FILE, "depth.png", "curve.png",
@@ -258,7 +262,8 @@ def claimed(path: str | Path, role: str = "`out`", shared: bool = False) -> Iter
     """An exclusive lock on the output `path` for the block: a hidden lock file beside it, held with `flock` (so
     that a killed command holds none). A second command claiming the same path gets an `InputError`. With
     `shared`, a lock that other shared claims may hold at once, but no exclusive one. Missing folders above
-    `path` are created, and removed again where the block fails and leaves them empty."""
+    `path` are created, and removed again where the block fails and leaves them empty. Nothing is moved into place
+    at `path` within the block once the command was told to stop (`signals.check_not_stopped`)."""
     path = Path(path)
     lock = path.with_name(f".{path.name}{LOCK_SUFFIX}")
     created = _missing_folders(path)
@@ -270,7 +275,8 @@ def claimed(path: str | Path, role: str = "`out`", shared: bool = False) -> Iter
         _remove_empty(created)
         raise
     try:
-        yield
+        with gated(path, check_not_stopped):
+            yield
     except BaseException:
         _release(lock, handle)
         _remove_empty(created)

@@ -16,8 +16,8 @@ from ..config import FitConfig, RunOptions, check_time_budget, default_curvature
 from ..control import RunControl
 from ..defaults import CHECKPOINT_SECONDS
 from ..errors import CvqpgError, ModelFileError
-from ..fitting import (CheckpointPolicy, FitResult, FitState, fit_scene, initial_state, seconds_per_step,
-                       state_from_payload, steps_within)
+from ..fitting import (CheckpointPolicy, FitInterrupted, FitResult, FitState, fit_scene, initial_state,
+                       seconds_per_step, state_from_payload, steps_within)
 from ..ratefit import RateObjective
 from ..runs import CHECKPOINT_FILE, CONFIG_FILE, RESTORE_RUN, fit_fingerprint, read_record, same_fit, write_run
 from ..storage import load_checkpoint, save_checkpoint
@@ -100,9 +100,10 @@ def fit_in_folder(folder: Path, scene: Scene, config: FitConfig, run: RunOptions
     (a status line when `control.progress`); the state records the compile time and the peak memory of every
     segment, so a resumed fit reports the whole run's, and checkpoints record the run's fingerprint
     (`fit_fingerprint` of `config` and `source`, default: as the folder's `config.json` records it). Raises
-    `FitInterrupted` after saving on a stop request. `checkpoint_at_end` saves the finished loop too, for work
-    that follows the fit in the same folder: resumed from it, the fit returns at once with the same result. An
-    `objective` puts the rate in the fit's loss (`fitting.fit_scene`)."""
+    `FitInterrupted` after saving on a stop request, also on one asked during the last step or the final render.
+    `checkpoint_at_end` saves the finished loop too, for work that follows the fit in the same folder: resumed
+    from it, the fit returns at once with the same result. An `objective` puts the rate in the fit's loss
+    (`fitting.fit_scene`)."""
     folder = Path(folder)
     fingerprint = fit_fingerprint(config, recorded_source(folder, source))
     device = torch.device(run.device)
@@ -119,8 +120,11 @@ def fit_in_folder(folder: Path, scene: Scene, config: FitConfig, run: RunOptions
 
     policy = CheckpointPolicy(save=save, every_steps=checkpoint_every_steps, every_seconds=checkpoint_every_seconds)
     result = fit_scene(scene, config, run, control, state=state, checkpoint=policy, objective=objective)
-    if checkpoint_at_end:
+    stopped = not checkpoint_at_end and control.should_stop()  # asked during the last step or the final render
+    if checkpoint_at_end or stopped:
         save(state)
+    if stopped:
+        raise FitInterrupted(state.step, during="its final render")
     state.note_peak_memory(peak_memory(device))
     result.peak_memory = state.peak_memory
     return result

@@ -107,6 +107,7 @@ def write_results(root: str | Path, out: str | Path, overwrite: bool = False) ->
     """`cvqpg results`: the document `out` (`results.document`) and its figures beside it, from the recorded bench
     folders in `root`; the files written."""
     from ..app.outputs import DOCUMENT, output
+    from ..app.signals import check_not_stopped
     from ..files import write_atomic
     from .results import check_recorded, document, write_figures
     if not Path(root).is_dir():
@@ -114,6 +115,7 @@ def write_results(root: str | Path, out: str | Path, overwrite: bool = False) ->
     root = Path(root)
     check_recorded(root)
     with output(out, DOCUMENT, [], overwrite) as checked:
+        check_not_stopped()  # the figures are outputs too, beside the document that `output` gates
         figures = write_figures(root, checked.parent, overwrite)
         write_atomic(checked, document(root))
     return [checked, *figures]
