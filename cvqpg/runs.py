@@ -17,7 +17,8 @@ from . import __version__
 from .config import MIN_SIZE_PX, SECTIONS, FitConfig, RunOptions, check_sampling
 from .errors import ConfigError, CvqpgError, InputError, ModelFileError
 from .files import write_atomic
-from .display import Display, Encoding, PhasePattern, phase_pattern
+from .display import Display, Encoding
+from .patterns import PhasePattern, phase_pattern
 from .fitting import FitResult, render
 from .metrics import MetricReport, evaluate, mean_psnr
 from .ops.field import slm_field

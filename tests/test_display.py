@@ -13,8 +13,9 @@ from PIL import Image
 
 from cvqpg.config import CONFIG_SCHEMA, FitConfig, padded_size
 from cvqpg.defaults import DISPLAY_ENCODINGS, ENCODINGS
-from cvqpg.display import (DPAC_SLOPE_AMPLITUDE, PHASE_ENCODINGS, Display, checkerboard, displayed_field,
-                           double_phase, dpac_offset, level_phases, phase_pattern, quantise, read_lut, shown_phase)
+from cvqpg.display import DPAC_SLOPE_AMPLITUDE, PHASE_ENCODINGS, Display, read_lut
+from cvqpg.patterns import (checkerboard, displayed_field, double_phase, dpac_offset, level_phases, phase_pattern,
+                            quantise, shown_phase)
 from cvqpg.display import ENCODINGS as MODEL_ENCODINGS
 from cvqpg.errors import ConfigError, InputError
 from cvqpg.ops.field import Grid, slm_field

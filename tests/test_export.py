@@ -13,7 +13,8 @@ from PIL import Image
 from cvqpg import FitConfig, load_model, save_model
 from cvqpg.cli import main
 from cvqpg.config import ConfigError
-from cvqpg.display import Display, checkerboard, double_phase, level_phases, place_on_canvas, quantise
+from cvqpg.display import Display
+from cvqpg.patterns import checkerboard, double_phase, level_phases, place_on_canvas, quantise
 from cvqpg.optics import reconstruct
 from cvqpg.fitting import render
 from cvqpg.primitives import Primitives

@@ -13,7 +13,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ...display import DPAC_SLOPE_AMPLITUDE, Display, canvas_offset, level_phases
+from ...display import DPAC_SLOPE_AMPLITUDE, Display
+from ...patterns import canvas_offset, level_phases
 from .. import cpu_array, resolve_backend
 from ..field.reference import Grid
 from . import cpu, reference

@@ -5,13 +5,14 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from ...display import Display, canvas_offset, displayed_field
+from ...display import Display
+from ...patterns import canvas_offset, displayed_field
 from ..field.reference import Grid, slm_field
 
 
 def shown_field(hologram: Tensor, grid: Grid, display: Display) -> Tensor:
     """The field [C, P_H, P_W] that `display` shows for a hologram [C, H, W], its canvas placed in the dark array
-    so that the hologram lies where `grid` crops the planes (differentiable: `display.displayed_field`)."""
+    so that the hologram lies where `grid` crops the planes (differentiable: `patterns.displayed_field`)."""
     canvas_field = displayed_field(slm_field(hologram), display)
     canvas_h, canvas_w = canvas_field.shape[-2:]
     inner_top, inner_left = canvas_offset((canvas_h, canvas_w), (grid.height, grid.width))
