@@ -108,17 +108,6 @@ def test_a_lookup_table_reads_from_one_or_two_columns(tmp_path):
 
 # The encodings, the quantiser and their gradients.
 
-def test_dpac_pairs_average_to_the_slm_field():
-    field = slm_field(random_hologram(2, 6, 8, seed=1, top=0.95))
-    pattern = double_phase(field)
-    assert pattern.min() >= 0 and pattern.max() < 2 * math.pi
-    odd = checkerboard(6, 8)
-    offset = torch.arccos(field.abs())
-    partner = torch.where(odd, pattern - 2 * offset, pattern + 2 * offset)
-    average = (torch.polar(torch.ones_like(pattern), pattern) + torch.polar(torch.ones_like(pattern), partner)) / 2
-    assert torch.allclose(average, field, atol=1e-5)
-
-
 def test_the_dpac_offset_has_the_arccos_gradient_and_a_bounded_one_where_the_amplitude_reaches_1():
     smooth = torch.linspace(0.02, 0.98, 25, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(dpac_offset, (smooth,))
