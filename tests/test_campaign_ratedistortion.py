@@ -306,7 +306,7 @@ def test_an_encode_cell_resumes_at_the_first_budget_it_has_no_point_for(tmp_path
                                                             "points": [done], "skipped_bpp": [1.0]}))
     encoded = []
     monkeypatch.setattr(ratedistortion, "encode_point",
-                        lambda scene, config, source, bpp, work, finetune_steps, run, control:
+                        lambda scene, config, source, bpp, work, finetune_steps, run, control, rate_loss=False:
                         encoded.append((bpp, work, config.optimisation.steps, config.optimisation.curvature_warmup,
                                         finetune_steps)))
     monkeypatch.setattr(bench, "scene_from_source", lambda source, config: None)
@@ -338,7 +338,7 @@ def test_a_stopped_encode_cell_keeps_its_finished_points_and_is_interrupted(tmp_
     folder.mkdir()
     (folder / "rd.json").write_text(json.dumps({"budget_fractions": [0.7], "points": [{"budget_bpp": 1.4}]}))
 
-    def encode_point(scene, config, source, bpp, work, finetune_steps, run, control):
+    def encode_point(scene, config, source, bpp, work, finetune_steps, run, control, rate_loss=False):
         if control.should_stop():
             raise FitInterrupted(3)
         return ratedistortion.Point("cvqpg encode", "--bpp", 10, bpp, 30.0, 0.9, 1.0, 0.1, 5, bpp)
