@@ -24,6 +24,15 @@ def config_of(phase: str, color: str = "rgb", **settings) -> FitConfig:
     return FitConfig.create(width=24, height=18, color=color, num_gaussians=20, phase=phase, **settings).validate()
 
 
+def central_difference(loss, base: dict[str, torch.Tensor], name: str, index: tuple[int, ...]) -> float:
+    """The central difference of `loss` in one element of `base[name]`, at a step relative to its size."""
+    eps = 1e-6 * max(1.0, abs(float(base[name][index])))
+    plus, minus = ({n: t.clone() for n, t in base.items()} for _ in range(2))
+    plus[name][index] += eps
+    minus[name][index] -= eps
+    return float(loss(plus) - loss(minus)) / (2 * eps)
+
+
 # --------------------------------------------------------------------------- settings
 
 
@@ -306,11 +315,7 @@ def test_numba_gradients_of_the_terms_match_finite_differences():
     base = prims.tensors()
     for name, index in (("tilt_rad", (7, 0)), ("tilt_rad", (0, 1)), ("axes_curvature_per_m", (7, 1)),
                         ("axes_curvature_per_m", (2, 0)), ("position_px", (7, 0)), ("rotation_rad", (7,))):
-        eps = 1e-6 * max(1.0, abs(float(base[name][index])))
-        plus, minus = ({n: t.clone() for n, t in base.items()} for _ in range(2))
-        plus[name][index] += eps
-        minus[name][index] -= eps
-        numeric = (loss(plus) - loss(minus)) / (2 * eps)
+        numeric = central_difference(loss, base, name, index)
         assert math.isclose(float(by_name[name][index]), numeric, rel_tol=1e-3, abs_tol=1e-6), name
 
 
@@ -363,11 +368,7 @@ def test_triton_gradients_of_the_terms_match_finite_differences():
     grads = dict(zip(leaves, torch.autograd.grad(loss(splat_triton, leaves), list(leaves.values()))))
     for name, index in (("tilt_rad", (7, 0)), ("tilt_rad", (8, 1)), ("axes_curvature_per_m", (7, 1)),
                         ("axes_curvature_per_m", (9, 0)), ("position_px", (7, 0)), ("rotation_rad", (7,))):
-        eps = 1e-6 * max(1.0, abs(float(base[name][index])))
-        plus, minus = ({n: t.clone() for n, t in base.items()} for _ in range(2))
-        plus[name][index] += eps
-        minus[name][index] -= eps
-        numeric = float(loss(splat_reference, plus) - loss(splat_reference, minus)) / (2 * eps)
+        numeric = central_difference(lambda tensors: loss(splat_reference, tensors), base, name, index)
         assert math.isclose(float(grads[name][index]), numeric, rel_tol=1e-3, abs_tol=1e-6), name
 
 
