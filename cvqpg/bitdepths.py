@@ -7,11 +7,15 @@ importing PyTorch.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields, replace
+from typing import Iterable
 
 from .errors import ConfigError
 
 MAX_POSITION_BITS = 8
 MAX_BITS = 16
+# The depths of the phase terms beyond the curvature (`phase.TERMS` by name): a file has them only where its model
+# has the term. Their defaults are curvature's, so that the search's ladder (`LADDER`) has the rungs it had.
+PHASE_TERMS = ("axes", "tilt")
 
 
 def _limits(name: str) -> tuple[int, int]:
@@ -23,9 +27,11 @@ def _limits(name: str) -> tuple[int, int]:
 class BitDepths:
     """Bits per attribute. `position` counts fractional bits (grid of 2^-b px); the others count
     levels over the attribute's range: log scale over the model's range, |amplitude·opacity| over
-    [0, max], rotation over [0, π), phase over [0, 2π), curvature over [−γ_max, γ_max]. Position,
-    amplitude, rotation, phase and curvature take these depths for a value of median importance, and more
-    or fewer bits for others (`derived_depths`)."""
+    [0, max], rotation over [0, π), phase over [0, 2π), curvature over [−γ_max, γ_max], and the phase terms
+    beyond the curvature (`PHASE_TERMS`: `axes`, `tilt`, cvqpg/phase.py) over [−limit, limit] of each of their
+    parameters. Every attribute but scale takes its depth for a value of median importance, and more or fewer
+    bits for others (`derived_depths`). A file codes the terms' depths only where its model has the term
+    (`coded`)."""
 
     position: int = 3
     scale: int = 8
@@ -33,6 +39,8 @@ class BitDepths:
     amplitude: int = 8
     phase: int = 7
     curvature: int = 8
+    axes: int = 8
+    tilt: int = 8
 
     def validate(self) -> "BitDepths":
         for name, value in asdict(self).items():
@@ -48,6 +56,12 @@ class BitDepths:
 
     def names(self) -> list[str]:
         return [f.name for f in fields(self)]
+
+    def coded(self, terms: Iterable[str] = ()) -> dict[str, int]:
+        """The depths a file codes: every attribute but the phase terms, and those of `terms` (names of
+        `PHASE_TERMS`), in this class's order."""
+        wanted = set(terms)
+        return {name: value for name, value in asdict(self).items() if name not in PHASE_TERMS or name in wanted}
 
     def shifted_one(self, name: str, delta: int = -1) -> "BitDepths | None":
         """`delta` bits finer (coarser when negative, by default one) in attribute `name`, or None beyond its

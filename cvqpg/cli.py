@@ -314,7 +314,8 @@ def _compression_parsers(sub: argparse._SubParsersAction) -> None:
     budget.add_argument("--max-drop", type=finite, metavar="DB", help="smallest budget whose decoded render stays "
                         "within DB dB of the float model's PSNR [default: 0.1]")
     budget.add_argument("--bits", nargs="+", metavar="ATTR=B", help="fixed budget: ATTR=B for position "
-                        "(fractional bits), scale, rotation, amplitude, phase, curvature; or one number for all "
+                        "(fractional bits), scale, rotation, amplitude, phase, curvature, and the phase terms axes and tilt "
+                        "where the model has them; or one number for all "
                         f"but position [default of each: {' '.join(f'{k}={v}' for k, v in vars(BitDepths()).items())}]")
     _rate_arguments(budget)
     c.add_argument("--finetune", type=whole, metavar="STEPS", help="quantisation-aware fine-tuning steps on the "
@@ -592,7 +593,7 @@ def run_export(args: argparse.Namespace) -> int:
 
 def run_info(args: argparse.Namespace) -> int:
     from .app.runfolders import info as model_info
-    from .codec import IMPORTANCE_VERSION, ROTATION_DEPTH_VERSION
+    from .codec import IMPORTANCE_VERSION, PHASE_TERMS, ROTATION_DEPTH_VERSION
     info = model_info(args.target, args.half, args.overwrite)
     if args.json:
         print(json.dumps(info, indent=2))
@@ -611,8 +612,9 @@ def run_info(args: argparse.Namespace) -> int:
                  f"{8 * info['streams']['rotation']['bytes'] / info['num_primitives']:.1f} on average"
                  if version >= ROTATION_DEPTH_VERSION else "")
         if version >= IMPORTANCE_VERSION:
-            notes += ("; position, amplitude, rotation, phase, curvature: for a value of median weight in the field, "
-                      "a bit more per fourfold weight")
+            terms = "".join(f", {name}" for name in info["bits"] if name in PHASE_TERMS)
+            notes += (f"; position, amplitude, rotation, phase, curvature{terms}: for a value of median weight in the "
+                      "field, a bit more per fourfold weight")
         print("  bits             " + ", ".join(f"{name} {value}" for name, value in info["bits"].items())
               + f" (position: fractional bits, a grid of 2^-b px{notes})")
     if args.half:

@@ -5,8 +5,9 @@ number, a format version and a CRC32. A primitive is coded as: position on a gri
 Morton order of its whole pixel and coded as gaps between consecutive Morton codes, then its fraction of
 a pixel; log scale over the model's own range; amplitude × opacity as a magnitude, its sign folded into the
 phase (+π); rotation modulo π (an ellipse turned by π is the same ellipse); phase modulo 2π; curvature as
-a fraction of the primitive's own bound γ_max (method.md §4). Position, amplitude, rotation, phase and
-curvature are coded at a depth per value that follows how much its error weighs in the field
+a fraction of the primitive's own bound γ_max (method.md §4); from format 6 on, each phase term beyond the curvature
+(`phase.TERMS`: `axes`, `tilt`) as fractions of the bound its activation keeps it within (`PhaseTerm.limit`).
+Every attribute but scale is coded at a depth per value that follows how much its error weighs in the field
 (`derived_depths`), computed from the attributes decoded before it, so that encoder and decoder agree
 without storing it.
 
@@ -29,13 +30,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .bitdepths import MAX_BITS, MAX_POSITION_BITS, BitDepths
+from .bitdepths import MAX_BITS, MAX_POSITION_BITS, PHASE_TERMS, BitDepths
 from .config import FitConfig
 from .defaults import SUFFIX
 from .display import Display
 from .errors import ConfigError, ModelFileError
+from .phase import AXES as AXES_PHASE_TERM, COVARIANCE_REGULARISER_PX2, TERMS, axis_sigmas_px, parse_phase
 from .primitives import (REWRITE_MODEL, Primitives, check_settings, check_tensors, curvature_bound,
-                         model_shapes)
+                         model_shapes, term_bounds)
 
 MAGIC = b"\x89CVQ\r\n\x1a\n"
 # 2 added the `bitlength` coding, 3 rotation's depth per primitive, 4 the depths of position, amplitude, rotation,
@@ -45,17 +47,21 @@ ROTATION_DEPTH_VERSION = 3  # files from this version on code rotation at a dept
 IMPORTANCE_VERSION = 4  # files from this version on code at `derived_depths`' importance rule
 TOOLS_VERSION = 5  # files from this version on carry a fit fingerprint and name the tools they use
 DISPLAY_VERSION = 6  # files from this version on keep the display a model was fitted through (none: the complex one)
+PHASE_VERSION = 6  # files from this version on keep the phase terms beyond the curvature (none: the paper's phase)
 # Format 5's tools, each named in the header where a file uses it. `axes`: the larger scale code first, the
 # ellipse turned by a quarter where its axes swap, and the smaller coded as its difference from the larger
 # (`elongation`); `turn`: a periodic stream's symbols of each depth turned so that their circular mean lies
 # mid-range, which parametric models centred there then fit; `channels` (more than one channel): each channel's
 # amplitude and phase after the first coded as its change from the channel before (`channel_changes`).
 AXES, TURN, CHANNELS = "axes", "turn", "channels"
+AXES_TERM = AXES_PHASE_TERM.name  # the phase term `axes` (two curvatures along the ellipse's axes), not the tool
 TOOLS = frozenset({AXES, TURN, CHANNELS})
 PERIODIC = ("rotation", "phase", "phase_change")  # the streams whose symbols are angles, `turn`'s
 CHANGED = ("amplitude", "phase")  # the attributes `channels` codes as changes
-# The order the decoder reads attributes in: each depth derives from attributes read before it.
-ATTRIBUTES = ("scale", "amplitude", "position", "rotation", "phase", "curvature")
+# The order the decoder reads attributes in: each depth derives from attributes read before it. The phase terms
+# beyond the curvature (format 6 on, where a model has them) by their names in `phase.TERMS`, before rotation, whose
+# depth the astigmatism of `axes` raises.
+ATTRIBUTES = ("scale", "amplitude", "position", *PHASE_TERMS, "rotation", "phase", "curvature")
 PREFIX = struct.Struct("<8sHI")  # magic, format version, header length (bytes)
 FINGERPRINT = struct.Struct("<16s")  # format 5 on, after the prefix: the fit's (`runs.fingerprint_digest`)
 NO_FINGERPRINT = bytes(FINGERPRINT.size)  # a model whose fit is not known
@@ -189,7 +195,7 @@ def quantiser(name: str, ranges: dict[str, list[float]], depth: Depth) -> Quanti
     if name in ("scale", "amplitude"):
         low, high = ranges[name]
         return Quantiser(low, high - low if high > low else 1.0, 2**depth - 1, 0, 2**depth - 1)
-    if name == "curvature":
+    if name == "curvature" or name in PHASE_TERMS:
         half = 2 ** (depth - 1) - 1
         return ShareQuantiser(0.0, 1.0, half, -half, half)
     period = {"position": 1.0, "rotation": math.pi, "phase": 2 * math.pi}[name]
@@ -201,17 +207,32 @@ def quantisers(ranges: dict[str, list[float]], bits: BitDepths) -> dict[str, Qua
     return {name: quantiser(name, ranges, getattr(bits, name)) for name in ATTRIBUTES}
 
 
-def rotation_depths(scale_px: Tensor, depth: Depth, least: int = 0) -> Tensor:
+def rotation_depths(scale_px: Tensor, depth: Depth, least: int = 0, astigmatism: Tensor | None = None) -> Tensor:
     """Bits of rotation (int64 [N]) for primitives of decoded scale `scale_px` (px, [N, 2]): `depth` for an
     ellipse whose anisotropy a − 1/a (a = σ_max/σ_min) lies in [0.5, 1), one more per doubling of it, one
     fewer per halving, none for a circle, within `least`..MAX_BITS otherwise. Turning an ellipse by Δθ changes
     it by about Δθ·(a − 1/a), so every primitive's rotation then costs about the same error, and nearly round
-    ones, many in a fit, cost few bits. float64 division and frexp are exact, so every machine agrees."""
+    ones, many in a fit, cost few bits. With the phase term `axes`, its `astigmatism` (float64 [N]) adds to the
+    anisotropy: its phase turns with the ellipse, a circle's too. float64 division and frexp are exact, so every
+    machine agrees."""
     scale = scale_px.detach().cpu().double()
     aspect = scale.max(dim=1).values / scale.min(dim=1).values
     anisotropy = aspect - 1 / aspect
+    if astigmatism is not None:
+        anisotropy = anisotropy + astigmatism
     _, exponent = torch.frexp(anisotropy)
     return torch.where(anisotropy > 0, (depth + exponent.long()).clamp(least, MAX_BITS), 0)
+
+
+def astigmatism(scale_px: Tensor, shares: Tensor) -> Tensor:
+    """How much turning a primitive by Δθ changes its `axes` phase, per radian (float64 [N]), from its decoded scale
+    (px, [N, 2]) and its decoded shares s_u, s_v of the axes' bounds (float64 [N, 2]): (π/6)·|s_u σ_v − s_v σ_u|, σ =
+    √(s² + 0.1) px, the RMS phase change over the primitive's |field|² of a term that had the whole Nyquist limit
+    (γ_max = λ/(6σΔx²) per axis), an upper bound of the term's own. Symmetric in the two axes, so that swapped axes
+    (`axes` tool) give the same bits."""
+    sigma = axis_sigmas_px(scale_px.detach().cpu().double())
+    shares = shares.detach().cpu().double()
+    return (math.pi / 6) * (shares[:, 0] * sigma[:, 1] - shares[:, 1] * sigma[:, 0]).abs()
 
 
 def uses(tool: str, version: int, tools: frozenset[str]) -> bool:
@@ -238,7 +259,8 @@ def derived_depths(name: str, decoded: dict[str, Tensor], bits: BitDepths, shape
                    version: int = FORMAT_VERSION, tools: frozenset[str] = TOOLS) -> Tensor | None:
     """Bits of each value (int64, `shape`) of attribute `name` where a file of `version` derives them from the
     attributes decoded before it, else None (`bits`' depth for every value). `decoded` holds "scale", the
-    decoded scale σ̂ (px, float32 [N, 2]), and, once decoded, "amplitude", |amplitude·opacity| (float64 [N, C]).
+    decoded scale σ̂ (px, float32 [N, 2]), and, once decoded, "amplitude", |amplitude·opacity| (float64 [N, C]), and
+    the phase term `axes`'s shares (float64 [N, 2]) where the file has it.
 
     From format 4 on, each value's depth is its attribute's depth in `bits` plus `importance_offsets` of the
     energy its error costs, within 2..16 bits (0..16 for rotation and phase, 0..8 fractional bits for
@@ -246,8 +268,10 @@ def derived_depths(name: str, decoded: dict[str, Tensor], bits: BitDepths, shape
     amplitude by σ̂x·σ̂y; phase by |w|²·σ̂x·σ̂y of its channel; rotation and shared curvature by
     Σ_c |w_c|²·σ̂x·σ̂y (a channel's curvature by its channel's), rotation on top of its anisotropy's bits
     (`rotation_depths`), and at least 1 bit for an ellipse where `tools` (format 5 on) hold `axes`, which
-    orders its axes and so needs a bit to tell a quarter turn. Format 3 derives rotation's from its anisotropy
-    alone."""
+    orders its axes and so needs a bit to tell a quarter turn, and with the phase term `axes` the term's
+    `astigmatism` added to the anisotropy. A phase term's shares (format 6 on), both of a primitive at one depth, by
+    Σ_c |w_c|²·σ̂x·σ̂y·(σ̂x² + σ̂y² + 0.2): the phase error of a share's error grows with the footprint's width.
+    Format 3 derives rotation's from its anisotropy alone."""
     if version < ROTATION_DEPTH_VERSION or (version < IMPORTANCE_VERSION and name != "rotation"):
         return None
     if version < IMPORTANCE_VERSION:
@@ -268,7 +292,12 @@ def derived_depths(name: str, decoded: dict[str, Tensor], bits: BitDepths, shape
     per_channel, total = amplitude**2 * area[:, None], power * area
     if name == "rotation":
         return rotation_depths(decoded["scale"], bits.rotation + importance_offsets(total),
-                               int(uses(AXES, version, tools)))
+                               int(uses(AXES, version, tools)),
+                               astigmatism(decoded["scale"], decoded[AXES_TERM]) if AXES_TERM in decoded else None)
+    if name in PHASE_TERMS:
+        spread = scale[:, 0] * scale[:, 0] + scale[:, 1] * scale[:, 1] + 2 * COVARIANCE_REGULARISER_PX2
+        depths = (getattr(bits, name) + importance_offsets(total * spread)).clamp(2, MAX_BITS)
+        return depths[:, None].expand(shape).contiguous()
     if name == "phase":
         return (bits.phase + importance_offsets(per_channel)).clamp(0, MAX_BITS)
     weight = total if len(shape) == 1 else per_channel
@@ -295,6 +324,8 @@ def chained_quantisers(ranges: dict[str, list[float]], bits: BitDepths, shapes: 
             decoded["scale"] = decoded_scale(value.detach().cpu(), version)
         elif name == "amplitude":
             decoded["amplitude"] = value.detach().cpu().abs()
+        elif name == AXES_TERM:
+            decoded[AXES_TERM] = value.detach().cpu()
     return chosen, depths
 
 
@@ -333,8 +364,10 @@ def exact_exp(x: np.ndarray) -> np.ndarray:
 @dataclass
 class Coding:
     """What the encoder codes, and how. `values`, float64 on the CPU in the primitives' order: position
-    (px), log scale (ln px), rotation (rad), the signed weight amplitude·opacity, phase (rad) and, for
-    `cvqpg` primitives, curvature as a share of γ_max at the decoded scale; `ranges`, the header's;
+    (px), log scale (ln px), rotation (rad), the signed weight amplitude·opacity, phase (rad), for
+    `cvqpg` primitives with the quadratic term curvature as a share of γ_max at the decoded scale, and each phase
+    term beyond it as shares of its parameters' bounds at the decoded scale (`primitives.term_bounds`), by the
+    term's name; `ranges`, the header's;
     each attribute's quantiser; and `depths`, the bits of each value of the attributes whose depths derive
     from those decoded before them (`derived_depths`)."""
 
@@ -346,10 +379,13 @@ class Coding:
 
 def coding(primitives: Primitives, config: FitConfig, bits: BitDepths, tools: frozenset[str] = TOOLS) -> Coding:
     """The attributes of `primitives`, their ranges, and the quantisers at `bits` in a file using `tools`
-    (see `Coding`)."""
-    if config.phase.extra_terms:
-        raise ConfigError(f"`.cvq` files do not store the phase terms of `phase` {config.phase.name}: keep the model "
-                          "as model.safetensors, or fit with `phase` quadratic to compress it")
+    (see `Coding`). `ConfigError` where a phase without the quadratic term comes with curvatures: the file codes
+    none."""
+    if (config.primitives.kind == "cvqpg" and not config.phase.has("quadratic")
+            and bool(primitives.curvature_per_m.detach().any())):
+        raise ConfigError(f"`phase` {config.phase.name} has no quadratic term, yet the model's curvatures are not all "
+                          "0; a .cvq file codes none: fit with that phase (whose curvature stays 0), or with a phase "
+                          "that has `quadratic`")
     values, ranges = coded_values({name: t.detach().cpu().double() for name, t in primitives.tensors().items()},
                                   config, bits)
     coded = folded(values)
@@ -370,11 +406,14 @@ def coded_values(tensors: dict[str, Tensor], config: FitConfig, bits: BitDepths
     ranges = {"scale": _outward_range(float(log_scale.min()), float(log_scale.max())),
               "amplitude": [0.0, _outward_range(0.0, float(weight.detach().abs().max()))[1]]}
     if config.primitives.kind == "cvqpg":
-        # the decoder knows only the decoded scale: the curvature's bound follows it
+        # the decoder knows only the decoded scale: the curvature's bound, and the terms', follow it
         scale = quantiser("scale", ranges, bits.scale)
-        bound = curvature_bound(decoded_scale(scale.values(scale.codes(log_scale.cpu()))),
-                                config).double().to(weight.device)
-        values["curvature"] = tensors["curvature_per_m"] / torch.where(bound > 0, bound, 1.0)
+        decoded = decoded_scale(scale.values(scale.codes(log_scale.cpu())))
+        if config.phase.has("quadratic"):
+            bound = curvature_bound(decoded, config).double().to(weight.device)
+            values["curvature"] = tensors["curvature_per_m"] / torch.where(bound > 0, bound, 1.0)
+        for name, limit in term_bounds(decoded, config).items():
+            values[name] = tensors[TERMS[name].physical] / limit.double().to(weight.device)
     return values, ranges
 
 
@@ -396,7 +435,8 @@ def folded(values: dict[str, Tensor]) -> dict[str, Tensor]:
 
 def primitives_from(values: dict[str, Tensor], scale_px: Tensor, config: FitConfig) -> Primitives:
     """float32 primitives from dequantised, folded values and the scale (px) decoded from them; opacity is
-    1, folded into the amplitude, and the curvature its share of γ_max at that scale (0 without one)."""
+    1, folded into the amplitude, the curvature its share of γ_max at that scale (0 without one), and each phase
+    term beyond it its shares of its bounds at that scale."""
     count, device = scale_px.shape[0], scale_px.device
     if "curvature" in values:
         # γ_max follows the decoded scale and is not trained: fine-tuning moves the share alone
@@ -404,10 +444,12 @@ def primitives_from(values: dict[str, Tensor], scale_px: Tensor, config: FitConf
     else:
         shape = (count,) if config.primitives.curvature == "shared" else (count, config.channels)
         curvature = torch.zeros(shape, device=device)
+    terms = {name: (values[name] * limit.double()).float()
+             for name, limit in term_bounds(scale_px.detach(), config).items()}
     return Primitives(position_px=values["position"].float(), scale_px=scale_px,
                       rotation_rad=values["rotation"].float(), amplitude=values["amplitude"].float(),
                       phase_rad=values["phase"].float(), opacity=torch.ones(count, device=device),
-                      curvature_per_m=curvature)
+                      curvature_per_m=curvature, terms=terms)
 
 
 def _interleave(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -465,7 +507,8 @@ def quantise(primitives: Primitives, config: FitConfig, bits: BitDepths, tools: 
     values = folded(coded.values)
     codes = {name: coded.quantisers[name].codes(values[name]) for name in ATTRIBUTES if name in values}
     if AXES in tools:
-        axes, ordered = ordered_axes(codes["scale"], codes["rotation"], coded.depths["rotation"]), {}
+        per_axis = {name: codes[name] for name in codes if name in TERMS and TERMS[name].per_axis}
+        axes, ordered = ordered_axes(codes["scale"], codes["rotation"], coded.depths["rotation"], per_axis), {}
         for name, symbols in codes.items():  # elongation right after scale
             ordered[name] = axes.get(name, symbols)
             if name == "scale":
@@ -526,16 +569,19 @@ def changed_channels(name: str, first: Tensor, change: Tensor, depths: Tensor) -
     return codes
 
 
-def ordered_axes(scale: Tensor, rotation: Tensor, depths: Tensor) -> dict[str, Tensor]:
+def ordered_axes(scale: Tensor, rotation: Tensor, depths: Tensor, per_axis: dict[str, Tensor] | None = None
+                 ) -> dict[str, Tensor]:
     """`axes`' symbols from scale codes [N, 2] and rotation codes [N] at `depths` bits: `scale`, the larger code
     [N]; `elongation`, the larger minus the smaller [N]; `rotation`, turned by a quarter (half its levels) where
-    the axes swap. The same ellipse: σ along x at θ is σ along y at θ + π/2. Every ellipse has a rotation bit
+    the axes swap; and the codes [N, 2] of each phase term whose parameters follow the axes (`per_axis`, by name)
+    swapped with them. The same ellipse: σ along x at θ is σ along y at θ + π/2. Every ellipse has a rotation bit
     then (`derived_depths`)."""
     swapped = scale[:, 1] > scale[:, 0]
     larger = scale.max(dim=1).values
     levels = 2**depths
     return {"scale": larger, "elongation": larger - scale.min(dim=1).values,
-            "rotation": torch.where(swapped, (rotation + levels // 2) % levels, rotation)}
+            "rotation": torch.where(swapped, (rotation + levels // 2) % levels, rotation),
+            **{name: torch.where(swapped[:, None], codes.flip(1), codes) for name, codes in (per_axis or {}).items()}}
 
 
 def dequantise(encoded: Encoded, config: FitConfig, bits: BitDepths, tools: frozenset[str] = TOOLS) -> Primitives:
@@ -902,8 +948,14 @@ def file_header(config: FitConfig, count: int, bits: BitDepths, ranges: dict[str
     """The header (JSON-able, docs/format.md) of a file of `count` primitives of `config` at `bits` with `ranges`,
     using `tools`, whose streams `streams` describe."""
     shown = {} if config.display.ideal else {"display": config.display.to_dict()}
-    return {"optics": optics(config), **shown, "num_primitives": count, "bits": asdict(bits), "ranges": ranges,
-            "tools": sorted(tools), "streams": streams}
+    return {"optics": optics(config), **shown, "num_primitives": count, "bits": file_bits(bits, config),
+            "ranges": ranges, "tools": sorted(tools), "streams": streams}
+
+
+def file_bits(bits: BitDepths, config: FitConfig) -> dict[str, int]:
+    """The depths of `bits` that a file of a model of `config` codes (the header's `bits`): the phase terms' only
+    where the model has them (`BitDepths.coded`)."""
+    return bits.coded(term.name for term in config.phase.extra_terms)
 
 
 def deflated(header: Any, version: int = FORMAT_VERSION) -> bytes:
@@ -965,14 +1017,17 @@ RENDER_SETTINGS = ("width", "height", "color", "primitive", "curvature", "qpf", 
 
 
 def optics(config: FitConfig) -> dict[str, Any]:
-    """The header's rendering settings, lengths in m (`wavelengths` one per channel)."""
-    return {**{name: config.setting(name) for name in RENDER_SETTINGS}, "wavelengths": list(config.wavelengths)}
+    """The header's rendering settings, lengths in m (`wavelengths` one per channel), and `phase` (format 6 on) where
+    the primitives have terms beyond the curvature: absent, the kind's own (`flat`: constant; `cvqpg`: quadratic)."""
+    phase = {"phase": config.phase.name} if config.phase.extra_terms else {}
+    return {**{name: config.setting(name) for name in RENDER_SETTINGS}, "wavelengths": list(config.wavelengths),
+            **phase}
 
 
-def config_from_optics(values: dict[str, Any]) -> FitConfig:
-    """A configuration that renders like the encoded one; settings that only fitting uses are the paper's.
-    `ValueError` where a value is not of the type of its setting (a whole number below 2^31, a finite number,
-    a name)."""
+def config_from_optics(values: dict[str, Any], version: int = FORMAT_VERSION) -> FitConfig:
+    """A configuration that renders like the encoded one (of a file of `version`); settings that only fitting uses
+    are the paper's. `ValueError` where a value is not of the type of its setting (a whole number below 2^31, a
+    finite number, a name), or a `phase` names no term beyond the curvature."""
     values, defaults = dict(values), FitConfig()
     for name in RENDER_SETTINGS:
         value, default = values[name], defaults.setting(name)
@@ -982,8 +1037,13 @@ def config_from_optics(values: dict[str, Any]) -> FitConfig:
             raise ValueError(f"{name} {value!r} is not a {type(default).__name__}")
     if not (isinstance(values["wavelengths"], list) and all(map(_number, values["wavelengths"]))):
         raise ValueError(f"wavelengths {values['wavelengths']!r} are not a list of numbers")
+    phase = {}
+    if version >= PHASE_VERSION and "phase" in values:
+        if not (isinstance(values["phase"], str) and parse_phase(values["phase"]).extra_terms):
+            raise ValueError(f"phase {values['phase']!r} is not a phase with terms beyond the curvature")
+        phase = {"phase": values["phase"]}
     return defaults.replace(**{name: values[name] for name in RENDER_SETTINGS},
-                            wavelengths_m=tuple(values["wavelengths"]))
+                            wavelengths_m=tuple(values["wavelengths"]), **phase)
 
 
 @dataclass
@@ -1004,8 +1064,8 @@ def stream_shapes(count: int, config: FitConfig, version: int = FORMAT_VERSION, 
                   ) -> dict[str, tuple[int, ...]]:
     """The shape of each stream of `count` primitives in a file of `version` using `tools`: one Morton gap per
     position, from format 4 on the fractions of a pixel of each coordinate, the other attributes' own shapes
-    (`model_shapes`; with `axes`, scale and elongation one per primitive), curvature for `cvqpg` primitives
-    only."""
+    (`model_shapes`; with `axes`, scale and elongation one per primitive), curvature for `cvqpg` primitives with the
+    quadratic term only, and from format 6 on each phase term beyond it that `config.phase` has, by its name."""
     shapes = model_shapes(count, config)
     streams = {"position": (count,), "scale": shapes["scale_px"], "rotation": shapes["rotation_rad"],
                "amplitude": shapes["amplitude"], "phase": shapes["phase_rad"]}
@@ -1016,7 +1076,11 @@ def stream_shapes(count: int, config: FitConfig, version: int = FORMAT_VERSION, 
     if uses(CHANNELS, version, tools) and config.channels > 1:
         for name in CHANGED:
             streams.update({name: (count, 1), f"{name}_change": (count, config.channels - 1)})
-    return {**streams, "curvature": shapes["curvature_per_m"]} if config.primitives.kind == "cvqpg" else streams
+    if version >= PHASE_VERSION:
+        streams.update({term.name: shapes[term.physical] for term in config.phase.extra_terms})
+    if config.primitives.kind == "cvqpg" and config.phase.has("quadratic"):
+        streams["curvature"] = shapes["curvature_per_m"]
+    return streams
 
 
 def attribute_shapes(count: int, config: FitConfig, version: int = FORMAT_VERSION) -> dict[str, tuple[int, ...]]:
@@ -1041,7 +1105,7 @@ def _checked_header(header: Any, name: str, version: int) -> tuple[FitConfig, Bi
     holds, refused (`ModelFileError`) where they make no sense: a file altered with its checksum recomputed, or
     written by another program."""
     try:
-        config, count = config_from_optics(header["optics"]), header["num_primitives"]
+        config, count = config_from_optics(header["optics"], version), header["num_primitives"]
         if version >= DISPLAY_VERSION and "display" in header:
             if not isinstance(header["display"], dict):
                 raise ValueError(f"its display {header['display']!r} is not an object")
@@ -1049,6 +1113,9 @@ def _checked_header(header: Any, name: str, version: int) -> tuple[FitConfig, Bi
         bits = BitDepths(**header["bits"])
         if not all(isinstance(value, int) and not isinstance(value, bool) for value in asdict(bits).values()):
             raise ValueError(f"bit depths {header['bits']} are not whole numbers")
+        if version >= PHASE_VERSION and set(header["bits"]) != set(file_bits(bits, config)):
+            raise ValueError(f"bit depths for {sorted(header['bits'])} where its attributes are "
+                             f"{sorted(file_bits(bits, config))}")
         tools = _tools(header, version)
         for descriptor in header["streams"]:
             if not isinstance(descriptor.get("name"), str):

@@ -59,7 +59,8 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
              seed: int | None = None, control: RunControl = SILENT, objective: RateObjective | None = None
              ) -> Primitives:
     """`steps` Adam steps on the coded attributes (position px, log scale, rotation, signed
-    amplitude·opacity, phase, curvature as a share of γ_max) through their quantisers at `bits`.
+    amplitude·opacity, phase, curvature as a share of γ_max, the phase terms beyond it as shares of their bounds)
+    through their quantisers at `bits`.
 
     The attributes are trained in float64, as the codec quantises them, so that the loop's bins are the
     file's. Each attribute's learning rate is `learning_rate_bins(steps)` of its quantisation step: a step
@@ -112,6 +113,8 @@ def finetune(primitives: Primitives, config: FitConfig, scene: Scene, bits: BitD
             params["amplitude"].clamp_(-held_values["amplitude"].abs().max(), held_values["amplitude"].abs().max())
             if "curvature" in params:
                 params["curvature"].clamp_(-1.0, 1.0)
+            for term in config.phase.extra_terms:  # shares of the bounds, within what the activation reaches
+                params[term.name].copy_(term.within(params[term.name]))
             for name, index in held.items():
                 params[name].view(-1)[index] = held_values[name]
     with torch.no_grad():

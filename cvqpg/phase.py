@@ -15,7 +15,8 @@ the share `weight / Σ weights` of the SLM's Nyquist limit (`nyquist_shares`), s
 of their sum over the 3σ footprint never exceeds it (method.md §4). `quadratic` is the paper's and keeps its place in
 `Gaussians.curvature`; the others live in `Gaussians.terms` by name, and the rasterizer sums them as one general
 quadratic-plus-linear path (`phase_form`). A new term of at most second order is one `PhaseTerm` and its row in
-`TERMS`; the kernels need nothing new.
+`TERMS`; the kernels need nothing new. A `.cvq` file codes each extra term as a share of its bound (`limit`), which
+the decoder knows from the decoded scale and the optics (docs/format.md).
 """
 
 from __future__ import annotations
@@ -54,10 +55,14 @@ class Bounds:
 class PhaseTerm:
     """One term of ψ: its name (the raw tensor's in `Gaussians.terms`), how many raw parameters a primitive has,
     its physical tensor's name and unit, its weight in the Nyquist bound, its learning rate's name in
-    `LearningRates`, and two functions:
+    `LearningRates`, whether its parameters follow the ellipse's axes (`per_axis`: a quarter turn of the ellipse
+    with its axes swapped swaps them), and four functions:
 
     - `activate(raw [N, P], scale_px [N, 2], bounds) → physical [N, P]`, 0 at raw 0, within the term's bound;
-    - `form(physical [N, P], rotation_rad [N], pixel_pitch_m) → [N, 5]`: its coefficients of ψ (`FORM_COLUMNS`).
+    - `form(physical [N, P], rotation_rad [N], pixel_pitch_m) → [N, 5]`: its coefficients of ψ (`FORM_COLUMNS`);
+    - `limit(scale_px [N, 2], bounds) → [N, P]`: the largest magnitude of each physical parameter `activate` reaches,
+      the unit of the shares a `.cvq` file codes;
+    - `within(shares [N, P]) → [N, P]`: shares (physical / `limit`) taken into the set `activate` reaches.
     """
 
     name: str
@@ -69,6 +74,9 @@ class PhaseTerm:
     summary: str
     activate: Callable[[Tensor, Tensor, Bounds], Tensor] | None = None
     form: Callable[[Tensor, Tensor, float], Tensor] | None = None
+    limit: Callable[[Tensor, Bounds], Tensor] | None = None
+    within: Callable[[Tensor], Tensor] | None = None
+    per_axis: bool = False
 
 
 def axis_sigmas_px(scale_px: Tensor) -> Tensor:
@@ -76,11 +84,21 @@ def axis_sigmas_px(scale_px: Tensor) -> Tensor:
     return (scale_px * scale_px + COVARIANCE_REGULARISER_PX2).sqrt()
 
 
-def _activate_axes(raw: Tensor, scale_px: Tensor, bounds: Bounds) -> Tensor:
-    """γ_u, γ_v (1/m) = γ_max·tanh(raw), γ_max = f·λ_min / (3σ Δx²) per axis (f: `Bounds.frequency`): the chirp
-    Δx²γ·u/λ reaches f at the ellipse's edge u = 3σ_u."""
+def _axes_limit(scale_px: Tensor, bounds: Bounds) -> Tensor:
+    """γ_max (1/m) = f·λ_min / (3σ Δx²) per axis [N, 2] (f: `Bounds.frequency`): the chirp Δx²γ·u/λ reaches f at the
+    ellipse's edge u = 3σ_u."""
     limit = bounds.frequency * bounds.shortest_wavelength_m / (FOOTPRINT_SIGMAS * bounds.pixel_pitch_m**2)
-    return limit / axis_sigmas_px(scale_px) * raw.tanh()
+    return limit / axis_sigmas_px(scale_px)
+
+
+def _activate_axes(raw: Tensor, scale_px: Tensor, bounds: Bounds) -> Tensor:
+    """γ_u, γ_v (1/m) = γ_max·tanh(raw), γ_max per axis (`_axes_limit`)."""
+    return _axes_limit(scale_px, bounds) * raw.tanh()
+
+
+def _within_box(shares: Tensor) -> Tensor:
+    """Each share within [−1, 1]: tanh's range, one parameter at a time."""
+    return shares.clamp(-1.0, 1.0)
 
 
 def _axes_form(curvature_per_m: Tensor, rotation_rad: Tensor, pixel_pitch_m: float) -> Tensor:
@@ -95,11 +113,27 @@ def _axes_form(curvature_per_m: Tensor, rotation_rad: Tensor, pixel_pitch_m: flo
                         sin * sin * along + cos * cos * across, zero, zero], dim=1)
 
 
+def _largest_tilt_rad(bounds: Bounds) -> float:
+    """t_max (rad) = f·λ_min/Δx (f: `Bounds.frequency`): the slope whose frequency tΔx/λ is f."""
+    return bounds.frequency * bounds.shortest_wavelength_m / bounds.pixel_pitch_m
+
+
+def _tilt_limit(scale_px: Tensor, bounds: Bounds) -> Tensor:
+    """t_max (rad) for each primitive's t_x and t_y [N, 2]: the same for all."""
+    return scale_px.new_full(scale_px.shape, _largest_tilt_rad(bounds))
+
+
 def _activate_tilt(raw: Tensor, scale_px: Tensor, bounds: Bounds) -> Tensor:
-    """t (rad) = t_max · r / √(1 + |r|²), t_max = f·λ_min/Δx (f: `Bounds.frequency`): its frequency tΔx/λ stays
-    under f in every direction; the squash is smooth at 0, with slope 1 there as tanh's."""
-    limit = bounds.frequency * bounds.shortest_wavelength_m / bounds.pixel_pitch_m
+    """t (rad) = t_max · r / √(1 + |r|²): its frequency tΔx/λ stays under f in every direction; the squash is smooth
+    at 0, with slope 1 there as tanh's."""
+    limit = _largest_tilt_rad(bounds)
     return limit * raw * (1 + (raw * raw).sum(dim=1, keepdim=True)).rsqrt()
+
+
+def _within_disc(shares: Tensor) -> Tensor:
+    """Each primitive's pair of shares within the unit disc, the squash's range: scaled onto it from beyond."""
+    norm = shares.norm(dim=1, keepdim=True)
+    return shares / norm.clamp(min=1.0)
 
 
 def _tilt_form(tilt_rad: Tensor, rotation_rad: Tensor, pixel_pitch_m: float) -> Tensor:
@@ -114,10 +148,10 @@ QUADRATIC = PhaseTerm("quadratic", 1, "curvature_per_m", "1/m", 1.0, "curvature"
                       "the paper's curvature γ, along the ellipse (--qpf mahalanobis) or a circle (standard)")
 AXES = PhaseTerm("axes", 2, "axes_curvature_per_m", "1/m", 1.0, "axes",
                  "two curvatures γ_u, γ_v along the ellipse's axes (astigmatic: two focal depths)",
-                 _activate_axes, _axes_form)
+                 _activate_axes, _axes_form, _axes_limit, _within_box, per_axis=True)
 TILT = PhaseTerm("tilt", 2, "tilt_rad", "rad", 1.0, "tilt",
                  "a linear phase: the wavefront's slope (t_x, t_y), a carrier frequency t·Δx/λ that steers the light",
-                 _activate_tilt, _tilt_form)
+                 _activate_tilt, _tilt_form, _tilt_limit, _within_disc)
 TERMS: dict[str, PhaseTerm] = {term.name: term for term in (QUADRATIC, AXES, TILT)}
 CURVATURE_TERMS = ("quadratic", "axes")  # second-order terms: a phase takes at most one
 
@@ -164,10 +198,23 @@ def parse_phase(name: str) -> Phase:
 def activate_terms(raw_terms: dict[str, Tensor], phase: Phase, scale_px: Tensor, eta: float,
                    shortest_wavelength_m: float, pixel_pitch_m: float) -> dict[str, Tensor]:
     """The physical values of the extra terms' raw tensors, each within its share of the bound."""
+    return {term.name: term.activate(raw_terms[term.name], scale_px, bounds)
+            for term, bounds in _term_bounds(phase, eta, shortest_wavelength_m, pixel_pitch_m)}
+
+
+def _term_bounds(phase: Phase, eta: float, shortest_wavelength_m: float, pixel_pitch_m: float
+                 ) -> list[tuple[PhaseTerm, Bounds]]:
+    """Each extra term with its bound: its share of the Nyquist limit beside the others."""
     shares = phase.nyquist_shares()
-    return {term.name: term.activate(raw_terms[term.name], scale_px,
-                                     Bounds(eta, shortest_wavelength_m, pixel_pitch_m, shares[term.name]))
-            for term in phase.extra_terms}
+    return [(term, Bounds(eta, shortest_wavelength_m, pixel_pitch_m, shares[term.name])) for term in phase.extra_terms]
+
+
+def term_limits(phase: Phase, scale_px: Tensor, eta: float, shortest_wavelength_m: float, pixel_pitch_m: float
+                ) -> dict[str, Tensor]:
+    """The largest magnitude (`PhaseTerm.limit`) of each extra term's parameters [N, P] at scale `scale_px`, each
+    term within its share of the bound, as `activate_terms` bounds it."""
+    return {term.name: term.limit(scale_px, bounds)
+            for term, bounds in _term_bounds(phase, eta, shortest_wavelength_m, pixel_pitch_m)}
 
 
 def phase_form(terms: dict[str, Tensor], rotation_rad: Tensor, pixel_pitch_m: float) -> Tensor | None:

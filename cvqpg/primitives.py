@@ -11,7 +11,7 @@ from torch import Tensor
 
 from .config import FitConfig
 from .errors import ConfigError, ModelFileError
-from .phase import QUADRATIC, TERMS, activate_terms
+from .phase import QUADRATIC, TERMS, activate_terms, term_limits
 
 COVARIANCE_REGULARISER_PX2 = 0.1
 MIN_SCALE_PX = 0.1
@@ -214,6 +214,14 @@ def curvature_bound(scale_px: Tensor, config: FitConfig) -> Tensor:
     if not per_channel:
         return scale * min(config.wavelengths)
     return scale[:, None] * device_constants(config.wavelengths, scale_px.dtype, scale_px.device)
+
+
+def term_bounds(scale_px: Tensor, config: FitConfig) -> dict[str, Tensor]:
+    """The largest magnitude of each parameter of the phase terms beyond the curvature [N, P] (`phase.term_limits`:
+    1/m for `axes`, rad for `tilt`) for primitives of scale `scale_px` (px) under `config`: what `activate` bounds
+    them by, and what a `.cvq` file codes them as shares of."""
+    return term_limits(config.phase, scale_px, config.primitives.eta, min(config.wavelengths),
+                       config.optics.pixel_pitch)
 
 
 def activate(raw: Gaussians, config: FitConfig) -> Primitives:

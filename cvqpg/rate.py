@@ -34,6 +34,7 @@ from .codec import (AXES, BIT_LENGTH, CATEGORICAL, CHANGED, CHANNELS, CHECKSUM, 
                     attribute_shapes, centring_turn, chained_quantisers, coded_values, coding, deflated, file_header,
                     file_order, folded, primitives_from, quantise, _bit_lengths, _short, _varints)
 from .config import FitConfig
+from .phase import TERMS
 from .primitives import Primitives
 
 # constriction's ANS coder writes 32-bit words and flushes its state at the end: measured on Laplace streams of
@@ -313,6 +314,8 @@ def _soft_streams(perturbed: dict[str, Tensor], depths: dict[str, Tensor], quant
         codes["scale"] = scale.max(dim=1).values
         codes["elongation"] = codes["scale"] - scale.min(dim=1).values
         codes["rotation"] = torch.where(swapped, torch.remainder(rotation + levels / 2, levels), rotation)
+        for name in [name for name in codes if name in TERMS and TERMS[name].per_axis]:
+            codes[name] = torch.where(swapped[:, None], codes[name].flip(1), codes[name])
     if CHANNELS in tools and config.channels > 1:
         for name in CHANGED:
             value, depth = codes[name], depths[name].double()

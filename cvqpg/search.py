@@ -39,7 +39,7 @@ import torch
 from tqdm.auto import tqdm
 
 from .bitdepths import LADDER, BitDepths
-from .codec import bits_per_pixel, decode, encode, range_holders
+from .codec import bits_per_pixel, decode, encode, file_bits, range_holders
 from .config import FitConfig
 from .control import SILENT, RunControl
 from .errors import ConfigError
@@ -319,11 +319,12 @@ def _check_stop(control: RunControl, config: FitConfig, goal: Goal) -> None:
 def refine(primitives: Primitives, config: FitConfig, reference: Reference, goal: Goal, choice: Choice,
            control: RunControl = SILENT) -> Choice:
     """`choice` (of every primitive) moved one attribute one bit at a time in `goal.direction`, to the trial
-    the goal prefers (`Goal.best`), while the goal prefers it to where it stands."""
+    the goal prefers (`Goal.best`), while the goal prefers it to where it stands; the attributes are those the
+    file codes (`codec.file_bits`: the phase terms' where the model has them)."""
     while True:
         _check_stop(control, config, goal)
-        depths = [bits for bits in (choice.bits.shifted_one(name, goal.direction) for name in choice.bits.names())
-                  if bits is not None and goal.affordable(primitives, config, bits)]
+        shifted = (choice.bits.shifted_one(name, goal.direction) for name in file_bits(choice.bits, config))
+        depths = [bits for bits in shifted if bits is not None and goal.affordable(primitives, config, bits)]
         if not depths:
             return choice
         candidate = goal.best([trial(primitives, config, bits, reference) for bits in depths])

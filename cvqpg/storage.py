@@ -5,7 +5,6 @@ as metadata; a `.cvq` file holds them compressed (`codec`); checkpoints hold the
 from __future__ import annotations
 
 import json
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -13,7 +12,8 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save
 
-from .codec import FINGERPRINT, MAGIC, PREFIX, SUFFIX, Compressed, bits_per_pixel, decode, file_fingerprint
+from .codec import (FINGERPRINT, MAGIC, PREFIX, SUFFIX, Compressed, bits_per_pixel, decode, file_bits,
+                    file_fingerprint)
 from .config import FitConfig
 from .errors import ConfigError, ModelFileError, choices_error
 from .files import atomic_file, write_atomic
@@ -154,7 +154,7 @@ def model_info(path: str | Path) -> dict[str, Any]:
     if is_compressed(path):
         compressed = read_compressed(path)
         primitives, config, dtype = compressed.primitives, compressed.config, "compressed"
-        extra = {"format_version": compressed.version, "bits": asdict(compressed.bits),
+        extra = {"format_version": compressed.version, "bits": file_bits(compressed.bits, compressed.config),
                  "tools": sorted(compressed.tools),
                  "fit_fingerprint": None if compressed.fingerprint is None else compressed.fingerprint.hex(),
                  "streams": {s["name"]: {"coding": s["coding"], "bytes": s["bytes"]} for s in compressed.streams}}

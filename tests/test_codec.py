@@ -1,6 +1,7 @@
 """The `.cvq` codec (`cvqpg.codec`): streams, quantisers and depths, files that decode as they were written, and
 files or model files that make no physical sense refused in one line."""
 
+import dataclasses
 import json
 import math
 import re
@@ -14,9 +15,9 @@ from cvqpg import FitConfig, load_model
 from cvqpg.cli import main
 from cvqpg.codec import (AXES, CHANNELS, CHECKSUM, MAGIC, PREFIX, TOOLS, TURN, BitDepths, coding, decode, decode_stream,
                          deflated, derived_depths, encode, encode_stream, exact_exp, file_fingerprint, file_order,
-                         header_start, importance_offsets, inflated, rotation_depths, with_fingerprint)
+                         header_start, importance_offsets, inflated, optics, rotation_depths, with_fingerprint)
 from cvqpg.codec import NO_FINGERPRINT, _file
-from cvqpg.errors import ModelFileError
+from cvqpg.errors import ConfigError, ModelFileError
 from cvqpg.fitting import render
 from cvqpg.primitives import activate, init_gaussians
 from cvqpg.storage import save_model
@@ -395,3 +396,121 @@ def test_an_elongation_beyond_its_scale_is_refused_in_one_line():
     with pytest.raises(ModelFileError, match="^model.cvq: .*an elongation beyond its scale code") as refused:
         decode(tampered(data, elongated), "model.cvq")
     assert "\n" not in str(refused.value)
+
+
+# --------------------------------------------------------------------------- the phase terms beyond the curvature
+
+EXTRA_PHASES = ("quadratic+tilt", "tilt", "axes", "axes+tilt")
+
+
+def phased_primitives(phase: str, color: str = "gray", seed: int = 3):
+    """`random_primitives` of a tiny model with `phase`, its terms spread far into their squash (N(0, 1) raw), and
+    no curvature where the phase has no quadratic term (a fit's stays 0 there)."""
+    config = FitConfig.create(width=32, height=24, color=color, num_gaussians=40, phase=phase, guard_band_px=16)
+    terms = tuple(term.name for term in config.phase.extra_terms)
+    raw = init_gaussians(config.primitive_count, config.channels, 32, 24, seed, terms=terms)
+    g = torch.Generator().manual_seed(seed)
+    raw.amplitude.uniform_(-1, 1, generator=g)
+    raw.phase.uniform_(-7, 14, generator=g)
+    raw.rotation.uniform_(-7, 7, generator=g)
+    if config.phase.has("quadratic"):
+        raw.curvature.uniform_(-3, 3, generator=g)
+    raw.terms = {name: torch.randn(tensor.shape, generator=g) for name, tensor in raw.terms.items()}
+    return activate(raw, config), config
+
+
+FINEST = BitDepths(**{name: 16 for name in BitDepths().names()})
+
+
+@pytest.mark.parametrize("phase", EXTRA_PHASES)
+def test_a_file_keeps_the_phase_terms_beyond_the_curvature(phase):
+    """Each term as shares of its bounds: at the finest depths the decoded model renders like the float one, and the
+    header names the phase and the terms' depths."""
+    primitives, config = phased_primitives(phase)
+    finest = dataclasses.replace(FINEST, position=8)
+    data = encode(primitives, config, finest)
+    decoded = decode(data)
+    assert decoded.config.phase.name == phase and optics(decoded.config) == optics(config)
+    assert decoded.primitives.terms.keys() == primitives.terms.keys()
+    written = json.loads(inflated(data[header_start(6):header_start(6) + PREFIX.unpack_from(data)[2]], 6))
+    assert written["optics"]["phase"] == phase
+    assert written["bits"] == finest.coded(decoded.primitives.terms)
+    field, decoded_field = render(primitives, config)[0], render(decoded.primitives, config)[0]
+    assert (decoded_field - field).abs().max() < 2e-3 * field.abs().max()
+    coarse = decode(encode(primitives, config, BitDepths().shifted(-3))).primitives
+    assert (render(coarse, config)[0] - field).abs().max() > 10 * (decoded_field - field).abs().max()
+
+
+def test_the_tilt_s_values_decode_within_half_a_step_of_their_share_and_within_the_bound():
+    from cvqpg.primitives import term_bounds
+
+    primitives, config = phased_primitives("quadratic+tilt")
+    bits = BitDepths(tilt=5)
+    decoded = decode(encode(primitives, config, bits)).primitives
+    order = file_order(coding(primitives, config, bits))
+    limit = term_bounds(decoded.scale_px, config)["tilt"].double()
+    depths = derived_depths("tilt", {"scale": decoded.scale_px, "amplitude": decoded.amplitude.double()}, bits,
+                            (primitives.count, 2))
+    error = (decoded.terms["tilt"].double() - primitives.terms["tilt"][order].double()) / limit
+    assert bool((error.abs() <= 0.5 / (2.0 ** (depths - 1) - 1) + 1e-6).all())
+    assert int((depths != 5).sum()) > 0  # by importance: Σ_c|w_c|²·σx·σy·tr Σ
+    assert bool((decoded.terms["tilt"].abs() <= limit * (1 + 1e-6)).all())
+
+
+@pytest.mark.parametrize("tools", [frozenset(), TOOLS - {CHANNELS}], ids=["none", "all"])
+def test_the_axes_curvatures_follow_the_ellipse_s_axes_where_the_file_orders_them(tools):
+    """With the tool `axes` an ellipse's axes come larger first, turned by a quarter: the two curvatures along them
+    swap with them, and the file renders as it does without the tool; a circle's rotation keeps its bits where the
+    astigmatism turns with it."""
+    primitives, config = phased_primitives("axes+tilt")
+    values = primitives.tensors()
+    values["scale_px"][:4] = 2.5  # circles: only their astigmatism says how they turn
+    primitives = type(primitives).from_tensors(values)
+    reference = decode(encode(primitives, config, BitDepths(), tools=frozenset())).primitives
+    decoded = decode(_file(primitives, config, BitDepths(), NO_FINGERPRINT, tools)).primitives
+    field = render(reference, config)[0]
+    assert (render(decoded, config)[0] - field).abs().max() <= 1e-4 * field.abs().max()
+    assert torch.equal(decoded.terms["tilt"], reference.terms["tilt"])
+    swapped = ~torch.isclose(decoded.scale_px, reference.scale_px).all(dim=1)
+    assert (AXES in tools) == bool(swapped.any())
+    torch.testing.assert_close(decoded.terms["axes"][swapped], reference.terms["axes"][swapped].flip(1),
+                               rtol=1e-5, atol=0)
+    circles = reference.scale_px[:, 0] == reference.scale_px[:, 1]
+    assert bool(circles.any()) and bool((reference.rotation_rad[circles] != 0).any())
+
+
+def test_a_phase_without_the_quadratic_term_codes_no_curvature_and_refuses_one():
+    primitives, config = phased_primitives("tilt")
+    decoded = decode(encode(primitives, config, BitDepths()))
+    assert "curvature" not in [stream["name"] for stream in decoded.streams]
+    values = primitives.tensors()
+    values["curvature_per_m"][0] = 10.0
+    with pytest.raises(ConfigError, match="`phase` tilt has no quadratic term, yet the model's curvatures"):
+        encode(type(primitives).from_tensors(values), config, BitDepths())
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda h: h["optics"].update(phase="quadratic"), "phase 'quadratic' is not a phase with terms beyond"),
+    (lambda h: h["optics"].update(phase="swirl"), "`phase` 'swirl' is not one of 'constant'"),
+    (lambda h: h["optics"].pop("phase"), "bit depths for ['amplitude', 'curvature', 'phase', 'position', 'rotation', "
+                                         "'scale', 'tilt'] where its attributes are ['amplitude', 'curvature', 'phase', "
+                                         "'position', 'rotation', 'scale']"),
+    (lambda h: (h["optics"].pop("phase"), h["bits"].pop("tilt")), "its streams have shapes"),
+    (lambda h: h["bits"].pop("tilt"), "bit depths for ['amplitude', 'curvature', 'phase', 'position', 'rotation', "
+                                      "'scale'] where"),
+    (lambda h: h["bits"].update(axes=8), "bit depths for ['amplitude', 'axes'"),
+])
+def test_a_file_s_phase_and_its_terms_depths_are_checked(change, message):
+    primitives, config = phased_primitives("quadratic+tilt")
+    data = tampered(encode(primitives, config, BitDepths()), change)
+    with pytest.raises(ModelFileError, match=f"^model.cvq: .*{re.escape(message)}.*write it again"):
+        decode(data, "model.cvq")
+
+
+def test_a_file_without_phase_terms_names_neither_their_phase_nor_their_depths():
+    config = FitConfig.create(width=48, height=32, color="gray", ratio=0.3)
+    data = encode(random_primitives(config), config, BitDepths(tilt=3, axes=12))
+    assert data == encode(random_primitives(config), config, BitDepths())
+    written = json.loads(inflated(data[header_start(6):header_start(6) + PREFIX.unpack_from(data)[2]], 6))
+    assert "phase" not in written["optics"] and list(written["bits"]) == [
+        "position", "scale", "rotation", "amplitude", "phase", "curvature"]

@@ -85,3 +85,25 @@ def test_finetune_tells_its_control_each_step_and_stops_on_request():
     with pytest.raises(FitInterrupted, match="stopped during fine-tuning"):
         finetune(primitives, config, scene, BitDepths(), 5, control=stop)
     assert len(steps) == 2
+
+
+@pytest.mark.parametrize("phase", ["quadratic+tilt", "axes+tilt"])
+def test_finetune_rounds_the_phase_terms_through_their_quantisers_and_keeps_them_within_their_bounds(phase):
+    from test_codec import phased_primitives
+
+    primitives, config = phased_primitives(phase)
+    bits = BitDepths().shifted(-2)
+    coded = coding(primitives, config, bits)
+    forward = quantised(coded.values, coded.ranges, config, bits)
+    none = frozenset()  # without the tool `axes`, which orders each ellipse's axes and so swaps their curvatures
+    decoded = dequantise(quantise(primitives, config, bits, none), config, bits, none)
+    order = file_order(coded)
+    for name in primitives.terms:
+        torch.testing.assert_close(forward.terms[name].detach()[order], decoded.terms[name], rtol=1e-5, atol=0)
+    targets = render(primitives, config)[1].clamp(0.05, 0.95).detach()
+    scene = Scene(targets[0], torch.ones(targets.shape[0], 24, 32), targets)
+    # the tuned shares of the bounds at the scale as decoded, which the codec divides by, within what `activate` reaches
+    shares = coding(finetune(primitives, config, scene, bits, 3), config, bits).values
+    assert bool((shares["tilt"].norm(dim=1) <= 1 + 1e-6).all())
+    if "axes" in shares:
+        assert bool((shares["axes"].abs() <= 1 + 1e-6).all())

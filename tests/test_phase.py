@@ -3,6 +3,7 @@ the reference rasterizer against ψ written out by hand, and its gradients again
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -150,6 +151,28 @@ def test_each_term_takes_its_share():
     only_tilt = Primitives(**{**{name: getattr(prims, name) for name in FIELDS},
                               "terms": {"tilt": prims.terms["tilt"], "axes": 0 * prims.terms["axes"]}})
     assert float(edge_frequencies(only_tilt, config).max()) == pytest.approx(0.25 * config.primitives.eta, rel=1e-3)
+
+
+def test_each_term_s_limit_is_the_largest_magnitude_its_activation_reaches():
+    """What a `.cvq` file codes the terms as shares of: the activation's values over `limit` lie within the set
+    `within` keeps, and far out in the squash they reach its edge."""
+    from cvqpg.primitives import term_bounds
+
+    config = config_of("axes+tilt", "gray")
+    raw = random_raw(200, 1, "axes+tilt", seed=4, spread=50.0)
+    prims = activate(raw, config)
+    limits = term_bounds(prims.scale_px, config)
+    for name, limit in limits.items():
+        shares = prims.terms[name] / limit
+        torch.testing.assert_close(TERMS[name].within(shares), shares)
+        edge = shares.norm(dim=1) if name == "tilt" else shares.abs()
+        assert float(edge.max()) <= 1 + 1e-6 and float(edge.max()) > 0.999, name
+    from cvqpg.bitdepths import PHASE_TERMS
+
+    assert set(PHASE_TERMS) == set(TERMS) - {"quadratic"}  # every term has its depth in a .cvq file
+    beyond = torch.tensor([[3.0, 4.0], [0.3, -0.4]])
+    assert torch.allclose(TERMS["tilt"].within(beyond), torch.tensor([[0.6, 0.8], [0.3, -0.4]]))
+    assert torch.equal(TERMS["axes"].within(beyond), torch.tensor([[1.0, 1.0], [0.3, -0.4]]))
 
 
 # --------------------------------------------------------------------------- the reference rasterizer
@@ -379,7 +402,7 @@ def test_model_files_and_checkpoints_carry_the_terms(tmp_path):
     from cvqpg.errors import CvqpgError
     from cvqpg.fitting import blank_state, state_from_payload
     from cvqpg.storage import load_model, model_info, save_model
-    from cvqpg.codec import encode
+    from cvqpg.codec import decode, encode
     from cvqpg.bitdepths import BitDepths
 
     config = config_of("axes+tilt", "gray")
@@ -396,5 +419,10 @@ def test_model_files_and_checkpoints_carry_the_terms(tmp_path):
         state.gaussians.terms["tilt"].copy_(raw.terms["tilt"])
     restored = state_from_payload(state.to_payload(), config)
     assert torch.equal(restored.gaussians.terms["tilt"], raw.terms["tilt"])
-    with pytest.raises(CvqpgError, match="`.cvq` files do not store the phase terms"):
+    # a .cvq file keeps the terms (tests/test_codec.py), and codes no curvature for a phase without `quadratic`
+    with pytest.raises(CvqpgError, match="`phase` axes\\+tilt has no quadratic term, yet the model's curvatures"):
         encode(prims, config, BitDepths())
+    flat = dataclasses.replace(prims, curvature_per_m=torch.zeros_like(prims.curvature_per_m))
+    decoded = decode(encode(flat, config, BitDepths()))
+    assert decoded.config.phase.name == "axes+tilt" and decoded.primitives.terms.keys() == prims.terms.keys()
+    assert not decoded.primitives.curvature_per_m.any()

@@ -9,6 +9,7 @@ import torch
 from cvqpg import FitConfig
 from cvqpg.codec import AXES, TOOLS, TURN, BitDepths, decode, encode
 from cvqpg.fitting import fit_scene
+from cvqpg.phase import TERMS
 from cvqpg.rate import LAPLACE, GAUSSIAN, coded, estimate, parametric_bits, stream_rate
 from cvqpg.app.encoding import stand_in
 from cvqpg.scenes import builtin_scene
@@ -16,17 +17,20 @@ from cvqpg.scenes import builtin_scene
 TOLERANCE = 0.03  # the estimate within 3% of the written file
 
 
-KINDS = [(color, primitive) for color in ("gray", "rgb") for primitive in ("flat", "cvqpg")]
+# every primitive kind, and CVQPG with the phase terms beyond the curvature (by the phase's name)
+KINDS = [(color, primitive) for color in ("gray", "rgb") for primitive in ("flat", "cvqpg")] + [
+    ("gray", "axes+tilt"), ("rgb", "quadratic+tilt")]
 
 
 def tiny_config(color: str, primitive: str) -> FitConfig:
-    return FitConfig.create(width=48, height=32, color=color, primitive=primitive, num_gaussians=160, steps=12,
-                            curvature_warmup=4, guard_band_px=16)
+    kind = {"primitive": primitive} if primitive in ("flat", "cvqpg") else {"phase": primitive}
+    return FitConfig.create(width=48, height=32, color=color, num_gaussians=160, steps=12, curvature_warmup=4,
+                            guard_band_px=16, **kind)
 
 
 @pytest.fixture(scope="module")
 def models():
-    """Models of every kind (grayscale and RGB, flat and `cvqpg` primitives) coded as a fit's are
+    """Models of every kind (grayscale and RGB, flat and `cvqpg` primitives, and phase terms) coded as a fit's are
     (`app.encoding.stand_in`), without fitting."""
     return {kind: (stand_in(tiny_config(*kind), 160, seed=1), tiny_config(*kind)) for kind in KINDS}
 
@@ -74,25 +78,32 @@ def test_without_noise_the_coded_primitives_are_those_the_file_decodes_to(models
         read = decode(encode(primitives, config, BitDepths())).primitives
 
         def rows(model):  # the file orders each ellipse's axes (`axes`)
-            return torch.cat([model.position_px, model.scale_px.sort(dim=1).values, model.amplitude], dim=1).double()
+            tilt = [model.terms["tilt"]] if "tilt" in model.terms else []
+            return torch.cat([model.position_px, model.scale_px.sort(dim=1).values, model.amplitude, *tilt],
+                             dim=1).double()
 
         ours, theirs = rows(through), rows(read)
         ours, theirs = (t[torch.argsort(t[:, 0] * 1e4 + t[:, 1])] for t in (ours, theirs))
         assert torch.allclose(ours, theirs, rtol=1e-5, atol=1e-5), (color, primitive)
 
 
-def test_the_coded_rate_matches_the_estimate_and_is_differentiable(models):
-    """Scales and phases gathered about a value, as a fit's are: modelled streams, whose bits move with them."""
-    primitives, config = models["rgb", "cvqpg"]
+@pytest.mark.parametrize("kind, moving", [(("rgb", "cvqpg"), ("scale_px", "phase_rad")),
+                                          (("gray", "axes+tilt"), ("axes_curvature_per_m", "tilt_rad"))])
+def test_the_coded_rate_matches_the_estimate_and_is_differentiable(models, kind, moving):
+    """Scales, phases and phase terms gathered about a value, as a fit's are: modelled streams, whose bits move with
+    them."""
+    primitives, config = models[kind]
     leaf = {name: tensor.detach().clone().requires_grad_(True) for name, tensor in primitives.tensors().items()}
     with torch.no_grad():
         generator = torch.Generator().manual_seed(1)
         leaf["phase_rad"].copy_(torch.remainder(0.3 * torch.randn(leaf["phase_rad"].shape, generator=generator), 6.28))
+        for name in primitives.terms:  # gathered about 0, as a fit's terms are
+            leaf[TERMS[name].physical].mul_(0.2)
     result = coded(type(primitives).from_tensors(leaf), config, BitDepths())
     assert result.rate.file_bytes == estimate(type(primitives).from_tensors(leaf), config, BitDepths()).file_bytes
     assert math.isclose(float(result.rate.bits.detach()) / 8, result.rate.file_bytes, rel_tol=1e-9)
     result.rate.bits.backward()
-    for name in ("scale_px", "phase_rad"):
+    for name in moving:
         assert leaf[name].grad is not None and bool(leaf[name].grad.abs().sum() > 0), name
 
 

@@ -49,6 +49,26 @@ def test_the_ladder_runs_from_3_bits_coarser_to_every_attribute_s_finest_depth()
     assert LADDER[0] == BitDepths().shifted(-3) and LADDER[-1] == BitDepths().shifted(16)
     sizes = [sum(vars(bits).values()) for bits in LADDER]
     assert sizes == sorted(set(sizes))
+    # the phase terms' depths, at curvature's, add no rung to a file without them
+    assert len({tuple(bits.coded().values()) for bits in LADDER}) == len(LADDER)
+
+
+@pytest.mark.parametrize("phase, refined", [
+    ("quadratic", ["position", "scale", "rotation", "amplitude", "phase", "curvature"]),
+    ("axes+tilt", ["position", "scale", "rotation", "amplitude", "phase", "curvature", "axes", "tilt"])])
+def test_refining_moves_the_depths_the_file_codes(monkeypatch, phase, refined):
+    import cvqpg.search
+
+    config = FitConfig.create(width=W, height=H, color="gray", num_gaussians=10, phase=phase)
+    tried = []
+
+    def stand_in_trial(primitives, config, bits, reference):  # a file that drops too much: the search stops
+        tried.append(next(name for name, value in vars(bits).items() if value != vars(BitDepths())[name]))
+        return choice(10, 20.0, 1.0)
+
+    monkeypatch.setattr(cvqpg.search, "trial", stand_in_trial)
+    assert refine(None, config, None, MaxDrop(0.5), choice(10, 20.0, 0.0)).drop == 0.0
+    assert tried == refined
 
 
 @pytest.fixture(scope="module")

@@ -5,11 +5,11 @@ run's scene, the file chosen by the search (`cvqpg.search`) written atomically, 
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..codec import bits_per_pixel, with_fingerprint
+from ..codec import bits_per_pixel, file_bits, with_fingerprint
 from ..config import FitConfig
 from ..control import SILENT, RunControl
 from ..defaults import RATE_FINETUNE_STEPS, SUFFIX
@@ -61,8 +61,8 @@ def choice_record(choice: Choice, reference: Reference, config: FitConfig) -> di
     """A chosen file's size (bytes, bits per hologram pixel), bit depths, primitives, and PSNR and drop (dB)
     against the reference (with the float model's PSNR on it, where known)."""
     return {"bytes": len(choice.data), "bits_per_pixel": bits_per_pixel(len(choice.data), config),
-            "bits": asdict(choice.bits), "num_primitives": choice.decoded.count, "reference": reference.label,
-            "psnr_float": reference.fit_psnr, "psnr": choice.psnr, "drop": choice.drop}
+            "bits": file_bits(choice.bits, config), "num_primitives": choice.decoded.count,
+            "reference": reference.label, "psnr_float": reference.fit_psnr, "psnr": choice.psnr, "drop": choice.drop}
 
 
 def compression_record(given: CompressionInput, out: Path, choice: Choice, reference: Reference, seconds: float,

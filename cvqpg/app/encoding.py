@@ -52,14 +52,15 @@ def encode_steps(steps: int) -> tuple[int, int]:
 
 def stand_in(config: FitConfig, count: int, seed: int = 0) -> Primitives:
     """`count` random primitives of the fit's shape, coded about as a fitted model is: the initialisation's
-    positions, scales and amplitudes, with phases and curvatures spread over their whole range (a fit
-    starts them at 0, which would code in almost no bits)."""
+    positions, scales and amplitudes, with phases, curvatures (where the phase has the quadratic term) and the
+    other phase terms spread over their whole range (a fit starts them at 0, which would code in almost no bits)."""
     raw = init_gaussians(count, config.channels, config.targets.width, config.targets.height, seed,
                          per_channel_curvature=config.primitives.curvature == "per-channel",
                          terms=tuple(term.name for term in config.phase.extra_terms))
     generator = torch.Generator().manual_seed(seed)
     raw.phase.uniform_(0, 2 * math.pi, generator=generator)
-    raw.curvature.uniform_(-1, 1, generator=generator)
+    if config.phase.has("quadratic"):
+        raw.curvature.uniform_(-1, 1, generator=generator)
     for tensor in raw.terms.values():
         tensor.uniform_(-1, 1, generator=generator)
     return activate(raw, config)

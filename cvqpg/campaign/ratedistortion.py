@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..codec import BitDepths, decode, encode
+from ..codec import BitDepths, decode, encode, file_bits
 from ..config import FitConfig, RunOptions
 from ..control import SILENT, RunControl
 from ..defaults import ENCODE_FINETUNE_STEPS
@@ -99,8 +99,9 @@ def _decoded_point(codec: str, setting: str, data: bytes, config: FitConfig, tar
                   decoded.count)
 
 
-def _describe(bits: BitDepths) -> str:
-    return " ".join(f"{k}={v}" for k, v in asdict(bits).items())
+def _describe(bits: BitDepths, config: FitConfig) -> str:
+    """The depths a file of `config` codes, as `--bits` takes them."""
+    return " ".join(f"{k}={v}" for k, v in file_bits(bits, config).items())
 
 
 def codec_points(primitives: Primitives, config: FitConfig, targets: Tensor,
@@ -110,7 +111,8 @@ def codec_points(primitives: Primitives, config: FitConfig, targets: Tensor,
     for bits in ladder:
         started = time.perf_counter()
         data = encode(primitives, config, bits)
-        points.append(_decoded_point(CODEC, _describe(bits), data, config, targets, time.perf_counter() - started))
+        points.append(_decoded_point(CODEC, _describe(bits, config), data, config, targets,
+                                     time.perf_counter() - started))
     return points
 
 
@@ -126,8 +128,8 @@ def searched_points(primitives: Primitives, config: FitConfig, targets: Tensor, 
         searched = time.perf_counter() - started
         if choice.bits not in seen:
             seen.add(choice.bits)
-            points.append(_decoded_point(CODEC, f"--max-drop {max_drop:g}: {_describe(choice.bits)}", choice.data,
-                                         config, targets, searched))
+            points.append(_decoded_point(CODEC, f"--max-drop {max_drop:g}: {_describe(choice.bits, config)}",
+                                         choice.data, config, targets, searched))
     return points
 
 
@@ -145,7 +147,7 @@ def finetuned_points(primitives: Primitives, config: FitConfig, scene: Scene, fi
     for bits, fraction in settings:
         started = time.perf_counter()
         data = encode(finetune(prune(primitives, fraction), config, scene, bits, steps), config, bits)
-        label = (f"--prune {fraction:g} " if fraction else "") + f"--finetune {steps}: {_describe(bits)}"
+        label = (f"--prune {fraction:g} " if fraction else "") + f"--finetune {steps}: {_describe(bits, config)}"
         points.append(_decoded_point(CODEC, label, data, config, scene.targets, time.perf_counter() - started))
     return points
 
@@ -165,7 +167,7 @@ def budget_points(primitives: Primitives, config: FitConfig, scene: Scene, fit_p
             continue
         started = time.perf_counter()
         chosen = rate_control(primitives, config, reference, budget, scene, steps).choice
-        point = _decoded_point(CODEC, f"--bpp {bpp:.3f}: {_describe(chosen.bits)}", chosen.data, config,
+        point = _decoded_point(CODEC, f"--bpp {bpp:.3f}: {_describe(chosen.bits, config)}", chosen.data, config,
                                scene.targets, time.perf_counter() - started)
         point.budget_bpp = bpp
         points.append(point)
@@ -193,7 +195,7 @@ def encode_point(scene: Scene, config: FitConfig, source: dict[str, Any], bpp: f
     encoded = encode_in_folder(work, scene, fit_config, budget, finetune_steps, run, control.quiet(), fit=fit)
     chosen = encoded.rate.choice
     point = _decoded_point(ENCODER_RATE if rate_loss else ENCODER,
-                           f"--bpp {bpp:.3f}: {fit_config.primitive_count} fitted, {_describe(chosen.bits)}",
+                           f"--bpp {bpp:.3f}: {fit_config.primitive_count} fitted, {_describe(chosen.bits, config)}",
                            chosen.data, config, scene.targets, encoded.seconds)
     point.budget_bpp, point.encode_cpu_s = bpp, encoded.cpu_seconds
     shutil.rmtree(work)
