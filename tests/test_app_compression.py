@@ -297,3 +297,49 @@ def test_bad_rate_options_are_one_line_exit_2_and_write_nothing(model_file, tmp_
     assert main(["compress", str(model_file), *arguments, "--out", str(tmp_path / "m.cvq")]) == 2
     assert message in one_line_error(capsys)
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("phase", ["quadratic+tilt", "axes+tilt"])
+def test_a_model_with_phase_terms_compresses_decompresses_and_counts_its_parameters(tmp_path, capsys, phase):
+    from test_codec import phased_primitives
+
+    primitives, config = phased_primitives(phase)
+    model = tmp_path / "model.safetensors"
+    save_model(model, primitives, config)
+    packed = tmp_path / "model.cvq"
+    assert main(["compress", str(model), "--bits", "10", "--out", str(packed)]) == 0
+    assert main(["decompress", str(packed), "--out", str(tmp_path / "back.safetensors")]) == 0
+    capsys.readouterr()
+    unpacked, unpacked_config = load_model(tmp_path / "back.safetensors")
+    assert unpacked_config.phase.name == phase and unpacked.terms.keys() == primitives.terms.keys()
+    assert mean_psnr(render(unpacked, config)[1], render(primitives, config)[1]) > 35
+    for path in (model, packed):
+        assert main(["info", str(path), "--json"]) == 0
+        info = json.loads(capsys.readouterr().out)
+        assert (info["phase"], info["params_per_primitive"]) == (phase, config.params_per_primitive)
+    assert info["bits"] == BitDepths(**{name: 10 for name in ("scale", "rotation", "amplitude", "phase", "curvature",
+                                                              "axes", "tilt")}).coded(primitives.terms)
+    assert main(["info", str(packed)]) == 0
+    assert f"{config.params_per_primitive} per primitive, phase {phase}" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_a_fit_with_phase_terms_goes_through_every_command_of_a_cvq_file(tmp_path, capsys):
+    """fit, compress within a budget (rate control and fine-tuning), eval of the compressed model in its run,
+    decompress, and encode straight into a file: each with the phase's terms in the file."""
+    run = tmp_path / "run"
+    tiny = ["--size", "32", "24", "--color", "gray", "--planes", "1", "--quiet"]
+    assert main(["fit", *tiny, "--steps", "8", "--curvature-warmup", "2", "--phase", "axes+tilt", "--out",
+                 str(run)]) == 0
+    packed = run / "tuned.cvq"
+    assert main(["compress", str(run), "--max-bytes", "700", "--finetune", "2", "--out", str(packed)]) == 0
+    assert read_compressed(packed).config.phase.name == "axes+tilt" and packed.stat().st_size <= 700
+    assert main(["eval", str(packed)]) == 0
+    assert json.loads((run / "tuned.metrics.json").read_text())["mean"]["psnr"] > 0
+    assert main(["decompress", str(packed), "--out", str(tmp_path / "back.safetensors")]) == 0
+    assert load_model(tmp_path / "back.safetensors")[1].phase.name == "axes+tilt"
+    encoded = tmp_path / "encoded.cvq"
+    assert main(["encode", "--scene", "demo", *tiny, "--steps", "6", "--finetune", "2", "--phase", "quadratic+tilt",
+                 "--bpp", "6", "--out", str(encoded)]) == 0
+    assert read_compressed(encoded).primitives.terms.keys() == {"tilt"}
+    capsys.readouterr()

@@ -28,7 +28,12 @@ with `codec.exact_exp`, so its files decode to the same bits on every machine an
 6's files were written at the commit that introduced it, its grayscale file by the version-5 recipe (its bytes are
 version 5's but for the version number), its RGB file by the version-5 RGB recipe of that commit (the primitives
 `random_primitives(config)` drew there) for a model fitted through a DPAC display with a lookup table of 300
-phases (0.02·g rad), aperture 0.6 and a 56×40 canvas, so that the header's `display` is covered.
+phases (0.02·g rad), aperture 0.6 and a 56×40 canvas, so that the header's `display` is covered. Version 6 also
+keeps the phase terms beyond the curvature: `format_v6_gray_quadratic-tilt.cvq` and `format_v6_gray_axes-tilt.cvq`
+(`PHASED`) were written at the commit that introduced them by the grayscale recipe above through `FitConfig.create`
+(40×32 px, one plane, `phase` quadratic+tilt or axes+tilt, 64 primitives; curvature 0 for axes+tilt, which has no
+quadratic term), the terms' raw values drawn N(0, 1) after the opacity, so that the `tilt` and `axes` streams, the
+header's `phase` and the terms' depths are covered.
 
 **Never regenerate a golden file**: a file written by today's code proves only that today's decoder reads what
 today's encoder writes. A new format version adds its own pair of files; a version's files stay as they are.
@@ -71,6 +76,24 @@ def test_every_format_version_has_golden_files():
     """A new format version must come with its golden files (this module's docstring says how)."""
     missing = [golden(v, kind).name for v, kind in GOLDEN if not golden(v, kind).is_file()]
     assert not missing, f"no golden files {missing}: write them with the commit that introduces the version"
+
+
+# Golden files of the phase terms beyond the curvature: (version, `kind` of the file's name, the phase it holds).
+PHASED = [(6, "gray_quadratic-tilt", "quadratic+tilt"), (6, "gray_axes-tilt", "axes+tilt")]
+
+
+@pytest.mark.parametrize("version, kind, phase", PHASED, ids=[kind for _, kind, _ in PHASED])
+def test_a_golden_file_of_phase_terms_decodes_as_the_version_that_wrote_it_decoded_it(version, kind, phase):
+    data = golden(version, kind).read_bytes()
+    expected = load_file(golden(version, kind, "_decoded.safetensors"))
+    _, written = header(data)
+    decoded = decode(data)
+    assert written["optics"]["phase"] == decoded.config.phase.name == phase
+    assert decoded.bits == BitDepths(**written["bits"]) and set(written["bits"]) >= set(decoded.primitives.terms)
+    tensors = decoded.primitives.tensors()
+    assert tensors.keys() == expected.keys() and {"tilt_rad"} <= tensors.keys()
+    for name, tensor in tensors.items():
+        torch.testing.assert_close(tensor, expected[name], rtol=0, atol=0, msg=name)
 
 
 @pytest.mark.parametrize("version, kind", GOLDEN, ids=[f"v{v}-{kind}" for v, kind in GOLDEN])
