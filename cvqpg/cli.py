@@ -292,13 +292,14 @@ def _view_parser(sub: argparse._SubParsersAction) -> None:
                        "RUN_DIR's reconstructions with a slider, side by side with RUN_DIR_2's and a linked zoom, "
                        "PSNR at the training planes, the hologram's amplitude and phase, the phase-only display "
                        "of `cvqpg export`, and the runs' settings and metrics.")
-    v.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="one or two folders written by `cvqpg fit` "
-                   "(of the same size and optics)")
+    v.add_argument("run_dirs", nargs="+", metavar="RUN_DIR|MODEL", help="one or two folders written by `cvqpg fit` "
+                   f"(of the same size and optics), or model files (.safetensors or {SUFFIX}) inside them")
     v.add_argument("--distances", type=finite, nargs=3, default=DEFAULT_SWEEP, metavar=("START", "STOP", "COUNT"),
                    help="sweep COUNT distances from START to STOP in m, plus the training planes")
     _overwrite_argument(v, "the page")
     v.add_argument("--out", metavar="PAGE", help=f"the page [default: RUN_DIR/{VIEW_FILE}, or "
-                   "RUN_DIR/view_vs_<RUN_DIR_2>.html for two runs]")
+                   "RUN_DIR/view_vs_<RUN_DIR_2>.html for two runs; for a model file, the same after its stem: "
+                   f"RUN_DIR/<stem>.{VIEW_FILE}]")
     v.add_argument("--quiet", action="store_true", help="no progress bar")
 
 

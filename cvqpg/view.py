@@ -28,7 +28,7 @@ from .fitting import hologram
 from .metrics import METRIC_NAMES, psnr
 from .ops.propagation import release_transfer_functions
 from .optics import reconstruct
-from .runs import (EXPORT_FOLDER, METRICS_FILE, REEVALUATE_RUN, hologram_images, load_run_model, optics_label,
+from .runs import (EXPORT_FOLDER, METRICS_FILE, REEVALUATE_RUN, evaluation_file, hologram_images, load_run_model, optics_label,
                    read_record, read_run, read_run_options, to_8bit, write_atomic)
 from .targets import load_picture
 
@@ -55,17 +55,20 @@ class ViewRecord:
 
 @dataclass
 class Run:
-    """A finished run folder, loaded on the device it is rendered on."""
+    """A finished run folder, loaded on the device it is rendered on: its own model, or the model file `model` in it
+    (a `.cvq` file, say)."""
 
     folder: Path
     config: FitConfig
     source: dict[str, Any]
     field: Tensor  # complex hologram [C, H, W]
     metrics: dict[str, Any] | None
+    model: Path | None = None
 
     @property
     def name(self) -> str:
-        return self.folder.resolve().name
+        folder = self.folder.resolve().name
+        return folder if self.model is None else f"{folder}/{self.model.name}"
 
     @property
     def planes(self) -> tuple[float, ...]:
@@ -115,15 +118,24 @@ def run_device(folder: Path) -> str:
     return device
 
 
-def load_run(folder: Path) -> Run:
-    """Read a finished run folder and render its hologram; its model must belong to it (`load_run_model`)."""
-    primitives, config, source = load_run_model(folder, device=run_device(folder))
-    metrics_file = folder / METRICS_FILE
+def run_of(target: str | Path) -> tuple[Path, Path | None]:
+    """The run folder of `target` and the model file to show: a run folder and None (its own model), or a model file
+    and the run folder it lies in."""
+    target = Path(target)
+    return (target.parent, target) if target.is_file() else (target, None)
+
+
+def load_run(target: Path) -> Run:
+    """Read a finished run folder, or a model file in one, and render its hologram; the model must belong to the run
+    (`load_run_model`). A model file's metrics are those `cvqpg eval` wrote for it, where it did."""
+    folder, model = run_of(target)
+    primitives, config, source = load_run_model(folder, model, device=run_device(folder))
+    metrics_file = evaluation_file(folder, model)
     metrics = (read_record(metrics_file, REEVALUATE_RUN)
                if metrics_file.is_file() else None)
     with torch.no_grad():
         field = hologram(primitives, config)
-    return Run(folder, config, source, field, metrics)
+    return Run(folder, config, source, field, metrics, model)
 
 
 def focal_sweep(run: Run, distances_m: Sequence[float], progress: bool = True) -> Iterator[Tensor]:
@@ -181,8 +193,9 @@ def plane_label(plane: int, distance_m: float) -> str:
 
 
 def display_images(run: Run) -> list[dict[str, str]]:
-    """The simulated phase-only display of `cvqpg export` at each plane, with its PSNR; none without an export."""
-    folder = run.folder / EXPORT_FOLDER
+    """The simulated phase-only display of `cvqpg export` at each plane, with its PSNR; none without an export (of
+    the model file, where the run shows one: `export-<stem>`)."""
+    folder = run.folder / (EXPORT_FOLDER if run.model is None else f"{EXPORT_FOLDER}-{run.model.stem}")
     record_file = folder / METRICS_FILE
     record = read_record(record_file, EXPORT_AGAIN) if record_file.is_file() else {}
     shown = record.get("phase_only_display", {}).get("per_plane", {}).get("psnr", [])
@@ -267,15 +280,17 @@ def page_html(runs: Sequence[Run], data: dict[str, Any]) -> str:
 
 
 def default_page(folders: Sequence[str | Path]) -> Path:
-    """`RUN_DIR/view.html`, or `RUN_DIR/view_vs_<RUN_DIR_2's name>.html` for two runs."""
-    first = Path(folders[0])
-    return first / (VIEW_FILE if len(folders) == 1 else f"view_vs_{Path(folders[1]).resolve().name}.html")
+    """`RUN_DIR/view.html`, or `RUN_DIR/view_vs_<RUN_DIR_2's name>.html` for two runs; for a model file in a run
+    folder, the same names after its stem (`RUN_DIR/<stem>.view.html`)."""
+    folder, model = run_of(folders[0])
+    stem = "" if model is None else f"{model.stem}."
+    return folder / (stem + (VIEW_FILE if len(folders) == 1 else f"view_vs_{Path(folders[1]).resolve().name}.html"))
 
 
 def write_view(folders: Sequence[str | Path], out: str | Path | None = None,
                sweep: tuple[float, float, int] = DEFAULT_SWEEP, progress: bool = True) -> ViewRecord:
-    """Write the view page of one or two finished run folders (sweep: START m, STOP m, COUNT); nothing is
-    written when the input is refused."""
+    """Write the view page of one or two finished run folders, or model files in them (sweep: START m, STOP m,
+    COUNT); nothing is written when the input is refused."""
     clock = time.perf_counter()
     if not 1 <= len(folders) <= 2:
         raise InputError(f"give one or two run folders, not {len(folders)}")
@@ -284,7 +299,7 @@ def write_view(folders: Sequence[str | Path], out: str | Path | None = None,
     if out.is_dir():
         raise InputError(f"`out` {out} is a folder; give a file name such as {out / VIEW_FILE}")
     folders = [Path(folder) for folder in folders]
-    check_comparable(folders, [read_run(folder)[0] for folder in folders])
+    check_comparable(folders, [read_run(run_of(folder)[0])[0] for folder in folders])
     runs = [load_run(folder) for folder in folders]
     distances = sweep_distances(*sweep, sorted({p for run in runs for p in run.planes}))
     page = page_html(runs, page_data(runs, distances, progress))

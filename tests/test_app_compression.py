@@ -325,8 +325,8 @@ def test_a_model_with_phase_terms_compresses_decompresses_and_counts_its_paramet
 
 @pytest.mark.slow
 def test_a_fit_with_phase_terms_goes_through_every_command_of_a_cvq_file(tmp_path, capsys):
-    """fit, compress within a budget (rate control and fine-tuning), eval of the compressed model in its run,
-    decompress, and encode straight into a file: each with the phase's terms in the file."""
+    """fit, compress within a budget (rate control and fine-tuning), eval and view of the compressed model in its
+    run, decompress, and encode straight into a file: each with the phase's terms in the file."""
     run = tmp_path / "run"
     tiny = ["--size", "32", "24", "--color", "gray", "--planes", "1", "--quiet"]
     assert main(["fit", *tiny, "--steps", "8", "--curvature-warmup", "2", "--phase", "axes+tilt", "--out",
@@ -336,6 +336,8 @@ def test_a_fit_with_phase_terms_goes_through_every_command_of_a_cvq_file(tmp_pat
     assert read_compressed(packed).config.phase.name == "axes+tilt" and packed.stat().st_size <= 700
     assert main(["eval", str(packed)]) == 0
     assert json.loads((run / "tuned.metrics.json").read_text())["mean"]["psnr"] > 0
+    assert main(["view", str(packed), "--distances", "0.002", "0.004", "2", "--quiet"]) == 0
+    assert (run / "tuned.view.html").is_file()
     assert main(["decompress", str(packed), "--out", str(tmp_path / "back.safetensors")]) == 0
     assert load_model(tmp_path / "back.safetensors")[1].phase.name == "axes+tilt"
     encoded = tmp_path / "encoded.cvq"

@@ -85,7 +85,7 @@ def test_only_the_command_line_and_the_campaign_import_the_campaign():
 
 def test_the_codec_and_storage_sit_below_the_workflows():
     assert GRAPH["cvqpg.codec"] <= {"cvqpg.bitdepths", "cvqpg.config", "cvqpg.defaults", "cvqpg.display",
-                                    "cvqpg.errors", "cvqpg.primitives"}
+                                    "cvqpg.errors", "cvqpg.phase", "cvqpg.primitives"}
     assert GRAPH["cvqpg.storage"] <= {"cvqpg.codec", "cvqpg.config", "cvqpg.errors", "cvqpg.files",
                                       "cvqpg.primitives", "cvqpg.representation"}
     assert not any(name.startswith("cvqpg.app") or name in MODEL_FILE_LAYERS

@@ -94,6 +94,22 @@ def test_two_runs_side_by_side(runs):
 
 
 @pytest.mark.slow
+def test_a_model_file_in_a_run_is_viewed_with_its_own_metrics(runs):
+    run = runs / "cvqpg"
+    packed = run / "packed.cvq"
+    assert main(["compress", str(run), "--bits", "6", "--out", str(packed)]) == 0
+    assert main(["eval", str(packed)]) == 0
+    record = write_view([packed, run], sweep=(1e-3, 5e-3, 2), progress=False)
+    assert record.path == run / "packed.view_vs_cvqpg.html"
+    page = record.path.read_text()
+    shown, own = page_data(page)["runs"]
+    assert (shown["name"], own["name"]) == ("cvqpg/packed.cvq", "cvqpg")
+    assert shown["frames"] != own["frames"] and shown["display"] == [] and own["display"] != []
+    psnr = json.loads((run / "packed.metrics.json").read_text())["mean"]["psnr"]
+    assert f"<th>PSNR</th><td>{psnr:.3f}</td>" in page
+
+
+@pytest.mark.slow
 def test_fit_with_view_writes_the_page_into_the_run(tmp_path):
     out = tmp_path / "run"
     assert main(["fit", *SMALL, "--view", "--out", str(out)]) == 0

@@ -129,22 +129,25 @@ def render(target: str | Path, size: tuple[int, int] | None = None, distances: S
 
 def view(run_dirs: Sequence[str | Path], distances: tuple[float, float, float], out: str | Path | None = None,
          overwrite: bool = False, progress: bool = True) -> ViewRecord:
-    """`cvqpg view`: the page of one or two finished runs' focal sweeps (`view.write_view`) over `distances`
-    (START and STOP in m, COUNT), at `out` (default: `view.default_page`)."""
+    """`cvqpg view`: the page of one or two finished runs' focal sweeps (`view.write_view`), each of its own model or
+    of a model file in it (a `.cvq` file, say), over `distances` (START and STOP in m, COUNT), at `out` (default:
+    `view.default_page`)."""
     from ..runs import read_run
     from ..view import SWEEP_BATCH, check_sweep, default_page, write_view
     from .outputs import PAGE, output
     if len(run_dirs) > 2:
         raise UsageError(f"{len(run_dirs)} run folders: give one or two")
-    folders = [finished_run(Path(folder)) for folder in run_dirs]
+    runs = [run_and_model(Path(target)) for target in run_dirs]
+    folders = [model or folder for folder, model in runs]
     start, stop, count = distances
     if not float(count).is_integer():
         raise UsageError(f"--distances {start:g} {stop:g} {count:g}: COUNT is a whole number of distances")
     check_sweep(start, stop, int(count))
-    for folder in folders:
+    for folder, _ in runs:
         check_memory(read_run(folder)[0], "cpu", "view", "give a smaller COUNT to --distances",
                      planes=min(SWEEP_BATCH, int(count)))
-    with output(out or default_page(folders), PAGE, folders, overwrite) as page:
+    inputs = [path for run in runs for path in run if path is not None]
+    with output(out or default_page(folders), PAGE, inputs, overwrite) as page:
         return write_view(folders, page, (start, stop, int(count)), progress=progress)
 
 
