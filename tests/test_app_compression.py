@@ -4,7 +4,6 @@ one line, exit code 2, nothing written."""
 
 import json
 import struct
-from dataclasses import asdict
 
 import pytest
 import torch
@@ -81,7 +80,7 @@ def test_finetune_is_kept_only_if_it_pays(fitted_run, tmp_path):
     # The 30-step fit is far from converged: 10 steps of fine-tuning at the budget gain tenths of a dB
     paid = compress_model(fitted_run, CompressionSettings(bits=bits, finetune_steps=10), tmp_path / "paid.cvq")
     assert paid["finetune_kept"] and paid["drop"] < plain["drop"] - 0.25
-    assert read_compressed(tmp_path / "paid.cvq").bits == bits
+    assert read_compressed(tmp_path / "paid.cvq").bits.coded() == bits.coded()  # no phase terms: none of theirs
     assert paid["psnr"] == pytest.approx(decoded_psnr(fitted_run, tmp_path / "paid.cvq"), abs=1e-9)
     # Halving the primitives costs 0.5 dB, and one warm-up step moves no value by more than 1/44 of a bin
     unpaid = compress_model(fitted_run, CompressionSettings(bits=bits, finetune_steps=1, prune_fraction=0.5),
@@ -241,7 +240,7 @@ def test_the_file_never_exceeds_the_budget_and_lands_within_5_percent_below_it(r
 def test_a_budget_beyond_the_whole_model_at_the_finest_depths_gets_that_file(run, tmp_path):
     record = compress_model(run, CompressionSettings(bpp=64.0, finetune_steps=0), tmp_path / "m.cvq")
     assert record["num_primitives"] == load_model(run / "model.safetensors")[0].count
-    assert record["bits"] == asdict(LADDER[-1]) == {"position": 8, "scale": 16, "rotation": 16, "amplitude": 16,
+    assert record["bits"] == LADDER[-1].coded() == {"position": 8, "scale": 16, "rotation": 16, "amplitude": 16,
                                                     "phase": 16, "curvature": 16}
     assert record["bytes"] < 0.95 * W * H * 64 / 8  # the one case where the file lands further below
 
