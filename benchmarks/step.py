@@ -5,6 +5,7 @@
     python benchmarks/step.py --model runs/bento     # the primitives of a fitted model instead
     python benchmarks/step.py --device cuda --whole-fit   # on the GPU, and whole 2000-step fits
     python benchmarks/step.py --phase axes+tilt      # a step with those phase terms against CVQPG's, side by side
+    python benchmarks/step.py --threads 1            # on one thread: steadier on a shared machine
 
 Primitives at initialisation are small and round. They are measured twice for RGB: flat, as in the
 baseline and during CVQPG's warm-up (curvature frozen at zero), and curved, as after the warm-up
@@ -46,6 +47,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
+import numba
 import torch
 
 import cvqpg
@@ -381,8 +383,14 @@ def main() -> None:
                         help="size of the large whole fit")
     parser.add_argument("--phase", help="measure a step of RGB 10%% with these phase terms against CVQPG's, "
                                         "side by side (cvqpg/phase.py: tilt, axes+tilt, ...)")
+    parser.add_argument("--threads", type=int, help="CPU threads of PyTorch and Numba (default: the environment's)")
     parser.add_argument("--json", help="also write the numbers here")
     args = parser.parse_args()
+    if args.threads is not None:
+        if not 1 <= args.threads <= numba.config.NUMBA_NUM_THREADS:
+            parser.error(f"--threads takes 1 to {numba.config.NUMBA_NUM_THREADS} (NUMBA_NUM_THREADS)")
+        torch.set_num_threads(args.threads)
+        numba.set_num_threads(args.threads)
     if args.device == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda: no CUDA GPU is visible to PyTorch")
     width, height = (320, 240) if args.quick else (640, 480)
