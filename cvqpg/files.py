@@ -34,6 +34,20 @@ def gated(path: str | Path, check: Callable[[], None]) -> Iterator[None]:
         _GATES.reset(token)
 
 
+def input_file(path: str | Path, role: str, what: str = "a file") -> Path:
+    """The path of an input to read: an existing regular file (through links), else an `InputError` naming `role`
+    and what is there instead. Never a pipe, whose read waits for a writer for ever, nor a device, whose read may
+    never end (/dev/zero); `what` names the file the caller wants ("an image file")."""
+    path = Path(path)
+    if path.is_file():
+        return path
+    if not path.exists():
+        raise InputError(f"{role} {path}: no such file; check the path")
+    if path.is_dir():
+        raise InputError(f"{role} {path} is a folder; give {what}")
+    raise InputError(f"{role} {path} is neither a file nor a folder (a pipe, a device or a socket); give {what}")
+
+
 def _before_moving_into(path: Path) -> None:
     target = Path(os.path.abspath(path))
     for gate, check in _GATES.get():

@@ -253,6 +253,26 @@ def check_continued(path: str | Path, kind: Kind, role: str = "`out`") -> Path:
     return path
 
 
+def place_problem(path: Path, folder: bool, writer: str = "cvqpg") -> str | None:
+    """What keeps `writer` (as messages name it) from writing a folder (`folder`) or a file at `path`: a symbolic
+    link (never written through), or something of another kind; None where nothing is there, or a folder or file
+    as asked."""
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return None
+    except OSError as error:
+        return f"{path} cannot be looked at ({error.strerror})"
+    if stat.S_ISLNK(mode):
+        return f"{path} is a symbolic link, which {writer} does not write through"
+    if folder and not stat.S_ISDIR(mode):
+        return f"{path} is {'a file' if stat.S_ISREG(mode) else 'not a folder'}, where {writer} keeps a folder"
+    if not folder and not stat.S_ISREG(mode):
+        return (f"{path} is {'a folder' if stat.S_ISDIR(mode) else 'neither a file nor a folder'}, where {writer} "
+                "writes a file")
+    return None
+
+
 def _missing_folders(path: Path) -> list[Path]:
     return [folder for folder in path.parents if not folder.exists()][::-1]
 

@@ -115,7 +115,8 @@ def write_results(root: str | Path, out: str | Path, overwrite: bool = False) ->
     root = Path(root)
     check_recorded(root)
     with output(out, DOCUMENT, [], overwrite) as checked:
+        text = document(root)  # what can refuse, before the first figure is drawn
         check_not_stopped()  # the figures are outputs too, beside the document that `output` gates
         figures = write_figures(root, checked.parent, overwrite)
-        write_atomic(checked, document(root))
+        write_atomic(checked, text)
     return [checked, *figures]
