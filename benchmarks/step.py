@@ -17,7 +17,8 @@ fraction of its bound) against CVQPG's curved step, the two taking turns in each
 
 A display step is a whole step of the same primitives through the DPAC display (`Display.create("dpac")`:
 double-phase coding, 256 levels, its 4f aperture folded into the transfer functions); its ratio to the complex
-step is formed round by round like the others.
+step is formed round by round like the others, and so is that of its propagation stage (the shown field, the same
+transforms and the intensity) to the complex one's (the guard band, the transforms and the intensity).
 
 The floor is the Fourier transforms that BLASM propagation cannot avoid, as 2D transforms of the
 zero-padded grid, timed alone in the same process: per step one forward FFT per channel and one
@@ -287,7 +288,9 @@ def report(label: str, config: FitConfig, run: RunOptions, rounds: int, referenc
     ratios = {"step / floor": float((step / per_round["FFT floor"]).median()),
               "pruned / floor": float((per_round["pruned transforms"] / per_round["FFT floor"]).median()),
               "raster / step": float((per_round["raster forward+backward"] / step).median()),
-              "display step / step": float((per_round["display step"] / step).median())}
+              "display step / step": float((per_round["display step"] / step).median()),
+              "display propagation / propagation": float((per_round["display propagation f+b"]
+                                                          / per_round["propagation forward+backward"]).median())}
     reference = None
     if reference_rounds:
         reference_times = interleaved_seconds(
@@ -309,6 +312,7 @@ def report(label: str, config: FitConfig, run: RunOptions, rounds: int, referenc
           f"{ratios['pruned / floor']:.2f} × floor")
     print(f"{'raster / step':>30}: {ratios['raster / step']:9.1%}")
     print(f"{'display step / step':>30}: {ratios['display step / step']:9.3f}")
+    print(f"{'display propagation / propagation':>30}: {ratios['display propagation / propagation']:9.3f}")
     if reference:
         torch_raster = reference["raster forward+backward"]
         print(f"{'torch-backend raster f+b':>30}: {1000 * torch_raster:9.1f} ms")

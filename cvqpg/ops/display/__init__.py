@@ -50,8 +50,9 @@ class _FusedShown(torch.autograd.Function):
         uniform, fields, ordered, order = _tables(display)
         out = hologram.new_empty(channels, grid.padded_height, grid.padded_width)
         grays = torch.empty(hologram.shape, dtype=torch.int16)  # read as uint16: up to 2^16 levels
-        cpu.shown_field(cpu_array(hologram), display.encoding == "dpac", display.levels, uniform, fields, ordered,
-                        order, grid.top, grid.left, placed, background, out.numpy(), grays.numpy().view(np.uint16))
+        cpu.shown_field(cpu_array(hologram), display.encoding == "dpac", display.levels, uniform,
+                        cpu.LEVEL_MARGIN * display.levels, fields, ordered, order, grid.top, grid.left, placed,
+                        background, out.numpy(), grays.numpy().view(np.uint16))
         ctx.save_for_backward(hologram, grays)
         ctx.grid, ctx.display = grid, display
         return out
