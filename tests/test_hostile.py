@@ -457,6 +457,8 @@ USAGE = cases(
     ("bench-ray-address-nothing-listens-with-cells-to-reuse",
      f"bench {BENCH} --ratios 0.1 0.2 --reuse {{bench}} --executor ray --ray-address 127.0.0.1:1",
      "--ray-address 127.0.0.1:1"),
+    ("bench-ray-gpus-per-fit-beyond-the-cluster-with-cells-to-reuse",
+     f"bench {BENCH} --ratios 0.1 0.2 --reuse {{bench}} --executor ray --gpus-per-fit 1e9", "--gpus-per-fit", SLOW),
     ("batch-ray-gpus-per-fit-beyond-the-cluster", f"{BATCH} --executor ray --gpus-per-fit 1e9 --out new_batch",
      "--gpus-per-fit", SLOW),
     ("batch-ray-gpus-per-fit-without-a-gpu", f"{BATCH} --executor ray --gpus-per-fit 0.5 --out new_batch",
