@@ -18,7 +18,8 @@ fraction of its bound) against CVQPG's curved step, the two taking turns in each
 A display step is a whole step of the same primitives through the DPAC display (`Display.create("dpac")`:
 double-phase coding, 256 levels, its 4f aperture folded into the transfer functions); its ratio to the complex
 step is formed round by round like the others, and so is that of its propagation stage (the shown field, the same
-transforms and the intensity) to the complex one's (the guard band, the transforms and the intensity).
+transforms and the intensity) to the complex one's (the guard band, the transforms and the intensity). The two
+stages that differ are also timed alone: the guard band's field and the display's encoding, forward and backward.
 
 The floor is the Fourier transforms that BLASM propagation cannot avoid, as 2D transforms of the
 zero-padded grid, timed alone in the same process: per step one forward FFT per channel and one
@@ -59,10 +60,11 @@ from cvqpg.config import RunOptions, default_curvature_warmup
 from cvqpg.control import SILENT
 from cvqpg.display import Display
 from cvqpg.fitting import apply_gradients, initial_state, optimisation_step, render_hologram
+from cvqpg.ops.display import shown_field
 from cvqpg.ops.field import Grid, clamped_intensity, guarded_field
 from cvqpg.ops.loss import multiplane_loss, noisy_targets, standard_normal
 from cvqpg.ops.propagation import propagate_content
-from cvqpg.optics import reconstruct
+from cvqpg.optics import display_grid, reconstruct
 from cvqpg.primitives import MIN_SCALE_PX, Gaussians, Primitives, curvature_bound
 from cvqpg.runs import model_path
 from cvqpg.scenes import builtin_pictures
@@ -198,6 +200,16 @@ def stage_actions(config: FitConfig, run: RunOptions, primitives: Primitives | N
     def display_propagation():
         reconstruct(leaf, display_config, backend=backend).backward(recon_grad)
 
+    grid = Grid.for_config(config)
+    field_grad = torch.randn(config.channels, grid.padded_height, grid.padded_width, dtype=torch.complex64,
+                             device=run.device)
+
+    def guard_band():
+        guarded_field(leaf, grid, backend).backward(field_grad)
+
+    def display_encoding():
+        shown_field(leaf, display_grid(display_config), display_config.display, backend).backward(field_grad)
+
     def pruned_propagation():  # the step's propagation with the pruned transforms, through PyTorch's operations
         grid = Grid.for_config(config)
         field = guarded_field(leaf, grid, backend)
@@ -221,7 +233,8 @@ def stage_actions(config: FitConfig, run: RunOptions, primitives: Primitives | N
                "optimizer": lambda: apply_gradients(optimizer, config, state.step),
                "whole step": lambda: optimisation_step(state, scene, config, backend),
                "display propagation f+b": display_propagation,
-               "display step": lambda: optimisation_step(display_state, scene, display_config, backend)}
+               "display step": lambda: optimisation_step(display_state, scene, display_config, backend),
+               "guard band f+b": guard_band, "display encoding f+b": display_encoding}
     if run.kernels != "numba":  # the numba step's propagation is the pruned one
         actions[PRUNED_STAGE] = pruned_propagation
     return actions
@@ -303,8 +316,8 @@ def report(label: str, config: FitConfig, run: RunOptions, rounds: int, referenc
     print(f"\n## {label}: {config.targets.width}×{config.targets.height}, N = {count}, "
           f"{config.targets.num_planes} planes, {run.device} ({where}), medians of {rounds} rounds")
     for name in ("raster forward", "raster backward", "propagation forward+backward", PRUNED_STAGE,
-                 "loss forward+backward", "optimizer", "whole step", "display propagation f+b", "display step",
-                 "FFT floor"):
+                 "loss forward+backward", "optimizer", "whole step", "guard band f+b", "display encoding f+b",
+                 "display propagation f+b", "display step", "FFT floor"):
         if name in median:
             print(f"{name:>30}: {1000 * median[name]:9.1f} ms")
     print(f"{'step / floor':>30}: {ratios['step / floor']:9.2f}")

@@ -157,6 +157,8 @@ PLACES = {
     "benchlink": "bench_link",             # its CVQPG cell's folder a link to a user's folder (notarun)
     "cellslink": "cells_link",             # cells/ a link to a user's folder
     "benchrecord": "bench_record",         # its CVQPG cell's metrics.json a folder
+    "benchbadrecord": "bench_bad_record",  # its CVQPG cell's metrics.json a number as its mean
+    "loop": "loop",                        # -> loop: a loop of symbolic links
 }
 
 FIT = "--size 32 24 --steps 1 --quiet --out new_run"  # a fit that is wrongly accepted ends soon
@@ -455,6 +457,8 @@ USAGE = cases(
     ("bench-ray-address-nothing-listens-with-cells-to-reuse",
      f"bench {BENCH} --ratios 0.1 0.2 --reuse {{bench}} --executor ray --ray-address 127.0.0.1:1",
      "--ray-address 127.0.0.1:1"),
+    ("bench-ray-gpus-per-fit-beyond-the-cluster-with-cells-to-reuse",
+     f"bench {BENCH} --ratios 0.1 0.2 --reuse {{bench}} --executor ray --gpus-per-fit 1e9", "--gpus-per-fit", SLOW),
     ("batch-ray-gpus-per-fit-beyond-the-cluster", f"{BATCH} --executor ray --gpus-per-fit 1e9 --out new_batch",
      "--gpus-per-fit", SLOW),
     ("batch-ray-gpus-per-fit-without-a-gpu", f"{BATCH} --executor ray --gpus-per-fit 0.5 --out new_batch",
@@ -599,6 +603,19 @@ INPUTS = cases(
     ("encode-resume-tuning-steps-not-whole", "encode --resume {floatsteps} --quiet", "lacks the budget"),
     ("view-metrics-not-what-cvqpg-writes", f"view {{badmetrics}} --quiet {SWEEP} --out new.html",
      "its 'mean' is not what cvqpg writes there"),
+    ("bench-reuse-a-cell-whose-record-the-summary-refuses", f"bench {BENCH} --reuse {{benchbadrecord}}",
+     "metrics.json lacks mean.psnr"),
+    # An input's path longer than the file system takes, refused before it is looked up.
+    ("fit-image-name-of-300-bytes", f"fit {'n' * 300}.png --planes 1 {FIT}", "IMAGE nnnn"),
+    ("fit-lut-name-of-300-bytes", f"fit {{image}} --depth {{depth}} --display phase --lut {'n' * 300} {FIT}",
+     "a name longer than the file system takes (255 bytes); give a shorter path"),
+    ("eval-run-name-of-300-bytes", f"eval {'n' * 300}", "RUN_DIR nnnn"),
+    ("decompress-file-path-of-5000-bytes", f"decompress {'/'.join(['n' * 200] * 25)} --out new.safetensors",
+     "a path longer than the file system takes"),
+    ("batch-inputs-name-of-300-bytes", f"batch {'n' * 300} --size 32 24 --steps 1 --quiet --out new_batch",
+     "INPUTS nnnn"),
+    ("bench-reuse-name-of-300-bytes", f"bench {BENCH} --reuse {'n' * 300}", "--reuse nnnn"),
+    ("results-root-name-of-300-bytes", f"results --root {'n' * 300} --out new.md", "--root nnnn"),
 )
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -759,6 +776,11 @@ OUTPUTS = cases(
     ("bench-a-cells-folder-a-link", f"bench {BENCH} --out {{benchlink}}", "is a symbolic link, which the bench"),
     ("bench-its-cells-a-link", f"bench {BENCH} --out {{cellslink}}", "cells_link/cells is a symbolic link"),
     ("bench-a-cells-record-a-folder", f"bench {BENCH} --out {{benchrecord}}", "metrics.json is a folder"),
+    # A path through a loop of symbolic links is no place to write.
+    ("fit-out-through-a-loop-of-links", f"fit {FIT} --out {{loop}}/run", "lies through a loop of symbolic links"),
+    ("compress-out-through-a-loop-of-links", "compress {run} --bits 8 --out {loop}/new.cvq", "a loop of symbolic"),
+    ("batch-out-through-a-loop-of-links", f"{BATCH} --out {{loop}}/new_batch", "a loop of symbolic links"),
+    ("bench-out-through-a-loop-of-links", f"bench {BENCH} --out {{loop}}/new_bench", "a loop of symbolic links"),
     ("eval-metrics-a-link", "eval {metricslink}", "is a symbolic link, which `cvqpg eval` does not write through"),
     # A failure writes nothing.
     ("info-half-of-a-run-whose-image-is-gone", "info {lost} --half", "lost_photo.png"),
@@ -931,8 +953,10 @@ def record_traps(t: Path) -> None:
     (t / "metrics_link" / "metrics.json").symlink_to("../photo.png")
     (t / "bad_metrics" / "metrics.json").write_text(json.dumps({"mean": 5, "per_plane": {}}))
     cell = "cells/star_gray-10_cvqpg_s100"
-    for name in ("bench_link", "cells_link", "bench_record"):
+    for name in ("bench_link", "cells_link", "bench_record", "bench_bad_record"):
         shutil.copytree(t / "bench", t / name)
+    (t / "bench_bad_record" / cell / "metrics.json").write_text(json.dumps({"mean": 5}))
+    (t / "loop").symlink_to("loop")
     shutil.rmtree(t / "bench_link" / cell)
     (t / "bench_link" / cell).symlink_to("../../notarun")
     shutil.rmtree(t / "cells_link" / "cells")
