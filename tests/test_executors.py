@@ -25,6 +25,10 @@ from cvqpg.cli import main
 from cvqpg.control import SILENT, RunControl
 from cvqpg.storage import load_checkpoint
 
+# Under pytest-xdist one worker runs the whole module: its Ray session and clusters are the machine's, one at a
+# time, and the session is started once.
+pytestmark = pytest.mark.xdist_group("ray")
+
 
 GRID = Overrides(size=(48, 36), steps=4, curvature_warmup=1)  # the quick preset: four cells
 CELL_FILES = ("config.json", "metrics.json", "model.safetensors", "history.csv", "spectrum.json")
