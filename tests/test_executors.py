@@ -47,7 +47,9 @@ def local_ray():
     """A Ray instance of this process, shared by the module's tests that connect to no cluster of their own:
     started once (two GPUs declared on a machine that may have none), stopped when the module ends."""
     if not ray.is_initialized():
-        ray.init(num_cpus=4, num_gpus=2, include_dashboard=False, logging_level="ERROR")
+        # "local": a new instance even where an earlier test (on this pytest-xdist worker) left RAY_ADDRESS or a
+        # cluster that Ray would otherwise connect to
+        ray.init(address="local", num_cpus=4, num_gpus=2, include_dashboard=False, logging_level="ERROR")
     yield
 
 
