@@ -5,6 +5,7 @@
     python benchmarks/step.py --model runs/bento     # the primitives of a fitted model instead
     python benchmarks/step.py --device cuda --whole-fit   # on the GPU, and whole 2000-step fits
     python benchmarks/step.py --phase axes+tilt      # a step with those phase terms against CVQPG's, side by side
+    python benchmarks/step.py --threads 1            # on one thread: steadier on a shared machine
 
 Primitives at initialisation are small and round. They are measured twice for RGB: flat, as in the
 baseline and during CVQPG's warm-up (curvature frozen at zero), and curved, as after the warm-up
@@ -16,7 +17,9 @@ fraction of its bound) against CVQPG's curved step, the two taking turns in each
 
 A display step is a whole step of the same primitives through the DPAC display (`Display.create("dpac")`:
 double-phase coding, 256 levels, its 4f aperture folded into the transfer functions); its ratio to the complex
-step is formed round by round like the others.
+step is formed round by round like the others, and so is that of its propagation stage (the shown field, the same
+transforms and the intensity) to the complex one's (the guard band, the transforms and the intensity). The two
+stages that differ are also timed alone: the guard band's field and the display's encoding, forward and backward.
 
 The floor is the Fourier transforms that BLASM propagation cannot avoid, as 2D transforms of the
 zero-padded grid, timed alone in the same process: per step one forward FFT per channel and one
@@ -46,6 +49,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
+import numba
 import torch
 
 import cvqpg
@@ -56,10 +60,11 @@ from cvqpg.config import RunOptions, default_curvature_warmup
 from cvqpg.control import SILENT
 from cvqpg.display import Display
 from cvqpg.fitting import apply_gradients, initial_state, optimisation_step, render_hologram
+from cvqpg.ops.display import shown_field
 from cvqpg.ops.field import Grid, clamped_intensity, guarded_field
 from cvqpg.ops.loss import multiplane_loss, noisy_targets, standard_normal
 from cvqpg.ops.propagation import propagate_content
-from cvqpg.optics import reconstruct
+from cvqpg.optics import display_grid, reconstruct
 from cvqpg.primitives import MIN_SCALE_PX, Gaussians, Primitives, curvature_bound
 from cvqpg.runs import model_path
 from cvqpg.scenes import builtin_pictures
@@ -195,6 +200,16 @@ def stage_actions(config: FitConfig, run: RunOptions, primitives: Primitives | N
     def display_propagation():
         reconstruct(leaf, display_config, backend=backend).backward(recon_grad)
 
+    grid = Grid.for_config(config)
+    field_grad = torch.randn(config.channels, grid.padded_height, grid.padded_width, dtype=torch.complex64,
+                             device=run.device)
+
+    def guard_band():
+        guarded_field(leaf, grid, backend).backward(field_grad)
+
+    def display_encoding():
+        shown_field(leaf, display_grid(display_config), display_config.display, backend).backward(field_grad)
+
     def pruned_propagation():  # the step's propagation with the pruned transforms, through PyTorch's operations
         grid = Grid.for_config(config)
         field = guarded_field(leaf, grid, backend)
@@ -218,7 +233,8 @@ def stage_actions(config: FitConfig, run: RunOptions, primitives: Primitives | N
                "optimizer": lambda: apply_gradients(optimizer, config, state.step),
                "whole step": lambda: optimisation_step(state, scene, config, backend),
                "display propagation f+b": display_propagation,
-               "display step": lambda: optimisation_step(display_state, scene, display_config, backend)}
+               "display step": lambda: optimisation_step(display_state, scene, display_config, backend),
+               "guard band f+b": guard_band, "display encoding f+b": display_encoding}
     if run.kernels != "numba":  # the numba step's propagation is the pruned one
         actions[PRUNED_STAGE] = pruned_propagation
     return actions
@@ -285,7 +301,9 @@ def report(label: str, config: FitConfig, run: RunOptions, rounds: int, referenc
     ratios = {"step / floor": float((step / per_round["FFT floor"]).median()),
               "pruned / floor": float((per_round["pruned transforms"] / per_round["FFT floor"]).median()),
               "raster / step": float((per_round["raster forward+backward"] / step).median()),
-              "display step / step": float((per_round["display step"] / step).median())}
+              "display step / step": float((per_round["display step"] / step).median()),
+              "display propagation / propagation": float((per_round["display propagation f+b"]
+                                                          / per_round["propagation forward+backward"]).median())}
     reference = None
     if reference_rounds:
         reference_times = interleaved_seconds(
@@ -298,8 +316,8 @@ def report(label: str, config: FitConfig, run: RunOptions, rounds: int, referenc
     print(f"\n## {label}: {config.targets.width}×{config.targets.height}, N = {count}, "
           f"{config.targets.num_planes} planes, {run.device} ({where}), medians of {rounds} rounds")
     for name in ("raster forward", "raster backward", "propagation forward+backward", PRUNED_STAGE,
-                 "loss forward+backward", "optimizer", "whole step", "display propagation f+b", "display step",
-                 "FFT floor"):
+                 "loss forward+backward", "optimizer", "whole step", "guard band f+b", "display encoding f+b",
+                 "display propagation f+b", "display step", "FFT floor"):
         if name in median:
             print(f"{name:>30}: {1000 * median[name]:9.1f} ms")
     print(f"{'step / floor':>30}: {ratios['step / floor']:9.2f}")
@@ -307,6 +325,7 @@ def report(label: str, config: FitConfig, run: RunOptions, rounds: int, referenc
           f"{ratios['pruned / floor']:.2f} × floor")
     print(f"{'raster / step':>30}: {ratios['raster / step']:9.1%}")
     print(f"{'display step / step':>30}: {ratios['display step / step']:9.3f}")
+    print(f"{'display propagation / propagation':>30}: {ratios['display propagation / propagation']:9.3f}")
     if reference:
         torch_raster = reference["raster forward+backward"]
         print(f"{'torch-backend raster f+b':>30}: {1000 * torch_raster:9.1f} ms")
@@ -381,8 +400,14 @@ def main() -> None:
                         help="size of the large whole fit")
     parser.add_argument("--phase", help="measure a step of RGB 10%% with these phase terms against CVQPG's, "
                                         "side by side (cvqpg/phase.py: tilt, axes+tilt, ...)")
+    parser.add_argument("--threads", type=int, help="CPU threads of PyTorch and Numba (default: the environment's)")
     parser.add_argument("--json", help="also write the numbers here")
     args = parser.parse_args()
+    if args.threads is not None:
+        if not 1 <= args.threads <= numba.config.NUMBA_NUM_THREADS:
+            parser.error(f"--threads takes 1 to {numba.config.NUMBA_NUM_THREADS} (NUMBA_NUM_THREADS)")
+        torch.set_num_threads(args.threads)
+        numba.set_num_threads(args.threads)
     if args.device == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda: no CUDA GPU is visible to PyTorch")
     width, height = (320, 240) if args.quick else (640, 480)

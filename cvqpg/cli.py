@@ -787,6 +787,22 @@ POSITIONALS = {"image": "IMAGE", "run_dir": "RUN_DIR", "run_dirs": "RUN_DIR", "t
                "file": "FILE", "inputs": "INPUTS"}
 
 
+# The arguments that name inputs, which a command reads (its outputs are checked where they are written).
+INPUT_PATHS = ("image", "run_dir", "run_dirs", "target", "file", "inputs", "depth", "lut", "resume", "root", "reuse",
+               "fits", "scenes")
+
+
+def _input_paths(args: argparse.Namespace) -> dict[str, list[str]]:
+    """The input paths given (`INPUT_PATHS`), by their flags."""
+    paths = {}
+    for name in INPUT_PATHS:
+        values = getattr(args, name, None)
+        given = [v for v in (values if isinstance(values, list) else [values]) if isinstance(v, str)]
+        if given:
+            paths[POSITIONALS.get(name, f"--{name}")] = given
+    return paths
+
+
 def _empty_argument(args: argparse.Namespace) -> str | None:
     """The first argument given as an empty string (`--out ""` would otherwise mean the default place, or the
     current folder), by its flag; None where there is none."""
@@ -817,6 +833,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     for note in cap_thread_variables():
         print(f"cvqpg: note: {note}", file=sys.stderr)
+    from .app.inputs import long_input_path
+    if (problem := long_input_path(_input_paths(args))) is not None:
+        print(f"cvqpg {args.command}: error: {problem}", file=sys.stderr)
+        return EXIT_USAGE
     try:
         with signals.handled():
             code = COMMANDS[args.command](args)

@@ -10,6 +10,10 @@ from typing import Callable
 StepCallback = Callable[[int, float, float], None]  # (step index, loss, PSNR in dB)
 
 
+class Stopped(Exception):
+    """Work that keeps nothing to resume (a render, an export, a page) stopped on request (`RunControl.check`)."""
+
+
 @dataclass(frozen=True)
 class RunControl:
     """`progress`: show a progress bar. `stop_requested()`: true once the work should stop between two
@@ -23,6 +27,12 @@ class RunControl:
     def should_stop(self) -> bool:
         """Whether `stop_requested` is given and asks to stop now."""
         return self.stop_requested is not None and self.stop_requested()
+
+    def check(self) -> None:
+        """Between the stages of work that keeps nothing to resume: `Stopped` where `stop_requested` asks to stop
+        now (a caller may as well raise its own exception from `stop_requested`)."""
+        if self.should_stop():
+            raise Stopped("stopped on request")
 
     def report(self, step: int, loss: float, psnr: float) -> None:
         """Tell `on_step`, where given, about one step."""

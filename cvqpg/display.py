@@ -21,6 +21,7 @@ from typing import Any, Literal, get_args
 
 from .defaults import DEFAULT_APERTURE, DEFAULT_LEVELS
 from .errors import ConfigError, InputError, choices_error
+from .files import input_file
 
 Encoding = Literal["complex", "dpac", "phase"]
 ENCODINGS: tuple[str, ...] = get_args(Encoding)
@@ -29,6 +30,7 @@ MAX_LEVELS = 2**16
 MAX_CANVAS_PX = 65536
 MAX_APERTURE = math.sqrt(2)  # the spectrum's corners: from there on the aperture passes every frequency
 TWO_PI = 2 * math.pi
+MAX_LUT_PHASE = 4 * math.pi  # rad: a turn or two is what SLMs show; 360 would be degrees
 # DPAC's offset arccos(A) has slope −1/√(1 − A²), unbounded as the amplitude A reaches 1: above this amplitude
 # its gradient keeps the slope it has here (−22.4), and the value stays exact.
 DPAC_SLOPE_AMPLITUDE = 1 - 1e-3
@@ -59,6 +61,10 @@ class Display:
         if self.lut is not None:
             if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in self.lut):
                 raise ConfigError("`lut`: every gray level's phase must be a finite number (rad)")
+            reach = max(abs(v) for v in self.lut) if self.lut else 0.0
+            if reach > MAX_LUT_PHASE:
+                raise ConfigError(f"`lut`: a gray level's phase of {reach:g} rad lies beyond ±4π (±{MAX_LUT_PHASE:.4g} "
+                                  "rad), where a measured table's phases lie; give them in rad (not degrees)")
             if len(self.lut) != self.levels:
                 raise ConfigError(f"`lut` holds {len(self.lut)} phases for {self.levels} `levels`: give one phase per "
                                   "gray level (`Display.create` counts them)")
@@ -150,6 +156,8 @@ def read_lut(path: str | Path) -> tuple[float, ...]:
     row of names are skipped. `InputError` naming the file and the row where it cannot be read.
     """
     path = Path(path)
+    if path.exists() and not (path.is_file() or path.is_dir()):  # a pipe or a device: never read
+        input_file(path, "the lookup table", "a text file of one phase (rad) per gray level")
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as error:

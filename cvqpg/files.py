@@ -7,6 +7,9 @@ safetensors writer does), would keep that mode through the rename.
 
 A caller may hold back what is moved into place at a path (`gated`): a check runs before the rename, and
 whatever it raises keeps the path as it was (the command line's outputs, once a command was told to stop).
+
+An input is read only where it is a regular file (`input_file`) and its path one the file system takes
+(`name_too_long`).
 """
 
 from __future__ import annotations
@@ -32,6 +35,43 @@ def gated(path: str | Path, check: Callable[[], None]) -> Iterator[None]:
         yield
     finally:
         _GATES.reset(token)
+
+
+def input_file(path: str | Path, role: str, what: str = "a file") -> Path:
+    """The path of an input to read: an existing regular file (through links), else an `InputError` naming `role`
+    and what is there instead. Never a pipe, whose read waits for a writer for ever, nor a device, whose read may
+    never end (/dev/zero); `what` names the file the caller wants ("an image file")."""
+    path = Path(path)
+    if path.is_file():
+        return path
+    if not path.exists():
+        raise InputError(f"{role} {path}: no such file; check the path")
+    if path.is_dir():
+        raise InputError(f"{role} {path} is a folder; give {what}")
+    raise InputError(f"{role} {path} is neither a file nor a folder (a pipe, a device or a socket); give {what}")
+
+
+def name_too_long(path: str | Path) -> str | None:
+    """Where a path given to a command is longer than the file system takes (a name of it beyond 255 bytes, the
+    whole beyond 4096; the usual limits where they cannot be asked): what is too long, else None. Looked up, such a
+    path is an error of its own (`OSError: File name too long`), so an input is checked before it is opened."""
+    path = Path(os.path.abspath(path))
+    ancestor = next((folder for folder in path.parents if os.path.exists(folder)), path)
+    name_max, path_max = (path_limit(ancestor, key, usual) for key, usual in (("PC_NAME_MAX", 255),
+                                                                               ("PC_PATH_MAX", 4096)))
+    if any(len(os.fsencode(part)) > name_max for part in path.parts):
+        return f"a name longer than the file system takes ({name_max} bytes)"
+    if len(os.fsencode(str(path))) > path_max:
+        return f"a path longer than the file system takes ({path_max} bytes)"
+    return None
+
+
+def path_limit(folder: Path, key: str, usual: int) -> int:
+    """The file system's `key` limit (`os.pathconf`: "PC_NAME_MAX", "PC_PATH_MAX") at `folder`, or `usual`."""
+    try:
+        return os.pathconf(folder, key)
+    except (OSError, ValueError):
+        return usual
 
 
 def _before_moving_into(path: Path) -> None:

@@ -15,6 +15,7 @@ from torch import Tensor
 
 from . import __version__
 from .config import MIN_SIZE_PX, SECTIONS, FitConfig, RunOptions, check_sampling
+from .control import SILENT, RunControl
 from .errors import ConfigError, CvqpgError, InputError, ModelFileError
 from .files import write_atomic
 from .display import Display, Encoding
@@ -164,6 +165,35 @@ def read_record(path: Path, remedy: str) -> dict[str, Any]:
     if not isinstance(record, dict):
         raise InputError(f"{path} holds a JSON {type(record).__name__}, not an object; {remedy}")
     return record
+
+
+def read_metrics(path: Path, remedy: str = REEVALUATE_RUN, within: Sequence[str] = ()) -> dict[str, Any]:
+    """A metrics record (`read_record`) whose fields are of the kinds `metrics_record` writes: `mean` an object of
+    numbers, `per_plane` one of lists of numbers, `seconds` a number, `run` an object (each where present; None
+    for a metric that was not available), and so is each of its sections named in `within` (an export's
+    `phase_only_display`, ...); `InputError` naming the first that is not, with `remedy`."""
+    record = read_record(path, remedy)
+    for section, fields in [("", record), *((name, record.get(name, {})) for name in within)]:
+        wrong = _metrics_problem(fields)
+        if wrong is not None:
+            raise InputError(f"{path}: its {'.'.join(filter(None, (section, wrong)))!r} is not what cvqpg writes "
+                             f"there; {remedy}")
+    return record
+
+
+def _metrics_problem(record: Any) -> str | None:
+    """The first field of a metrics record (`read_metrics`) that is not of its kind, "" for a record that is no
+    object, or None."""
+    def number(value: Any) -> bool:
+        return value is None or (isinstance(value, (int, float)) and not isinstance(value, bool))
+
+    if not isinstance(record, dict):
+        return ""
+    kinds = {"mean": lambda v: isinstance(v, dict) and all(number(x) for x in v.values()),
+             "per_plane": lambda v: isinstance(v, dict) and all(
+                 isinstance(x, list) and all(number(y) for y in x) for x in v.values()),
+             "seconds": number, "run": lambda v: v is None or isinstance(v, dict)}
+    return next((key for key, fits in kinds.items() if key in record and not fits(record[key])), None)
 
 
 def read_run(folder: str | Path) -> tuple[FitConfig, dict[str, Any]]:
@@ -433,7 +463,7 @@ def export_display(config: FitConfig, encoding: Encoding | None = None, levels: 
 def export_run(folder: str | Path, encoding: Encoding | None = None, levels: int | None = None,
                slm: tuple[int, int] | None = None, aperture: float | None | str = "auto",
                out: str | Path | None = None, model: str | Path | None = None, device: str = "cpu",
-               lut: tuple[float, ...] | None = None) -> dict[str, Any]:
+               lut: tuple[float, ...] | None = None, control: RunControl = SILENT) -> dict[str, Any]:
     """Write a run's phase-only SLM patterns and simulate showing them (method.md §8), rendered on `device`;
     `model` replaces the run's own model (e.g. a compressed file in the run folder).
 
@@ -441,7 +471,7 @@ def export_run(folder: str | Path, encoding: Encoding | None = None, levels: int
     optimised, and the display the fit's metrics measured); `slm` is the SLM's (W, H) in px (default: the
     hologram's own size). Writes the patterns, the simulated display's planes and `metrics.json` (phase-only
     display, the complex field on the same canvas behind the same 4f aperture, and the complex field as method.md
-    §3 reconstructs it, all against the targets).
+    §3 reconstructs it, all against the targets). `control` is asked between the stages (`RunControl.check`).
     """
     folder = Path(folder)
     out = Path(out) if out is not None else folder / EXPORT_FOLDER
@@ -452,12 +482,16 @@ def export_run(folder: str | Path, encoding: Encoding | None = None, levels: int
     out.mkdir(parents=True, exist_ok=True)
     scene = scene_from_source(source, config)
     complex_config = config.replace(display=Display())
+    control.check()
     hologram, complex_recon = render(primitives, complex_config)
     with torch.no_grad():
         pattern = phase_pattern(slm_field(hologram), display)
+        control.check()
         shown = reconstruct(hologram, shown_config)
+        control.check()
         complex_shown = reconstruct(hologram, config.replace(display=Display(aperture=display.aperture,
                                                                              canvas=display.canvas)))
+    control.check()
     files = save_phase_pattern(pattern, display, channel_labels(config), out)
     for plane, image in enumerate(shown):
         to_8bit(image).save(out / f"display_plane{plane}.png")
@@ -532,10 +566,12 @@ def check_distinct_files(distances_m: Sequence[float]) -> None:
 
 
 def render_model(target: str | Path, out: str | Path, size: tuple[int, int] | None = None,
-                 distances_m: Sequence[float] | None = None, device: str = "cpu") -> dict[str, Any]:
+                 distances_m: Sequence[float] | None = None, device: str = "cpu",
+                 control: RunControl = SILENT) -> dict[str, Any]:
     """Render a saved model on `device` without fitting: hologram images and the reconstruction at each
     plane (the model's own, or `distances_m`), optionally resampled to `size` (W, H) px. A run folder's
-    model must belong to it (`load_run_model`)."""
+    model must belong to it (`load_run_model`). `control` is asked between the stages and the frames
+    (`RunControl.check`)."""
     if Path(target).is_dir():
         primitives, config, _ = load_run_model(target, device=device)
     else:
@@ -545,10 +581,13 @@ def render_model(target: str | Path, out: str | Path, size: tuple[int, int] | No
     if size is not None:
         primitives, config = rescaled(primitives, config, *size)
     distances = config.plane_distances if distances_m is None else tuple(distances_m)
+    control.check()
     field, recon = render(primitives, config, distances)
+    control.check()
     save_hologram_images(field, out)
     files = ["amplitude.png", "phase.png"]
     for distance, image in zip(distances, recon):
+        control.check()
         name = reconstruction_file(distance)
         to_8bit(image).save(out / name)
         files.append(name)

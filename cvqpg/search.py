@@ -40,7 +40,7 @@ from tqdm.auto import tqdm
 
 from .bitdepths import LADDER, BitDepths
 from .codec import bits_per_pixel, decode, encode, range_holders
-from .config import FitConfig
+from .config import RANGES, FitConfig
 from .control import SILENT, RunControl
 from .errors import ConfigError
 from .finetune import finetune
@@ -481,6 +481,8 @@ class CompressionSettings:
         steps = self.finetune_steps
         if steps is not None and not (isinstance(steps, int) and not isinstance(steps, bool) and steps >= 0):
             raise ConfigError(f"`finetune_steps` {steps}: give a number of steps ≥ 0")
+        if steps is not None and steps > RANGES["steps"][1]:
+            raise ConfigError(f"`finetune_steps` {steps}: give at most {RANGES['steps'][1]} steps, as a fit's")
         if not (_number(self.prune_fraction) and 0 <= self.prune_fraction < 1):
             raise ConfigError(f"`prune_fraction` {_shown(self.prune_fraction)}: give the fraction of primitives to "
                               "remove, 0 ≤ fraction < 1")

@@ -16,6 +16,7 @@ from torch import Tensor
 
 from .config import FitConfig
 from .errors import InputError
+from .files import input_file
 
 BLUR_KERNEL_PX = 21
 BLUR_SAMPLE_EXTENT = 10.5
@@ -125,13 +126,8 @@ def upright(picture: Image.Image, role: str, path: Path) -> Image.Image:
 
 
 def check_file(path: str | Path, role: str = "image") -> Path:
-    """The path of an existing file, or an `InputError` naming it."""
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"{role} {path}: no such file; check the path")
-    if path.is_dir():
-        raise InputError(f"{role} {path} is a folder; give an image file")
-    return path
+    """The path of an existing image file, or an `InputError` naming it (`files.input_file`)."""
+    return input_file(path, role, "an image file")
 
 
 def load_picture(path: str | Path, role: str = "image", remedy: str = "re-export the file") -> Image.Image:

@@ -22,14 +22,15 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from .config import FitConfig, check_distances
+from .control import SILENT, RunControl
 from .defaults import DEFAULT_SWEEP, VIEW_FILE
 from .errors import InputError
 from .fitting import hologram
 from .metrics import METRIC_NAMES, psnr
 from .ops.propagation import release_transfer_functions
 from .optics import reconstruct
-from .runs import (EXPORT_FOLDER, METRICS_FILE, REEVALUATE_RUN, hologram_images, load_run_model, optics_label,
-                   read_record, read_run, read_run_options, to_8bit, write_atomic)
+from .runs import (EXPORT_FOLDER, METRICS_FILE, hologram_images, load_run_model, optics_label, read_metrics,
+                   read_run, read_run_options, to_8bit, write_atomic)
 from .targets import load_picture
 
 MAX_DISTANCE_M = 0.1  # farther, a few-mm hologram's band limit leaves almost nothing: a mm/m mix-up
@@ -119,19 +120,21 @@ def load_run(folder: Path) -> Run:
     """Read a finished run folder and render its hologram; its model must belong to it (`load_run_model`)."""
     primitives, config, source = load_run_model(folder, device=run_device(folder))
     metrics_file = folder / METRICS_FILE
-    metrics = (read_record(metrics_file, REEVALUATE_RUN)
-               if metrics_file.is_file() else None)
+    metrics = read_metrics(metrics_file) if metrics_file.is_file() else None
     with torch.no_grad():
         field = hologram(primitives, config)
     return Run(folder, config, source, field, metrics)
 
 
-def focal_sweep(run: Run, distances_m: Sequence[float], progress: bool = True) -> Iterator[Tensor]:
+def focal_sweep(run: Run, distances_m: Sequence[float], progress: bool = True, control: RunControl = SILENT
+                ) -> Iterator[Tensor]:
     """Clamped reconstructions [C, H, W] (on the CPU) of a run at each distance (m), propagated
-    `SWEEP_BATCH` distances at a time on the run's device."""
+    `SWEEP_BATCH` distances at a time on the run's device; `control` asked before each batch
+    (`RunControl.check`)."""
     with torch.no_grad(), tqdm(total=len(distances_m), disable=not progress, desc=f"view {run.name}",
                                unit="plane", dynamic_ncols=True) as bar:
         for start in range(0, len(distances_m), SWEEP_BATCH):
+            control.check()
             batch = list(distances_m[start:start + SWEEP_BATCH])
             # Filled up with its last distance: Numba compiles the propagation's kernels once per plane count.
             filled = batch + batch[-1:] * (SWEEP_BATCH - len(batch))
@@ -165,10 +168,12 @@ def plane_index(distance_m: float, planes_m: Sequence[float]) -> int | None:
     return next((m for m, p in enumerate(planes_m) if abs(p - distance_m) <= SAME_DISTANCE_M), None)
 
 
-def sweep_frames(run: Run, distances_m: Sequence[float], progress: bool) -> dict[str, list]:
-    """Embedded frames and, where a training plane's target exists, their PSNR (dB) against it."""
+def sweep_frames(run: Run, distances_m: Sequence[float], progress: bool, control: RunControl = SILENT
+                 ) -> dict[str, list]:
+    """Embedded frames and, where a training plane's target exists, their PSNR (dB) against it (`control`:
+    `focal_sweep`)."""
     frames, psnrs = [], []
-    for distance, frame in zip(distances_m, focal_sweep(run, distances_m, progress)):
+    for distance, frame in zip(distances_m, focal_sweep(run, distances_m, progress, control)):
         frames.append(data_uri(to_8bit(frame)))
         plane = plane_index(distance, run.planes)
         target = None if plane is None else read_target(run.folder / f"target_plane{plane}.png", frame)
@@ -184,7 +189,8 @@ def display_images(run: Run) -> list[dict[str, str]]:
     """The simulated phase-only display of `cvqpg export` at each plane, with its PSNR; none without an export."""
     folder = run.folder / EXPORT_FOLDER
     record_file = folder / METRICS_FILE
-    record = read_record(record_file, EXPORT_AGAIN) if record_file.is_file() else {}
+    record = (read_metrics(record_file, EXPORT_AGAIN, within=("phase_only_display", "complex_field"))
+              if record_file.is_file() else {})
     shown = record.get("phase_only_display", {}).get("per_plane", {}).get("psnr", [])
     fitted = record.get("complex_field", {}).get("per_plane", {}).get("psnr", [])
     images = []
@@ -240,15 +246,17 @@ def settings_table(runs: Sequence[Run]) -> str:
     return f"<table id='settings'>{head}{body}</table>"
 
 
-def page_data(runs: Sequence[Run], distances_m: Sequence[float], progress: bool) -> dict[str, Any]:
-    """Everything the page's script reads: distances, training plane marks and each run's images."""
+def page_data(runs: Sequence[Run], distances_m: Sequence[float], progress: bool, control: RunControl = SILENT
+              ) -> dict[str, Any]:
+    """Everything the page's script reads: distances, training plane marks and each run's images (`control`:
+    `sweep_frames`)."""
     planes = sorted({p for run in runs for p in run.planes})
     marks = [{"index": index, "label": f"{distance * 1e3:g} mm"}
              for index, distance in enumerate(distances_m) if plane_index(distance, planes) is not None]
     shown = []
     for run in runs:
         images = {name: data_uri(image) for name, image in hologram_images(run.field).items()}
-        shown.append({"name": run.name, **sweep_frames(run, distances_m, progress), **images,
+        shown.append({"name": run.name, **sweep_frames(run, distances_m, progress, control), **images,
                       "display": display_images(run)})
     return {"width": runs[0].config.targets.width, "height": runs[0].config.targets.height,
             "distances_mm": [round(d * 1e3, 6) for d in distances_m], "marks": marks, "runs": shown}
@@ -273,9 +281,11 @@ def default_page(folders: Sequence[str | Path]) -> Path:
 
 
 def write_view(folders: Sequence[str | Path], out: str | Path | None = None,
-               sweep: tuple[float, float, int] = DEFAULT_SWEEP, progress: bool = True) -> ViewRecord:
+               sweep: tuple[float, float, int] = DEFAULT_SWEEP, progress: bool = True,
+               control: RunControl = SILENT) -> ViewRecord:
     """Write the view page of one or two finished run folders (sweep: START m, STOP m, COUNT); nothing is
-    written when the input is refused."""
+    written when the input is refused, or `control` stops it (`RunControl.check`, asked before each batch of
+    frames and before the page is written)."""
     clock = time.perf_counter()
     if not 1 <= len(folders) <= 2:
         raise InputError(f"give one or two run folders, not {len(folders)}")
@@ -287,7 +297,8 @@ def write_view(folders: Sequence[str | Path], out: str | Path | None = None,
     check_comparable(folders, [read_run(folder)[0] for folder in folders])
     runs = [load_run(folder) for folder in folders]
     distances = sweep_distances(*sweep, sorted({p for run in runs for p in run.planes}))
-    page = page_html(runs, page_data(runs, distances, progress))
+    page = page_html(runs, page_data(runs, distances, progress, control))
+    control.check()
     out.parent.mkdir(parents=True, exist_ok=True)
     write_atomic(out, page)
     return ViewRecord(out, out.stat().st_size, len(distances), time.perf_counter() - clock)

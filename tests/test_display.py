@@ -21,6 +21,8 @@ from cvqpg.errors import ConfigError, InputError
 from cvqpg.ops.field import Grid, slm_field
 from cvqpg.ops.propagation import TransferBank, propagate, propagate_content
 from cvqpg.ops.propagation import reference as propagation_reference
+from cvqpg.ops.display import _tables as display_tables
+from cvqpg.ops.display import cpu as display_cpu
 from cvqpg.ops.display import shown_field
 from cvqpg.ops.display.reference import shown_field as shown_reference
 from cvqpg.optics import display_grid, reconstruct
@@ -293,6 +295,43 @@ def test_the_shown_field_kernel_picks_the_reference_s_gray_levels():
     fast, plain = (shown_field(hologram, grid, display, backend) for backend in ("numba", "torch"))
     differ = (fast - plain).abs() > 1e-5
     assert differ.sum() <= 2  # a phase on a level's boundary may round either way in another float32 order
+
+
+def test_the_kernel_s_arctangent_polynomial_stays_within_its_bound():
+    t = np.linspace(0.0, 1.0, 200_001)
+    polynomial = np.polynomial.Polynomial(display_cpu.ARCTANGENT_COEFFICIENTS)
+    assert np.abs(t * polynomial(t * t) - np.arctan(t)).max() < 7e-9
+
+
+def kernel_levels(hologram: np.ndarray, display: Display, margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """The shown field's kernel on a bare [C, H, W] hologram: its field and gray levels at this `margin`."""
+    uniform, fields, ordered, order = display_tables(display)
+    channels, height, width = hologram.shape
+    out = np.empty((channels, height + 2, width + 2), dtype=np.complex64)
+    grays = np.empty(hologram.shape, dtype=np.uint16)
+    display_cpu.shown_field(hologram, display.encoding == "dpac", display.levels, uniform, margin, fields, ordered,
+                            order, 1, 1, (1, 1, height, width), 0j, out, grays)
+    return out, grays
+
+
+@pytest.mark.parametrize("display", [Display.create("dpac"), Display.create("phase", levels=3),
+                                     Display.create("dpac", levels=1000)])
+def test_the_guessed_gray_levels_are_the_exact_path_s_even_on_the_levels_boundaries(display):
+    levels, height, width = display.levels, 24, 32
+    rng = np.random.default_rng(12)
+    amplitude = rng.uniform(0.0, 1.2, (2, height, width))
+    plus = (np.arange(height)[:, None] + np.arange(width)[None, :]) % 2 == 1
+    offset = np.arccos(np.minimum(amplitude, 1.0)) if display.encoding == "dpac" else 0.0
+    boundary = (rng.integers(0, levels, amplitude.shape) + 0.5) * 2 * math.pi / levels  # shown phases on boundaries
+    boundary += rng.normal(0.0, 1e-6, amplitude.shape) * (rng.random(amplitude.shape) < 0.5)
+    hologram = (amplitude * np.exp(1j * (boundary - np.where(plus, offset, -offset)))).astype(np.complex64)
+    hologram[1] = (rng.normal(0.0, 0.6, (height, width)) + 1j * rng.normal(0.0, 0.6, (height, width)))
+    hologram[1, 0, :9] = [0, np.inf, -np.inf, np.nan, 1j * np.inf, complex(np.inf, np.inf), 1, -1, -1j]
+    guessed, exact = (kernel_levels(hologram, display, margin)
+                      for margin in (display_cpu.LEVEL_MARGIN * levels, 1.0))  # margin 1: all on the libm path
+    assert np.array_equal(guessed[1], exact[1])
+    assert np.array_equal(guessed[0].view(np.uint64), exact[0].view(np.uint64))
+    assert not np.array_equal(kernel_levels(hologram, display, 0.0)[1], exact[1])  # the boundaries needed the margin
 
 
 # A fit through the display, and its export.

@@ -146,6 +146,20 @@ PLACES = {
     "nulname": "nul_name.csv",             # a manifest whose name holds a NUL byte
     "tabname": "tab_name.csv",             # a manifest whose name holds a tab
     "twocolumns": "two_columns.csv",       # a manifest naming its image column twice
+    "hugelut": "huge_lut.csv",             # a lookup table of finite phases far beyond a turn (1e300 rad)
+    "degreelut": "degree_lut.csv",         # a lookup table in degrees (0..359)
+    "danglingwork": "dangling.cvq",        # dangling.cvq.partial: a link to nowhere, where an encode's work goes
+    "metricsfolder": "metrics_folder",     # run_a with a folder at metrics.json
+    "metricslink": "metrics_link",         # run_a with metrics.json a link to photo.png
+    "badmetrics": "bad_metrics",           # run_a whose metrics.json holds a number as its mean
+    "infbudget": "inf_budget.cvq.partial",  # an interrupted encode whose budget.json holds 1e400 bytes
+    "floatsteps": "float_steps.cvq.partial",  # an interrupted encode whose budget.json holds 1e30 tuning steps
+    # Copies of {bench}, with something that is not the bench's where it writes:
+    "benchlink": "bench_link",             # its CVQPG cell's folder a link to a user's folder (notarun)
+    "cellslink": "cells_link",             # cells/ a link to a user's folder
+    "benchrecord": "bench_record",         # its CVQPG cell's metrics.json a folder
+    "benchbadrecord": "bench_bad_record",  # its CVQPG cell's metrics.json a number as its mean
+    "loop": "loop",                        # -> loop: a loop of symbolic links
 }
 
 FIT = "--size 32 24 --steps 1 --quiet --out new_run"  # a fit that is wrongly accepted ends soon
@@ -344,6 +358,8 @@ NUMBERS = cases(
     ("batch-finetune-negative", f"{BATCH} --finetune -1 --out new_batch", "--finetune"),
     ("batch-jobs-0", f"{BATCH} --jobs 0 --out new_batch", "--jobs"),
     ("batch-checkpoint-every-negative", f"{BATCH} --checkpoint-every -1 --out new_batch", "--checkpoint-every"),
+    ("compress-finetune-beyond-a-fits-steps", "compress {run} --finetune 1000000000 --bits 8 --out new.cvq",
+     "give at most 100000000 steps"),
 )
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -439,6 +455,11 @@ USAGE = cases(
      "not known"),
     ("batch-ray-address-malformed", f"{BATCH} --executor ray --ray-address 127.0.0.1:port --out new_batch",
      "HOST:PORT"),
+    ("bench-ray-address-nothing-listens-with-cells-to-reuse",
+     f"bench {BENCH} --ratios 0.1 0.2 --reuse {{bench}} --executor ray --ray-address 127.0.0.1:1",
+     "--ray-address 127.0.0.1:1"),
+    ("bench-ray-gpus-per-fit-beyond-the-cluster-with-cells-to-reuse",
+     f"bench {BENCH} --ratios 0.1 0.2 --reuse {{bench}} --executor ray --gpus-per-fit 1e9", "--gpus-per-fit", SLOW),
     ("batch-ray-gpus-per-fit-beyond-the-cluster", f"{BATCH} --executor ray --gpus-per-fit 1e9 --out new_batch",
      "--gpus-per-fit", SLOW),
     ("batch-ray-gpus-per-fit-without-a-gpu", f"{BATCH} --executor ray --gpus-per-fit 0.5 --out new_batch",
@@ -574,6 +595,28 @@ INPUTS = cases(
     ("eval-cvq-with-trailing-bytes", "eval {trailing}", "after its end"),
     ("decompress-cvq-with-trailing-bytes", "decompress {trailing} --out new.safetensors", "after its end"),
     ("info-cvq-header-without-its-dictionary", "info {nodict}", "preset dictionary"),
+    # Numbers no measured table holds, records that cvqpg never writes.
+    ("fit-lut-of-phases-beyond-two-turns", f"fit {{image}} --depth {{depth}} --display phase --lut {{hugelut}} {FIT}",
+     "lies beyond ±4π"),
+    ("export-lut-in-degrees", "export {run} --lut {degreelut} --out new_export", "give them in rad (not degrees)"),
+    ("encode-resume-a-budget-beyond-the-floats", "encode --resume {infbudget} --quiet",
+     "lacks the budget or the fine-tuning steps"),
+    ("encode-resume-tuning-steps-not-whole", "encode --resume {floatsteps} --quiet", "lacks the budget"),
+    ("view-metrics-not-what-cvqpg-writes", f"view {{badmetrics}} --quiet {SWEEP} --out new.html",
+     "its 'mean' is not what cvqpg writes there"),
+    ("bench-reuse-a-cell-whose-record-the-summary-refuses", f"bench {BENCH} --reuse {{benchbadrecord}}",
+     "metrics.json lacks mean.psnr"),
+    # An input's path longer than the file system takes, refused before it is looked up.
+    ("fit-image-name-of-300-bytes", f"fit {'n' * 300}.png --planes 1 {FIT}", "IMAGE nnnn"),
+    ("fit-lut-name-of-300-bytes", f"fit {{image}} --depth {{depth}} --display phase --lut {'n' * 300} {FIT}",
+     "a name longer than the file system takes (255 bytes); give a shorter path"),
+    ("eval-run-name-of-300-bytes", f"eval {'n' * 300}", "RUN_DIR nnnn"),
+    ("decompress-file-path-of-5000-bytes", f"decompress {'/'.join(['n' * 200] * 25)} --out new.safetensors",
+     "a path longer than the file system takes"),
+    ("batch-inputs-name-of-300-bytes", f"batch {'n' * 300} --size 32 24 --steps 1 --quiet --out new_batch",
+     "INPUTS nnnn"),
+    ("bench-reuse-name-of-300-bytes", f"bench {BENCH} --reuse {'n' * 300}", "--reuse nnnn"),
+    ("results-root-name-of-300-bytes", f"results --root {'n' * 300} --out new.md", "--root nnnn"),
 )
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -728,6 +771,18 @@ OUTPUTS = cases(
      "filed_work.partial is in the way"),
     ("encode-resume-into-a-users-file", "encode --resume {foreigncvq}.partial --quiet --overwrite", "foreign.cvq"),
     ("encode-resume-a-changed-budget", "encode --resume {tampered} --quiet", "the budget of 1 bytes in"),
+    ("encode-work-a-dangling-link", f"{ENCODE} --bpp 8 --out {{danglingwork}}",
+     "is in the way of the encode's work folder (not a folder)"),
+    ("eval-metrics-a-folder", "eval {metricsfolder}", "is a folder, where `cvqpg eval` writes a file"),
+    ("bench-a-cells-folder-a-link", f"bench {BENCH} --out {{benchlink}}", "is a symbolic link, which the bench"),
+    ("bench-its-cells-a-link", f"bench {BENCH} --out {{cellslink}}", "cells_link/cells is a symbolic link"),
+    ("bench-a-cells-record-a-folder", f"bench {BENCH} --out {{benchrecord}}", "metrics.json is a folder"),
+    # A path through a loop of symbolic links is no place to write.
+    ("fit-out-through-a-loop-of-links", f"fit {FIT} --out {{loop}}/run", "lies through a loop of symbolic links"),
+    ("compress-out-through-a-loop-of-links", "compress {run} --bits 8 --out {loop}/new.cvq", "a loop of symbolic"),
+    ("batch-out-through-a-loop-of-links", f"{BATCH} --out {{loop}}/new_batch", "a loop of symbolic links"),
+    ("bench-out-through-a-loop-of-links", f"bench {BENCH} --out {{loop}}/new_bench", "a loop of symbolic links"),
+    ("eval-metrics-a-link", "eval {metricslink}", "is a symbolic link, which `cvqpg eval` does not write through"),
     # A failure writes nothing.
     ("info-half-of-a-run-whose-image-is-gone", "info {lost} --half", "lost_photo.png"),
     # Names and paths longer than the file system takes, with what cvqpg keeps beside an output.
@@ -885,6 +940,38 @@ def codec_traps(t: Path) -> None:
     (t / "run_a" / "nodict.cvq").write_bytes(with_checksum(body))
 
 
+def record_traps(t: Path) -> None:
+    """Lookup tables whose numbers cannot be a measured table's; run folders and interrupted encodes whose records
+    were changed by hand into something cvqpg never writes; a link where an encode's work folder goes; bench
+    folders with a link or a folder where the bench writes."""
+    (t / "huge_lut.csv").write_text("\n".join(str(1e300 * level) for level in range(256)))
+    (t / "degree_lut.csv").write_text("\n".join(str(level * 360 / 256) for level in range(256)))
+    (t / "dangling.cvq.partial").symlink_to("nowhere")
+    for name in ("metrics_folder", "metrics_link", "bad_metrics"):
+        shutil.copytree(t / "run_a", t / name)
+        (t / name / "metrics.json").unlink()
+    (t / "metrics_folder" / "metrics.json").mkdir()
+    (t / "metrics_link" / "metrics.json").symlink_to("../photo.png")
+    (t / "bad_metrics" / "metrics.json").write_text(json.dumps({"mean": 5, "per_plane": {}}))
+    cell = "cells/star_gray-10_cvqpg_s100"
+    for name in ("bench_link", "cells_link", "bench_record", "bench_bad_record"):
+        shutil.copytree(t / "bench", t / name)
+    (t / "bench_bad_record" / cell / "metrics.json").write_text(json.dumps({"mean": 5}))
+    (t / "loop").symlink_to("loop")
+    shutil.rmtree(t / "bench_link" / cell)
+    (t / "bench_link" / cell).symlink_to("../../notarun")
+    shutil.rmtree(t / "cells_link" / "cells")
+    (t / "cells_link" / "cells").symlink_to("../notarun")
+    (t / "bench_record" / cell / "metrics.json").unlink()
+    (t / "bench_record" / cell / "metrics.json").mkdir()
+    for name, budget in (("inf_budget.cvq.partial", '{"max_bytes": 1e400, "given": "--bpp 8", "finetune_steps": 1}'),
+                         ("float_steps.cvq.partial",
+                          '{"max_bytes": 900, "given": "--bpp 8", "finetune_steps": 1e30}')):
+        (t / name).mkdir()
+        shutil.copy(t / "unfinished" / "config.json", t / name / "config.json")
+        (t / name / "budget.json").write_text(budget)
+
+
 def with_checksum(body: bytes) -> bytes:
     return body + codec.CHECKSUM.pack(zlib.crc32(body))
 
@@ -1031,6 +1118,7 @@ def build_template(finished_run: Path, t: Path) -> None:
     output_traps(t)
     codec_traps(t)
     batch_traps(t)
+    record_traps(t)
 
 
 def hostile_environment(monkeypatch, folder: Path) -> None:
@@ -1181,6 +1269,28 @@ def test_a_pipe_or_a_device_is_never_an_output(argv, shared, template, tmp_path,
     problems = refusal_problems(argv, code, err, "is neither a file nor a folder",
                                 tree_changes(shared.state, tree_state(shared.root)))
     assert not problems and stat.S_ISFIFO(os.lstat(pipe).st_mode), problems
+
+
+@pytest.mark.parametrize("argv", [
+    f"fit {{pipe}} --planes 1 {FIT}",
+    f"fit {{image}} --depth {{pipe}} {FIT}",
+    f"fit {{image}} --depth {{depth}} --display phase --lut {{pipe}} {FIT}",
+    "export {run} --lut {pipe} --out new_export",
+    f"fit {{image}} --depth {{depth}} --display dpac --lut /dev/zero {FIT}",
+])
+def test_a_pipe_or_a_device_given_as_an_input_is_refused_not_read(argv, shared, template, tmp_path, monkeypatch,
+                                                                   capsys):
+    """A named pipe's read waits for a writer for ever, /dev/zero's never ends: refused before it is opened."""
+    pipe = tmp_path / "pipe.png"
+    os.mkfifo(pipe)
+    hostile_environment(monkeypatch, shared.folder)
+    argv = [token.format(tmp=shared.folder, pipe=pipe, **PLACES) for token in shlex.split(argv)]
+    faulthandler.dump_traceback_later(120, exit=True, file=sys.__stderr__)
+    code, _out, err = cli(argv, capsys)
+    faulthandler.cancel_dump_traceback_later()
+    problems = refusal_problems(argv, code, err, "is neither a file nor a folder",
+                                tree_changes(shared.state, tree_state(shared.root)))
+    assert not problems, "; ".join(problems) + f"\n  stderr: {err.strip()[-800:]}"
 
 
 @pytest.mark.parametrize("argv, lock", [
@@ -1413,3 +1523,14 @@ def test_a_batch_notes_a_depth_map_it_stretches_in_the_items_summary_row(templat
     planned = plan_item(item, template.folder / "new_batch", BatchSettings(resize_depth=True))
     assert "stretched to the image" in planned.note
     assert plan_item(item, template.folder / "new_batch", BatchSettings()).note is None
+
+
+def test_a_batch_item_whose_depth_map_is_a_pipe_is_planned_without_waiting_on_it(template, tmp_path):
+    """The stretched depth map's note reads the files' headers: a pipe is not opened (its fit refuses it)."""
+    pipe = tmp_path / "depth.png"
+    os.mkfifo(pipe)
+    item = BatchInput("tiny", template.folder / "photo.png", pipe)
+    faulthandler.dump_traceback_later(60, exit=True, file=sys.__stderr__)
+    planned = plan_item(item, tmp_path / "new_batch", BatchSettings(resize_depth=True))
+    faulthandler.cancel_dump_traceback_later()
+    assert not planned.note

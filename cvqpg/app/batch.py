@@ -27,7 +27,6 @@ import json
 import math
 import os
 import shutil
-import stat
 import time
 import traceback
 import unicodedata
@@ -47,12 +46,13 @@ from ..files import replace_folder, write_atomic
 from ..fitting import FitInterrupted
 from ..runs import CONFIG_FILE, METRICS_FILE, MODEL_FILE, read_run, scene_from_source, start_run, write_json
 from ..search import CompressionSettings
-from ..targets import EXIF_ORIENTATION, depth_geometry_note, other_aspect
+from ..targets import EXIF_ORIENTATION, check_file, depth_geometry_note, other_aspect
 from .encoding import (encode_budget, encode_config, encode_fit, encode_in_folder, encoding_record, read_encode,
                        start_encode)
 from .executors import (DONE, FAILED, INTERRUPTED, NOT_STARTED, SKIPPED, ExecutorFlags, ExecutorOptions, Task,
-                        ready, run_tasks)
+                        TaskStopped, ready, run_tasks, unless_stopped)
 from .outputs import open_lock
+from .outputs import place_problem as outputs_place_problem
 from .provenance import device_name
 from .runner import checkpoint_policy, fit_in_folder, resumed_state, write_fitted_run
 
@@ -382,7 +382,7 @@ def _stretched_depth(item: BatchInput) -> str | None:
     sizes = []
     try:
         for path in (item.image, item.depth):
-            with Image.open(path) as picture:
+            with Image.open(check_file(path)) as picture:  # a pipe is refused, not waited on
                 turned = picture.getexif().get(EXIF_ORIENTATION, 1) in (5, 6, 7, 8)  # shown turned by 90°
                 sizes.append(picture.size[::-1] if turned else picture.size)
     except Exception:  # any file Pillow cannot open fails the item's fit, with its own line
@@ -413,22 +413,8 @@ def fingerprint(output: Path) -> str | None:
 
 
 def place_problem(path: Path, folder: bool) -> str | None:
-    """What keeps the batch from writing a folder (`folder`) or a file at `path`: a symbolic link (never written
-    through), or something of another kind; None where nothing is there, or a folder or file as asked."""
-    try:
-        mode = os.lstat(path).st_mode
-    except FileNotFoundError:
-        return None
-    except OSError as error:
-        return f"{path} cannot be looked at ({error.strerror})"
-    if stat.S_ISLNK(mode):
-        return f"{path} is a symbolic link, which the batch does not write through"
-    if folder and not stat.S_ISDIR(mode):
-        return f"{path} is {'a file' if stat.S_ISREG(mode) else 'not a folder'}, where the batch keeps a folder"
-    if not folder and not stat.S_ISREG(mode):
-        return (f"{path} is {'a folder' if stat.S_ISDIR(mode) else 'neither a file nor a folder'}, where the batch "
-                "writes a file")
-    return None
+    """What keeps the batch from writing a folder (`folder`) or a file at `path` (`outputs.place_problem`)."""
+    return outputs_place_problem(path, folder, "the batch")
 
 
 def item_problem(item: BatchItem) -> str | None:
@@ -501,9 +487,24 @@ def _fit_item(item: BatchItem, control: RunControl) -> str:
         except FitInterrupted:
             return INTERRUPTED
         write_fitted_run(work, result, scene, item.source)
-    write_record(item.folder, _run_record(item, work))
-    replace_folder(work, item.output)
+    _publish(item, _run_record(item, work), lambda: replace_folder(work, item.output))
     return DONE
+
+
+def _publish(item: BatchItem, record: dict[str, Any], move: Callable[[], None]) -> None:
+    """The item's record saying it is done (`record`, with its output's fingerprint), then its output moved into
+    place (`move`); where the move fails, or is held back (a stop: `executors.unless_stopped`), the record is put
+    back as it was, so that it names the output that lies there."""
+    path, before = _record_path(item.folder, item.name), read_item_record(item.folder, item.name)
+    write_record(item.folder, record)
+    try:
+        move()
+    except BaseException:
+        if before is None:
+            path.unlink(missing_ok=True)
+        else:
+            write_json(path, before)
+        raise
 
 
 def _run_record(item: BatchItem, folder: Path) -> dict[str, Any]:
@@ -539,12 +540,11 @@ def _encode_item(item: BatchItem, control: RunControl) -> str:
         return INTERRUPTED
     record = encoding_record(encoded, item.output, budget)
     data = encoded.rate.choice.data
-    write_record(item.folder, {
+    _publish(item, {
         "name": item.name, "status": DONE, "output": item.output.name, "psnr_db": record["psnr"],
         "bytes": record["bytes"], "bpp": record["bits_per_pixel"], "steps": config.optimisation.steps,
         "seconds": encoded.seconds, "device": device_name(torch.device(item.run.device)), "note": item.note,
-        "fingerprint": hashlib.sha256(data).hexdigest()})
-    write_atomic(item.output, data)
+        "fingerprint": hashlib.sha256(data).hexdigest()}, lambda: write_atomic(item.output, data))
     shutil.rmtree(work)
     return DONE
 
@@ -573,7 +573,10 @@ def run_item(item: BatchItem, control: RunControl) -> tuple[str, str | None]:
     try:
         _check_place(item)
         log.unlink(missing_ok=True)
-        status = (_encode_item if item.budget is not None else _fit_item)(item, control)
+        with unless_stopped(control, item.output):
+            status = (_encode_item if item.budget is not None else _fit_item)(item, control)
+    except TaskStopped:  # its finished work stays beside the output, which the next run moves into place
+        status = INTERRUPTED
     except Exception as error:  # one item's failure must not cost the others; it is recorded
         kind, line = failure(error)
         if kind == BUG and place_problem(log, False) is None:

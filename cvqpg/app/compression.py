@@ -5,7 +5,7 @@ run's scene, the file chosen by the search (`cvqpg.search`) written atomically, 
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -131,8 +131,12 @@ def compress_to(target: str | Path, settings: CompressionSettings = CompressionS
                 out: str | Path | None = None, overwrite: bool = False, control: RunControl = SILENT
                 ) -> dict[str, Any]:
     """`cvqpg compress`: `compress_model` into `out` (default: the model's path with `SUFFIX`) by the output rule
-    (`app.outputs`: an existing `.cvq` file replaced only with `overwrite`, never the model itself)."""
+    (`app.outputs`: an existing `.cvq` file replaced only with `overwrite`, never the model itself). Without a stop
+    request of its own, `control` asks the command's signals (`signals.raised_if_stopped`) at each of the search's
+    checks."""
     from .outputs import CVQ, output
+    from .signals import raised_if_stopped
+    control = replace(control, stop_requested=control.stop_requested or raised_if_stopped)
     model = model_path(target)
     if not model.is_file() or is_compressed(model):  # compress_model says what the target is
         return compress_model(target, settings, out, control)

@@ -198,8 +198,7 @@ def read_encode(folder: Path) -> tuple[FitConfig, dict[str, Any], Budget, int]:
     config, source = read_run(folder)
     recorded = read_record(path, "delete the folder and encode again")
     try:  # checked as they enter again, as `CompressionSettings` (a `ConfigError` is a `ValueError`)
-        settings = CompressionSettings(max_bytes=int(recorded["max_bytes"]),
-                                       finetune_steps=int(recorded["finetune_steps"]))
+        settings = CompressionSettings(max_bytes=recorded["max_bytes"], finetune_steps=recorded["finetune_steps"])
         budget = Budget(settings.max_bytes, str(recorded["given"]))
     except (KeyError, TypeError, ValueError):
         raise InputError(f"{path} lacks the budget or the fine-tuning steps; delete the folder and encode "
@@ -265,6 +264,15 @@ def resumed_encode_plan(folder: str | Path, overwrite: bool = False) -> EncodePl
                       resumed=True, role=role, fit=encode_fit(work))
 
 
+def stranded_encode(work: Path) -> str:
+    """What lies at a new encode's work folder `FILE.partial`, which the encode does not take over, and what to do."""
+    if work.is_symlink() or not work.is_dir():
+        return f"{work} is in the way of the encode's work folder (not a folder); move it away"
+    if not (work / BUDGET_FILE).is_file():
+        return f"{work} is in the way of the encode's work folder (it holds no encode's {BUDGET_FILE}); move it away"
+    return f"{work} holds an interrupted encode; continue it with cvqpg encode --resume {work}, or delete it"
+
+
 def encode_plan(inputs: FitInputs, out: str | None, bpp: float | None = None, max_bytes: int | None = None,
                 finetune_steps: int = ENCODE_FINETUNE_STEPS, overwrite: bool = False, rate_loss: bool = False
                 ) -> EncodePlan:
@@ -285,9 +293,8 @@ def encode_plan(inputs: FitInputs, out: str | None, bpp: float | None = None, ma
     budget = encode_budget(config, settings)
     checked = check_output(out, CVQ, source_files(source), overwrite)
     work = checked.with_name(checked.name + PARTIAL_SUFFIX)
-    if work.exists():
-        raise UsageError(f"{work} holds an interrupted encode; continue it with cvqpg encode --resume {work}, "
-                         "or delete it")
+    if work.exists() or work.is_symlink():
+        raise UsageError(stranded_encode(work))
     config = encode_config(config, budget)
     check_memory(config, run.device)
     scene, depth = scene_and_depth(source, config)

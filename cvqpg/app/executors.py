@@ -22,7 +22,7 @@ import time
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -34,6 +34,8 @@ from tqdm.auto import tqdm
 from ..control import RunControl
 from ..defaults import EXECUTORS
 from ..errors import CvqpgError, UsageError
+from ..files import gated
+from . import signals
 from .allocator import keep_freed_memory
 from .provenance import available_cores
 
@@ -165,6 +167,28 @@ class Task:
     name: str
     work: Callable[[RunControl], tuple[str, str | None]]
     steps: int = 0
+
+
+class TaskStopped(Exception):
+    """A task's output held back because the task was told to stop (`unless_stopped`): its work stays where it
+    is, to resume, and the task ends `interrupted`."""
+
+
+@contextmanager
+def unless_stopped(control: RunControl, *outputs: Path) -> Iterator[None]:
+    """Within the block, nothing is moved into place at `outputs` (`files.gated`) once the task's `control` asks it
+    to stop, or, for a task in the command's own process, once the command received a stop signal
+    (`signals.received`, which the relay reads at most every `POLL_SECONDS`): `TaskStopped` instead, so that a
+    task told to stop during its last step, or while it wrote its files, never publishes its output as
+    finished."""
+    def check() -> None:
+        if signals.received() is not None or control.should_stop():
+            raise TaskStopped("told to stop before its output was moved into place")
+
+    with ExitStack() as stack:
+        for output in outputs:
+            stack.enter_context(gated(output, check))
+        yield
 
 
 def limit_threads(threads: int) -> None:

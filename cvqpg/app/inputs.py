@@ -1,6 +1,8 @@
 """What `cvqpg fit` and `cvqpg encode` fit, as their flags give it: an image with its depth map (a file, or one
 estimated from the image), or a built-in scene, and the settings of the fit (`FitInputs`); turned into the
-configuration and the `source` that a run records (`config_and_source`), then into the scene (`scene_and_depth`)."""
+configuration and the `source` that a run records (`config_and_source`), then into the scene (`scene_and_depth`).
+Every command's input paths are checked for a length the file system takes before any is looked up
+(`long_input_path`)."""
 
 from __future__ import annotations
 
@@ -16,6 +18,17 @@ if TYPE_CHECKING:
     from PIL import Image
 
     from ..targets import Scene
+
+
+def long_input_path(paths: dict[str, list[str]]) -> str | None:
+    """The first of a command's input `paths` (by the flag or name that gave them) longer than the file system
+    takes (`files.name_too_long`; looked up, it is an `OSError` of its own), as one line; None where none is."""
+    from ..files import name_too_long
+    for flag, values in paths.items():
+        for value in values:
+            if (problem := name_too_long(value)) is not None:
+                return f"{flag} {value[:40]}…: {problem}; give a shorter path"
+    return None
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,7 @@ from typing import Callable, Iterable, Iterator
 
 from ..defaults import BATCH_RECORDS
 from ..errors import InputError
-from ..files import gated, staged_folder
+from ..files import gated, path_limit, staged_folder
 from ..runs import CHECKPOINT_FILE, CONFIG_FILE, HISTORY_FILE, METRICS_FILE, MODEL_FILE, PLANE_IMAGES
 from .signals import check_not_stopped
 
@@ -146,8 +146,8 @@ def _check_length(path: Path, given: Path, role: str) -> None:
     """Every name of `path`, and its own with what cvqpg adds beside it (`ADDED_NAME_BYTES`), within the file
     system's limits (where they cannot be asked, the usual 255 bytes a name and 4096 a path)."""
     ancestor = next(folder for folder in Path(os.path.abspath(path)).parents if os.path.exists(folder))
-    name_max, path_max = (_limit(ancestor, key, usual) for key, usual in (("PC_NAME_MAX", 255),
-                                                                          ("PC_PATH_MAX", 4096)))
+    name_max, path_max = (path_limit(ancestor, key, usual) for key, usual in (("PC_NAME_MAX", 255),
+                                                                               ("PC_PATH_MAX", 4096)))
     longest = max(path.parts, key=lambda part: len(os.fsencode(part)))
     if len(os.fsencode(path.name)) + ADDED_NAME_BYTES > name_max or len(os.fsencode(longest)) > name_max:
         raise InputError(f"{role} {given}: a name longer than the file system takes ({name_max} bytes, less "
@@ -155,13 +155,6 @@ def _check_length(path: Path, given: Path, role: str) -> None:
     if len(os.fsencode(os.path.abspath(path))) + ADDED_NAME_BYTES > path_max:
         raise InputError(f"{role} {given}: a path longer than the file system takes ({path_max} bytes); choose a "
                          "shorter one")
-
-
-def _limit(folder: Path, key: str, usual: int) -> int:
-    try:
-        return os.pathconf(folder, key)
-    except (OSError, ValueError):
-        return usual
 
 
 def _refuse_fixed(path: Path, given: Path, inputs: Iterable[Path], role: str) -> None:
@@ -173,7 +166,10 @@ def _refuse_fixed(path: Path, given: Path, inputs: Iterable[Path], role: str) ->
     if path.exists() and not (path.is_file() or path.is_dir()):
         raise InputError(f"{role} {given} is neither a file nor a folder (a device, a pipe or a socket); give a "
                          "new path")
-    resolved = path.resolve()
+    try:
+        resolved = path.resolve()
+    except (RuntimeError, OSError):  # Python's own words for a loop of symbolic links on the way
+        raise InputError(f"{role} {given} lies through a loop of symbolic links; give a path without it") from None
     for source in inputs:
         source_resolved = Path(source).resolve()
         if source_resolved == resolved:
@@ -251,6 +247,26 @@ def check_continued(path: str | Path, kind: Kind, role: str = "`out`") -> Path:
         what = "a run folder" if is_run_folder(path) else "a file" if not path.is_dir() else "a folder of other files"
         raise InputError(f"{role} {given} is {what}, not {kind.name}; give a new folder or {kind.name}")
     return path
+
+
+def place_problem(path: Path, folder: bool, writer: str = "cvqpg") -> str | None:
+    """What keeps `writer` (as messages name it) from writing a folder (`folder`) or a file at `path`: a symbolic
+    link (never written through), or something of another kind; None where nothing is there, or a folder or file
+    as asked."""
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return None
+    except OSError as error:
+        return f"{path} cannot be looked at ({error.strerror})"
+    if stat.S_ISLNK(mode):
+        return f"{path} is a symbolic link, which {writer} does not write through"
+    if folder and not stat.S_ISDIR(mode):
+        return f"{path} is {'a file' if stat.S_ISREG(mode) else 'not a folder'}, where {writer} keeps a folder"
+    if not folder and not stat.S_ISREG(mode):
+        return (f"{path} is {'a folder' if stat.S_ISDIR(mode) else 'neither a file nor a folder'}, where {writer} "
+                "writes a file")
+    return None
 
 
 def _missing_folders(path: Path) -> list[Path]:

@@ -8,8 +8,14 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
+from ..control import RunControl
 from ..errors import UsageError
 from .resources import check_device, check_memory
+from .signals import raised_if_stopped
+
+# What each command here is asked between the stages of its work: a stop signal, even one whose exception a
+# callback swallowed, stops it there.
+STOPPABLE = RunControl(progress=False, stop_requested=raised_if_stopped)
 
 if TYPE_CHECKING:
     from ..view import ViewRecord
@@ -51,12 +57,15 @@ def evaluate(target: str | Path, device: str = "cpu") -> tuple[Path, dict[str, A
     """`cvqpg eval`: the run folder of `target` (a run folder, or a model file in one) and the metrics record of
     its model, rewritten there (`runs.evaluate_run`)."""
     from ..runs import CONFIG_FILE, evaluate_run, evaluation_file, read_run
-    from .outputs import claimed_in_run
+    from .outputs import claimed_in_run, place_problem
     check_device(device)
     folder, model = run_and_model(Path(target))
     check_memory(read_run(folder)[0], device, "evaluation", f"the run's {CONFIG_FILE} asks for it: evaluate it "
                  "where more memory is free")
-    with claimed_in_run(evaluation_file(folder, model), "the metrics record"):
+    record = evaluation_file(folder, model)
+    with claimed_in_run(record, "the metrics record"):
+        if (problem := place_problem(record, folder=False, writer="`cvqpg eval`")) is not None:
+            raise UsageError(f"{problem}; move it away, and evaluate the run again")
         return folder, evaluate_run(folder, model, device)
 
 
@@ -79,7 +88,7 @@ def export(target: str | Path, encoding: str | None, levels: int | None, slm: tu
     check_memory(read_run(folder)[0], device, "export", "give a smaller --slm", size=slm)
     with staged_output(out, EXPORT, [folder, model or folder / MODEL_FILE], overwrite) as staged:
         record = export_run(folder, encoding, levels, slm, "auto" if aperture is None else aperture or None, staged,
-                            model, device, None if lut is None else read_lut(lut))
+                            model, device, None if lut is None else read_lut(lut), STOPPABLE)
     return out, record
 
 
@@ -123,7 +132,7 @@ def render(target: str | Path, size: tuple[int, int] | None = None, distances: S
     check_memory(config, device, "render", "give a smaller --size or fewer --distance values", size=size,
                  planes=None if distances is None else len(distances))
     with staged_output(out, RENDER, [target], overwrite) as staged:
-        record = render_model(target, staged, size, distances, device)
+        record = render_model(target, staged, size, distances, device, STOPPABLE)
     return out, record
 
 
@@ -145,7 +154,7 @@ def view(run_dirs: Sequence[str | Path], distances: tuple[float, float, float], 
         check_memory(read_run(folder)[0], "cpu", "view", "give a smaller COUNT to --distances",
                      planes=min(SWEEP_BATCH, int(count)))
     with output(out or default_page(folders), PAGE, folders, overwrite) as page:
-        return write_view(folders, page, (start, stop, int(count)), progress=progress)
+        return write_view(folders, page, (start, stop, int(count)), progress, STOPPABLE)
 
 
 def view_of_run(folder: Path, progress: bool = True) -> ViewRecord:
@@ -154,4 +163,4 @@ def view_of_run(folder: Path, progress: bool = True) -> ViewRecord:
     from ..view import write_view
     from .outputs import PAGE, output
     with output(folder / VIEW_FILE, PAGE, [folder], overwrite=True) as page:
-        return write_view([folder], page, progress=progress)
+        return write_view([folder], page, progress=progress, control=STOPPABLE)

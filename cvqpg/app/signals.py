@@ -53,6 +53,15 @@ def check_not_stopped() -> None:
         raise stop_error(_received[0])
 
 
+def raised_if_stopped() -> bool:
+    """A `RunControl.stop_requested` for work that keeps nothing to resume (a render, an export, a page, a
+    search): never a request to stop between two steps, but the first stop signal's exception raised again where
+    the work asks (`check_not_stopped`), so that a command whose signal a callback swallowed stops at its work's
+    next check instead of doing all of it first."""
+    check_not_stopped()
+    return False
+
+
 def _raise_where_the_command_is(signum: int, _frame: object) -> None:
     _record(signum)
     raise stop_error(signum)

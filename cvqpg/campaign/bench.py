@@ -25,7 +25,9 @@ import numpy as np
 import torch
 
 from ..app.encoding import encode_steps
-from ..app.executors import DONE, FAILED, INTERRUPTED, NOT_STARTED, SKIPPED, ExecutorOptions, Task, run_tasks
+from ..app.executors import (DONE, FAILED, INTERRUPTED, NOT_STARTED, SKIPPED, ExecutorOptions, Task,
+                             TaskStopped, ready, run_tasks, unless_stopped)
+from ..app.outputs import place_problem
 from ..app.provenance import machine_record
 from ..app.runner import checkpoint_policy, fit_in_folder, resumed_state, write_fitted_run
 from ..config import BEYOND_RECIPE, FLAT_NAMES, RECIPES, FitConfig, RunOptions
@@ -406,10 +408,17 @@ def check_cells_device(cells: Sequence[Cell], executor: ExecutorOptions) -> None
         raise BenchError("--device cuda: no CUDA GPU is visible to PyTorch; use --device cpu")
 
 
-def check_inputs(plan: BenchPlan, cells: tuple[Cell, ...]) -> None:
-    """Before any fit: every scene file of a cell still to fit decodes, and no finished cell was fitted
-    with other settings."""
-    todo = [c for c in cells if plan.status(plan.cell_dir(c)) != DONE]
+def check_inputs(plan: BenchPlan, cells: tuple[Cell, ...], reusable: Iterable[str] = ()) -> None:
+    """Before any fit: the cells' folders are folders and their records files, not links (`outputs.place_problem`),
+    every scene file of a cell still to fit (not done, nor `reusable`: copied from another bench folder) decodes,
+    and no finished cell was fitted with other settings."""
+    reusable = set(reusable)
+    places = [(plan.folder / CELLS_DIR, True)] + [(plan.cell_dir(c), True) for c in cells] + [
+        (plan.cell_dir(c) / name, False) for c in cells for name in RECORD_FILES]
+    problem = next(filter(None, (place_problem(path, folder, "the bench") for path, folder in places)), None)
+    if problem is not None:
+        raise BenchError(f"{problem}; move it away, or choose another --out")
+    todo = [c for c in cells if plan.status(plan.cell_dir(c)) != DONE and c.name not in reusable]
     for scene in {c.scene.name: c.scene for c in todo}.values():
         if "image" in scene.source:
             check_depth_geometry(load_picture(scene.source["image"]),
@@ -445,15 +454,19 @@ def spectrum_record(recon: torch.Tensor, targets: torch.Tensor, bins: int = SPEC
     return record
 
 
-def adopt_finished(plan: BenchPlan, cells: tuple[Cell, ...], others: Sequence[Path]) -> list[Cell]:
+def adopt_finished(plan: BenchPlan, cells: tuple[Cell, ...], others: Sequence[Path],
+                   control: RunControl = SILENT) -> list[Cell]:
     """Copy into the plan's folder the records (`RECORD_FILES`) of cells that another bench folder has
     finished with the same settings, so that grids sharing cells (the chromatic and ablation grids
-    share their baseline and CVQPG cells with Table 1) fit them once. Returns the cells adopted."""
+    share their baseline and CVQPG cells with Table 1) fit them once, until `control` asks to stop. Returns the
+    cells adopted."""
     adopted = []
     for cell in cells:
         folder = plan.cell_dir(cell)
         if plan.status(folder) == DONE:
             continue
+        if control.should_stop():
+            break
         source = reusable_record(plan, cell, others)
         if source is None:
             continue
@@ -660,22 +673,32 @@ def run_encode_cell(cell: Cell, folder: Path, fractions: Sequence[float], contro
 def _attempt(cell: Cell, folder: Path, rate_distortion: RateDistortionOptions | None, checkpoint_every: int | None,
              control: RunControl) -> tuple[str, str | None]:
     """A cell's task (`executors.Task.work`): `run_cell`, or `run_rate_distortion_cell` where `rate_distortion` is
-    given, with a failure turned into a status, its traceback kept in the cell's `error.log`."""
+    given, with a failure turned into a status, its traceback kept in the cell's `error.log`. Once the task is
+    told to stop, no record that marks the cell finished is written (`executors.unless_stopped`)."""
     try:
-        if rate_distortion is not None and rate_distortion.encode_fractions:
-            if rate_distortion.fits_first:
-                status = run_rate_distortion_cell(cell, folder, rate_distortion, control, checkpoint_every)
-                if status not in (DONE, SKIPPED):
-                    return status, None
-            return run_encode_cell(cell, folder, rate_distortion.encode_fractions, control,
-                                   rate_distortion.encode_rate_losses), None
-        if rate_distortion is not None:
-            return run_rate_distortion_cell(cell, folder, rate_distortion, control, checkpoint_every), None
-        return run_cell(cell, folder, control, checkpoint_every), None
+        with unless_stopped(control, *(folder / name for name in (METRICS_FILE, RD_FILE, ENCODE_FILE))):
+            return _cell_status(cell, folder, rate_distortion, checkpoint_every, control), None
+    except TaskStopped:  # the cell stays unfinished, and resumes on the next run
+        return INTERRUPTED, None
     except Exception as error:  # one broken cell must not cost the rest of the grid; it is reported
         folder.mkdir(parents=True, exist_ok=True)
         (folder / ERROR_FILE).write_text(traceback.format_exc())
         return FAILED, f"{type(error).__name__}: {error} (traceback in {folder / ERROR_FILE})"
+
+
+def _cell_status(cell: Cell, folder: Path, rate_distortion: RateDistortionOptions | None,
+                 checkpoint_every: int | None, control: RunControl) -> str:
+    """`_attempt`'s work, by the grid's kind: the cell's fit, its rate–distortion points or its encode points."""
+    if rate_distortion is not None and rate_distortion.encode_fractions:
+        if rate_distortion.fits_first:
+            status = run_rate_distortion_cell(cell, folder, rate_distortion, control, checkpoint_every)
+            if status not in (DONE, SKIPPED):
+                return status
+        return run_encode_cell(cell, folder, rate_distortion.encode_fractions, control,
+                               rate_distortion.encode_rate_losses)
+    if rate_distortion is not None:
+        return run_rate_distortion_cell(cell, folder, rate_distortion, control, checkpoint_every)
+    return run_cell(cell, folder, control, checkpoint_every)
 
 
 def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int = 1,
@@ -696,17 +719,25 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
     executor = (ExecutorOptions(jobs=jobs, threads=threads) if executor is None else executor).validate()
     check_cells_device(cells, executor)
     outcome = BenchOutcome()
-    for cell in adopt_finished(plan, cells, reuse):
-        outcome.statuses[cell.name] = REUSED
-    check_inputs(plan, cells)
-    todo = []
-    for cell in cells:
-        if cell.name in outcome.statuses:
-            continue
-        if plan.status(plan.cell_dir(cell)) == DONE:
-            outcome.statuses[cell.name] = SKIPPED
-        else:
-            todo.append(cell)
+    reusable = {cell.name for cell in cells
+                if plan.status(plan.cell_dir(cell)) != DONE and reusable_record(plan, cell, reuse) is not None}
+    todo = [cell for cell in cells if cell.name not in reusable and plan.status(plan.cell_dir(cell)) != DONE]
+    check_inputs(plan, cells, reusable)
+    # Ray connected and checked before the first cell is adopted: a refusal writes nothing
+    with ready(executor if todo else ExecutorOptions(), plan.folder):
+        adopted = {cell.name for cell in adopt_finished(plan, cells, reuse, control)}
+        for cell in cells:
+            if cell.name in reusable:  # not adopted where a stop came first
+                outcome.statuses[cell.name] = REUSED if cell.name in adopted else NOT_STARTED
+            elif plan.status(plan.cell_dir(cell)) == DONE:
+                outcome.statuses[cell.name] = SKIPPED
+        _run_cells(plan, todo, executor, control, rate_distortion, outcome)
+    return outcome
+
+
+def _run_cells(plan: BenchPlan, todo: list[Cell], executor: ExecutorOptions, control: RunControl,
+               rate_distortion: RateDistortionOptions, outcome: BenchOutcome) -> None:
+    """The tasks of the cells `todo` on `executor` (`run_plan`), their statuses and failures into `outcome`."""
     preset = PRESETS[plan.preset]
     rd_options = (dataclasses.replace(rate_distortion, budget_fractions=preset.budget_fractions,
                                       encode_fractions=preset.encode_fractions,
@@ -720,5 +751,4 @@ def run_plan(plan: BenchPlan, cells: tuple[Cell, ...] | None = None, jobs: int =
         outcome.statuses[name] = status
         if error is not None:
             outcome.failures[name] = error
-    return outcome
 

@@ -88,11 +88,25 @@ def fit_bench(planned: PlannedBench, request: BenchRequest, progress: bool = Tru
     keep_freed_memory()
     check_cells_device(cells, executor)
     check_fits_at_once(peak_bytes(cells, 1), executor, plan.cells[0].run.device)
+    check_finished_records(plan, cells, request.reuse)
     with signals.StopRequest() as stop_requested:
         outcome = run_plan(plan, cells, control=RunControl(progress=progress, stop_requested=stop_requested),
                            reuse=list(request.reuse),
                            rate_distortion=RateDistortionOptions(request.fits, request.finetune), executor=executor)
     return outcome, stop_requested.signals[0] if stop_requested.signals else None
+
+
+def check_finished_records(plan: BenchPlan, cells: tuple[Cell, ...], reuse: tuple[Path, ...]) -> None:
+    """The records of the finished cells, the folder's own and those that `--reuse` would copy, are ones the
+    summary reads (`report.read_cell_record`, an `InputError` naming the first that is not): checked before the
+    first cell is copied or fitted, not when the summary is written after them."""
+    from .bench import DONE, reusable_record
+    from .report import RECORD_KEYS, read_cell_record
+    for cell in cells:
+        folder = plan.cell_dir(cell)
+        source = folder if plan.status(folder) == DONE else reusable_record(plan, cell, reuse)
+        for name in RECORD_KEYS if source is not None else ():
+            read_cell_record(source / name)
 
 
 def summarise_bench(request: BenchRequest) -> Path:
@@ -115,7 +129,8 @@ def write_results(root: str | Path, out: str | Path, overwrite: bool = False) ->
     root = Path(root)
     check_recorded(root)
     with output(out, DOCUMENT, [], overwrite) as checked:
+        text = document(root)  # what can refuse, before the first figure is drawn
         check_not_stopped()  # the figures are outputs too, beside the document that `output` gates
         figures = write_figures(root, checked.parent, overwrite)
-        write_atomic(checked, document(root))
+        write_atomic(checked, text)
     return [checked, *figures]

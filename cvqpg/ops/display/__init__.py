@@ -10,6 +10,9 @@ displays, the PyTorch formulas otherwise (`torch`, `triton`, and the complex fie
 
 from __future__ import annotations
 
+import functools
+
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -22,41 +25,46 @@ from . import cpu, reference
 __all__ = ["shown_field"]
 
 
+@functools.lru_cache(maxsize=8)
 def _tables(display: Display) -> tuple:
-    """The kernels' view of the phase levels: whether uniform, the phase of each level (float32), and the lookup
-    table's phases modulo 2π sorted (float64) with their levels."""
+    """The kernels' view of the phase levels: whether uniform, the field e^{iθ} each level shows (complex64), and the
+    lookup table's phases modulo 2π sorted (float64) with their levels; made once per display."""
     phases = level_phases(display)
     ordered, order = torch.sort(torch.remainder(phases.double(), 2 * torch.pi))
-    return display.lut is None, phases.numpy(), ordered.numpy(), order.numpy()
+    fields = np.empty(display.levels, dtype=np.complex64)
+    cpu.level_fields(phases.numpy(), fields)
+    return display.lut is None, fields, ordered.numpy(), order.numpy()
 
 
 class _FusedShown(torch.autograd.Function):
-    """`reference.shown_field` of a phase-only display as one pass each way (`cpu`)."""
+    """`reference.shown_field` of a phase-only display as one pass each way (`cpu`); the forward pass keeps the
+    gray level of each pixel (uint16) for the backward one."""
 
     @staticmethod
     def forward(ctx, hologram: Tensor, grid: Grid, display: Display) -> Tensor:
-        ctx.save_for_backward(hologram)
-        ctx.grid, ctx.display = grid, display
         channels, height, width = hologram.shape
         canvas = display.canvas_for(height, width)
-        out = hologram.new_zeros(channels, grid.padded_height, grid.padded_width)
         inner_top, inner_left = canvas_offset(canvas, (height, width))
-        if canvas != (height, width):  # the canvas beyond the hologram shows gray level 0
-            top, left = grid.top - inner_top, grid.left - inner_left
-            out[:, top:top + canvas[0], left:left + canvas[1]] = torch.polar(torch.ones(()), level_phases(display)[0])
-        uniform, phases, ordered, order = _tables(display)
-        cpu.shown_field(cpu_array(hologram), display.encoding == "dpac", display.levels, uniform, phases, ordered,
-                        order, grid.top, grid.left, out.numpy())
+        placed = (grid.top - inner_top, grid.left - inner_left, *canvas)
+        background = complex(torch.polar(torch.ones(()), level_phases(display)[0]))  # beyond the hologram: level 0
+        uniform, fields, ordered, order = _tables(display)
+        out = hologram.new_empty(channels, grid.padded_height, grid.padded_width)
+        grays = torch.empty(hologram.shape, dtype=torch.int16)  # read as uint16: up to 2^16 levels
+        cpu.shown_field(cpu_array(hologram), display.encoding == "dpac", display.levels, uniform,
+                        cpu.LEVEL_MARGIN * display.levels, fields, ordered, order, grid.top, grid.left, placed,
+                        background, out.numpy(), grays.numpy().view(np.uint16))
+        ctx.save_for_backward(hologram, grays)
+        ctx.grid, ctx.display = grid, display
         return out
 
     @staticmethod
     def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None]:
-        (hologram,) = ctx.saved_tensors
+        hologram, grays = ctx.saved_tensors
         grid, display = ctx.grid, ctx.display
-        uniform, phases, ordered, order = _tables(display)
+        _, fields, _, _ = _tables(display)
         gradient = torch.empty_like(hologram)
-        cpu.shown_field_backward(cpu_array(hologram), cpu_array(grad), display.encoding == "dpac", display.levels,
-                                 uniform, phases, ordered, order, DPAC_SLOPE_AMPLITUDE, grid.top, grid.left,
+        cpu.shown_field_backward(cpu_array(hologram), grays.numpy().view(np.uint16), cpu_array(grad),
+                                 display.encoding == "dpac", fields, DPAC_SLOPE_AMPLITUDE, grid.top, grid.left,
                                  gradient.numpy())
         return gradient, None, None
 
