@@ -1,22 +1,50 @@
 """Shared fixtures: small, fast configurations (guard band narrowed for speed where physics allows)."""
 
+from __future__ import annotations
+
 import gc
 import os
 import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
-import torch
+from filelock import FileLock
 from PIL import Image
 
-if not torch.cuda.is_available():
-    # The Triton kernels' tests (test_ops_gpu.py) run them through Triton's interpreter on the CPU,
-    # which Triton reads where a kernel is defined: before cvqpg's first Triton import.
-    os.environ.setdefault("TRITON_INTERPRET", "1")
+if TYPE_CHECKING:
+    from cvqpg import FitConfig
 
-from cvqpg import FitConfig  # noqa: E402
+# pytest-xdist runs the suite in as many worker processes as the machine has cores (`-n auto`, pyproject.toml):
+# each takes one thread, as do the commands they start in subprocesses, since two workers of two threads each spent
+# a third more CPU time on OpenMP's waiting threads. Run alone (`-n 0`), the suite takes two, as a fit does on a
+# CI-like machine. Numba's pool keeps its size, so that tests may still ask for more (`numba.set_num_threads`).
+# pytest caches the assertion-rewritten test modules as bytecode, unless writing bytecode is turned off
+# (PYTHONDONTWRITEBYTECODE, as container images often set it): then every process of the suite would rewrite and
+# compile each of them again, seconds per process. The suite keeps its own caches (`__pycache__`, ignored by git).
+sys.dont_write_bytecode = False
+XDIST_WORKER = os.environ.get("PYTEST_XDIST_WORKER")
+TEST_THREADS = 1 if XDIST_WORKER else 2
+if XDIST_WORKER:
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-torch.set_num_threads(2)
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Where tests run (not in pytest-xdist's controller, which only hands them out and so imports no PyTorch):
+    the threads above, and Triton's interpreter where there is no GPU."""
+    if getattr(config.option, "dist", "no") != "no" and not hasattr(config, "workerinput"):
+        return
+    import numba
+    import torch
+
+    if not torch.cuda.is_available():
+        # The Triton kernels' tests (test_ops_gpu.py) run them through Triton's interpreter on the CPU,
+        # which Triton reads where a kernel is defined: before cvqpg's first Triton import.
+        os.environ.setdefault("TRITON_INTERPRET", "1")
+    torch.set_num_threads(TEST_THREADS)
+    numba.set_num_threads(min(TEST_THREADS, numba.config.NUMBA_NUM_THREADS))
 
 
 # What the session imported lives as long as the session: frozen, the full garbage collections that each fit's
@@ -48,6 +76,8 @@ def pytest_sessionfinish(session: pytest.Session) -> None:
 @pytest.fixture
 def tiny_config() -> FitConfig:
     """64×48 px, two planes, a narrow guard band: a fit step costs a few tens of ms."""
+    from cvqpg import FitConfig
+
     return FitConfig.create(width=64, height=48, steps=20, curvature_warmup=5, guard_band_px=32)
 
 
@@ -73,11 +103,33 @@ def module_scenes_dir(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def finished_run(tmp_path_factory):
+def built_once(tmp_path_factory) -> Callable[[str, Callable[[Path], None]], Path]:
+    """`built_once(name, build)`: the folder that `build(folder)` makes, made once for the whole test session. Under
+    pytest-xdist the first worker to ask makes it in the folder that all workers share; the others wait for it and
+    read it. Its users must not change it (copy it to change it)."""
+
+    def folder_built(name: str, build: Callable[[Path], None]) -> Path:
+        if XDIST_WORKER is None:
+            folder = tmp_path_factory.mktemp(name) / name
+            build(folder)
+            return folder
+        folder = tmp_path_factory.getbasetemp().parent / name
+        with FileLock(f"{folder}.lock"):
+            if not folder.with_name(f"{name}.built").exists():
+                build(folder)
+                folder.with_name(f"{name}.built").touch()
+        return folder
+
+    return folder_built
+
+
+@pytest.fixture(scope="session")
+def finished_run(built_once):
     """One finished run for every module: the demo scene at 32×24 px, RGB, two planes, 2 steps. Read it, or copy it
     (`shutil.copytree`) to change it: commands such as `eval` and `export` write into a run."""
     from cvqpg.cli import main
 
-    out = tmp_path_factory.mktemp("finished") / "run"
-    assert main(["fit", "--size", "32", "24", "--steps", "2", "--quiet", "--out", str(out)]) == 0
-    return out
+    def fit(out: Path) -> None:
+        assert main(["fit", "--size", "32", "24", "--steps", "2", "--quiet", "--out", str(out)]) == 0
+
+    return built_once("finished_run", fit)

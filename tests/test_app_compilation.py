@@ -170,7 +170,9 @@ def frozen_clock(monkeypatch) -> FrozenClock:
     return clock
 
 
-def test_a_compile_shows_a_status_line_counting_the_seconds_on_a_terminal(frozen_clock):
+def test_a_compile_shows_a_status_line_counting_the_seconds_on_a_terminal(frozen_clock, monkeypatch):
+    monkeypatch.setattr(compilation, "REDRAW_SECONDS", 0.01)
+
     def second_passes():  # one second between the redraws, on the status line's clock
         frozen_clock.now += 1.0
 

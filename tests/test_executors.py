@@ -25,6 +25,10 @@ from cvqpg.cli import main
 from cvqpg.control import SILENT, RunControl
 from cvqpg.storage import load_checkpoint
 
+# Under pytest-xdist one worker runs the whole module: its Ray session and clusters are the machine's, one at a
+# time, and the session is started once.
+pytestmark = pytest.mark.xdist_group("ray")
+
 
 GRID = Overrides(size=(48, 36), steps=4, curvature_warmup=1)  # the quick preset: four cells
 CELL_FILES = ("config.json", "metrics.json", "model.safetensors", "history.csv", "spectrum.json")
@@ -43,7 +47,9 @@ def local_ray():
     """A Ray instance of this process, shared by the module's tests that connect to no cluster of their own:
     started once (two GPUs declared on a machine that may have none), stopped when the module ends."""
     if not ray.is_initialized():
-        ray.init(num_cpus=4, num_gpus=2, include_dashboard=False, logging_level="ERROR")
+        # "local": a new instance even where an earlier test (on this pytest-xdist worker) left RAY_ADDRESS or a
+        # cluster that Ray would otherwise connect to
+        ray.init(address="local", num_cpus=4, num_gpus=2, include_dashboard=False, logging_level="ERROR")
     yield
 
 

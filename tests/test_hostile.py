@@ -25,6 +25,7 @@ second writer of one output is refused, and refused resumes keep their interrupt
 from __future__ import annotations
 
 import faulthandler
+import functools
 import json
 import math
 import os
@@ -1027,12 +1028,17 @@ class Template(NamedTuple):
 
 
 @pytest.fixture(scope="module")
-def template(finished_run, tmp_path_factory) -> Template:
-    t = tmp_path_factory.mktemp("hostile") / "template"
+def template(finished_run, built_once) -> Template:
+    """The hostile cases' folder (`build_template`), made once for the session."""
+    fresh = frozenset(p.relative_to(finished_run).as_posix() for p in finished_run.rglob("*"))
+    return Template(built_once("hostile_template", functools.partial(build_template, finished_run)), fresh)
+
+
+def build_template(finished_run: Path, t: Path) -> None:
+    """In `t`: runs of every kind, damaged copies, every command's outputs, images, scenes, traps."""
     t.mkdir()
     run_a, run_b = t / "run_a", t / "run_b"
     shutil.copytree(finished_run, run_a)
-    fresh = frozenset(p.relative_to(run_a).as_posix() for p in run_a.rglob("*"))
     assert main(["fit", "--size", "48", "36", "--color", "gray", "--planes", "1", "--num-gaussians", "20",
                  "--steps", "2", "--quiet", "--out", str(run_b)]) == 0
 
@@ -1113,7 +1119,6 @@ def template(finished_run, tmp_path_factory) -> Template:
     codec_traps(t)
     batch_traps(t)
     record_traps(t)
-    return Template(t, fresh)
 
 
 def hostile_environment(monkeypatch, folder: Path) -> None:

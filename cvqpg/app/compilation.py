@@ -24,6 +24,7 @@ import torch
 from numba.core import event
 
 from ..config import FitConfig, RunOptions
+from ..display import Display
 from ..ops.propagation import SPECTRUM_BLOCK_ROWS, plane_groups
 
 if TYPE_CHECKING:
@@ -32,6 +33,7 @@ if TYPE_CHECKING:
 # Shown on the status line: a demo fit's cold compile on 2 idle cores, the rasterizer's loops here and the
 # rest alongside, as `benchmarks/first_step.py` measures it (docs/performance.md, "First run")
 COMPILE_ESTIMATE_SECONDS = 23
+REDRAW_SECONDS = 1.0  # how often the status line's count is redrawn on a terminal
 PROBE_SIZE_PX = (32, 24)  # above the SSIM window (11 px), so that every loss kernel runs
 PROBE_PRIMITIVES = 24
 # With this guard band the probe's padded grid spans more than one block of the propagation's
@@ -39,11 +41,14 @@ PROBE_PRIMITIVES = 24
 # (array layouts), so the probe compiles the specialisations a fit calls, not those of a one-block grid.
 PROBE_GUARD_BAND_PX = SPECTRUM_BLOCK_ROWS // 4
 
-# Fits whose kernels differ in their argument types differ in their plane count only (the
-# propagation takes one array per plane; colour, primitive, curvature and QPF change values, not
-# types). One probe each covers the built-in scenes, the bench presets and every default; another
-# --planes compiles its few propagation kernels on its first run.
-PRECOMPILED_KINDS = tuple(FitConfig.create(num_planes=planes) for planes in (1, 2))
+# Fits whose kernels differ in their argument types differ in their plane count (the propagation takes one array
+# per plane; colour, primitive, curvature and QPF change values, not types), their display (a phase-only display
+# runs its encoding's kernels) and their phase terms (`cvqpg.phase`: the rasterizer's loops take the terms'
+# arrays). One probe each covers the built-in scenes, the bench presets and every default; another --planes
+# compiles its few propagation kernels on its first run.
+PRECOMPILED_KINDS = (*(FitConfig.create(num_planes=planes) for planes in (1, 2)),
+                     FitConfig.create(num_planes=2, display=Display.create("dpac")),
+                     FitConfig.create(num_planes=2, phase="axes+tilt"))
 
 
 def probe_config(config: FitConfig) -> FitConfig:
@@ -190,7 +195,7 @@ class CompileStatus(event.Listener):
         return f"compiling CPU kernels (first run only, about {COMPILE_ESTIMATE_SECONDS} s on 2 cores): {elapsed:.0f} s"
 
     def _show(self) -> None:
-        """On a terminal the line is redrawn every second; in a log file it is written once."""
+        """On a terminal the line is redrawn every `REDRAW_SECONDS`; in a log file it is written once."""
         while not self._compiling.wait(0.1):
             if self._done.is_set():
                 return
@@ -201,7 +206,7 @@ class CompileStatus(event.Listener):
         while not self._done.is_set():
             self.stream.write("\r" + self._line(time.perf_counter() - self._start))
             self.stream.flush()
-            self._done.wait(1.0)
+            self._done.wait(REDRAW_SECONDS)
 
     def __enter__(self) -> "CompileStatus":
         self._start = time.perf_counter()
