@@ -265,6 +265,7 @@ def models(folder, names):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("ray")  # with the other tests that start Ray (test_executors.py), one at a time
 def test_a_batch_on_ray_gives_the_local_executors_results_bit_for_bit(tmp_path):
     scenes = scene_folders(tmp_path / "scenes", corrupt=("c",))
     arguments = ["batch", str(scenes), *TINY, "--threads", "1"]

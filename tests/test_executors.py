@@ -25,8 +25,8 @@ from cvqpg.cli import main
 from cvqpg.control import SILENT, RunControl
 from cvqpg.storage import load_checkpoint
 
-# Under pytest-xdist one worker runs the whole module: its Ray session and clusters are the machine's, one at a
-# time, and the session is started once.
+# Under pytest-xdist one worker runs the whole module, with every other test that may start Ray (test_batch.py,
+# test_hostile.py): their Ray sessions and clusters are the machine's, one at a time.
 pytestmark = pytest.mark.xdist_group("ray")
 
 

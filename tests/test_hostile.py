@@ -178,11 +178,17 @@ class Case(NamedTuple):
 
 
 PERMISSIONS, SLOW = "permissions", "slow"
+# Under pytest-xdist, every test that may start Ray runs on one worker, one after another: two Ray sessions of one
+# machine, started at once by two workers, find each other's cluster.
+RAY_GROUP = pytest.mark.xdist_group("ray")
 
 
 def cases(group: str, *rows: tuple) -> list:
+    """The table's rows as parameters: slow where marked, and a case that may start Ray on the Ray tests' worker
+    (`RAY_GROUP`)."""
     return [pytest.param(Case(f"{group}:{name}", argv, fragment, PERMISSIONS in marks), id=f"{group}:{name}",
-                         marks=[pytest.mark.slow] if SLOW in marks else [])
+                         marks=[*([pytest.mark.slow] if SLOW in marks else []),
+                                *([RAY_GROUP] if "--executor ray" in argv else [])])
             for name, argv, fragment, *marks in rows]
 
 
