@@ -42,13 +42,18 @@ def reference(tmp_path_factory):
     return plan
 
 
+LOCAL_RAY_RESOURCES = {"CPU": 4.0, "GPU": 2.0}
+
+
 @pytest.fixture
 def local_ray():
     """A Ray instance of this process, shared by the module's tests that connect to no cluster of their own:
     started once (two GPUs declared on a machine that may have none), stopped when the module ends."""
-    if not ray.is_initialized():
-        # "local": a new instance even where an earlier test (on this pytest-xdist worker) left RAY_ADDRESS or a
-        # cluster that Ray would otherwise connect to
+    if not ray.is_initialized() or {name: ray.cluster_resources().get(name)
+                                    for name in LOCAL_RAY_RESOURCES} != LOCAL_RAY_RESOURCES:
+        # Another session (a command of an earlier test that connected to a cluster left on this machine) is not
+        # this module's: its tests count on four CPUs. "local": a new instance, whatever RAY_ADDRESS says.
+        ray.shutdown()
         ray.init(address="local", num_cpus=4, num_gpus=2, include_dashboard=False, logging_level="ERROR")
     yield
 
@@ -231,7 +236,7 @@ def test_a_stop_reaches_running_ray_tasks_and_those_not_started(local_ray, tmp_p
     outcome = run_tasks(tasks, ExecutorOptions("ray", threads=1), control, "stop", tmp_path)
     started = {path.name for path in tmp_path.glob("t*")}
     assert outcome == {name: (INTERRUPTED if name in started else NOT_STARTED, None) for name in outcome}
-    assert len(started) == 4
+    assert len(started) == 4, f"{sorted(started)} started on {ray.cluster_resources()}"
 
 
 @pytest.mark.slow
