@@ -219,7 +219,7 @@ def test_fractional_gpus_give_four_concurrent_tasks_two_devices_each_twice(local
 @pytest.mark.slow
 def test_a_stop_reaches_running_ray_tasks_and_those_not_started(local_ray, tmp_path):
     """Six tasks on four CPUs: once the first four run, the stop request reaches them through the monitor actor;
-    the two queued ones then start, hear it at once and do nothing."""
+    the queued ones then start, hear it at once and do nothing."""
     def wait_for_stop(folder: str, name: str, control: RunControl) -> tuple[str, None]:
         if control.should_stop():
             return NOT_STARTED, None
@@ -236,7 +236,10 @@ def test_a_stop_reaches_running_ray_tasks_and_those_not_started(local_ray, tmp_p
     outcome = run_tasks(tasks, ExecutorOptions("ray", threads=1), control, "stop", tmp_path)
     started = {path.name for path in tmp_path.glob("t*")}
     assert outcome == {name: (INTERRUPTED if name in started else NOT_STARTED, None) for name in outcome}
-    assert len(started) == 4, f"{sorted(started)} started on {ray.cluster_resources()}"
+    # At least the four that the stop waited for. Ray lends the CPU of a task blocked in `ray.get` (a running one's
+    # poll of the monitor) to a queued one, so on a busy machine a fifth may start before the stop reaches it; it
+    # then hears it at its first poll.
+    assert len(started) >= 4, f"{sorted(started)} started on {ray.cluster_resources()}"
 
 
 @pytest.mark.slow
